@@ -1,0 +1,5 @@
+import sys
+
+from jaxplush.cli import main
+
+sys.exit(main())

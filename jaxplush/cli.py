@@ -1,0 +1,152 @@
+"""Command line: ``jaxplush simulate | render | info``.
+
+Every user error prints one clear message (no traceback), exits non-zero and leaves no
+partial output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import warnings
+
+import numpy as np
+
+EXIT_USAGE = 2
+EXIT_FAILED = 3
+
+
+def _parser():
+    p = argparse.ArgumentParser(prog="jaxplush", description="Pressurised mass-spring plushies in JAX.")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    s = sub.add_parser("simulate", help="simulate a scene and write an HDF5 trajectory")
+    s.add_argument("scene", help="extended-OBJ scene file")
+    s.add_argument("--steps", type=int, required=True, help="number of time steps")
+    s.add_argument("--dt", type=float, required=True, help="time step in seconds")
+    s.add_argument("--save-every", type=int, default=None, help="steps between saved frames (default: steps/100)")
+    s.add_argument("--integrator", default="verlet", help="integrator (default: verlet)")
+    s.add_argument("--out", required=True, help="output trajectory (.h5)")
+    s.add_argument("--x64", action="store_true", help="run in float64 (reference runs)")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    r = sub.add_parser("render", help="render a trajectory to an animation or a still image")
+    r.add_argument("trajectory", help="trajectory .h5 from 'jaxplush simulate'")
+    r.add_argument("--out", required=True, help="output .gif/.mp4 (animation) or .png/.jpg/.pdf/.svg with --frame")
+    r.add_argument("--frame", type=int, default=None, help="render only this frame (negative counts from the end)")
+    r.add_argument("--fps", type=float, default=None)
+    r.add_argument("--max-frames", type=int, default=200)
+
+    i = sub.add_parser("info", help="describe a scene: counts, parameters, volume, pressure, stable dt")
+    i.add_argument("scene")
+    i.add_argument("--dt", type=float, default=None, help="check this dt against the stability estimate")
+    return p
+
+
+def main(argv=None):
+    args = _parser().parse_args(argv)
+    from jaxplush.errors import JaxplushError
+    try:
+        if args.cmd == "simulate":
+            return _simulate(args)
+        if args.cmd == "render":
+            return _render(args)
+        return _info(args)
+    except JaxplushError as e:
+        print(f"jaxplush {args.cmd}: error: {e}", file=sys.stderr)
+        return EXIT_FAILED if e.__class__.__name__ == "SimulationError" else EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"jaxplush {args.cmd}: interrupted; nothing written", file=sys.stderr)
+        return 130
+
+
+def _check_out(path, exts):
+    from jaxplush.errors import JaxplushError
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in exts:
+        raise JaxplushError(f"{path}: output must end in {' or '.join(exts)}")
+    d = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(d):
+        raise JaxplushError(f"{path}: output directory {d} does not exist")
+
+
+def _simulate(args):
+    from jaxplush.errors import JaxplushError
+    if args.steps < 1:
+        raise JaxplushError(f"--steps must be >= 1, got {args.steps}")
+    if not (np.isfinite(args.dt) and args.dt > 0):
+        raise JaxplushError(f"--dt must be a positive number, got {args.dt}")
+    if args.save_every is not None and args.save_every < 1:
+        raise JaxplushError(f"--save-every must be >= 1, got {args.save_every}")
+    _check_out(args.out, (".h5", ".hdf5"))
+    if args.x64:
+        import jax
+        jax.config.update("jax_enable_x64", True)
+    import jaxplush
+    if args.integrator not in jaxplush.INTEGRATORS:
+        raise JaxplushError(f"unknown integrator {args.integrator!r}; available: {', '.join(jaxplush.INTEGRATORS)}")
+    scene = jaxplush.load_scene(args.scene)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        traj = jaxplush.simulate(scene, args.steps, args.dt, args.save_every, args.integrator,
+                                 progress=not args.quiet)
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    t = time.perf_counter()
+    traj.save(args.out)
+    vols = ", ".join(f"{n}: {v * 1e6:.6g} cm³ ({v / v0:.3f}× rest)" for n, v, v0 in
+                     zip(traj.object_names, traj.volumes[-1], traj.volumes[0]))
+    print(f"simulated {args.steps} steps of {args.dt:g} s ({args.steps * args.dt:.4g} s) in {traj.wall_time:.2f} s "
+          f"wall ({args.steps / traj.wall_time:,.0f} steps/s incl. compile); wrote {len(traj.times)} frames to "
+          f"{args.out} ({time.perf_counter() - t:.2f} s); final volume {vols}")
+    return 0
+
+
+def _render(args):
+    from jaxplush.render import render
+    t = time.perf_counter()
+    out = render(args.trajectory, args.out, frame=args.frame, fps=args.fps, max_frames=args.max_frames)
+    print(f"wrote {out} ({time.perf_counter() - t:.1f} s)")
+    return 0
+
+
+def _info(args):
+    import jaxplush
+    from jaxplush import stability
+    scene = jaxplush.load_scene(args.scene)
+    sim = jaxplush.make_simulator(scene, args.dt or 1e-4)
+    p = sim.params()
+    topo = sim.topology
+    vols = scene.volumes()
+    press = scene.rest_pressure()
+    print(f"scene {scene.path}: {scene.n_objects} object(s), {scene.n_vertices} vertices, "
+          f"{len(topo.edges)} springs, {len(scene.faces)} faces")
+    g = scene.gravity
+    print(f"  gravity ({g[0]:g}, {g[1]:g}, {g[2]:g}) m/s², floor "
+          f"{'none' if scene.floor is None else f'y = {scene.floor:g} m'}, temperature {scene.temperature:g} K")
+    print(f"  compiled terms: {', '.join(sim.terms.names())}")
+    for i, o in enumerate(scene.objects):
+        e = int((topo.edge_object == i).sum())
+        print(f"  object {i} {o.name!r}: {o.n_vertices} vertices, {e} edges, {o.n_faces} faces, "
+              f"{len(o.fixed)} fixed")
+        print(f"    k_structural {p.k_structural[i]:g} N/m, damping {p.damping[i]:g}, dashpot {p.dashpot[i]:g} N s/m, "
+              f"drag {p.drag[i]:g} 1/s, total_weight {p.total_weight[i]:g} kg, "
+              f"nmol {p.nmol[i]:g}{'' if o.has_gas else ' (no gas)'}")
+        print(f"    volume {vols[i] * 1e6:.6g} cm³, rest pressure {press[i]:.6g} Pa, "
+              f"edge length {topo.rest_length[topo.edge_object == i].min():.4g}–"
+              f"{topo.rest_length[topo.edge_object == i].max():.4g} m")
+    est = stability.estimate(sim, p)
+    print(f"  stability (Verlet, at rest): omega_max {est.omega_max:.5g} rad/s, damping rate {est.gamma_max:.4g} 1/s")
+    print(f"  largest stable dt {est.dt_max:.4g} s (use <= {0.9 * est.dt_max:.4g} s); "
+          f"Gershgorin safe bound {est.dt_gershgorin:.4g} s")
+    if args.dt:
+        ok = args.dt <= est.dt_max
+        print(f"  dt {args.dt:g} s is {'within' if ok else 'ABOVE'} the limit; real time needs "
+              f">= {1 / args.dt:,.0f} steps/s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,77 @@
+"""Health checks, energies and blow-up reports.
+
+Inside ``jit`` nothing raises: the rollout carries an (O,) int32 status code per object
+(../shared/style.md §2.5). After the run, outside ``jit``, :func:`raise_for_status` turns the
+first failure into a :class:`jaxplush.errors.SimulationError` naming step, object and cause.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxplush import model
+from jaxplush.types import VOLUME_EPS
+
+OK = 0
+VOLUME_CLAMPED = 1   # warning: V < eps V0, the pressure clamp is active
+NON_FINITE = 2       # error: a position became NaN or infinite
+INVERTED = 3         # error: the enclosed volume became zero or negative
+ERROR = NON_FINITE   # codes >= ERROR are failures
+
+MESSAGES = {
+    OK: "ok",
+    VOLUME_CLAMPED: f"volume fell below {VOLUME_EPS:g} of its rest volume (pressure clamp active)",
+    NON_FINITE: "positions became non-finite (NaN or infinite)",
+    INVERTED: "the enclosed volume became zero or negative (the mesh turned inside out)",
+}
+
+
+def object_status(topo, terms, x):
+    """(O,) int32 status code of every object at positions x (V, 3)."""
+    finite = model.per_object_sum(topo, jnp.isfinite(x).all(axis=1).astype(jnp.int32)) == jnp.asarray(
+        topo.count, jnp.int32)
+    code = jnp.where(finite, OK, NON_FINITE)
+    if terms.gas:
+        vol = model.object_volumes(topo, x)
+        v0 = jnp.asarray(topo.rest_volume, x.dtype)
+        code = jnp.where(finite & (vol <= 0), INVERTED, code)
+        code = jnp.where(finite & (vol > 0) & (vol < VOLUME_EPS * v0), VOLUME_CLAMPED, code)
+    return code.astype(jnp.int32)
+
+
+def energies(sim, params, state):
+    """Energies (J) of a state: dict of kinetic, spring, gas, gravity and total (floats).
+
+    For the Verlet state the velocity at the integer step is estimated to second order as
+    v_n = u_n + a_n dt / 2 (u_n is the half-step velocity).
+    """
+    topo = sim.topology
+    x, u = state
+    a, _ = _accel(sim, params, x, u)
+    v = u + 0.5 * sim.dt * a
+    kin = model.kinetic_energy(topo, params, v)
+    d = x[topo.edges[:, 0]] - x[topo.edges[:, 1]]
+    l = jnp.sqrt(jnp.sum(d * d, axis=-1) + topo.length_eps ** 2)
+    spring = jnp.sum(0.5 * params.k_structural[topo.edge_object] * (l - topo.rest_length) ** 2)
+    gas = jnp.sum(model.gas_energy(topo, params, x, sim.scene.temperature)) if sim.terms.gas else 0.0
+    grav = -jnp.sum(model.vertex_mass(topo, params) * (x @ jnp.asarray(sim.scene.gravity, x.dtype)))
+    out = dict(kinetic=kin, spring=spring, gas=gas, gravity=grav)
+    out["total"] = kin + spring + gas + grav
+    return {k: float(v) for k, v in out.items()}
+
+
+def _accel(sim, params, x, v):
+    f, vol = sim.force_fn(params, x, v)
+    return f / model.vertex_mass(sim.topology, params)[:, None] + jnp.asarray(sim.scene.gravity, x.dtype), vol
+
+
+def first_failure(codes_by_frame):
+    """From (T, O) codes, the first (frame, object, code) with code >= ERROR, or None."""
+    codes = np.asarray(codes_by_frame)
+    bad = codes >= ERROR
+    if not bad.any():
+        return None
+    t = int(np.argmax(bad.any(axis=1)))
+    o = int(np.argmax(bad[t]))
+    return t, o, int(codes[t, o])

@@ -1,0 +1,90 @@
+"""HDF5 trajectories: one schema for ``simulate`` output and fitting targets.
+
+Datasets: ``positions`` float [T, V, 3] (m), ``times`` float [T] (s), ``faces`` int32 [F, 3]
+(0-based, global), ``object_id`` int32 [V], ``object_names`` (UTF-8 strings [O]).
+Attributes: ``dt``, ``integrator``, ``steps``, ``save_every``, ``floor`` (NaN: none),
+``gravity`` [3], ``temperature``, one (O,) array per parameter (``k_structural``, ``damping``,
+``dashpot``, ``drag``, ``nmol``, ``total_weight``), ``jaxplush_version``, ``scene`` (the full
+scene text) and ``scene_path``. Files are written atomically (temp file, then rename).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+
+import h5py
+import numpy as np
+
+from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.types import PARAM_NAMES
+
+
+@contextlib.contextmanager
+def atomic_path(path, suffix=None):
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only on success."""
+    path = os.fspath(path)
+    d = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(d):
+        raise JaxplushError(f"{path}: output directory {d} does not exist")
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=suffix or os.path.splitext(path)[1])
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+def save_trajectory(traj, path):
+    """Write a :class:`jaxplush.simulate.Trajectory` to ``path`` atomically."""
+    from jaxplush import __version__
+    with atomic_path(path, ".h5") as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.create_dataset("positions", data=np.asarray(traj.positions), compression="gzip", compression_opts=1)
+            f.create_dataset("times", data=np.asarray(traj.times))
+            f.create_dataset("faces", data=np.asarray(traj.faces, np.int32))
+            f.create_dataset("object_id", data=np.asarray(traj.object_id, np.int32))
+            f.create_dataset("object_names", data=np.asarray(traj.object_names, dtype=object),
+                             dtype=h5py.string_dtype("utf-8"))
+            a = f.attrs
+            a["dt"] = float(traj.dt)
+            a["integrator"] = traj.integrator
+            a["steps"] = int(traj.steps)
+            a["save_every"] = int(traj.save_every)
+            a["floor"] = np.nan if traj.floor is None else float(traj.floor)
+            a["gravity"] = np.asarray(traj.gravity, np.float64)
+            a["temperature"] = float(traj.temperature)
+            for name in PARAM_NAMES:
+                a[name] = np.asarray(getattr(traj.params, name), np.float64)
+            a["jaxplush_version"] = __version__
+            a["scene"] = traj.scene_text
+            a["scene_path"] = traj.scene_path
+            a["wall_time"] = float(traj.wall_time)
+    return os.fspath(path)
+
+
+def load_trajectory(path):
+    """Read a trajectory file into a dict of numpy arrays and attributes (validated shapes)."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise TrajectoryError(path, "no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise TrajectoryError(path, "not an HDF5 file") from None
+    with f:
+        for key in ("positions", "faces"):
+            if key not in f:
+                raise TrajectoryError(path, f"missing dataset '{key}'")
+        out = {k: f[k][()] for k in f.keys() if isinstance(f[k], h5py.Dataset)}
+        out["attrs"] = {k: f.attrs[k] for k in f.attrs}
+    pos = out["positions"]
+    if pos.ndim != 3 or pos.shape[2] != 3:
+        raise TrajectoryError(path, f"'positions' must have shape [T, N, 3], got {list(pos.shape)}")
+    if "object_names" in out:
+        out["object_names"] = [n.decode() if isinstance(n, bytes) else str(n) for n in out["object_names"]]
+    return out

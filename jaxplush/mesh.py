@@ -1,0 +1,211 @@
+"""Mesh checks and static topology (numpy only; never traced).
+
+Everything here runs once, before any JAX tracing: it validates that each object is a
+closed, manifold, consistently oriented triangle mesh, orients it outward, and builds the
+static index tables the compiled step closes over (unique edges, ordered one-rings).
+
+Shape letters (also in :mod:`jaxplush.types`): V vertices, E edges, F faces, O objects,
+K the maximum valence (one-ring width).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+
+class MeshProblem(ValueError):
+    """A mesh defect. ``face`` is the index (into the faces given) of an offending face, if any."""
+
+    def __init__(self, reason, face=None):
+        super().__init__(reason)
+        self.reason = reason
+        self.face = face
+
+
+def face_area_normals(vertices, faces):
+    """(F, 3) cross products (b - a) x (c - a): twice the area times the unit normal."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return np.cross(b - a, c - a)
+
+
+def signed_volume(vertices, faces):
+    """Signed volume of a closed triangle mesh (divergence theorem, about the centroid)."""
+    x = vertices - vertices.mean(axis=0)
+    a, b, c = (x[faces[:, i]] for i in range(3))
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def check_and_orient(vertices, faces):
+    """Validate one object's mesh and return its faces wound outward.
+
+    Args:
+      vertices: (n, 3) float positions of this object's vertices.
+      faces: (f, 3) int indices into ``vertices``.
+
+    Returns:
+      (faces_out, flipped): faces consistently wound so that the signed volume is
+      positive, and the number of faces whose winding was reversed.
+
+    Raises:
+      MeshProblem: degenerate faces, open or non-manifold edges or vertices, several
+      disconnected parts, a non-orientable surface, or zero volume.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    n = len(vertices)
+    if len(faces) == 0:
+        raise MeshProblem("object has no faces")
+
+    # Degenerate faces: repeated indices or (numerically) zero area.
+    rep = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
+    if rep.any():
+        i = int(np.argmax(rep))
+        raise MeshProblem(f"degenerate face (repeats vertex {faces[i].tolist()})", face=i)
+    extent = float(np.ptp(vertices, axis=0).max()) if n else 0.0
+    area2 = np.linalg.norm(face_area_normals(vertices, faces), axis=1)
+    tiny = (extent * extent) * 1e-12
+    if (area2 <= tiny).any():
+        i = int(np.argmax(area2 <= tiny))
+        raise MeshProblem("degenerate face (zero area: its vertices are collinear or coincide)", face=i)
+
+    # Every undirected edge must be shared by exactly two faces.
+    und = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1).reshape(-1, 2), axis=1)
+    keys = und[:, 0] * n + und[:, 1]
+    uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    if (counts == 1).any():
+        j = int(np.argmax(counts[inverse] == 1))
+        nb = int((counts == 1).sum())
+        e = und[j]
+        raise MeshProblem(
+            f"open mesh: {nb} boundary edge(s), e.g. the edge between vertices {e[0]} and {e[1]} "
+            "belongs to only one face (pressure needs a closed surface)", face=j // 3)
+    if (counts > 2).any():
+        j = int(np.argmax(counts[inverse] > 2))
+        e = und[j]
+        raise MeshProblem(
+            f"non-manifold edge between vertices {e[0]} and {e[1]}: shared by "
+            f"{int(counts[inverse[j]])} faces", face=j // 3)
+
+    # Consistent orientation by breadth-first propagation over shared edges.
+    edge_faces = np.argsort(inverse, kind="stable").reshape(-1, 2) // 3  # the two faces of each edge
+    nbrs = [[] for _ in range(len(faces))]
+    for f0, f1 in edge_faces:
+        nbrs[f0].append(f1)
+        nbrs[f1].append(f0)
+    out = faces.copy()
+    seen = np.zeros(len(faces), bool)
+    seen[0] = True
+    queue = deque([0])
+    flipped = 0
+
+    def directed(f):
+        a, b, c = out[f]
+        return {(a, b), (b, c), (c, a)}
+
+    while queue:
+        f = queue.popleft()
+        df = directed(f)
+        for g in nbrs[f]:
+            dg = directed(g)
+            consistent = not (df & dg)  # a shared edge must run in opposite directions
+            if seen[g]:
+                if not consistent:
+                    raise MeshProblem("non-orientable surface: faces cannot be wound consistently", face=g)
+                continue
+            if not consistent:
+                out[g] = out[g][::-1]
+                flipped += 1
+            seen[g] = True
+            queue.append(g)
+    if not seen.all():
+        raise MeshProblem(
+            f"object has {1 + _count_parts(nbrs, seen)} disconnected parts; give each closed part its "
+            "own object (END_OBJECT between them)", face=int(np.argmin(seen)))
+
+    used = np.unique(out)
+    vol = signed_volume(vertices[used], np.searchsorted(used, out))
+    if abs(vol) <= 1e-12 * extent ** 3:
+        raise MeshProblem("mesh encloses zero volume")
+    if vol < 0:  # wound inward as a whole: turn it outward, as the user meant
+        out = out[:, ::-1].copy()
+        flipped = len(out) - flipped
+
+    # Vertex manifoldness: the faces around each vertex must form a single fan.
+    rings = one_rings(out, n)
+    del rings
+    return out, flipped
+
+
+def _count_parts(nbrs, seen):
+    seen = seen.copy()
+    parts = 0
+    for s in range(len(seen)):
+        if seen[s]:
+            continue
+        parts += 1
+        seen[s] = True
+        q = deque([s])
+        while q:
+            f = q.popleft()
+            for g in nbrs[f]:
+                if not seen[g]:
+                    seen[g] = True
+                    q.append(g)
+    return parts
+
+
+def unique_edges(faces):
+    """(E, 2) sorted unique undirected edges (i < j) of a triangle mesh, in lexicographic order."""
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.sort(e, axis=1)
+    return np.unique(e, axis=0)
+
+
+def one_rings(faces, n_vertices):
+    """Ordered one-rings: for each vertex, its neighbours counter-clockwise seen from outside.
+
+    For an outward-wound face (a, b, c) the ring of ``a`` steps from ``b`` to ``c``. Returns a
+    list of integer arrays. Raises MeshProblem at a non-manifold vertex (a fan that is not a
+    single closed cycle, e.g. two surfaces touching at one vertex).
+    """
+    nxt = [dict() for _ in range(n_vertices)]
+    for a, b, c in faces:
+        nxt[a][b] = c
+        nxt[b][c] = a
+        nxt[c][a] = b
+    rings = []
+    for v in range(n_vertices):
+        m = nxt[v]
+        if not m:
+            rings.append(np.zeros(0, np.int64))
+            continue
+        start = next(iter(m))
+        ring = [start]
+        cur = m[start]
+        while cur != start and len(ring) <= len(m):
+            ring.append(cur)
+            cur = m.get(cur, -1)
+            if cur == -1:
+                break
+        if cur != start or len(ring) != len(m):
+            raise MeshProblem(f"non-manifold vertex {v}: its faces do not form a single fan")
+        rings.append(np.asarray(ring, np.int64))
+    return rings
+
+
+def ring_table(rings):
+    """Pad ordered rings into an (V, K) table.
+
+    Padding repeats each ring's last neighbour, which keeps the fan's cross-product sum exact
+    (a repeated neighbour contributes a zero cross product and the wrap-around pair is the true
+    closing pair). Returns (nbr (V, K) int32, mask (V, K) bool: real neighbours).
+    """
+    k = max(len(r) for r in rings)
+    nbr = np.zeros((len(rings), k), np.int32)
+    mask = np.zeros((len(rings), k), bool)
+    for v, r in enumerate(rings):
+        nbr[v, : len(r)] = r
+        nbr[v, len(r):] = r[-1]
+        mask[v, : len(r)] = True
+    return nbr, mask

@@ -1,0 +1,320 @@
+"""The physical model: static topology, forces and energies (physics.md §1, §5).
+
+Forces are assembled per vertex from its ordered one-ring, with no scatter:
+
+* spring (Hooke, every unique edge, seen from both ends):
+  f_i = sum_j k (l_ij - L_ij) d_ij / l_ij, d_ij = x_j - x_i, l = sqrt(|d|² + eps²);
+* edge dashpot: f_i = sum_j c ((v_j - v_i).d^) d^;
+* gas: f_i = P_o dV/dx_i with dV/dx_i = 1/6 sum_k (x_{n_k} - x_i) x (x_{n_{k+1}} - x_i) over the
+  ordered ring (equal to sum over incident faces of A_f n_f / 3, physics.md §1), and
+  V_o = 1/3 sum_{i in o} (x_i - r_o).dV/dx_i (V is homogeneous of degree 3), P_o = nRT/max(V, eps V0);
+* air drag: f_i = -gamma m_i v_i.
+
+Every term is built only when the scene needs it and wrapped in a ``jax.named_scope`` so a
+test can see that absent terms are not compiled. An alternative assembly by ``segment_sum``
+over edges and faces (``assembly="segment"``) is kept for benchmarks and cross-checks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxplush import mesh as _mesh
+from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
+
+#: Softening of edge lengths, relative to the shortest rest edge: l = sqrt(|d|² + eps²) keeps
+#: gradients finite at zero length (physics.md §8).
+LENGTH_EPS = 1e-6
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Topology:
+    """Static mesh data, closed over by the compiled step (numpy; never traced).
+
+    Attributes:
+      n_vertices, n_objects: counts.
+      faces: (F, 3) int32 outward faces.
+      edges: (E, 2) int32 unique edges i < j; edge_object (E,) their object; rest_length (E,).
+      ring: (V, K) int32 ordered one-ring neighbours, padded by repeating the last one.
+      ring_mask: (V, K) bool, True for real neighbours; ring_rest: (V, K) rest lengths.
+      vertex_object: (V,) int32; vertex_slices / face_slices: per-object (start, stop).
+      count: (O,) vertices per object; rest_volume: (O,) signed volume at the rest geometry.
+      fixed: (P,) int32 pinned vertices; x0: (V, 3) rest positions.
+      length_eps: softening length for edge lengths.
+    """
+
+    n_vertices: int
+    n_objects: int
+    faces: np.ndarray
+    edges: np.ndarray
+    edge_object: np.ndarray
+    rest_length: np.ndarray
+    ring: np.ndarray
+    ring_mask: np.ndarray
+    ring_rest: np.ndarray
+    vertex_object: np.ndarray
+    vertex_slices: tuple
+    face_slices: tuple
+    count: np.ndarray
+    rest_volume: np.ndarray
+    fixed: np.ndarray
+    x0: np.ndarray
+    length_eps: float
+
+    @property
+    def max_valence(self):
+        return int(self.ring_mask.sum(axis=1).max())
+
+
+def build_topology(scene):
+    """Build the static :class:`Topology` of a :class:`jaxplush.scene.Scene`."""
+    x0 = scene.vertices
+    faces = scene.faces
+    edges = _mesh.unique_edges(faces).astype(np.int32)
+    rest = np.linalg.norm(x0[edges[:, 0]] - x0[edges[:, 1]], axis=1)
+    nbr, mask = _mesh.ring_table(_mesh.one_rings(faces, len(x0)))
+    ring_rest = np.linalg.norm(x0[nbr] - x0[:, None, :], axis=2)
+    ring_rest = np.where(mask, ring_rest, 1.0)
+    vobj = scene.object_id
+    return Topology(
+        n_vertices=len(x0), n_objects=scene.n_objects, faces=faces, edges=edges,
+        edge_object=vobj[edges[:, 0]], rest_length=rest, ring=nbr, ring_mask=mask,
+        ring_rest=ring_rest, vertex_object=vobj,
+        vertex_slices=tuple(o.vertex_slice for o in scene.objects),
+        face_slices=tuple(o.face_slice for o in scene.objects),
+        count=np.array([o.n_vertices for o in scene.objects], np.float64),
+        rest_volume=scene.volumes(), fixed=scene.fixed, x0=x0,
+        length_eps=float(LENGTH_EPS * rest.min()))
+
+
+@dataclasses.dataclass(frozen=True)
+class Terms:
+    """Which force terms a scene compiles in (static; decided from the scene, not values)."""
+
+    spring: bool = True
+    dashpot: bool = False
+    drag: bool = False
+    gas: bool = False
+    gravity: bool = False
+    floor: bool = False
+    fixed: bool = False
+    verlet_damping: bool = False
+
+    @classmethod
+    def for_scene(cls, scene):
+        p = scene.params
+        return cls(spring=True,
+                   dashpot=bool(np.any(p.dashpot > 0)),
+                   drag=bool(np.any(p.drag > 0)),
+                   gas=scene.has_gas,
+                   gravity=bool(np.any(scene.gravity != 0)),
+                   floor=scene.floor is not None,
+                   fixed=len(scene.fixed) > 0,
+                   verlet_damping=bool(np.any(p.damping > 0)))
+
+    def names(self):
+        return tuple(f.name for f in dataclasses.fields(self) if getattr(self, f.name))
+
+
+def per_vertex(topo, values):
+    """Spread an (O,) per-object array to (V,) (a broadcast for single-object scenes)."""
+    if topo.n_objects == 1:
+        return jnp.broadcast_to(values[0], (topo.n_vertices,))
+    return values[topo.vertex_object]
+
+
+def per_object_sum(topo, values):
+    """(O, ...) sums of a (V, ...) array over each object's contiguous vertex range."""
+    if topo.n_objects == 1:
+        return jnp.sum(values, axis=0)[None]
+    return jnp.stack([jnp.sum(values[a:b], axis=0) for a, b in topo.vertex_slices])
+
+
+def vertex_mass(topo, params):
+    """(V,) vertex masses, kg."""
+    return per_vertex(topo, params.total_weight / topo.count)
+
+
+def _dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def volume_gradient_ring(topo, x):
+    """(V, 3) dV/dx from ordered rings, and the (V, K, 3) neighbour offsets d = x_nbr - x."""
+    d = x[topo.ring] - x[:, None, :]
+    g = jnp.sum(jnp.cross(d, jnp.roll(d, -1, axis=1)), axis=1) / 6.0
+    return g, d
+
+
+def object_volumes(topo, x, g=None):
+    """(O,) signed volumes: V_o = 1/3 sum_i (x_i - r_o).dV/dx_i with r_o the object's first vertex."""
+    if g is None:
+        g, _ = volume_gradient_ring(topo, x)
+    if topo.n_objects == 1:
+        r = x[0]
+    else:
+        r = per_vertex_rows(topo, jnp.stack([x[a] for a, _ in topo.vertex_slices]))
+    return per_object_sum(topo, _dot(x - r, g)) / 3.0
+
+
+def per_vertex_rows(topo, rows):
+    """Spread (O, 3) rows to (V, 3) by object (static repeats)."""
+    return jnp.repeat(rows, np.asarray(topo.count, np.int64), axis=0, total_repeat_length=topo.n_vertices)
+
+
+def pressure(topo, params, volume, temperature):
+    """(O,) gas pressure nRT / max(V, eps V0) (physics.md §1: a C¹, conservative continuation)."""
+    v0 = jnp.asarray(topo.rest_volume, volume.dtype)
+    return params.nmol * (GAS_CONSTANT * temperature) / jnp.maximum(volume, VOLUME_EPS * v0)
+
+
+def make_force_fn(topo, terms, temperature, assembly="ring"):
+    """Build ``force_fn(params, x, v) -> (f, volume)``.
+
+    Args:
+      topo: :class:`Topology`.
+      terms: :class:`Terms`; only the selected terms are traced. Gravity, the floor, pinned
+        vertices and the report's Verlet damping belong to the integrator, not here.
+      temperature: gas temperature (K), a Python float.
+      assembly: "ring" (per-vertex one-ring gathers, default) or "segment" (per-edge and
+        per-face terms scattered with ``segment_sum``).
+
+    Returns:
+      force_fn: (params, x (V,3), v (V,3)) -> (f (V,3) internal forces in N, volume (O,) or
+      None when the scene has no gas).
+    """
+    if assembly == "ring":
+        return _ring_force_fn(topo, terms, temperature)
+    if assembly == "segment":
+        return _segment_force_fn(topo, terms, temperature)
+    raise ValueError(f"unknown assembly {assembly!r}; expected 'ring' or 'segment'")
+
+
+def _ring_force_fn(topo, terms, temperature):
+    ring = topo.ring
+    mask = topo.ring_mask
+    all_real = bool(mask.all())
+
+    def force_fn(params, x, v):
+        dtype = x.dtype
+        rest = jnp.asarray(topo.ring_rest, dtype)
+        eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
+        with jax.named_scope("spring"):
+            d = x[ring] - x[:, None, :]                               # (V, K, 3)
+            inv_l = jax.lax.rsqrt(_dot(d, d) + eps2)                  # (V, K)
+            k = per_vertex(topo, params.k_structural)[:, None]
+            w = k * (1.0 - rest * inv_l)                              # T / l
+            if not all_real:
+                w = jnp.where(mask, w, 0.0)
+            f = jnp.sum(w[..., None] * d, axis=1)
+        if terms.dashpot:
+            with jax.named_scope("dashpot"):
+                dv = v[ring] - v[:, None, :]
+                c = per_vertex(topo, params.dashpot)[:, None]
+                wd = c * _dot(dv, d) * inv_l * inv_l
+                if not all_real:
+                    wd = jnp.where(mask, wd, 0.0)
+                f = f + jnp.sum(wd[..., None] * d, axis=1)
+        if terms.drag:
+            with jax.named_scope("drag"):
+                f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params))[:, None] * v
+        volume = None
+        if terms.gas:
+            with jax.named_scope("gas"):
+                g = jnp.sum(jnp.cross(d, jnp.roll(d, -1, axis=1)), axis=1) / 6.0
+                volume = object_volumes(topo, x, g)
+                p = pressure(topo, params, volume, temperature)
+                f = f + per_vertex(topo, p)[:, None] * g
+        return f, volume
+
+    return force_fn
+
+
+def _segment_force_fn(topo, terms, temperature):
+    e0, e1 = topo.edges[:, 0], topo.edges[:, 1]
+    n = topo.n_vertices
+    faces = topo.faces
+    face_object = topo.vertex_object[faces[:, 0]]
+
+    def scatter(vals, idx):
+        return jax.ops.segment_sum(vals, idx, num_segments=n)
+
+    def force_fn(params, x, v):
+        dtype = x.dtype
+        rest = jnp.asarray(topo.rest_length, dtype)
+        with jax.named_scope("spring"):
+            d = x[e1] - x[e0]
+            inv_l = jax.lax.rsqrt(_dot(d, d) + topo.length_eps ** 2)
+            k = params.k_structural[topo.edge_object] if topo.n_objects > 1 else params.k_structural[0]
+            w = k * (1.0 - rest * inv_l)
+            if terms.dashpot:
+                c = params.dashpot[topo.edge_object] if topo.n_objects > 1 else params.dashpot[0]
+                w = w + c * _dot(v[e1] - v[e0], d) * inv_l * inv_l
+            fe = w[:, None] * d
+            f = scatter(fe, e0) - scatter(fe, e1)
+        if terms.drag:
+            f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params))[:, None] * v
+        volume = None
+        if terms.gas:
+            with jax.named_scope("gas"):
+                a, b, c3 = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
+                an = jnp.cross(b - a, c3 - a)                           # 2 A n
+                if topo.n_objects == 1:
+                    r = x[0]
+                    volume = jnp.sum(_dot(a - r, an))[None] / 6.0
+                else:
+                    r = jnp.stack([x[s] for s, _ in topo.vertex_slices])[face_object]
+                    volume = jax.ops.segment_sum(_dot(a - r, an), face_object,
+                                                 num_segments=topo.n_objects) / 6.0
+                p = pressure(topo, params, volume, temperature)
+                pf = (p[face_object] if topo.n_objects > 1 else p[0])[:, None] * an / 6.0
+                f = f + scatter(pf, faces[:, 0]) + scatter(pf, faces[:, 1]) + scatter(pf, faces[:, 2])
+        return f, volume
+
+    return force_fn
+
+
+def potential_energy(topo, params, x, temperature, gravity=None, gas=True):
+    """Total potential energy (J): springs + gas (-nRT ln V, clamped as the force) + gravity.
+
+    Written independently of the force functions (per edge, per face) so tests can check
+    f = -dU/dx with ``jax.grad``.
+    """
+    d = x[topo.edges[:, 0]] - x[topo.edges[:, 1]]
+    l = jnp.sqrt(_dot(d, d) + topo.length_eps ** 2)
+    k = params.k_structural[topo.edge_object]
+    u = jnp.sum(0.5 * k * (l - topo.rest_length) ** 2)
+    if gas:
+        u = u + jnp.sum(gas_energy(topo, params, x, temperature))
+    if gravity is not None:
+        u = u - jnp.sum(vertex_mass(topo, params) * (x @ jnp.asarray(gravity, x.dtype)))
+    return u
+
+
+def gas_energy(topo, params, x, temperature):
+    """(O,) gas energy -nRT ln V, continued linearly below eps V0 (the clamp's potential)."""
+    vol = face_volumes(topo, x)
+    nrt = params.nmol * GAS_CONSTANT * temperature
+    vc = VOLUME_EPS * jnp.asarray(topo.rest_volume, x.dtype)
+    safe = jnp.maximum(vol, vc)
+    return jnp.where(vol >= vc, -nrt * jnp.log(safe), -nrt * (jnp.log(vc) + (vol - vc) / vc))
+
+
+def face_volumes(topo, x):
+    """(O,) signed volumes from faces (sum of signed tetrahedra about each object's centroid)."""
+    out = []
+    for (a, b), (fa, fb) in zip(topo.vertex_slices, topo.face_slices):
+        c = jnp.mean(x[a:b], axis=0)
+        f = topo.faces[fa:fb]
+        p, q, r = x[f[:, 0]] - c, x[f[:, 1]] - c, x[f[:, 2]] - c
+        out.append(jnp.sum(_dot(p, jnp.cross(q, r))) / 6.0)
+    return jnp.stack(out)
+
+
+def kinetic_energy(topo, params, v):
+    """Kinetic energy (J) of velocities v (V, 3)."""
+    return 0.5 * jnp.sum(vertex_mass(topo, params) * _dot(v, v))

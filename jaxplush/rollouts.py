@@ -1,0 +1,129 @@
+"""Rollouts: one ``jax.lax.scan`` over saved frames, an inner scan over the steps between them.
+
+``rollout`` is jit-compiled once per (simulator, n_frames, save_every, checkpoint); new
+parameter values or initial states reuse the compiled code. Health is checked at every saved
+frame and carried as data (:mod:`jaxplush.diagnostics`); the carry also keeps the last healthy
+state so a failure can be located to the exact step afterwards, outside ``jit``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxplush import diagnostics
+from jaxplush.types import State
+
+
+class Health(NamedTuple):
+    """Carried health record of a rollout.
+
+    Attributes:
+      code: (O,) int32 first failure code per object (diagnostics.OK if none).
+      bad_step: (O,) int32 step at whose saved frame the failure was seen (-1: none).
+      warn_step: (O,) int32 first saved step with the volume clamp active (-1: none).
+      good_state: the last saved state at which every object was healthy.
+      good_step: int32 step number of ``good_state``.
+    """
+
+    code: jax.Array
+    bad_step: jax.Array
+    warn_step: jax.Array
+    good_state: State
+    good_step: jax.Array
+
+    @property
+    def failed(self):
+        return bool(np.any(np.asarray(self.bad_step) >= 0))
+
+
+def initial_health(sim, state, step=0):
+    o = sim.topology.n_objects
+    neg = jnp.full((o,), -1, jnp.int32)
+    return Health(jnp.zeros((o,), jnp.int32), neg, neg, state, jnp.asarray(step, jnp.int32))
+
+
+def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
+    step_fn = sim.step_fn
+
+    def steps(s):
+        return jax.lax.scan(lambda c, _: (step_fn(params, c), None), s, None, length=save_every)[0]
+
+    if checkpoint:
+        steps = jax.checkpoint(steps)
+
+    def frame(carry, i):
+        s, h = carry
+        s = steps(s)
+        step = step0 + (i + 1) * save_every
+        code = sim.status_fn(params, s)
+        new_bad = (code >= diagnostics.ERROR) & (h.bad_step < 0)
+        new_warn = (code == diagnostics.VOLUME_CLAMPED) & (h.warn_step < 0)
+        healthy = jnp.all(code < diagnostics.ERROR) & jnp.all(h.bad_step < 0)
+        h = Health(
+            code=jnp.where(new_bad, code, h.code),
+            bad_step=jnp.where(new_bad, step, h.bad_step),
+            warn_step=jnp.where(new_warn, step, h.warn_step),
+            good_state=jax.tree_util.tree_map(lambda a, b: jnp.where(healthy, a, b), s, h.good_state),
+            good_step=jnp.where(healthy, step, h.good_step),
+        )
+        return (s, h), s.x
+
+    (state, health), frames = jax.lax.scan(frame, (state, health), jnp.arange(n_frames, dtype=jnp.int32))
+    return state, frames, health
+
+
+_core_jit = jax.jit(_core, static_argnames=("sim", "n_frames", "save_every", "checkpoint"))
+
+
+def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health=None, step0=0):
+    """Run ``n_frames * save_every`` steps, saving positions every ``save_every`` steps.
+
+    Differentiable with respect to ``params`` and ``state`` (reverse and forward mode).
+
+    Args:
+      sim: :class:`jaxplush.step.Simulator`.
+      params: :class:`jaxplush.types.Params` pytree.
+      state: initial :class:`jaxplush.types.State` (from ``sim.init_fn``).
+      n_frames: number of saved frames (static).
+      save_every: steps between saved frames (static).
+      checkpoint: wrap each frame's steps in ``jax.checkpoint`` so reverse-mode memory grows
+        with frames, not steps.
+      health: a :class:`Health` to continue (for chunked runs); default fresh.
+      step0: step number of ``state`` (for chunked runs).
+
+    Returns:
+      (final_state, frames (n_frames, V, 3) positions after each block, health).
+    """
+    if n_frames < 1 or save_every < 1:
+        raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    if health is None:
+        health = initial_health(sim, state, step0)
+    return _core_jit(sim, params, state, health, jnp.asarray(step0, jnp.int32),
+                     n_frames=int(n_frames), save_every=int(save_every), checkpoint=bool(checkpoint))
+
+
+def locate_failure(sim, params, health):
+    """Re-run from the last healthy state one step at a time to find the exact failing step.
+
+    Returns (step, object, code) of the first step whose state is unhealthy, or None.
+    """
+    bad = np.asarray(health.bad_step)
+    if not (bad >= 0).any():
+        return None
+    start = int(health.good_step)
+    span = int(bad[bad >= 0].min()) - start
+    _, _, h = _core_jit(sim, params, health.good_state, initial_health(sim, health.good_state, start),
+                        jnp.asarray(start, jnp.int32), n_frames=max(span, 1), save_every=1, checkpoint=False)
+    b = np.asarray(h.bad_step)
+    if not (b >= 0).any():  # cannot happen for a deterministic step; fall back to the frame record
+        b, code = bad, np.asarray(health.code)
+    else:
+        code = np.asarray(h.code)
+    cand = np.where(b >= 0, b, np.iinfo(np.int32).max)
+    o = int(np.argmin(cand))
+    return int(b[o]), o, int(code[o])

@@ -1,0 +1,416 @@
+"""Parse the report's extended Wavefront OBJ scene format (numpy only; never traced).
+
+A scene file holds one or more objects. Standard OBJ geometry (``v``, ``f``, ``o``, ``g``;
+``vt``, ``vn``, ``vp``, ``s``, ``usemtl``, ``mtllib`` are accepted and ignored) plus keywords:
+
+Per object (they apply to the object they stand in; ``END_OBJECT`` closes it; a file with a
+single object may omit it):
+  ``k_structural K``  spring stiffness of every unique edge, N/m (>= 0; default 100)
+  ``damping D``       the report's Verlet damping, factor f = 1/D per step (D >= 1; 0 or
+                      absent: none). Its physical meaning changes with dt (physics.md §5).
+  ``dashpot C``       edge dashpot, N s/m (>= 0; default 0), dt-independent
+  ``drag G``          mass-proportional air drag, 1/s (>= 0; default 0), dt-independent
+  ``total_weight M``  mass in kg (> 0; default 1), split evenly over the object's vertices
+  ``nmol N``          moles of ideal gas inside (> 0; absent: no gas)
+  ``scale S``         uniform scale about the object's coordinate origin (> 0; default 1)
+  ``translate X Y Z`` translation in m, applied after scale
+  ``fixed I``         pin vertex I (an index as in ``f`` lines); may repeat
+
+Scene level (anywhere, at most once each):
+  ``gravity GX GY GZ`` m/s² (default 0 -9.81 0; y is up)
+  ``floor H``          a horizontal floor at y = H facing up (none unless given)
+  ``temperature T``    K (> 0; default 293.15)
+
+An object's vertices are the vertices its faces use; indices in ``f`` and ``fixed`` are
+1-based and global to the file, or negative (relative to the vertices defined so far).
+Every problem raises :class:`jaxplush.errors.SceneError` naming file, line and problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import warnings
+
+import numpy as np
+
+from jaxplush import mesh as _mesh
+from jaxplush.errors import SceneError
+from jaxplush.types import GAS_CONSTANT, Params
+
+DEFAULTS = dict(k_structural=100.0, damping=0.0, dashpot=0.0, drag=0.0, total_weight=1.0, nmol=0.0)
+DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
+DEFAULT_TEMPERATURE = 293.15
+
+# keyword -> (number of values, check, message)
+_OBJECT_KEYS = {
+    "k_structural": (1, lambda v: v >= 0, "must be >= 0"),
+    "damping": (1, lambda v: v == 0 or v >= 1, "must be 0 (off) or >= 1 (factor f = 1/D per step)"),
+    "dashpot": (1, lambda v: v >= 0, "must be >= 0"),
+    "drag": (1, lambda v: v >= 0, "must be >= 0"),
+    "total_weight": (1, lambda v: v > 0, "must be > 0"),
+    "nmol": (1, lambda v: v > 0, "must be > 0 (omit it for an object without gas)"),
+    "scale": (1, lambda v: v > 0, "must be > 0"),
+    "translate": (3, None, None),
+}
+_SCENE_KEYS = {
+    "gravity": (3, None, None),
+    "floor": (1, None, None),
+    "temperature": (1, lambda v: v > 0, "must be > 0"),
+}
+_IGNORED = {"vt", "vn", "vp", "s", "usemtl", "mtllib"}
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneObject:
+    """One object of a scene.
+
+    Attributes:
+      name: object name (from ``o``/``g``, else ``object<i>``).
+      vertex_slice: (start, stop) of its vertices in the scene's vertex array.
+      face_slice: (start, stop) of its faces in the scene's face array.
+      fixed: global (0-based, compacted) indices of its pinned vertices.
+      has_gas: whether ``nmol`` was given.
+      line: line where the object starts.
+    """
+
+    name: str
+    vertex_slice: tuple
+    face_slice: tuple
+    fixed: tuple
+    has_gas: bool
+    line: int
+
+    @property
+    def n_vertices(self):
+        return self.vertex_slice[1] - self.vertex_slice[0]
+
+    @property
+    def n_faces(self):
+        return self.face_slice[1] - self.face_slice[0]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """A loaded scene: geometry (already scaled and translated), parameters and settings.
+
+    Attributes:
+      path: file the scene came from (or "<string>").
+      text: the full scene text, so a trajectory file alone reproduces its run.
+      objects: tuple of :class:`SceneObject`.
+      vertices: (V, 3) float64 positions, objects' vertices concatenated in order.
+      faces: (F, 3) int32 outward-wound faces, 0-based global indices.
+      params: :class:`jaxplush.types.Params` of (O,) float64 numpy arrays.
+      gravity: (3,) float64, m/s².
+      floor: floor height (y) or None.
+      temperature: gas temperature, K.
+    """
+
+    path: str
+    text: str
+    objects: tuple
+    vertices: np.ndarray
+    faces: np.ndarray
+    params: Params
+    gravity: np.ndarray
+    floor: float | None
+    temperature: float
+
+    @property
+    def n_objects(self):
+        return len(self.objects)
+
+    @property
+    def n_vertices(self):
+        return len(self.vertices)
+
+    @property
+    def object_names(self):
+        return tuple(o.name for o in self.objects)
+
+    @property
+    def object_id(self):
+        """(V,) int32 object index of every vertex."""
+        ids = np.zeros(self.n_vertices, np.int32)
+        for i, o in enumerate(self.objects):
+            ids[o.vertex_slice[0]:o.vertex_slice[1]] = i
+        return ids
+
+    @property
+    def fixed(self):
+        """(P,) int32 global indices of all pinned vertices."""
+        idx = [i for o in self.objects for i in o.fixed]
+        return np.asarray(sorted(set(idx)), np.int32)
+
+    @property
+    def has_gas(self):
+        return any(o.has_gas for o in self.objects)
+
+    def volumes(self, x=None):
+        """(O,) signed volume of every object at positions ``x`` (default: the scene's)."""
+        x = self.vertices if x is None else np.asarray(x, np.float64)
+        return np.array([
+            _mesh.signed_volume(x, self.faces[o.face_slice[0]:o.face_slice[1]]) for o in self.objects])
+
+    def rest_pressure(self):
+        """(O,) gas pressure nRT/V at the scene's geometry, Pa (0 without gas)."""
+        return np.asarray(self.params.nmol) * GAS_CONSTANT * self.temperature / self.volumes()
+
+    def replace(self, **kw):
+        return dataclasses.replace(self, **kw)
+
+
+class _Obj:
+    """Parser state of one object while its block is read."""
+
+    def __init__(self, line):
+        self.line = line
+        self.name = None
+        self.faces = []       # (tuple of 0-based global indices, line)
+        self.keys = {}        # keyword -> (values, line)
+        self.fixed = []       # (0-based global index, line)
+
+
+def load_scene(path):
+    """Read and validate a scene file.
+
+    Args:
+      path: path of an extended-OBJ scene.
+
+    Returns:
+      :class:`Scene`.
+
+    Raises:
+      SceneError: naming file, line and problem.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except FileNotFoundError:
+        raise SceneError(path, None, "no such file") from None
+    except IsADirectoryError:
+        raise SceneError(path, None, "is a directory, not a scene file") from None
+    except OSError as e:
+        raise SceneError(path, None, f"cannot read: {e.strerror}") from None
+    return parse_scene(data, path)
+
+
+def parse_scene(data, path="<string>"):
+    """Parse scene text (str or bytes). See :func:`load_scene`."""
+    if isinstance(data, bytes):
+        nul = data.find(b"\0")
+        if nul >= 0:
+            raise SceneError(path, data.count(b"\n", 0, nul) + 1,
+                             f"binary data (NUL byte at offset {nul}); not a text OBJ scene")
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise SceneError(path, data.count(b"\n", 0, e.start) + 1,
+                             f"not UTF-8 text (byte 0x{data[e.start]:02x} at offset {e.start}); "
+                             "not a text OBJ scene") from None
+    else:
+        text = data
+    if text.startswith("\ufeff"):
+        text = text[1:]
+    return _Parser(path, text).run()
+
+
+def _number(path, lineno, key, tok):
+    try:
+        v = float(tok)
+    except ValueError:
+        raise SceneError(path, lineno, f"'{key}' expects a number, got {tok!r}") from None
+    if not math.isfinite(v):
+        raise SceneError(path, lineno, f"'{key}' value {tok!r} is not finite")
+    return v
+
+
+class _Parser:
+    def __init__(self, path, text):
+        self.path = path
+        self.text = text
+        self.vertices = []     # (x, y, z)
+        self.vertex_line = []
+        self.objects = []
+        self.cur = None
+        self.scene_keys = {}
+
+    def err(self, line, msg):
+        return SceneError(self.path, line, msg)
+
+    def obj(self, line):
+        if self.cur is None:
+            self.cur = _Obj(line)
+        return self.cur
+
+    def close(self, line):
+        if self.cur is None:
+            return
+        if not self.cur.faces:
+            raise self.err(self.cur.line if line is None else line,
+                           "object has no faces" + (f" ({self.cur.name!r})" if self.cur.name else ""))
+        self.objects.append(self.cur)
+        self.cur = None
+
+    def resolve(self, tok, key, lineno):
+        try:
+            i = int(tok)
+        except ValueError:
+            raise self.err(lineno, f"'{key}' expects a vertex index, got {tok!r}") from None
+        if i == 0:
+            raise self.err(lineno, f"'{key}': vertex index 0 is invalid (OBJ indices start at 1)")
+        if i < 0:
+            j = len(self.vertices) + i
+            if j < 0:
+                raise self.err(lineno, f"'{key}': relative index {i} points before the first vertex "
+                                       f"(only {len(self.vertices)} defined so far)")
+            return j
+        return i - 1
+
+    def run(self):
+        lines = self.text.splitlines()
+        for lineno, raw in enumerate(lines, 1):
+            line = raw.split("#", 1)[0].strip()
+            if not line:
+                continue
+            toks = line.split()
+            key, args = toks[0], toks[1:]
+            if key == "v":
+                if len(args) not in (3, 4, 6, 7):
+                    raise self.err(lineno, f"'v' expects 3 coordinates, got {len(args)} value(s)")
+                self.vertices.append(tuple(_number(self.path, lineno, "v", t) for t in args[:3]))
+                self.vertex_line.append(lineno)
+            elif key == "f":
+                if len(args) < 3:
+                    raise self.err(lineno, f"'f' needs at least 3 vertices, got {len(args)}")
+                idx = [self.resolve(t.split("/")[0], "f", lineno) for t in args]
+                o = self.obj(lineno)
+                for k in range(1, len(idx) - 1):  # fan-triangulate polygons
+                    o.faces.append(((idx[0], idx[k], idx[k + 1]), lineno))
+            elif key in ("o", "g"):
+                name = " ".join(args) if args else None
+                if key == "o" and self.cur is not None and self.cur.faces:
+                    self.close(lineno)  # a new 'o' after faces starts the next object
+                o = self.obj(lineno)
+                if name and (o.name is None or key == "o"):
+                    o.name = name
+            elif key == "END_OBJECT":
+                if args:
+                    raise self.err(lineno, "'END_OBJECT' takes no values")
+                if self.cur is None:
+                    raise self.err(lineno, "'END_OBJECT' without an open object (no faces since the last one)")
+                self.close(lineno)
+            elif key in _OBJECT_KEYS:
+                vals = self.values(key, args, _OBJECT_KEYS[key], lineno)
+                o = self.obj(lineno)
+                if key in o.keys:
+                    raise self.err(lineno, f"'{key}' given twice for one object (first on line {o.keys[key][1]})")
+                o.keys[key] = (vals, lineno)
+            elif key == "fixed":
+                if len(args) != 1:
+                    raise self.err(lineno, f"'fixed' expects 1 vertex index, got {len(args)} value(s)")
+                self.obj(lineno).fixed.append((self.resolve(args[0], "fixed", lineno), lineno))
+            elif key in _SCENE_KEYS:
+                vals = self.values(key, args, _SCENE_KEYS[key], lineno)
+                if key in self.scene_keys:
+                    raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+                self.scene_keys[key] = (vals, lineno)
+            elif key in _IGNORED:
+                continue
+            else:
+                raise self.err(lineno, f"unknown keyword {key!r}")
+        if self.cur is not None:
+            if self.cur.faces:
+                self.close(None)
+            elif self.objects:
+                raise self.err(self.cur.line, "keywords after the last END_OBJECT belong to no object "
+                                              "(no faces follow)")
+            else:
+                self.close(None)
+        if not self.objects:
+            raise self.err(None, "empty scene: no objects (no 'f' lines)" if not self.vertices
+                           else "no faces: the scene defines vertices but no 'f' lines")
+        return self.build()
+
+    def values(self, key, args, spec, lineno):
+        count, check, msg = spec
+        if len(args) != count:
+            raise self.err(lineno, f"'{key}' expects {count} value(s), got {len(args)}")
+        vals = [_number(self.path, lineno, key, t) for t in args]
+        if check is not None and not check(vals[0]):
+            raise self.err(lineno, f"'{key}' {args[0]} {msg}")
+        return vals
+
+    def build(self):
+        nv = len(self.vertices)
+        raw = np.asarray(self.vertices, np.float64).reshape(-1, 3)
+        owner = np.full(nv, -1)
+        all_x, all_f, objs = [], [], []
+        params = {k: [] for k in DEFAULTS}
+        vstart = fstart = 0
+        for oi, o in enumerate(self.objects):
+            name = o.name or f"object{oi}"
+            idx = np.asarray([f for f, _ in o.faces], np.int64)
+            flines = [ln for _, ln in o.faces]
+            bad = idx >= nv
+            if bad.any():
+                r = int(np.argmax(bad.any(axis=1)))
+                raise self.err(flines[r], f"face index {int(idx[r][bad[r]][0]) + 1} out of range "
+                                          f"(the file defines {nv} vertices)")
+            used = np.unique(idx)
+            shared = used[owner[used] >= 0]
+            if len(shared):
+                raise self.err(o.faces[0][1], f"object {name!r} uses vertex {shared[0] + 1}, which already "
+                                              f"belongs to object {objs[owner[shared[0]]].name!r}")
+            owner[used] = oi
+            local = np.searchsorted(used, idx)
+            x = raw[used].copy()
+            if "scale" in o.keys:
+                x *= o.keys["scale"][0][0]
+            if "translate" in o.keys:
+                x += np.asarray(o.keys["translate"][0])
+            try:
+                faces, _ = _mesh.check_and_orient(x, local)
+            except _mesh.MeshProblem as p:
+                line = flines[p.face] if p.face is not None else o.line
+                raise self.err(line, f"object {name!r}: {p.reason}") from None
+            fixed = []
+            for g, ln in o.fixed:
+                j = np.searchsorted(used, g)
+                if j >= len(used) or used[j] != g:
+                    raise self.err(ln, f"'fixed' vertex {g + 1} is not a vertex of object {name!r}")
+                fixed.append(vstart + int(j))
+            for k, d in DEFAULTS.items():
+                params[k].append(o.keys[k][0][0] if k in o.keys else d)
+            objs.append(SceneObject(name=name, vertex_slice=(vstart, vstart + len(used)),
+                                    face_slice=(fstart, fstart + len(faces)),
+                                    fixed=tuple(sorted(set(fixed))), has_gas="nmol" in o.keys, line=o.line))
+            all_x.append(x)
+            all_f.append(faces + vstart)
+            vstart += len(used)
+            fstart += len(faces)
+        unused = int((owner < 0).sum())
+        if unused:
+            first = self.vertex_line[int(np.argmax(owner < 0))]
+            warnings.warn(f"{self.path}:{first}: {unused} vertex/vertices not used by any face were ignored",
+                          stacklevel=3)
+        names = [o.name for o in objs]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise self.err(None, f"object name {sorted(dup)[0]!r} used by more than one object")
+        gravity = np.asarray(self.scene_keys.get("gravity", (DEFAULT_GRAVITY, 0))[0], np.float64)
+        floor = self.scene_keys["floor"][0][0] if "floor" in self.scene_keys else None
+        temperature = self.scene_keys.get("temperature", ((DEFAULT_TEMPERATURE,), 0))[0][0]
+        vertices = np.concatenate(all_x)
+        if floor is not None:
+            for o in objs:
+                lo = vertices[o.vertex_slice[0]:o.vertex_slice[1], 1].min()
+                if lo < floor:
+                    raise self.err(self.scene_keys["floor"][1],
+                                   f"object {o.name!r} starts below the floor (lowest y = {lo:.6g} < floor {floor:.6g})")
+        return Scene(path=self.path, text=self.text, objects=tuple(objs), vertices=vertices,
+                     faces=np.concatenate(all_f).astype(np.int32),
+                     params=Params(**{k: np.asarray(v, np.float64) for k, v in params.items()}),
+                     gravity=gravity, floor=floor, temperature=float(temperature))

@@ -1,0 +1,247 @@
+"""Write jaxplush scenes in the extended Wavefront OBJ format (numpy only, no jax).
+
+The format (read by :func:`jaxplush.load_scene`):
+
+* Standard OBJ lines: ``v x y z``, ``f a b c`` (1-based vertex indices, *global* to the
+  file), ``o NAME`` starts an object, ``#`` starts a comment. y is up.
+* Per-object keywords, inside the object's block (``o NAME`` ... ``END_OBJECT``):
+  ``k_structural K``, ``damping D``, ``dashpot C``, ``drag G``, ``total_weight M``,
+  ``nmol N``, ``scale S``, ``translate X Y Z``, ``fixed I`` (1-based global index, may
+  repeat). ``END_OBJECT`` closes the object.
+* Scene keywords, written at the top: ``gravity GX GY GZ``, ``floor H``, ``temperature T``.
+
+Objects are given in their own coordinates with 0-based *local* face and fixed indices;
+:func:`format_scene` offsets them to 1-based global indices. Every float is written with
+``repr`` (shortest round-trip form), so reading a file back gives bit-identical float64
+values, and the rest lengths a simulator derives from it are exactly those intended here.
+
+Each object block is laid out as: ``o NAME``, its parameters, its ``v`` lines, its ``f``
+lines, its ``fixed`` lines, ``END_OBJECT``; a parser that needs vertices to exist before
+``fixed`` refers to them is therefore satisfied.
+
+The writer checks what it can check cheaply (shapes, finite values, index ranges, parameter
+signs, unknown keys) and raises ``ValueError``. It does **not** check that meshes are closed
+and oriented; that is the parser's job (and ``scenes/make_scenes.py`` checks its own output).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from collections.abc import Iterable, Mapping, Sequence
+
+import numpy as np
+
+__all__ = ["format_scene", "write_scene", "OBJECT_KEYS"]
+
+# Scalar per-object parameters in the order they are written, with the admissible range the
+# parser (jaxplush.scene) enforces: (key, check, message).
+_SCALAR_PARAMS: tuple[tuple[str, object, str], ...] = (
+    ("total_weight", lambda v: v > 0, "> 0"),
+    ("k_structural", lambda v: v >= 0, ">= 0"),
+    ("dashpot", lambda v: v >= 0, ">= 0"),
+    ("drag", lambda v: v >= 0, ">= 0"),
+    # Verlet damping: factor f = 1/D per step needs D >= 1; 0 means off.
+    ("damping", lambda v: v == 0 or v >= 1, "0 (off) or >= 1"),
+    ("nmol", lambda v: v > 0, "> 0 (leave nmol out, or None, for no gas)"),
+    ("scale", lambda v: v > 0, "> 0"),
+)
+
+#: Every key an object dict may carry.
+OBJECT_KEYS = frozenset(
+    {"name", "vertices", "faces", "translate", "fixed"} | {k for k, _, _ in _SCALAR_PARAMS}
+)
+
+
+def _num(x) -> str:
+    """Shortest string that parses back to exactly ``float(x)``."""
+    x = float(x)
+    if not math.isfinite(x):
+        raise ValueError(f"non-finite value {x!r}")
+    return repr(x)
+
+
+def _vec3(value, what: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,):
+        raise ValueError(f"{what} must be 3 numbers, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{what} must be finite, got {arr.tolist()}")
+    return arr
+
+
+def _check_name(name, i: int) -> str:
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"object {i}: 'name' must be a non-empty string, got {name!r}")
+    if any(c.isspace() for c in name) or "#" in name:
+        raise ValueError(f"object {i}: name {name!r} must not contain whitespace or '#'")
+    return name
+
+
+def _check_object(obj: Mapping, i: int):
+    """Validate one object dict; return (name, vertices (n,3) f64, faces (f,3) i64, fixed list)."""
+    if not isinstance(obj, Mapping):
+        raise ValueError(f"object {i}: expected a dict, got {type(obj).__name__}")
+    unknown = set(obj) - OBJECT_KEYS
+    if unknown:
+        raise ValueError(f"object {i}: unknown keys {sorted(unknown)}; allowed: {sorted(OBJECT_KEYS)}")
+    for key in ("name", "vertices", "faces"):
+        if obj.get(key) is None:
+            raise ValueError(f"object {i}: missing required key {key!r}")
+    name = _check_name(obj["name"], i)
+
+    vertices = np.asarray(obj["vertices"], dtype=np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
+        raise ValueError(f"object {name!r}: vertices must have shape (n, 3) with n > 0, got {vertices.shape}")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"object {name!r}: vertices contain non-finite values")
+
+    faces_in = np.asarray(obj["faces"])
+    if faces_in.ndim != 2 or faces_in.shape[1] != 3 or faces_in.shape[0] == 0:
+        raise ValueError(f"object {name!r}: faces must have shape (f, 3) with f > 0, got {faces_in.shape}")
+    if not np.issubdtype(faces_in.dtype, np.integer):
+        raise ValueError(f"object {name!r}: faces must be integers, got dtype {faces_in.dtype}")
+    faces = faces_in.astype(np.int64)
+    n = vertices.shape[0]
+    if faces.min() < 0 or faces.max() >= n:
+        raise ValueError(
+            f"object {name!r}: face indices must be 0-based local indices in [0, {n}), "
+            f"got range [{faces.min()}, {faces.max()}]"
+        )
+
+    fixed = obj.get("fixed")
+    fixed_list: list[int] = []
+    if fixed is not None:
+        for j in np.atleast_1d(np.asarray(fixed)).ravel().tolist():
+            if isinstance(j, bool) or int(j) != j:
+                raise ValueError(f"object {name!r}: fixed indices must be integers, got {j!r}")
+            j = int(j)
+            if not 0 <= j < n:
+                raise ValueError(f"object {name!r}: fixed index {j} outside [0, {n}) (0-based local)")
+            fixed_list.append(j)
+
+    for key, check, msg in _SCALAR_PARAMS:
+        val = obj.get(key)
+        if val is None:
+            continue
+        try:
+            fval = float(val)
+        except (TypeError, ValueError):
+            raise ValueError(f"object {name!r}: {key} must be a number, got {val!r}") from None
+        if not (math.isfinite(fval) and check(fval)):
+            raise ValueError(f"object {name!r}: {key} must be finite and {msg}, got {val!r}")
+    if obj.get("translate") is not None:
+        _vec3(obj["translate"], f"object {name!r}: translate")
+    return name, vertices, faces, fixed_list
+
+
+def format_scene(
+    objects: Sequence[Mapping],
+    *,
+    gravity: Iterable[float] | None = None,
+    floor: float | None = None,
+    temperature: float | None = None,
+    header: str | None = None,
+) -> str:
+    """Return the text of a scene file.
+
+    Args:
+      objects: list of dicts. Required keys: ``name`` (str without whitespace),
+        ``vertices`` ((n, 3) floats, object coordinates), ``faces`` ((f, 3) ints, 0-based
+        local). Optional keys (``None`` or absent = not written): ``k_structural``,
+        ``damping``, ``dashpot``, ``drag``, ``total_weight``, ``nmol``, ``scale``,
+        ``translate`` (3 floats), ``fixed`` (0-based local vertex indices). Ranges are
+        those the parser accepts: ``nmol > 0`` (omit it for no gas), ``damping`` 0 or >= 1.
+      gravity: scene gravity (3 floats), or None to leave the parser's default.
+      floor: height of the floor plane y = floor, or None for no floor.
+      temperature: gas temperature in K, or None for the parser's default.
+      header: free text written first, each line prefixed with ``# ``.
+
+    Returns:
+      The file contents (ends with a newline).
+
+    Raises:
+      ValueError: on malformed input (shapes, indices, non-finite or out-of-range values,
+        unknown keys, duplicate object names).
+    """
+    if isinstance(objects, Mapping):
+        raise ValueError("objects must be a list of dicts, not a single dict")
+    objects = list(objects)
+    if not objects:
+        raise ValueError("a scene needs at least one object")
+
+    lines: list[str] = []
+    if header:
+        for hl in header.splitlines():
+            hl = hl.rstrip()
+            lines.append(f"# {hl}" if hl else "#")
+        lines.append("")
+
+    scene_lines = []
+    if gravity is not None:
+        g = _vec3(gravity, "gravity")
+        scene_lines.append("gravity " + " ".join(_num(c) for c in g))
+    if floor is not None:
+        scene_lines.append(f"floor {_num(floor)}")
+    if temperature is not None:
+        t = float(temperature)
+        if not (math.isfinite(t) and t > 0):
+            raise ValueError(f"temperature must be finite and > 0 K, got {temperature!r}")
+        scene_lines.append(f"temperature {_num(t)}")
+    if scene_lines:
+        lines.extend(scene_lines)
+        lines.append("")
+
+    seen: set[str] = set()
+    offset = 0  # number of vertices written so far (global index base)
+    for i, obj in enumerate(objects):
+        name, vertices, faces, fixed = _check_object(obj, i)
+        if name in seen:
+            raise ValueError(f"duplicate object name {name!r}")
+        seen.add(name)
+
+        lines.append(f"o {name}")
+        for key, _, _ in _SCALAR_PARAMS:
+            if obj.get(key) is not None:
+                lines.append(f"{key} {_num(obj[key])}")
+        if obj.get("translate") is not None:
+            t = _vec3(obj["translate"], "translate")
+            lines.append("translate " + " ".join(_num(c) for c in t))
+        lines.extend(f"v {_num(x)} {_num(y)} {_num(z)}" for x, y, z in vertices.tolist())
+        lines.extend(f"f {a} {b} {c}" for a, b, c in (faces + (offset + 1)).tolist())
+        lines.extend(f"fixed {j + offset + 1}" for j in fixed)
+        lines.append("END_OBJECT")
+        lines.append("")
+        offset += vertices.shape[0]
+
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def write_scene(path, objects: Sequence[Mapping], **kw) -> None:
+    """Write :func:`format_scene` ``(objects, **kw)`` to ``path`` atomically.
+
+    The text is formatted first (so invalid input never touches the disk), written to a
+    temporary file in the destination directory, flushed and fsynced, then moved over
+    ``path`` with ``os.replace``. Readers see either the old file or the complete new one.
+    """
+    text = format_scene(objects, **kw)
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        # mkstemp creates the file 0600; give it the permissions a plain open() would.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise

@@ -1,0 +1,148 @@
+"""High-level driver: ``simulate(scene, steps, dt, save_every) -> Trajectory``."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+
+import jax
+import numpy as np
+
+from jaxplush import diagnostics, rollouts as _rollout, stability
+from jaxplush.errors import SimulationError
+from jaxplush.progress import Progress
+from jaxplush.step import make_simulator
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Saved frames of a run (numpy), with what is needed to reproduce it.
+
+    Attributes:
+      positions: (T, V, 3) positions at ``times``; frame 0 is the initial state.
+      times: (T,) seconds.
+      faces, object_id, object_names: the scene's topology.
+      volumes: (T, O) enclosed volume of each object per frame.
+      params: per-object parameters used (numpy Params).
+      dt, steps, save_every, integrator, floor, gravity, temperature, scene_text, scene_path.
+      wall_time: seconds spent running (compilation included).
+      warnings: messages about the run (e.g. the volume clamp), already issued as warnings.
+    """
+
+    positions: np.ndarray
+    times: np.ndarray
+    faces: np.ndarray
+    object_id: np.ndarray
+    object_names: tuple
+    volumes: np.ndarray
+    params: object
+    dt: float
+    steps: int
+    save_every: int
+    integrator: str
+    floor: object
+    gravity: np.ndarray
+    temperature: float
+    scene_text: str
+    scene_path: str
+    wall_time: float
+    warnings: tuple = ()
+
+    def save(self, path):
+        from jaxplush.io import save_trajectory
+        return save_trajectory(self, path)
+
+
+def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None, x0=None, v0=None,
+             progress=False, check_dt=True, sim=None):
+    """Simulate a scene and return its saved frames.
+
+    Args:
+      scene: :class:`jaxplush.scene.Scene` (from :func:`jaxplush.load_scene`).
+      steps: number of time steps.
+      dt: time step, s.
+      save_every: steps between saved frames (default: about 100 frames in all). The last
+        step is always saved.
+      integrator: integrator name (see :data:`jaxplush.step.INTEGRATORS`).
+      params: :class:`jaxplush.types.Params` overriding the scene's values.
+      x0, v0: (V, 3) initial positions/velocities (default: the scene's, at rest).
+      progress: draw a progress bar on stderr.
+      check_dt: warn when dt exceeds the estimated explicit stability limit.
+      sim: a prebuilt :class:`jaxplush.step.Simulator` to reuse (must match scene and dt).
+
+    Returns:
+      :class:`Trajectory`.
+
+    Raises:
+      SimulationError: the run blew up (which step, which object, why).
+    """
+    steps = int(steps)
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    if save_every is None:
+        save_every = max(1, steps // 100)
+    save_every = int(save_every)
+    if save_every < 1:
+        raise ValueError(f"save_every must be >= 1, got {save_every}")
+    t0 = time.perf_counter()
+    sim = sim or make_simulator(scene, dt, integrator)
+    p = sim.params(params)
+    notes = []
+    if check_dt:
+        est = stability.estimate(sim, p)
+        if dt > est.dt_max:
+            msg = (f"dt = {dt:g} s exceeds the estimated explicit stability limit {est.dt_max:.3g} s "
+                   f"(2/omega_max); expect a blow-up, use dt <= {0.9 * est.dt_max:.3g} s")
+            warnings.warn(msg, stacklevel=2)
+            notes.append(msg)
+    state = sim.init_fn(p, x0, v0)
+    health = _rollout.initial_health(sim, state)
+    frames = [np.asarray(state.x)]
+    n_full, rem = divmod(steps, save_every)
+    # Chunks of equal size reuse one compiled rollout; about 50 updates of the progress bar.
+    per_chunk = max(1, n_full // 50) if progress else max(n_full, 1)
+    done = 0
+    with Progress(steps, "simulate", enabled=progress) as bar:
+        while done < n_full:
+            n = min(per_chunk, n_full - done)
+            state, fr, health = _rollout.rollout(sim, p, state, n, save_every, health=health,
+                                                 step0=done * save_every)
+            frames.append(np.asarray(fr))
+            done += n
+            bar.update(n * save_every)
+            if health.failed:
+                break
+        if rem and not health.failed:
+            state, fr, health = _rollout.rollout(sim, p, state, 1, rem, health=health, step0=n_full * save_every)
+            frames.append(np.asarray(fr))
+            bar.update(rem)
+    jax.block_until_ready(state)
+    wall = time.perf_counter() - t0
+    if health.failed:
+        step, obj, code = _rollout.locate_failure(sim, p, health)
+        raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code],
+                              hint=_hint(sim, p, dt))
+    positions = np.concatenate([frames[0][None]] + frames[1:], axis=0)
+    saved = np.arange(len(positions)) * save_every
+    saved[-1] = steps
+    warn = np.asarray(health.warn_step)
+    for o in np.nonzero(warn >= 0)[0]:
+        msg = (f"object {scene.objects[o].name!r}: {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
+               f"(first seen at step {int(warn[o])})")
+        warnings.warn(msg, stacklevel=2)
+        notes.append(msg)
+    return Trajectory(
+        positions=positions, times=saved * sim.dt, faces=scene.faces, object_id=scene.object_id,
+        object_names=scene.object_names, volumes=np.stack([scene.volumes(x) for x in positions]),
+        params=p.as_numpy(), dt=sim.dt, steps=steps, save_every=save_every, integrator=sim.integrator,
+        floor=scene.floor, gravity=scene.gravity, temperature=scene.temperature, scene_text=scene.text,
+        scene_path=scene.path, wall_time=wall, warnings=tuple(notes))
+
+
+def _hint(sim, params, dt):
+    try:
+        est = stability.estimate(sim, params)
+    except Exception:  # the hint is a courtesy; never mask the real error
+        return "try a smaller dt"
+    return f"estimated stable dt limit is {est.dt_max:.3g} s (this run used {dt:g} s)"
