@@ -37,12 +37,14 @@ def signed_volume(vertices, faces):
     return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
 
 
-def check_and_orient(vertices, faces):
+def check_and_orient(vertices, faces, labels=None):
     """Validate one object's mesh and return its faces wound outward.
 
     Args:
       vertices: (n, 3) float positions of this object's vertices.
       faces: (f, 3) int indices into ``vertices``.
+      labels: optional (n,) numbers to name vertices by in messages (e.g. the 1-based
+        indices of the scene file); default: the indices into ``vertices``.
 
     Returns:
       (faces_out, flipped): faces consistently wound so that the signed volume is
@@ -54,6 +56,7 @@ def check_and_orient(vertices, faces):
     """
     faces = np.asarray(faces, dtype=np.int64)
     n = len(vertices)
+    lab = np.arange(n) if labels is None else np.asarray(labels)
     if len(faces) == 0:
         raise MeshProblem("object has no faces")
 
@@ -61,7 +64,7 @@ def check_and_orient(vertices, faces):
     rep = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
     if rep.any():
         i = int(np.argmax(rep))
-        raise MeshProblem(f"degenerate face (repeats vertex {faces[i].tolist()})", face=i)
+        raise MeshProblem(f"degenerate face (repeats a vertex: {lab[faces[i]].tolist()})", face=i)
     extent = float(np.ptp(vertices, axis=0).max()) if n else 0.0
     area2 = np.linalg.norm(face_area_normals(vertices, faces), axis=1)
     tiny = (extent * extent) * 1e-12
@@ -78,13 +81,13 @@ def check_and_orient(vertices, faces):
         nb = int((counts == 1).sum())
         e = und[j]
         raise MeshProblem(
-            f"open mesh: {nb} boundary edge(s), e.g. the edge between vertices {e[0]} and {e[1]} "
+            f"open mesh: {nb} boundary edge(s), e.g. the edge between vertices {lab[e[0]]} and {lab[e[1]]} "
             "belongs to only one face (pressure needs a closed surface)", face=j // 3)
     if (counts > 2).any():
         j = int(np.argmax(counts[inverse] > 2))
         e = und[j]
         raise MeshProblem(
-            f"non-manifold edge between vertices {e[0]} and {e[1]}: shared by "
+            f"non-manifold edge between vertices {lab[e[0]]} and {lab[e[1]]}: shared by "
             f"{int(counts[inverse[j]])} faces", face=j // 3)
 
     # Consistent orientation by breadth-first propagation over shared edges.
@@ -119,6 +122,13 @@ def check_and_orient(vertices, faces):
             seen[g] = True
             queue.append(g)
     if not seen.all():
+        # Parts that touch only at a vertex are one non-manifold surface, not separate objects.
+        touch = np.intersect1d(np.unique(faces[seen]), np.unique(faces[~seen]))
+        if len(touch):
+            v = int(touch[0])
+            raise MeshProblem(f"non-manifold vertex {lab[v]}: two parts of the surface touch only at "
+                              "this vertex (its faces do not form a single fan)",
+                              face=int(np.argmax((faces == v).any(axis=1) & ~seen)))
         raise MeshProblem(
             f"object has {1 + _count_parts(nbrs, seen)} disconnected parts; give each closed part its "
             "own object (END_OBJECT between them)", face=int(np.argmin(seen)))
@@ -132,7 +142,7 @@ def check_and_orient(vertices, faces):
         flipped = len(out) - flipped
 
     # Vertex manifoldness: the faces around each vertex must form a single fan.
-    rings = one_rings(out, n)
+    rings = one_rings(out, n, labels=lab)
     del rings
     return out, flipped
 
@@ -162,12 +172,13 @@ def unique_edges(faces):
     return np.unique(e, axis=0)
 
 
-def one_rings(faces, n_vertices):
+def one_rings(faces, n_vertices, labels=None):
     """Ordered one-rings: for each vertex, its neighbours counter-clockwise seen from outside.
 
     For an outward-wound face (a, b, c) the ring of ``a`` steps from ``b`` to ``c``. Returns a
     list of integer arrays. Raises MeshProblem at a non-manifold vertex (a fan that is not a
-    single closed cycle, e.g. two surfaces touching at one vertex).
+    single closed cycle, e.g. two surfaces touching at one vertex), naming the vertex by
+    ``labels[v]`` if given, with ``face`` one of its faces.
     """
     nxt = [dict() for _ in range(n_vertices)]
     for a, b, c in faces:
@@ -189,7 +200,9 @@ def one_rings(faces, n_vertices):
             if cur == -1:
                 break
         if cur != start or len(ring) != len(m):
-            raise MeshProblem(f"non-manifold vertex {v}: its faces do not form a single fan")
+            name = v if labels is None else labels[v]
+            raise MeshProblem(f"non-manifold vertex {name}: its faces do not form a single fan",
+                              face=int(np.argmax((np.asarray(faces) == v).any(axis=1))))
         rings.append(np.asarray(ring, np.int64))
     return rings
 

@@ -271,7 +271,7 @@ def _segment_force_fn(topo, terms, temperature):
                     volume = jax.ops.segment_sum(_dot(a - r, an), face_object,
                                                  num_segments=topo.n_objects) / 6.0
                 p = pressure(topo, params, volume, temperature)
-                pf = (p[face_object] if topo.n_objects > 1 else p[0])[:, None] * an / 6.0
+                pf = (p[face_object][:, None] if topo.n_objects > 1 else p[0]) * an / 6.0
                 f = f + scatter(pf, faces[:, 0]) + scatter(pf, faces[:, 1]) + scatter(pf, faces[:, 2])
         return f, volume
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import warnings
 
 import numpy as np
@@ -60,6 +61,7 @@ _SCENE_KEYS = {
     "temperature": (1, lambda v: v > 0, "must be > 0"),
 }
 _IGNORED = {"vt", "vn", "vp", "s", "usemtl", "mtllib"}
+_MAX_COORD = 1e30  # larger coordinates overflow the mesh checks (and float32 simulation)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,6 +169,7 @@ class _Obj:
     def __init__(self, line):
         self.line = line
         self.name = None
+        self.o_line = None    # line of its 'o', if any
         self.faces = []       # (tuple of 0-based global indices, line)
         self.keys = {}        # keyword -> (values, line)
         self.fixed = []       # (0-based global index, line)
@@ -249,8 +252,8 @@ class _Parser:
         if self.cur is None:
             return
         if not self.cur.faces:
-            raise self.err(self.cur.line if line is None else line,
-                           "object has no faces" + (f" ({self.cur.name!r})" if self.cur.name else ""))
+            what = f" ({self.cur.name!r}, begun on line {self.cur.line})" if self.cur.name else ""
+            raise self.err(self.cur.line if line is None else line, "object has no faces" + what)
         self.objects.append(self.cur)
         self.cur = None
 
@@ -270,7 +273,9 @@ class _Parser:
         return i - 1
 
     def run(self):
-        lines = self.text.splitlines()
+        # Only \n, \r\n and \r end a line (str.splitlines would also split at form feeds, \x1c-\x1e,
+        # U+0085, U+2028..., even inside comments, and so miscount lines).
+        lines = re.split(r"\r\n|\r|\n", self.text)
         for lineno, raw in enumerate(lines, 1):
             line = raw.split("#", 1)[0].strip()
             if not line:
@@ -291,9 +296,15 @@ class _Parser:
                     o.faces.append(((idx[0], idx[k], idx[k + 1]), lineno))
             elif key in ("o", "g"):
                 name = " ".join(args) if args else None
-                if key == "o" and self.cur is not None and self.cur.faces:
-                    self.close(lineno)  # a new 'o' after faces starts the next object
+                if key == "o" and self.cur is not None:
+                    if self.cur.faces:
+                        self.close(lineno)  # a new 'o' after faces starts the next object
+                    elif self.cur.o_line is not None:  # else its keywords would silently go to the next one
+                        raise self.err(self.cur.o_line, f"object has no faces ({self.cur.name!r}: the next 'o' "
+                                                        f"on line {lineno} comes before any 'f' line)")
                 o = self.obj(lineno)
+                if key == "o":
+                    o.o_line = lineno
                 if name and (o.name is None or key == "o"):
                     o.name = name
             elif key == "END_OBJECT":
@@ -362,17 +373,28 @@ class _Parser:
             used = np.unique(idx)
             shared = used[owner[used] >= 0]
             if len(shared):
-                raise self.err(o.faces[0][1], f"object {name!r} uses vertex {shared[0] + 1}, which already "
-                                              f"belongs to object {objs[owner[shared[0]]].name!r}")
+                r = int(np.argmax((idx == shared[0]).any(axis=1)))
+                raise self.err(flines[r], f"object {name!r} uses vertex {shared[0] + 1}, which already "
+                                          f"belongs to object {objs[owner[shared[0]]].name!r}")
             owner[used] = oi
             local = np.searchsorted(used, idx)
             x = raw[used].copy()
-            if "scale" in o.keys:
-                x *= o.keys["scale"][0][0]
-            if "translate" in o.keys:
-                x += np.asarray(o.keys["translate"][0])
+            with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported just below
+                if "scale" in o.keys:
+                    x *= o.keys["scale"][0][0]
+                if "translate" in o.keys:
+                    x += np.asarray(o.keys["translate"][0])
+            huge = ~(np.abs(x) < _MAX_COORD)  # also catches overflow to inf; squares must stay finite
+            if huge.any():
+                i = int(np.argmax(huge.any(axis=1)))
+                if not (np.abs(raw[used[i]]) < _MAX_COORD).all():
+                    raise self.err(self.vertex_line[used[i]], f"vertex {used[i] + 1}: coordinate too large "
+                                                              f"(|value| must be < {_MAX_COORD:g} m)")
+                key = "scale" if "scale" in o.keys else "translate"
+                raise self.err(o.keys[key][1], f"object {name!r}: coordinates too large after scale/translate "
+                                               f"(|value| must be < {_MAX_COORD:g} m)")
             try:
-                faces, _ = _mesh.check_and_orient(x, local)
+                faces, _ = _mesh.check_and_orient(x, local, labels=used + 1)
             except _mesh.MeshProblem as p:
                 line = flines[p.face] if p.face is not None else o.line
                 raise self.err(line, f"object {name!r}: {p.reason}") from None
@@ -399,7 +421,9 @@ class _Parser:
         names = [o.name for o in objs]
         dup = {n for n in names if names.count(n) > 1}
         if dup:
-            raise self.err(None, f"object name {sorted(dup)[0]!r} used by more than one object")
+            second = next(i for i, n in enumerate(names) if n in names[:i])
+            o = self.objects[second]
+            raise self.err(o.o_line or o.line, f"object name {names[second]!r} used by more than one object")
         gravity = np.asarray(self.scene_keys.get("gravity", (DEFAULT_GRAVITY, 0))[0], np.float64)
         floor = self.scene_keys["floor"][0][0] if "floor" in self.scene_keys else None
         temperature = self.scene_keys.get("temperature", ((DEFAULT_TEMPERATURE,), 0))[0][0]

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush import model
+from jaxplush.types import GAS_CONSTANT
 
 
 class StabilityEstimate(NamedTuple):
@@ -40,6 +41,21 @@ def _power(op, n, dtype, iters, key):
 
     z = jax.lax.fori_loop(0, iters, body, z)
     return jnp.vdot(z, op(z))  # Rayleigh quotient
+
+
+def inflated(sim, params, x):
+    """x with each gas object scaled about its centroid by s* = (1 + sqrt(1 + 12 nRT/(k sum L²))) / 2."""
+    topo = sim.topology
+    x = np.array(x, np.float64)
+    nrt = np.asarray(params.nmol, np.float64) * GAS_CONSTANT * sim.scene.temperature
+    k = np.asarray(params.k_structural, np.float64)
+    for o, (a, b) in enumerate(topo.vertex_slices):
+        l2 = float(np.sum(topo.rest_length[topo.edge_object == o] ** 2))
+        if nrt[o] > 0 and k[o] > 0:
+            s = 0.5 * (1 + np.sqrt(1 + 12 * nrt[o] / (k[o] * l2)))
+            c = x[a:b].mean(axis=0)
+            x[a:b] = c + s * (x[a:b] - c)
+    return jnp.asarray(x, sim.dtype)
 
 
 def estimate(sim, params, x=None, iters=100, seed=0):
@@ -80,6 +96,10 @@ def estimate(sim, params, x=None, iters=100, seed=0):
         return lam, gam
 
     lam, gam = (float(a) for a in run(params, x))
+    if sim.terms.gas:
+        # The gas inflates the body, pre-tensioning its springs and raising omega_max: also
+        # linearise at the uniform inflation s* that balances springs and gas (physics.md §8.5).
+        lam = max(lam, float(run(params, inflated(sim, params, x))[0]))
     omega = float(np.sqrt(max(lam, 0.0)))
     gamma = max(gam, 0.0)
     if sim.terms.verlet_damping:

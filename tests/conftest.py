@@ -1,0 +1,46 @@
+"""Shared test helpers: small icosphere scenes built in memory, and a float64 switch."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+import trimesh
+
+import jaxplush
+
+#: Per-dtype tolerances (JAX-MD style), looked up by the active float dtype.
+TOL = {np.dtype("float32"): 1e-5, np.dtype("float64"): 1e-11}
+
+
+def icosphere_text(subdivisions=1, radius=0.1, *, k=100.0, mass=0.05, nmol=None, dashpot=None, drag=None,
+                   damping=None, gravity=(0.0, -9.81, 0.0), floor=None, translate=(0, 0, 0), fixed=(),
+                   extra="", name="ball", offset=0, header=True):
+    """Scene text of one icosphere object; ``offset`` shifts its global vertex indices and
+    ``header=False`` leaves out the scene-level lines (to append a second object)."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    out = [f"gravity {gravity[0]!r} {gravity[1]!r} {gravity[2]!r}"] if header else []
+    if floor is not None and header:
+        out.append(f"floor {floor!r}")
+    out += [f"o {name}", f"k_structural {k!r}", f"total_weight {mass!r}"]
+    for key, val in (("nmol", nmol), ("dashpot", dashpot), ("drag", drag), ("damping", damping)):
+        if val is not None:
+            out.append(f"{key} {val!r}")
+    out.append("translate {} {} {}".format(*translate))
+    out += [f"v {float(a)!r} {float(b)!r} {float(c)!r}" for a, b, c in m.vertices]
+    out += [f"f {a + 1 + offset} {b + 1 + offset} {c + 1 + offset}" for a, b, c in m.faces]
+    out += [f"fixed {i + 1 + offset}" for i in fixed]
+    if extra:
+        out.append(extra)
+    out.append("END_OBJECT")
+    return "\n".join(out) + "\n"
+
+
+def icosphere_scene(**kw):
+    return jaxplush.parse_scene(icosphere_text(**kw), "<test>")
+
+
+@pytest.fixture
+def x64():
+    with jax.enable_x64(True):
+        yield

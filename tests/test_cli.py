@@ -1,0 +1,312 @@
+"""Tests for the command line (jaxplush.cli): info, simulate (HDF5 schema), render, and the
+error paths (clear message, exit code, no traceback, no partial output).
+
+The CLI runs in-process through ``jaxplush.cli.main`` (fast: one JAX process), plus one real
+``python -m jaxplush simulate`` subprocess for the exit code and a traceback-free stderr."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import os
+import re
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+import jaxplush
+from jaxplush import cli
+
+STEPS = 200
+SAVE_EVERY = 30
+
+
+def ball_text(k=100.0, mass=0.05, nmol=0.0015, dashpot=0.02, height=0.3, floor=0.0):
+    """A gas-filled 42-vertex icosphere (radius 0.1 m) above a floor."""
+    m = trimesh.creation.icosphere(subdivisions=1, radius=0.1)
+    lines = ["# small CLI test scene", f"floor {floor!r}", "o ball", f"k_structural {k!r}",
+             f"total_weight {mass!r}", f"nmol {nmol!r}", f"dashpot {dashpot!r}", f"translate 0 {height!r} 0"]
+    lines += [f"v {a!r} {b!r} {c!r}" for a, b, c in m.vertices.tolist()]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces.tolist()]
+    lines.append("END_OBJECT")
+    return "\n".join(lines) + "\n"
+
+
+def run_cli(*argv):
+    """Run ``jaxplush.cli.main(argv)`` in-process; return (exit code, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = cli.main([str(a) for a in argv])
+        except SystemExit as e:  # argparse usage errors
+            rc = e.code
+    return rc, out.getvalue(), err.getvalue()
+
+
+def assert_clean_error(rc, stderr, code=cli.EXIT_USAGE, *phrases):
+    assert rc == code, stderr
+    assert "Traceback" not in stderr
+    assert "error:" in stderr
+    for p in phrases:
+        assert p in stderr, (p, stderr)
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    """A directory with the small scene, its `info` output and one simulated trajectory."""
+    d = tmp_path_factory.mktemp("cli")
+    scene = d / "ball.obj"
+    scene.write_text(ball_text())
+    rc, out, err = run_cli("info", scene)
+    assert rc == 0, err
+    m = re.search(r"largest stable dt ([0-9.eE+-]+) s", out)
+    assert m, out
+    dt_max = float(m.group(1))
+    dt = 0.5 * dt_max
+    traj = d / "ball.h5"
+    rc, sim_out, sim_err = run_cli("simulate", scene, "--steps", STEPS, "--dt", repr(dt),
+                                   "--save-every", SAVE_EVERY, "--out", traj, "--quiet")
+    assert rc == 0, sim_err
+    return dict(dir=d, scene=scene, info=out, dt_max=dt_max, dt=dt, traj=traj, sim_out=sim_out, sim_err=sim_err)
+
+
+def fresh_dir(tmp_path, text=None):
+    """tmp_path holding only the small scene (or ``text``); returns the scene path."""
+    scene = tmp_path / "scene.obj"
+    scene.write_text(ball_text() if text is None else text)
+    return scene
+
+
+def listing(d):
+    return sorted(os.listdir(d))
+
+
+# ----------------------------------------------------------------------------------- info
+
+def test_info_counts_and_stable_dt(work):
+    out = work["info"]
+    assert "1 object(s), 42 vertices, 120 springs, 80 faces" in out
+    assert "object 0 'ball': 42 vertices, 120 edges, 80 faces, 0 fixed" in out
+    assert "floor y = 0 m" in out and "temperature 293.15 K" in out
+    assert "k_structural 100 N/m" in out and "nmol 0.0015" in out
+    dt_max = work["dt_max"]
+    assert math.isfinite(dt_max) and 0 < dt_max < 0.1
+    # The printed power-iteration limit agrees in order of magnitude with the Gershgorin bound.
+    g = float(re.search(r"Gershgorin safe bound ([0-9.eE+-]+) s", out).group(1))
+    assert 0.3 * g < dt_max < 10 * g
+
+
+def test_info_checks_a_given_dt(work):
+    rc, out, _ = run_cli("info", work["scene"], "--dt", repr(work["dt"]))
+    assert rc == 0 and "is within the limit" in out
+    rc, out, _ = run_cli("info", work["scene"], "--dt", repr(3 * work["dt_max"]))
+    assert rc == 0 and "is ABOVE the limit" in out
+
+
+def test_info_bad_scene(tmp_path):
+    scene = fresh_dir(tmp_path, ball_text().replace("nmol 0.0015", "nmol -1"))
+    rc, out, err = run_cli("info", scene)
+    assert_clean_error(rc, err, cli.EXIT_USAGE, f"{scene}:6:", "must be > 0")
+    assert out == ""
+
+
+# ------------------------------------------------------------------------------- simulate
+
+def test_simulate_writes_schema(work):
+    path, dt = work["traj"], work["dt"]
+    assert listing(work["dir"]) == ["ball.h5", "ball.obj"]  # no temp files left behind
+    assert "wrote" in work["sim_out"] and str(path) in work["sim_out"]
+    n_frames = 1 + math.ceil(STEPS / SAVE_EVERY)
+    scene = jaxplush.load_scene(work["scene"])
+    with h5py.File(path, "r") as f:
+        pos, times, faces = f["positions"][()], f["times"][()], f["faces"][()]
+        assert pos.shape == (n_frames, 42, 3)
+        assert times.shape == (n_frames,)
+        assert faces.shape == (80, 3) and np.issubdtype(faces.dtype, np.integer)
+        np.testing.assert_array_equal(faces, scene.faces)
+        oid = f["object_id"][()]
+        assert oid.shape == (42,) and (oid == 0).all()
+        names = [n.decode() if isinstance(n, bytes) else str(n) for n in f["object_names"][()]]
+        assert names == ["ball"]
+        a = dict(f.attrs)
+    assert np.isfinite(pos).all()
+    np.testing.assert_allclose(pos[0], scene.vertices, atol=1e-6)
+    assert times[0] == 0.0
+    np.testing.assert_allclose(times[-1], STEPS * dt, rtol=1e-12)
+    np.testing.assert_allclose(times[:-1], np.arange(n_frames - 1) * SAVE_EVERY * dt, rtol=1e-12)
+    assert np.all(np.diff(times) > 0)
+    np.testing.assert_allclose(a["dt"], dt, rtol=1e-12)
+    assert a["integrator"] == "verlet"
+    assert int(a["steps"]) == STEPS and int(a["save_every"]) == SAVE_EVERY
+    for key, val in (("k_structural", 100.0), ("damping", 0.0), ("nmol", 0.0015), ("total_weight", 0.05),
+                     ("dashpot", 0.02)):
+        # the values the run used: float32-rounded without --x64
+        np.testing.assert_allclose(np.atleast_1d(a[key]), [val], rtol=1e-6, err_msg=key)
+    assert a["jaxplush_version"] == jaxplush.__version__
+    assert a["scene"] == work["scene"].read_text()
+    assert float(a["floor"]) == 0.0
+    # The ball falls: its centre moves down, and it stays above the (penalty) floor within reason.
+    assert pos[-1, :, 1].mean() < pos[0, :, 1].mean()
+    assert pos[:, :, 1].min() > -0.05
+
+
+def test_simulate_loads_back(work):
+    t = jaxplush.load_trajectory(work["traj"])
+    assert t["positions"].shape[0] == 1 + math.ceil(STEPS / SAVE_EVERY)
+    assert t["object_names"] == ["ball"]
+
+
+def test_simulate_subprocess(work, tmp_path):
+    """One real process: exit code 0, no traceback, a progress bar allowed on stderr."""
+    out = tmp_path / "sub.h5"
+    env = dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"))
+    proc = subprocess.run([sys.executable, "-m", "jaxplush", "simulate", str(work["scene"]), "--steps", "40",
+                           "--dt", repr(work["dt"]), "--out", str(out)],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert "wrote" in proc.stdout
+    with h5py.File(out, "r") as f:
+        assert f["positions"].shape[1:] == (42, 3)
+        assert int(f.attrs["steps"]) == 40
+    assert listing(tmp_path) == ["sub.h5"]
+
+
+@pytest.mark.parametrize("edit, line, phrase", [
+    (lambda t: t.replace("k_structural 100.0", "k_structural -3"), 4, "must be >= 0"),
+    (lambda t: t.replace("floor 0.0", "flooor 0.0"), 2, "unknown keyword"),
+    (lambda t: t.replace("\nf 1 ", "\nf 1 1 "), None, "degenerate"),
+    (lambda t: t.replace("floor 0.0", "floor 0.5"), 2, "below the floor"),
+])
+def test_simulate_bad_scene(tmp_path, edit, line, phrase):
+    scene = fresh_dir(tmp_path, edit(ball_text()))
+    before = listing(tmp_path)
+    rc, out, err = run_cli("simulate", scene, "--steps", 10, "--dt", "1e-4", "--out", tmp_path / "o.h5", "--quiet")
+    if line is None:
+        line = next(i + 1 for i, ln in enumerate(scene.read_text().splitlines()) if ln.startswith("f 1 1 "))
+    assert_clean_error(rc, err, cli.EXIT_USAGE, f"{scene}:{line}: ", phrase)
+    assert listing(tmp_path) == before  # no output, no temp file
+    assert out == ""
+
+
+def test_simulate_missing_scene(tmp_path):
+    rc, _, err = run_cli("simulate", tmp_path / "nope.obj", "--steps", 10, "--dt", "1e-4", "--out",
+                         tmp_path / "o.h5", "--quiet")
+    assert_clean_error(rc, err, cli.EXIT_USAGE, "nope.obj: no such file")
+    assert listing(tmp_path) == []
+
+
+def test_simulate_binary_scene(tmp_path):
+    scene = tmp_path / "garbage.obj"
+    scene.write_bytes(b"\x7fELF\x02\x01\x01\x00\x00\x00")
+    rc, _, err = run_cli("simulate", scene, "--steps", 10, "--dt", "1e-4", "--out", tmp_path / "o.h5", "--quiet")
+    assert_clean_error(rc, err, cli.EXIT_USAGE, f"{scene}:1: binary data")
+    assert listing(tmp_path) == ["garbage.obj"]
+
+
+@pytest.mark.parametrize("args, phrase", [
+    (("--dt", "0", "--steps", "10"), "--dt must be a positive number"),
+    (("--dt=-1e-4", "--steps", "10"), "--dt must be a positive number"),
+    (("--dt", "-1", "--steps", "10"), "--dt must be a positive number"),
+    (("--dt", "nan", "--steps", "10"), "--dt must be a positive number"),
+    (("--dt", "inf", "--steps", "10"), "--dt must be a positive number"),
+    (("--dt", "1e-4", "--steps", "0"), "--steps must be >= 1"),
+    (("--dt", "1e-4", "--steps", "-5"), "--steps must be >= 1"),
+    (("--dt", "1e-4", "--steps", "10", "--save-every", "0"), "--save-every must be >= 1"),
+    (("--dt", "1e-4", "--steps", "10", "--integrator", "euler-ish"), "unknown integrator 'euler-ish'"),
+])
+def test_simulate_bad_arguments(tmp_path, args, phrase):
+    scene = fresh_dir(tmp_path)
+    rc, _, err = run_cli("simulate", scene, *args, "--out", tmp_path / "o.h5", "--quiet")
+    assert_clean_error(rc, err, cli.EXIT_USAGE, phrase)
+    assert listing(tmp_path) == ["scene.obj"]
+
+
+@pytest.mark.parametrize("args", [("--dt", "abc", "--steps", "10"), ("--dt", "1e-4", "--steps", "1.5"),
+                                  ("--dt", "1e-4")])
+def test_simulate_unparseable_arguments(tmp_path, args):
+    scene = fresh_dir(tmp_path)
+    rc, _, err = run_cli("simulate", scene, *args, "--out", tmp_path / "o.h5", "--quiet")
+    assert rc == 2 and "Traceback" not in err and "error:" in err
+    assert listing(tmp_path) == ["scene.obj"]
+
+
+def test_simulate_output_directory_missing(tmp_path):
+    scene = fresh_dir(tmp_path)
+    out = tmp_path / "no" / "such" / "dir" / "o.h5"
+    rc, _, err = run_cli("simulate", scene, "--steps", 10, "--dt", "1e-4", "--out", out, "--quiet")
+    assert_clean_error(rc, err, cli.EXIT_USAGE, "does not exist")
+    assert listing(tmp_path) == ["scene.obj"]
+
+
+def test_simulate_output_extension(tmp_path):
+    scene = fresh_dir(tmp_path)
+    rc, _, err = run_cli("simulate", scene, "--steps", 10, "--dt", "1e-4", "--out", tmp_path / "o.txt", "--quiet")
+    assert_clean_error(rc, err, cli.EXIT_USAGE, "must end in .h5")
+    assert listing(tmp_path) == ["scene.obj"]
+
+
+def test_simulate_explodes(work, tmp_path):
+    """dt 20x the stable limit: exit 3, message names the step and the object, nothing written."""
+    scene = fresh_dir(tmp_path)
+    out = tmp_path / "boom.h5"
+    rc, stdout, err = run_cli("simulate", scene, "--steps", STEPS, "--dt", repr(20 * work["dt_max"]),
+                              "--out", out, "--quiet")
+    assert_clean_error(rc, err, cli.EXIT_FAILED, "object 0 ('ball')")
+    m = re.search(r"simulation failed at step (\d+)", err)
+    assert m, err
+    assert 1 <= int(m.group(1)) <= STEPS
+    assert "stable dt" in err  # the hint
+    assert not out.exists()
+    assert listing(tmp_path) == ["scene.obj"]
+    assert "wrote" not in stdout
+
+
+def test_simulate_overwrites_atomically(work, tmp_path):
+    """An existing output survives a failed run untouched."""
+    scene = fresh_dir(tmp_path)
+    out = tmp_path / "keep.h5"
+    out.write_bytes(b"old contents")
+    rc, _, err = run_cli("simulate", scene, "--steps", STEPS, "--dt", repr(20 * work["dt_max"]),
+                         "--out", out, "--quiet")
+    assert rc == cli.EXIT_FAILED, err
+    assert out.read_bytes() == b"old contents"
+    assert listing(tmp_path) == ["keep.h5", "scene.obj"]
+
+
+# --------------------------------------------------------------------------------- render
+
+def test_render_last_frame(work, tmp_path):
+    png = tmp_path / "last.png"
+    rc, out, err = run_cli("render", work["traj"], "--out", png, "--frame", "-1")
+    assert rc == 0, err
+    assert "Traceback" not in err
+    with Image.open(png) as im:
+        assert im.format == "PNG" and im.size[0] > 100 and im.size[1] > 100
+    assert listing(tmp_path) == ["last.png"]
+
+
+def test_render_missing_trajectory(tmp_path):
+    rc, _, err = run_cli("render", tmp_path / "missing.h5", "--out", tmp_path / "x.png", "--frame", "-1")
+    assert_clean_error(rc, err, cli.EXIT_USAGE, "missing.h5")
+    assert listing(tmp_path) == []
+
+
+def test_render_not_hdf5(tmp_path):
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not hdf5")
+    rc, _, err = run_cli("render", bad, "--out", tmp_path / "x.png", "--frame", "0")
+    assert_clean_error(rc, err, cli.EXIT_USAGE, "bad.h5")
+    assert listing(tmp_path) == ["bad.h5"]
+
+
+def test_render_frame_out_of_range(work, tmp_path):
+    rc, _, err = run_cli("render", work["traj"], "--out", tmp_path / "x.png", "--frame", "999")
+    assert_clean_error(rc, err, cli.EXIT_USAGE)
+    assert listing(tmp_path) == []
