@@ -143,27 +143,9 @@ def _dot(a, b):
     return jnp.sum(a * b, axis=-1)
 
 
-def volume_gradient_ring(topo, x):
-    """(V, 3) dV/dx from ordered rings, and the (V, K, 3) neighbour offsets d = x_nbr - x."""
-    d = x[topo.ring] - x[:, None, :]
-    g = jnp.sum(jnp.cross(d, jnp.roll(d, -1, axis=1)), axis=1) / 6.0
-    return g, d
-
-
-def object_volumes(topo, x, g=None):
-    """(O,) signed volumes: V_o = 1/3 sum_i (x_i - r_o).dV/dx_i with r_o the object's first vertex."""
-    if g is None:
-        g, _ = volume_gradient_ring(topo, x)
-    if topo.n_objects == 1:
-        r = x[0]
-    else:
-        r = per_vertex_rows(topo, jnp.stack([x[a] for a, _ in topo.vertex_slices]))
-    return per_object_sum(topo, _dot(x - r, g)) / 3.0
-
-
-def per_vertex_rows(topo, rows):
-    """Spread (O, 3) rows to (V, 3) by object (static repeats)."""
-    return jnp.repeat(rows, np.asarray(topo.count, np.int64), axis=0, total_repeat_length=topo.n_vertices)
+def object_volumes(topo, x):
+    """(O,) signed volumes of positions x (V, 3) (sum of signed tetrahedra per object)."""
+    return face_volumes(topo, x)
 
 
 def pressure(topo, params, volume, temperature):
@@ -173,7 +155,12 @@ def pressure(topo, params, volume, temperature):
 
 
 def make_force_fn(topo, terms, temperature, assembly="ring"):
-    """Build ``force_fn(params, x, v) -> (f, volume)``.
+    """Build the force kernel ``force_fn(params, x, v) -> (f, volume)`` on component-major arrays.
+
+    The kernel works on (3, V) arrays (x, y, z rows): every gather then moves single floats
+    through a 1-D index table, which XLA's CPU backend runs about 5x faster than gathering
+    (V, 3) rows (benchmarks/RESULTS.md). :func:`jaxplush.step.make_simulator` keeps its state in
+    this layout and exposes (V, 3) views to users.
 
     Args:
       topo: :class:`Topology`.
@@ -184,7 +171,7 @@ def make_force_fn(topo, terms, temperature, assembly="ring"):
         per-face terms scattered with ``segment_sum``).
 
     Returns:
-      force_fn: (params, x (V,3), v (V,3)) -> (f (V,3) internal forces in N, volume (O,) or
+      force_fn: (params, x (3, V), v (3, V)) -> (f (3, V) internal forces in N, volume (O,) or
       None when the scene has no gas).
     """
     if assembly == "ring":
@@ -194,41 +181,57 @@ def make_force_fn(topo, terms, temperature, assembly="ring"):
     raise ValueError(f"unknown assembly {assembly!r}; expected 'ring' or 'segment'")
 
 
+def _object_volumes_soa(topo, x, g):
+    """(O,) volumes V_o = 1/3 sum_i (x_i - r_o).g_i, r_o the object's first vertex; x, g (3, V)."""
+    if topo.n_objects == 1:
+        r = x[:, :1]
+    else:
+        r = jnp.repeat(jnp.stack([x[:, a] for a, _ in topo.vertex_slices], axis=1),
+                       np.asarray(topo.count, np.int64), axis=1, total_repeat_length=topo.n_vertices)
+    return per_object_sum(topo, jnp.sum((x - r) * g, axis=0)) / 3.0
+
+
 def _ring_force_fn(topo, terms, temperature):
-    ring = topo.ring
-    mask = topo.ring_mask
+    # Neighbour-major (K, V) tables: each gather X[ring] then fills contiguous rows and the
+    # sums over the ring run across rows, which vectorises along V (benchmarks/RESULTS.md).
+    ring = np.ascontiguousarray(topo.ring.T)
+    mask = np.ascontiguousarray(topo.ring_mask.T)
+    ring_rest = np.ascontiguousarray(topo.ring_rest.T)
     all_real = bool(mask.all())
+
+    def gather(a):
+        return a.at[ring].get(mode="promise_in_bounds")      # (K, V); indices are valid by construction
 
     def force_fn(params, x, v):
         dtype = x.dtype
-        rest = jnp.asarray(topo.ring_rest, dtype)
+        rest = jnp.asarray(ring_rest, dtype)
         eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
         with jax.named_scope("spring"):
-            d = x[ring] - x[:, None, :]                               # (V, K, 3)
-            inv_l = jax.lax.rsqrt(_dot(d, d) + eps2)                  # (V, K)
-            k = per_vertex(topo, params.k_structural)[:, None]
-            w = k * (1.0 - rest * inv_l)                              # T / l
+            d = [gather(x[c]) - x[c] for c in range(3)]                 # 3 x (K, V)
+            inv_l = jax.lax.rsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + eps2)
+            k = per_vertex(topo, params.k_structural)
+            w = k * (1.0 - rest * inv_l)                                # T / l
+            if terms.dashpot:
+                with jax.named_scope("dashpot"):
+                    dv = [gather(v[c]) - v[c] for c in range(3)]
+                    c_ = per_vertex(topo, params.dashpot)
+                    w = w + c_ * (dv[0] * d[0] + dv[1] * d[1] + dv[2] * d[2]) * inv_l * inv_l
             if not all_real:
                 w = jnp.where(mask, w, 0.0)
-            f = jnp.sum(w[..., None] * d, axis=1)
-        if terms.dashpot:
-            with jax.named_scope("dashpot"):
-                dv = v[ring] - v[:, None, :]
-                c = per_vertex(topo, params.dashpot)[:, None]
-                wd = c * _dot(dv, d) * inv_l * inv_l
-                if not all_real:
-                    wd = jnp.where(mask, wd, 0.0)
-                f = f + jnp.sum(wd[..., None] * d, axis=1)
+            f = jnp.stack([jnp.sum(w * d[c], axis=0) for c in range(3)])
         if terms.drag:
             with jax.named_scope("drag"):
-                f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params))[:, None] * v
+                f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params)) * v
         volume = None
         if terms.gas:
             with jax.named_scope("gas"):
-                g = jnp.sum(jnp.cross(d, jnp.roll(d, -1, axis=1)), axis=1) / 6.0
-                volume = object_volumes(topo, x, g)
+                n = [jnp.roll(dc, -1, axis=0) for dc in d]              # next neighbour in the ring
+                g = jnp.stack([jnp.sum(d[1] * n[2] - d[2] * n[1], axis=0),
+                               jnp.sum(d[2] * n[0] - d[0] * n[2], axis=0),
+                               jnp.sum(d[0] * n[1] - d[1] * n[0], axis=0)]) / 6.0
+                volume = _object_volumes_soa(topo, x, g)
                 p = pressure(topo, params, volume, temperature)
-                f = f + per_vertex(topo, p)[:, None] * g
+                f = f + per_vertex(topo, p) * g
         return f, volume
 
     return force_fn
@@ -243,36 +246,41 @@ def _segment_force_fn(topo, terms, temperature):
     def scatter(vals, idx):
         return jax.ops.segment_sum(vals, idx, num_segments=n)
 
+    def per_edge(values):
+        return values[topo.edge_object] if topo.n_objects > 1 else values[0]
+
     def force_fn(params, x, v):
         dtype = x.dtype
         rest = jnp.asarray(topo.rest_length, dtype)
         with jax.named_scope("spring"):
-            d = x[e1] - x[e0]
-            inv_l = jax.lax.rsqrt(_dot(d, d) + topo.length_eps ** 2)
-            k = params.k_structural[topo.edge_object] if topo.n_objects > 1 else params.k_structural[0]
-            w = k * (1.0 - rest * inv_l)
+            d = x[:, e1] - x[:, e0]                                     # (3, E)
+            inv_l = jax.lax.rsqrt(jnp.sum(d * d, axis=0) + topo.length_eps ** 2)
+            w = per_edge(params.k_structural) * (1.0 - rest * inv_l)
             if terms.dashpot:
-                c = params.dashpot[topo.edge_object] if topo.n_objects > 1 else params.dashpot[0]
-                w = w + c * _dot(v[e1] - v[e0], d) * inv_l * inv_l
-            fe = w[:, None] * d
-            f = scatter(fe, e0) - scatter(fe, e1)
+                with jax.named_scope("dashpot"):
+                    w = w + per_edge(params.dashpot) * jnp.sum((v[:, e1] - v[:, e0]) * d, axis=0) * inv_l * inv_l
+            fe = w * d
+            f = jnp.stack([scatter(fe[c], e0) - scatter(fe[c], e1) for c in range(3)])
         if terms.drag:
-            f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params))[:, None] * v
+            with jax.named_scope("drag"):
+                f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params)) * v
         volume = None
         if terms.gas:
             with jax.named_scope("gas"):
-                a, b, c3 = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
-                an = jnp.cross(b - a, c3 - a)                           # 2 A n
+                a, b, c3 = x[:, faces[:, 0]], x[:, faces[:, 1]], x[:, faces[:, 2]]
+                u, w2 = b - a, c3 - a
+                an = jnp.stack([u[1] * w2[2] - u[2] * w2[1], u[2] * w2[0] - u[0] * w2[2],
+                                u[0] * w2[1] - u[1] * w2[0]])           # 2 A n, (3, F)
                 if topo.n_objects == 1:
-                    r = x[0]
-                    volume = jnp.sum(_dot(a - r, an))[None] / 6.0
+                    volume = jnp.sum((a - x[:, :1]) * an)[None] / 6.0
                 else:
-                    r = jnp.stack([x[s] for s, _ in topo.vertex_slices])[face_object]
-                    volume = jax.ops.segment_sum(_dot(a - r, an), face_object,
+                    r = jnp.stack([x[:, s] for s, _ in topo.vertex_slices], axis=1)[:, face_object]
+                    volume = jax.ops.segment_sum(jnp.sum((a - r) * an, axis=0), face_object,
                                                  num_segments=topo.n_objects) / 6.0
                 p = pressure(topo, params, volume, temperature)
-                pf = (p[face_object][:, None] if topo.n_objects > 1 else p[0]) * an / 6.0
-                f = f + scatter(pf, faces[:, 0]) + scatter(pf, faces[:, 1]) + scatter(pf, faces[:, 2])
+                pf = (p[face_object] if topo.n_objects > 1 else p[0]) * an / 6.0
+                f = f + jnp.stack([scatter(pf[c], faces[:, 0]) + scatter(pf[c], faces[:, 1])
+                                   + scatter(pf[c], faces[:, 2]) for c in range(3)])
         return f, volume
 
     return force_fn

@@ -48,7 +48,9 @@ def initial_health(sim, state, step=0):
 
 
 def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
-    step_fn = sim.step_fn
+    step_fn = sim.internal_step
+    state = sim.to_internal(state)
+    health = health._replace(good_state=sim.to_internal(health.good_state))
 
     def steps(s):
         return jax.lax.scan(lambda c, _: (step_fn(params, c), None), s, None, length=save_every)[0]
@@ -60,7 +62,7 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
         s, h = carry
         s = steps(s)
         step = step0 + (i + 1) * save_every
-        code = sim.status_fn(params, s)
+        code = sim.status_fn(params, sim.to_public(s))
         new_bad = (code >= diagnostics.ERROR) & (h.bad_step < 0)
         new_warn = (code == diagnostics.VOLUME_CLAMPED) & (h.warn_step < 0)
         healthy = jnp.all(code < diagnostics.ERROR) & jnp.all(h.bad_step < 0)
@@ -74,7 +76,8 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
         return (s, h), s.x
 
     (state, health), frames = jax.lax.scan(frame, (state, health), jnp.arange(n_frames, dtype=jnp.int32))
-    return state, frames, health
+    health = health._replace(good_state=sim.to_public(health.good_state))
+    return sim.to_public(state), jnp.swapaxes(frames, 1, 2), health
 
 
 _core_jit = jax.jit(_core, static_argnames=("sim", "n_frames", "save_every", "checkpoint"))

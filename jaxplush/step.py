@@ -41,6 +41,8 @@ class Simulator:
       status_fn: (params, state) -> (O,) int32 health code per object (see diagnostics).
       force_fn: (params, x, v) -> (internal force (V, 3), volume (O,) or None).
       topology, terms, dt, integrator, scene, dtype: how it was built.
+      internal_step, to_internal, to_public: the same step on the internal component-major
+        (3, V) state, and the layout conversions; rollouts scan ``internal_step``.
     """
 
     init_fn: Callable
@@ -53,6 +55,9 @@ class Simulator:
     integrator: str
     scene: object
     dtype: object
+    internal_step: Callable = None
+    to_internal: Callable = None
+    to_public: Callable = None
 
     def params(self, scene_params=None):
         """The scene's parameters (or ``scene_params``) as a pytree of jnp arrays of this dtype."""
@@ -82,15 +87,16 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
     dtype = jnp.result_type(float)
     topo = model.build_topology(scene)
     terms = model.Terms.for_scene(scene) if terms is None else terms
-    force_fn = model.make_force_fn(topo, terms, scene.temperature, assembly)
-    gravity = np.asarray(scene.gravity, np.float64)
+    kernel = model.make_force_fn(topo, terms, scene.temperature, assembly)
+    gravity = np.asarray(scene.gravity, np.float64)[:, None]
     fixed = topo.fixed
     floor = scene.floor
+    x0_soa = np.ascontiguousarray(topo.x0.T)
 
+    # Internally everything is component-major, (3, V): see model.make_force_fn.
     def accel(params, x, v):
-        f, volume = force_fn(params, x, v)
-        inv_m = (1.0 / model.vertex_mass(topo, params))[:, None]
-        a = f * inv_m
+        f, volume = kernel(params, x, v)
+        a = f * (1.0 / model.vertex_mass(topo, params))
         if terms.gravity:
             with jax.named_scope("gravity"):
                 a = a + jnp.asarray(gravity, x.dtype)
@@ -99,30 +105,30 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
     def constrain(x_old, x, u):
         if terms.floor:
             with jax.named_scope("floor"):
-                below = x[:, 1] < floor
-                u = u.at[:, 1].set(jnp.where(below, (floor - x_old[:, 1]) / dt, u[:, 1]))
-                x = x.at[:, 1].set(jnp.maximum(x[:, 1], floor))
+                below = x[1] < floor
+                u = u.at[1].set(jnp.where(below, (floor - x_old[1]) / dt, u[1]))
+                x = x.at[1].set(jnp.maximum(x[1], floor))
         if terms.fixed:
             with jax.named_scope("fixed"):
-                x = x.at[fixed].set(jnp.asarray(topo.x0[fixed], x.dtype))
-                u = u.at[fixed].set(0.0)
+                x = x.at[:, fixed].set(jnp.asarray(x0_soa[:, fixed], x.dtype))
+                u = u.at[:, fixed].set(0.0)
         return x, u
 
-    def init_fn(params, x0=None, v0=None):
-        x0 = jnp.asarray(topo.x0 if x0 is None else x0, dtype)
-        v0 = jnp.zeros_like(x0) if v0 is None else jnp.asarray(v0, dtype)
-        a0, _ = accel(params, x0, v0)
-        u0 = v0 - 0.5 * dt * a0
+    def internal_init(params, x0=None, v0=None):
+        x = jnp.asarray(topo.x0 if x0 is None else x0, dtype).T
+        v = jnp.zeros_like(x) if v0 is None else jnp.asarray(v0, dtype).T
+        a0, _ = accel(params, x, v)
+        u = v - 0.5 * dt * a0
         if terms.fixed:
-            u0 = u0.at[fixed].set(0.0)
-        return State(x0, u0)
+            u = u.at[:, fixed].set(0.0)
+        return State(x, u)
 
-    def step_fn(params, state):
+    def internal_step(params, state):
         x, u = state
         a, _ = accel(params, x, u)
         if terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
-                f = model.per_vertex(topo, _damping_factor(params.damping))[:, None]
+                f = model.per_vertex(topo, _damping_factor(params.damping))
                 u_new = (1.0 - f) * u + a * dt
         else:
             u_new = u + a * dt
@@ -130,12 +136,33 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
         x_new, u_new = constrain(x, x_new, u_new)
         return State(x_new, u_new)
 
+    def init_fn(params, x0=None, v0=None):
+        return to_public(internal_init(params, x0, v0))
+
+    def step_fn(params, state):
+        return to_public(internal_step(params, to_internal(state)))
+
+    def force_fn(params, x, v):
+        f, volume = kernel(params, jnp.asarray(x).T, jnp.asarray(v).T)
+        return f.T, volume
+
     def status_fn(params, state):
         from jaxplush.diagnostics import object_status
         return object_status(topo, terms, state.x)
 
     return Simulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
-                     topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype)
+                     topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype,
+                     internal_step=internal_step, to_internal=to_internal, to_public=to_public)
+
+
+def to_internal(state):
+    """(V, 3) public state -> (3, V) internal layout."""
+    return State(*(jnp.asarray(a).T for a in state))
+
+
+def to_public(state):
+    """(3, V) internal state -> (V, 3) public layout."""
+    return State(*(a.T for a in state))
 
 
 def _damping_factor(damping):

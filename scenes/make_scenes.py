@@ -3,26 +3,30 @@
 
 Writes ``ball_drop.obj``, ``bear.obj``, ``hanging.obj`` and ``two_plushies.obj`` next to
 this script (atomically, through :func:`jaxplush.scene_writer.write_scene`), prints a
-parameter table per scene, then re-reads every file it wrote and checks it.
+parameter table per scene, then re-reads every file it wrote and checks it (closed,
+consistently wound, positive volume with trimesh; then ``jaxplush.scene.load_scene``).
+The output is deterministic: rerunning gives byte-identical files.
 
 Every number in the headers is computed here, not guessed (physics.md §4, §5, §8):
 
-* ``nmol`` puts the free (gravity-free) inflated size ``s*`` = 1.05 x rest, from
-  ``k s (s-1) sum(L^2) = 3 nRT`` (§8 item 5), i.e. ``nmol = k sum(L^2) s (s-1) / (3 R T)``.
-  For the bear this uniform-scaling estimate is only nominal; the table also gives the
-  measured ``(V*/V0)^(1/3)`` after relaxing the free object to its inflated equilibrium.
+* ``nmol``: the free (gravity-free) inflated size ``s*`` is 1.05 x rest. For the
+  icosphere balls it comes from ``k s (s-1) sum(L^2) = 3 nRT`` (§8 item 5), i.e.
+  ``nmol = k sum(L^2) s (s-1) / (3 R T)``. That formula assumes uniform scaling is the
+  equilibrium; the lobed bear instead gains volume by unfolding its creases (with the
+  formula's nmol it swells to (V*/V0)^(1/3) = 1.16 and loses its shape), so its nmol is
+  solved numerically for a measured (V*/V0)^(1/3) = 1.05 at the relaxed equilibrium.
 * ``dashpot`` ``c = zeta_spring * sqrt(2 k m)``: the damping ratio of one spring between two
   vertex masses (§5). Modal damping ratios are reported: ``zeta_1`` (lowest deformation
-  mode), ``zeta_b`` (breathing, Rayleigh quotient of uniform scaling), ``zeta_max`` (highest
-  mode). The edge dashpot is stiffness-proportional (zeta grows with omega), so the slow
-  modes are lightly damped; raising ``c`` to damp them overdamps the fast ones and shrinks
-  the explicit time step (below).
+  mode; for a pinned object the lowest mode), ``zeta_b`` (breathing, Rayleigh quotient of
+  uniform scaling), ``zeta_max`` (highest mode). The edge dashpot is stiffness-proportional
+  (zeta grows with omega), so the slow shape modes are only lightly damped; raising ``c`` to
+  damp them overdamps the fast ones and shrinks the explicit time step (below).
 * Stability, for explicit Verlet / symplectic Euler:
     - ``dt_G = sqrt(2 m / (k n_max))``: Gershgorin bound for the springs alone (§4);
     - ``omega_max``: the largest eigenvalue of M^-1 K, where K is the Hessian of springs
       plus gas at the relaxed inflated state (pre-tension and gas included), found with
       ARPACK; ``dt_w = 2/omega_max * (sqrt(1 + zeta_max^2) - zeta_max)`` is the limit with
-      the dashpot's explicit damping at that mode (central-difference bound);
+      the dashpot's (and drag's) explicit damping at that mode;
     - suggested ``dt``: ``min(0.5 dt_w, dt_G)`` rounded down to a value {1, 1.25, 2, 2.5,
       4, 5, 8} x 10^k that divides the 10 ms frame interval into a whole number of steps.
   Floor contact is not included: a penalty floor needs ``k_c <~ 0.25 m (2/dt)^2`` (§6).
@@ -344,7 +348,8 @@ def modal_analysis(x, faces, edges, rest, k, c, nrt, mass_per_vertex, fixed=(), 
         return Ks @ v + U @ (W * (U.T @ v))
 
     Kop = spla.LinearOperator((dim, dim), matvec=kmul, dtype=np.float64)
-    lam_max, vec_max = spla.eigsh(Kop, k=1, which="LA", tol=1e-8)
+    start = np.random.default_rng(0).standard_normal(dim)  # fixed ARPACK start: reproducible files
+    lam_max, vec_max = spla.eigsh(Kop, k=1, which="LA", tol=1e-8, v0=start)
     lam_max = float(lam_max[0])
     vec_max = vec_max[:, 0]
 
@@ -366,7 +371,7 @@ def modal_analysis(x, faces, edges, rest, k, c, nrt, mass_per_vertex, fixed=(), 
         return y - AiU @ np.linalg.solve(small, U.T @ y)
 
     OPinv = spla.LinearOperator((dim, dim), matvec=opinv, dtype=np.float64)
-    lam, vecs = spla.eigsh(Kop, k=8, sigma=sigma, which="LM", OPinv=OPinv, tol=1e-10)
+    lam, vecs = spla.eigsh(Kop, k=8, sigma=sigma, which="LM", OPinv=OPinv, tol=1e-10, v0=start)
     order = np.argsort(lam)
     lam, vecs = lam[order], vecs[:, order]
     if lam[0] < -1e-8 * lam_max:
@@ -412,12 +417,14 @@ def nice_dt(limit, frame_dt=None):
 
 def make_object(name, vertices, faces, *, total_weight, k, zeta_spring=ZETA_SPRING,
                 inflation=INFLATION, translate=(0.0, 0.0, 0.0), fixed=None, drag=None,
-                gravity_in_relax=False, calibrate=False, scale=None):
+                calibrate=False, scale=None):
     """Object dict for the writer, with nmol and dashpot derived, plus its analysis.
 
     ``vertices`` are written as given; with ``scale`` the file says ``scale S`` and every
     number here (rest lengths, volume, nmol) is computed on the scaled mesh, as the parser
-    builds it. ``translate`` does not change any of them.
+    builds it. ``translate`` does not change any of them. ``calibrate``: solve for nmol
+    numerically (see below) instead of using the sphere formula. Pinned objects are analysed
+    hanging from their pins under GRAVITY; free ones at their free inflated equilibrium.
     """
     written = np.asarray(vertices, np.float64)
     vertices = written * (1.0 if scale is None else float(scale))
@@ -466,8 +473,9 @@ def make_object(name, vertices, faces, *, total_weight, k, zeta_spring=ZETA_SPRI
         # scaled about the (first) pin, so the pins stay put
         pin = vertices[fixed[0]]
         start = pin + s * (vertices - pin)
-        x_eq, gmax = relax(start, faces, edges, rest, k, nrt, mass=m,
-                           gravity=GRAVITY if gravity_in_relax else (0, 0, 0), fixed=fixed)
+        x_eq, gmax = relax(start, faces, edges, rest, k, nrt, mass=m, gravity=GRAVITY, fixed=fixed)
+    if not gmax < 1e-5 * k * rest.mean():
+        raise RuntimeError(f"{name}: static relaxation did not converge (max force {gmax:.3g} N)")
     v_eq = volume(x_eq, faces)
     strain = np.linalg.norm(x_eq[edges[:, 0]] - x_eq[edges[:, 1]], axis=1) / rest - 1.0
     modes = modal_analysis(x_eq, faces, edges, rest, k, dashpot, nrt, m, fixed=fixed, drag=drag or 0.0)
@@ -475,7 +483,6 @@ def make_object(name, vertices, faces, *, total_weight, k, zeta_spring=ZETA_SPRI
     dt_g = math.sqrt(2.0 * m / (k * valence.max()))
     z = modes["zeta_max"]
     dt_w = 2.0 / modes["omega_max"] * (math.sqrt(1.0 + z * z) - z)
-    lengths = rest
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     info = dict(
         name=name, n_vertices=n, n_edges=len(edges), n_faces=len(faces), mass=total_weight,
@@ -484,7 +491,7 @@ def make_object(name, vertices, faces, *, total_weight, k, zeta_spring=ZETA_SPRI
         s_nominal=s, s_free=s_free, s_measured=(v_eq / v0) ** (1 / 3), relax_residual=gmax,
         strain_min=float(strain.min()), strain_mean=float(strain.mean()), strain_max=float(strain.max()),
         pinned=bool(fixed), n_max=int(valence.max()), dt_g=dt_g, dt_w=dt_w,
-        edge_ratio=float(lengths.max() / lengths.min()),
+        edge_ratio=float(rest.max() / rest.min()),
         min_angle_deg=float(np.degrees(mesh.face_angles.min())), **modes,
     )
     obj = dict(name=name, vertices=written, faces=faces, total_weight=total_weight,
@@ -562,7 +569,7 @@ def scene_hanging():
     pin_height = 1.0
     obj, info = make_object("hanging_ball", v, f, total_weight=0.1, k=50.0, scale=radius,
                             drag=1.0, translate=(0.0, pin_height - radius * v[top, 1], 0.0),
-                            fixed=[top], gravity_in_relax=True)
+                            fixed=[top])
     text = ("A soft 162-vertex inflated ball (icosphere, radius 0.1 m, 0.1 kg, k = 50 N/m) "
             f"hanging from one pinned vertex at its top (at y = {pin_height:g} m); gravity on, no "
             "floor. It starts undeformed, drops, stretches and bounces on its pin. Written as a "

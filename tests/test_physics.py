@@ -119,22 +119,30 @@ def test_ball_dropped_on_floor_comes_to_rest_and_recovers_shape():
     scene = icosphere_scene(subdivisions=2, radius=0.1, k=200.0, mass=0.05, nmol=2e-3, dashpot=0.02, drag=6.0,
                             floor=0.0, translate=(0, 0.3, 0))
     dt = 2e-4
-    traj = jaxplush.simulate(scene, steps=10000, dt=dt, save_every=50)
+    traj = jaxplush.simulate(scene, steps=20000, dt=dt, save_every=500)
     y = traj.positions[:, :, 1]
     assert y.min() >= 0.0                                    # never below the floor
     assert traj.positions[:, :, 1].min(axis=1)[1:].min() == 0.0   # it did reach the floor
     assert (traj.volumes > 0).all()
-    # At rest: the last frames no longer move.
-    speed = np.abs(traj.positions[-1] - traj.positions[-2]).max() / (dt * 50)
-    assert speed < 5e-3
+    # At rest: between the last two frames the centre of mass moves < 1 mm/s and the vertices
+    # < 5 mm/s RMS (drop speed was ~2 m/s). Without bending terms the flat contact patch keeps a
+    # faint in-plane creep (physics.md §1), so individual vertices are not asked to stop dead.
+    disp = (traj.positions[-1] - traj.positions[-2]) / (dt * 500)
+    assert np.linalg.norm(disp.mean(0)) < 1e-3
+    assert np.sqrt(np.mean(np.sum(disp ** 2, axis=1))) < 5e-3
     # Shape recovered: compare with the same ball relaxed without gravity (equilibrium inflation).
     free = jaxplush.simulate(icosphere_scene(subdivisions=2, radius=0.1, k=200.0, mass=0.05, nmol=2e-3, dashpot=0.02,
                                              drag=6.0, gravity=(0, 0, 0)), steps=10000, dt=dt, save_every=10000)
     rest = free.positions[-1] - free.positions[-1].mean(0)
     final = traj.positions[-1] - traj.positions[-1].mean(0)
     radius = np.linalg.norm(rest, axis=1).mean()
-    dev = np.linalg.norm(final - rest, axis=1).max() / radius
-    assert dev < 0.15                                        # sag under its own weight, stated tolerance 15%
+    # Shape only: remove the rigid rotation it picked up rolling on the frictionless floor (Kabsch).
+    u, _, vt = np.linalg.svd(final.T.astype(np.float64) @ rest)
+    rot = u @ np.diag([1, 1, np.sign(np.linalg.det(u @ vt))]) @ vt
+    dev = np.linalg.norm(final @ rot - rest, axis=1) / radius
+    # Stated tolerance: it sags under its own weight and flattens where it touches the floor,
+    # but keeps its shape: RMS deviation < 2% and worst vertex < 5% of the radius.
+    assert np.sqrt(np.mean(dev ** 2)) < 0.02 and dev.max() < 0.05
     assert abs(traj.volumes[-1, 0] / free.volumes[-1, 0] - 1) < 0.05
 
 
