@@ -90,10 +90,12 @@ def _simulate(args):
     scene = jaxplush.load_scene(args.scene)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        traj = jaxplush.simulate(scene, args.steps, args.dt, args.save_every, args.integrator,
-                                 progress=not args.quiet)
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
+        try:
+            traj = jaxplush.simulate(scene, args.steps, args.dt, args.save_every, args.integrator,
+                                     progress=not args.quiet)
+        finally:  # also when the run fails: the dt warning explains the blow-up
+            for w in caught:
+                print(f"warning: {w.message}", file=sys.stderr)
     t = time.perf_counter()
     traj.save(args.out)
     vols = ", ".join(f"{n}: {v * 1e6:.6g} cm³ ({v / v0:.3f}× rest)" for n, v, v0 in

@@ -33,7 +33,7 @@ def object_status(topo, terms, x):
         topo.count, jnp.int32)
     code = jnp.where(finite, OK, NON_FINITE)
     if terms.gas:
-        vol = model.object_volumes(topo, x)
+        vol = model.face_volumes(topo, x)
         v0 = jnp.asarray(topo.rest_volume, x.dtype)
         code = jnp.where(finite & (vol <= 0), INVERTED, code)
         code = jnp.where(finite & (vol > 0) & (vol < VOLUME_EPS * v0), VOLUME_CLAMPED, code)

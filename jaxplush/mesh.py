@@ -142,8 +142,7 @@ def check_and_orient(vertices, faces, labels=None):
         flipped = len(out) - flipped
 
     # Vertex manifoldness: the faces around each vertex must form a single fan.
-    rings = one_rings(out, n, labels=lab)
-    del rings
+    one_rings(out, n, labels=lab)  # raises MeshProblem at a non-manifold vertex
     return out, flipped
 
 

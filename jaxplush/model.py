@@ -65,10 +65,6 @@ class Topology:
     x0: np.ndarray
     length_eps: float
 
-    @property
-    def max_valence(self):
-        return int(self.ring_mask.sum(axis=1).max())
-
 
 def build_topology(scene):
     """Build the static :class:`Topology` of a :class:`jaxplush.scene.Scene`."""
@@ -141,11 +137,6 @@ def vertex_mass(topo, params):
 
 def _dot(a, b):
     return jnp.sum(a * b, axis=-1)
-
-
-def object_volumes(topo, x):
-    """(O,) signed volumes of positions x (V, 3) (sum of signed tetrahedra per object)."""
-    return face_volumes(topo, x)
 
 
 def pressure(topo, params, volume, temperature):

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import model
+from jaxplush import diagnostics, model
 from jaxplush.types import Params, State
 
 INTEGRATORS = ("verlet",)
@@ -147,8 +147,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
         return f.T, volume
 
     def status_fn(params, state):
-        from jaxplush.diagnostics import object_status
-        return object_status(topo, terms, state.x)
+        return diagnostics.object_status(topo, terms, state.x)
 
     return Simulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
                      topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype,
