@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import diagnostics, model
+from jaxplush import constraints, diagnostics, model
 from jaxplush.types import Params, State
 
 INTEGRATORS = ("verlet",)
@@ -90,8 +90,6 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
     kernel = model.make_force_fn(topo, terms, scene.temperature, assembly)
     gravity = np.asarray(scene.gravity, np.float64)[:, None]
     fixed = topo.fixed
-    floor = scene.floor
-    x0_soa = np.ascontiguousarray(topo.x0.T)
 
     # Internally everything is component-major, (3, V): see model.make_force_fn.
     def accel(params, x, v):
@@ -102,17 +100,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
                 a = a + jnp.asarray(gravity, x.dtype)
         return a, volume
 
-    def constrain(x_old, x, u):
-        if terms.floor:
-            with jax.named_scope("floor"):
-                below = x[1] < floor
-                u = u.at[1].set(jnp.where(below, (floor - x_old[1]) / dt, u[1]))
-                x = x.at[1].set(jnp.maximum(x[1], floor))
-        if terms.fixed:
-            with jax.named_scope("fixed"):
-                x = x.at[:, fixed].set(jnp.asarray(x0_soa[:, fixed], x.dtype))
-                u = u.at[:, fixed].set(0.0)
-        return x, u
+    constrain = constraints.make_constrain(topo, terms, scene, dt)
 
     def internal_init(params, x0=None, v0=None):
         x = jnp.asarray(topo.x0 if x0 is None else x0, dtype).T
