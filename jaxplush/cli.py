@@ -27,7 +27,10 @@ def _parser():
     s.add_argument("--steps", type=int, required=True, help="number of time steps")
     s.add_argument("--dt", type=float, required=True, help="time step in seconds")
     s.add_argument("--save-every", type=int, default=None, help="steps between saved frames (default: steps/100)")
-    s.add_argument("--integrator", default="verlet", help="integrator (default: verlet)")
+    s.add_argument("--integrator", default="verlet",
+                   help="euler, symplectic_euler, rk4, verlet (default), mesit (unsound, for comparison) "
+                        "or implicit_euler")
+    s.add_argument("--substeps", type=int, default=1, help="integrator steps of dt/substeps per time step (default 1)")
     s.add_argument("--out", required=True, help="output trajectory (.h5)")
     s.add_argument("--x64", action="store_true", help="run in float64 (reference runs)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -80,6 +83,8 @@ def _simulate(args):
         raise JaxplushError(f"--dt must be a positive number, got {args.dt}")
     if args.save_every is not None and args.save_every < 1:
         raise JaxplushError(f"--save-every must be >= 1, got {args.save_every}")
+    if args.substeps < 1:
+        raise JaxplushError(f"--substeps must be >= 1, got {args.substeps}")
     _check_out(args.out, (".h5", ".hdf5"))
     if args.x64:
         import jax
@@ -92,7 +97,7 @@ def _simulate(args):
         warnings.simplefilter("always")
         try:
             traj = jaxplush.simulate(scene, args.steps, args.dt, args.save_every, args.integrator,
-                                     progress=not args.quiet)
+                                     progress=not args.quiet, substeps=args.substeps)
         finally:  # also when the run fails: the dt warning explains the blow-up
             for w in caught:
                 print(f"warning: {w.message}", file=sys.stderr)

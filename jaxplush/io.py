@@ -2,7 +2,7 @@
 
 Datasets: ``positions`` float [T, V, 3] (m), ``times`` float [T] (s), ``faces`` int32 [F, 3]
 (0-based, global), ``object_id`` int32 [V], ``object_names`` (UTF-8 strings [O]).
-Attributes: ``dt``, ``integrator``, ``steps``, ``save_every``, ``floor`` (NaN: none),
+Attributes: ``dt``, ``integrator``, ``steps``, ``save_every``, ``substeps``, ``floor`` (NaN: none),
 ``gravity`` [3], ``temperature``, one (O,) array per parameter (``k_structural``, ``damping``,
 ``dashpot``, ``drag``, ``nmol``, ``total_weight``), ``jaxplush_version``, ``scene`` (the full
 scene text) and ``scene_path``. Files are written atomically (temp file, then rename).
@@ -58,6 +58,7 @@ def save_trajectory(traj, path):
             a["integrator"] = traj.integrator
             a["steps"] = int(traj.steps)
             a["save_every"] = int(traj.save_every)
+            a["substeps"] = int(getattr(traj, "substeps", 1))
             a["floor"] = np.nan if traj.floor is None else float(traj.floor)
             a["gravity"] = np.asarray(traj.gravity, np.float64)
             a["temperature"] = float(traj.temperature)

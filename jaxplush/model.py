@@ -99,10 +99,17 @@ class Terms:
     floor: bool = False
     fixed: bool = False
     verlet_damping: bool = False
+    #: soft-soft contact (:class:`jaxplush.contact.ContactConfig`), None: not compiled in
+    contact: object = None
+    #: floor Coulomb friction coefficient mu and restitution e (0: not compiled in)
+    floor_friction: float = 0.0
+    floor_restitution: float = 0.0
 
     @classmethod
     def for_scene(cls, scene):
+        from jaxplush import contact as _contact
         p = scene.params
+        has_floor = scene.floor is not None
         return cls(spring=True,
                    dashpot=bool(np.any(p.dashpot > 0)),
                    drag=bool(np.any(p.drag > 0)),
@@ -110,7 +117,10 @@ class Terms:
                    gravity=bool(np.any(scene.gravity != 0)),
                    floor=scene.floor is not None,
                    fixed=len(scene.fixed) > 0,
-                   verlet_damping=bool(np.any(p.damping > 0)))
+                   verlet_damping=bool(np.any(p.damping > 0)),
+                   contact=_contact.config_for_scene(scene),
+                   floor_friction=float(getattr(scene, "floor_friction", 0.0)) if has_floor else 0.0,
+                   floor_restitution=float(getattr(scene, "floor_restitution", 0.0)) if has_floor else 0.0)
 
     def names(self):
         return tuple(f.name for f in dataclasses.fields(self) if getattr(self, f.name))
@@ -156,7 +166,8 @@ def make_force_fn(topo, terms, temperature, assembly="ring"):
     Args:
       topo: :class:`Topology`.
       terms: :class:`Terms`; only the selected terms are traced. Gravity, the floor, pinned
-        vertices and the report's Verlet damping belong to the integrator, not here.
+        vertices and the report's Verlet damping belong to the integrator, not here. Soft-soft
+        contact (``terms.contact``, :mod:`jaxplush.contact`) is added to the internal force.
       temperature: gas temperature (K), a Python float.
       assembly: "ring" (per-vertex one-ring gathers, default) or "segment" (per-edge and
         per-face terms scattered with ``segment_sum``).
@@ -166,10 +177,23 @@ def make_force_fn(topo, terms, temperature, assembly="ring"):
       None when the scene has no gas).
     """
     if assembly == "ring":
-        return _ring_force_fn(topo, terms, temperature)
-    if assembly == "segment":
-        return _segment_force_fn(topo, terms, temperature)
-    raise ValueError(f"unknown assembly {assembly!r}; expected 'ring' or 'segment'")
+        kernel = _ring_force_fn(topo, terms, temperature)
+    elif assembly == "segment":
+        kernel = _segment_force_fn(topo, terms, temperature)
+    else:
+        raise ValueError(f"unknown assembly {assembly!r}; expected 'ring' or 'segment'")
+    if not terms.contact:
+        return kernel
+    from jaxplush import contact as _contact
+    contact_force = _contact.make_contact_force(topo, terms.contact)
+
+    def force_fn(params, x, v):
+        f, volume = kernel(params, x, v)
+        with jax.named_scope("contact"):
+            f = f + contact_force(params, x)
+        return f, volume
+
+    return force_fn
 
 
 def _object_volumes_soa(topo, x, g):

@@ -119,9 +119,10 @@ def locate_failure(sim, params, health):
     if not (bad >= 0).any():
         return None
     start = int(health.good_step)
-    span = int(bad[bad >= 0].min()) - start
+    span = max(int(bad[bad >= 0].min()) - start, 1)
+    span = 1 << (span - 1).bit_length()   # a power of two: repeated searches reuse one compile
     _, _, h = _core_jit(sim, params, health.good_state, initial_health(sim, health.good_state, start),
-                        jnp.asarray(start, jnp.int32), n_frames=max(span, 1), save_every=1, checkpoint=False)
+                        jnp.asarray(start, jnp.int32), n_frames=span, save_every=1, checkpoint=False)
     b = np.asarray(h.bad_step)
     if not (b >= 0).any():  # cannot happen for a deterministic step; fall back to the frame record
         b, code = bad, np.asarray(health.code)

@@ -20,6 +20,15 @@ Scene level (anywhere, at most once each):
   ``gravity GX GY GZ`` m/s² (default 0 -9.81 0; y is up)
   ``floor H``          a horizontal floor at y = H facing up (none unless given)
   ``temperature T``    K (> 0; default 293.15)
+  ``floor_friction MU``     Coulomb friction coefficient of the floor (>= 0; default 0: none)
+  ``floor_restitution E``   floor restitution (0 <= E <= 1; default 0: vertices stop on impact)
+  ``contact on|off``        soft-soft contact between objects (default on when there are several)
+  ``self_collision on|off`` each object against its own faces (default off; O(N²), small meshes)
+  ``contact_stiffness K``   contact penalty stiffness, N/m (> 0; default 0.1 x 2 n_max min(k_A, k_B),
+                            which scales with the objects' stiffness and mass, see jaxplush.contact)
+  ``contact_thickness D``   contact thickness, m (> 0; default half the finer mean edge length)
+  ``contact_capacity N``    candidate vertices per object and pair (integer >= 1; default
+                            max(128, n/8)); a run that needs more stops with an error
 
 An object's vertices are the vertices its faces use; indices in ``f`` and ``fixed`` are
 1-based and global to the file, or negative (relative to the vertices defined so far).
@@ -59,7 +68,13 @@ _SCENE_KEYS = {
     "gravity": (3, None, None),
     "floor": (1, None, None),
     "temperature": (1, lambda v: v > 0, "must be > 0"),
+    "floor_friction": (1, lambda v: v >= 0, "must be >= 0"),
+    "floor_restitution": (1, lambda v: 0 <= v <= 1, "must be between 0 and 1"),
+    "contact_stiffness": (1, lambda v: v > 0, "must be > 0 (N/m)"),
+    "contact_thickness": (1, lambda v: v > 0, "must be > 0 (m)"),
+    "contact_capacity": (1, lambda v: v >= 1 and v == int(v) and v < 2 ** 31, "must be an integer >= 1"),
 }
+_SWITCH_KEYS = ("contact", "self_collision")
 _IGNORED = {"vt", "vn", "vp", "s", "usemtl", "mtllib"}
 _MAX_COORD = 1e30  # larger coordinates overflow the mesh checks (and float32 simulation)
 
@@ -107,6 +122,10 @@ class Scene:
       gravity: (3,) float64, m/s².
       floor: floor height (y) or None.
       temperature: gas temperature, K.
+      floor_friction, floor_restitution: floor Coulomb coefficient and restitution (0: none).
+      contact, self_collision: soft-soft contact between objects / of each object with itself.
+      contact_stiffness (N/m), contact_thickness (m), contact_capacity: None for the defaults
+        of :mod:`jaxplush.contact`.
     """
 
     path: str
@@ -118,6 +137,13 @@ class Scene:
     gravity: np.ndarray
     floor: float | None
     temperature: float
+    floor_friction: float = 0.0
+    floor_restitution: float = 0.0
+    contact: bool = True
+    self_collision: bool = False
+    contact_stiffness: float | None = None
+    contact_thickness: float | None = None
+    contact_capacity: int | None = None
 
     @property
     def n_objects(self):
@@ -328,6 +354,12 @@ class _Parser:
                 if key in self.scene_keys:
                     raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
                 self.scene_keys[key] = (vals, lineno)
+            elif key in _SWITCH_KEYS:
+                if len(args) != 1 or args[0].lower() not in ("on", "off"):
+                    raise self.err(lineno, f"'{key}' expects 'on' or 'off', got {' '.join(args)!r}")
+                if key in self.scene_keys:
+                    raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+                self.scene_keys[key] = ([args[0].lower() == "on"], lineno)
             elif key in _IGNORED:
                 continue
             else:
@@ -428,6 +460,15 @@ class _Parser:
         floor = self.scene_keys["floor"][0][0] if "floor" in self.scene_keys else None
         temperature = self.scene_keys.get("temperature", ((DEFAULT_TEMPERATURE,), 0))[0][0]
         vertices = np.concatenate(all_x)
+        if floor is None:
+            for key in ("floor_friction", "floor_restitution"):
+                if key in self.scene_keys:
+                    raise self.err(self.scene_keys[key][1], f"'{key}' needs a 'floor'")
+        extra = {k: self.scene_keys[k][0][0] for k in ("floor_friction", "floor_restitution", "contact",
+                                                        "self_collision", "contact_stiffness",
+                                                        "contact_thickness") if k in self.scene_keys}
+        if "contact_capacity" in self.scene_keys:
+            extra["contact_capacity"] = int(self.scene_keys["contact_capacity"][0][0])
         if floor is not None:
             for o in objs:
                 lo = vertices[o.vertex_slice[0]:o.vertex_slice[1], 1].min()
@@ -437,4 +478,4 @@ class _Parser:
         return Scene(path=self.path, text=self.text, objects=tuple(objs), vertices=vertices,
                      faces=np.concatenate(all_f).astype(np.int32),
                      params=Params(**{k: np.asarray(v, np.float64) for k, v in params.items()}),
-                     gravity=gravity, floor=floor, temperature=float(temperature))
+                     gravity=gravity, floor=floor, temperature=float(temperature), **extra)

@@ -8,7 +8,10 @@ The format (read by :func:`jaxplush.load_scene`):
   ``k_structural K``, ``damping D``, ``dashpot C``, ``drag G``, ``total_weight M``,
   ``nmol N``, ``scale S``, ``translate X Y Z``, ``fixed I`` (1-based global index, may
   repeat). ``END_OBJECT`` closes the object.
-* Scene keywords, written at the top: ``gravity GX GY GZ``, ``floor H``, ``temperature T``.
+* Scene keywords, written at the top: ``gravity GX GY GZ``, ``floor H``, ``temperature T``,
+  and the contact keywords ``floor_friction MU``, ``floor_restitution E``, ``contact on|off``,
+  ``self_collision on|off``, ``contact_stiffness K``, ``contact_thickness D``,
+  ``contact_capacity N`` (see :mod:`jaxplush.scene`).
 
 Objects are given in their own coordinates with 0-based *local* face and fixed indices;
 :func:`format_scene` offsets them to 1-based global indices. Every float is written with
@@ -143,6 +146,13 @@ def format_scene(
     floor: float | None = None,
     temperature: float | None = None,
     header: str | None = None,
+    floor_friction: float | None = None,
+    floor_restitution: float | None = None,
+    contact: bool | None = None,
+    self_collision: bool | None = None,
+    contact_stiffness: float | None = None,
+    contact_thickness: float | None = None,
+    contact_capacity: int | None = None,
 ) -> str:
     """Return the text of a scene file.
 
@@ -157,6 +167,11 @@ def format_scene(
       floor: height of the floor plane y = floor, or None for no floor.
       temperature: gas temperature in K, or None for the parser's default.
       header: free text written first, each line prefixed with ``# ``.
+      floor_friction, floor_restitution: floor Coulomb coefficient (>= 0) and restitution
+        (in [0, 1]); they need a ``floor``.
+      contact, self_collision: write ``contact on|off`` / ``self_collision on|off``.
+      contact_stiffness (N/m, > 0), contact_thickness (m, > 0), contact_capacity (int >= 1):
+        override the contact defaults. None leaves any of these out (the parser's default).
 
     Returns:
       The file contents (ends with a newline).
@@ -189,6 +204,26 @@ def format_scene(
         if not (math.isfinite(t) and t > 0):
             raise ValueError(f"temperature must be finite and > 0 K, got {temperature!r}")
         scene_lines.append(f"temperature {_num(t)}")
+    for key, val, ok, msg in (
+            ("floor_friction", floor_friction, lambda v: v >= 0, ">= 0"),
+            ("floor_restitution", floor_restitution, lambda v: 0 <= v <= 1, "in [0, 1]"),
+            ("contact_stiffness", contact_stiffness, lambda v: v > 0, "> 0"),
+            ("contact_thickness", contact_thickness, lambda v: v > 0, "> 0")):
+        if val is None:
+            continue
+        v = float(val)
+        if not (math.isfinite(v) and ok(v)):
+            raise ValueError(f"{key} must be finite and {msg}, got {val!r}")
+        if key.startswith("floor_") and floor is None:
+            raise ValueError(f"{key} needs a floor")
+        scene_lines.append(f"{key} {_num(v)}")
+    if contact_capacity is not None:
+        if isinstance(contact_capacity, bool) or int(contact_capacity) != contact_capacity or contact_capacity < 1:
+            raise ValueError(f"contact_capacity must be an integer >= 1, got {contact_capacity!r}")
+        scene_lines.append(f"contact_capacity {int(contact_capacity)}")
+    for key, val in (("contact", contact), ("self_collision", self_collision)):
+        if val is not None:
+            scene_lines.append(f"{key} {'on' if val else 'off'}")
     if scene_lines:
         lines.extend(scene_lines)
         lines.append("")

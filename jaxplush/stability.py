@@ -7,10 +7,17 @@ Verlet damping) tightens the limit: for the Verlet/symplectic update of a mode w
 omega and damping rate gamma the iteration matrix is stable iff dt² omega² + 2 dt gamma < 4,
 so dt_max = (sqrt(gamma² + 4 omega²) - gamma) / omega², with gamma_max = lambda_max(M^-1 C)
 found the same way from C = -df/dv.
+
+Other integrators (:func:`integrator_limit`): the same worst mode (omega_max, gamma_max) is put
+into each scheme's amplification factor R(h lambda), lambda = -gamma/2 ± sqrt(gamma²/4 - omega²),
+and the largest h with |R| <= 1 is found by bisection: RK4 (undamped: h < 2 sqrt(2)/omega_max),
+explicit Euler and Mesit's update (undamped: no stable h; damped: h < gamma/omega²), and
+implicit Euler (no limit). All limits are per integrator (sub)step h = dt / substeps.
 """
 
 from __future__ import annotations
 
+import weakref
 from typing import NamedTuple
 
 import jax
@@ -58,6 +65,44 @@ def inflated(sim, params, x):
     return jnp.asarray(x, sim.dtype)
 
 
+#: Compiled power iterations per simulator (so repeated estimates, e.g. simulate's dt check and
+#: its failure hint, compile once).
+_RUNNERS = weakref.WeakKeyDictionary()
+
+
+def _runner(sim, iters, seed):
+    """jit(params, x) -> (lambda_max(M^-1 K), lambda_max(M^-1 C)) for ``sim``, cached."""
+    cache = _RUNNERS.setdefault(sim, {})
+    if (iters, seed) in cache:
+        return cache[(iters, seed)]
+    # Capture parts, not ``sim``: a value that referenced its weak key would keep it alive.
+    topo, dtype, force_fn, damped = sim.topology, sim.dtype, sim.force_fn, sim.terms.dashpot or sim.terms.drag
+    free = np.ones((topo.n_vertices, 1))
+    free[topo.fixed] = 0.0
+
+    @jax.jit
+    def run(params, x):
+        m = model.vertex_mass(topo, params)
+        s = (free / jnp.sqrt(m)[:, None]).astype(dtype)  # M^-1/2, pinned vertices removed
+        v0 = jnp.zeros_like(x)
+
+        def stiff(z):
+            _, df = jax.jvp(lambda y: force_fn(params, y, v0)[0], (x,), (s * z,))
+            return -s * df
+
+        def damp(z):
+            _, df = jax.jvp(lambda w: force_fn(params, x, w)[0], (v0,), (s * z,))
+            return -s * df
+
+        key = jax.random.PRNGKey(seed)
+        lam = _power(stiff, topo.n_vertices, dtype, iters, key)
+        gam = _power(damp, topo.n_vertices, dtype, iters, key) if damped else 0.0
+        return lam, gam
+
+    cache[(iters, seed)] = run
+    return run
+
+
 def estimate(sim, params, x=None, iters=100, seed=0):
     """Estimate the stable explicit dt of ``sim`` at positions ``x`` (default: rest).
 
@@ -71,30 +116,8 @@ def estimate(sim, params, x=None, iters=100, seed=0):
       :class:`StabilityEstimate`.
     """
     topo = sim.topology
-    dtype = sim.dtype
-    x = jnp.asarray(topo.x0 if x is None else x, dtype)
-    free = np.ones((topo.n_vertices, 1))
-    free[topo.fixed] = 0.0
-    v0 = jnp.zeros_like(x)
-
-    @jax.jit
-    def run(params, x):
-        m = model.vertex_mass(topo, params)
-        s = (free / jnp.sqrt(m)[:, None]).astype(dtype)  # M^-1/2, pinned vertices removed
-
-        def stiff(z):
-            _, df = jax.jvp(lambda y: sim.force_fn(params, y, v0)[0], (x,), (s * z,))
-            return -s * df
-
-        def damp(z):
-            _, df = jax.jvp(lambda w: sim.force_fn(params, x, w)[0], (v0,), (s * z,))
-            return -s * df
-
-        key = jax.random.PRNGKey(seed)
-        lam = _power(stiff, topo.n_vertices, dtype, iters, key)
-        gam = _power(damp, topo.n_vertices, dtype, iters, key) if (sim.terms.dashpot or sim.terms.drag) else 0.0
-        return lam, gam
-
+    x = jnp.asarray(topo.x0 if x is None else x, sim.dtype)
+    run = _runner(sim, iters, seed)
     lam, gam = (float(a) for a in run(params, x))
     if sim.terms.gas:
         # The gas inflates the body, pre-tensioning its springs and raising omega_max: also
@@ -105,7 +128,8 @@ def estimate(sim, params, x=None, iters=100, seed=0):
     if sim.terms.verlet_damping:
         d = np.asarray(params.damping)
         f = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0).max()
-        gamma += float(-np.log1p(-min(f, 1 - 1e-12)) / sim.dt)
+        h = sim.dt / getattr(sim, "substeps", 1)
+        gamma += float(-np.log1p(-min(f, 1 - 1e-12)) / h)
     dt_max = float((np.sqrt(gamma ** 2 + 4 * omega ** 2) - gamma) / omega ** 2) if omega > 0 else float("inf")
     k = np.asarray(params.k_structural)[topo.vertex_object]
     m = np.asarray(params.total_weight)[topo.vertex_object] / topo.count[topo.vertex_object]
@@ -114,3 +138,73 @@ def estimate(sim, params, x=None, iters=100, seed=0):
     with np.errstate(divide="ignore"):
         dt_g = float(np.min(np.where(kn > 0, np.sqrt(2 * m / np.where(kn > 0, kn, 1)), np.inf)))
     return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gamma, dt_gershgorin=dt_g)
+
+
+#: Integrators with no step-size limit (unconditionally stable on the linearised system).
+UNCONDITIONAL = ("implicit_euler",)
+
+
+def _amplification(integrator, z):
+    """|R(z)| of the scheme on y' = lambda y, z = h lambda (complex numpy)."""
+    if integrator == "rk4":
+        return np.abs(1 + z + z ** 2 / 2 + z ** 3 / 6 + z ** 4 / 24)
+    if integrator in ("euler", "mesit"):  # mesit is explicit Euler with a lag (physics.md §2)
+        return np.abs(1 + z)
+    raise ValueError(f"no amplification factor for {integrator!r}")
+
+
+def _largest_stable_h(integrator, lam):
+    """Largest h with |R(h t lambda)| <= 1 for t in (0, 1] (grid scan, then bisection)."""
+    scale = abs(lam)
+    grid = np.linspace(0.0, 4.0, 4001)[1:] / scale          # h |lambda| up to 4 (beyond RK4's 2.83)
+    bad = _amplification(integrator, grid * lam) > 1 + 1e-12
+    if not bad.any():
+        return float(grid[-1])
+    i = int(np.argmax(bad))
+    lo, hi = (0.0 if i == 0 else grid[i - 1]), grid[i]
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if _amplification(integrator, mid * lam) > 1 + 1e-12:
+            hi = mid
+        else:
+            lo = mid
+    return float(lo)
+
+
+def integrator_limit(est, integrator):
+    """Largest stable (sub)step h of ``integrator`` for the worst mode of a :class:`StabilityEstimate`.
+
+    Args:
+      est: :class:`StabilityEstimate` (from :func:`estimate`).
+      integrator: one of :data:`jaxplush.INTEGRATORS`.
+
+    Returns:
+      h_max in s: ``est.dt_max`` for ``verlet`` and ``symplectic_euler``; the bisected limit of
+      the test mode for ``rk4``, ``euler`` and ``mesit`` (0.0 when undamped: Euler-type updates
+      gain energy at any h); ``inf`` for ``implicit_euler``.
+    """
+    if integrator in ("verlet", "symplectic_euler"):
+        return float(est.dt_max)
+    if integrator in UNCONDITIONAL:
+        return float("inf")
+    omega, gamma = float(est.omega_max), float(est.gamma_max)
+    if omega <= 0 and gamma <= 0:
+        return float("inf")
+    root = np.sqrt(complex(gamma ** 2 / 4 - omega ** 2))
+    modes = [-gamma / 2 + root, -gamma / 2 - root] + ([complex(-gamma)] if gamma > 0 else [])
+    return min(_largest_stable_h(integrator, lam) for lam in modes if lam != 0)
+
+
+def dt_warning(est, integrator, dt, substeps=1):
+    """A warning message when dt / substeps exceeds ``integrator``'s limit, else None."""
+    h = dt / substeps
+    limit = integrator_limit(est, integrator)
+    if h <= limit:
+        return None
+    per = f"dt/substeps = {h:g} s" if substeps > 1 else f"dt = {dt:g} s"
+    if integrator in ("euler", "mesit") and limit < 1e-3 * est.dt_max:
+        why = ("explicit Euler" if integrator == "euler" else "Mesit's update (explicit Euler with a lag)")
+        return (f"{per}: {why} has no stable step for this scene (its undamped modes gain energy every "
+                f"step; estimated limit {limit:.3g} s); expect a blow-up, use verlet or implicit_euler")
+    return (f"{per} exceeds the estimated explicit stability limit {limit:.3g} s of {integrator} "
+            f"(omega_max = {est.omega_max:.4g} rad/s); expect a blow-up, use dt <= {0.9 * limit * substeps:.3g} s")

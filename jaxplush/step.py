@@ -4,16 +4,12 @@ The step is built for its scene (../shared/style.md §2.3): topology is closed o
 constants, and only the terms the scene needs are traced (``Simulator.terms``). Parameters
 (:class:`jaxplush.types.Params`) are the traced, differentiable inputs.
 
-Integrator ``verlet``: the report's damped Verlet
-    x_{n+1} = x_n + (1 - f)(x_n - x_{n-1}) + a_n dt²,   f = 1/damping,
-carried as u_n = (x_n - x_{n-1}) / dt so that no difference of nearly equal positions is
-ever rounded (the float32 advice of physics.md §5):
-    u_{n+1} = (1 - f) u_n + a_n dt,   x_{n+1} = x_n + u_{n+1} dt.
-Velocity-dependent forces (dashpot, drag) see u_n. Initialising u_0 = v_0 - a_0 dt / 2
-(x_{-1} = x_0 - v_0 dt + a_0 dt²/2) makes free fall exact (physics.md §8.1).
-The floor (y >= H) is a projection after the update that sets the vertex's vertical velocity
-to the one that lands it on the floor: it only ever removes energy. Pinned vertices keep their
-rest position with zero velocity.
+Integrators (:mod:`jaxplush.integrators`, chosen by name): ``verlet`` (default, the report's
+damped Verlet carried as a half-step velocity), ``euler``, ``symplectic_euler``, ``rk4``,
+``mesit`` (the report's unsound "simplified implicit" update, kept for comparison) and
+``implicit_euler`` (Baraff-Witkin, matrix-free CG). Each runs ``substeps`` steps of
+h = dt / substeps per call, on the internal component-major (3, V) state, and applies the
+shared floor/pin hook (:mod:`jaxplush.constraints`) after every (sub)step.
 """
 
 from __future__ import annotations
@@ -25,10 +21,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import constraints, diagnostics, model
-from jaxplush.types import Params, State
+from jaxplush import constraints, diagnostics, integrators, model
+from jaxplush.types import Params
 
-INTEGRATORS = ("verlet",)
+INTEGRATORS = integrators.INTEGRATORS
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -36,11 +32,14 @@ class Simulator:
     """A compiled-for-its-scene simulator.
 
     Attributes:
-      init_fn: (params, x0=None, v0=None) -> State; defaults: rest positions, zero velocity.
-      step_fn: (params, state) -> state, pure, one time step of length ``dt``.
+      init_fn: (params, x0=None, v0=None) -> state; defaults: rest positions, zero velocity.
+      step_fn: (params, state) -> state, pure, one time step of length ``dt`` (``substeps``
+        integrator steps of ``dt / substeps``).
       status_fn: (params, state) -> (O,) int32 health code per object (see diagnostics).
       force_fn: (params, x, v) -> (internal force (V, 3), volume (O,) or None).
-      topology, terms, dt, integrator, scene, dtype: how it was built.
+      velocity_fn: (params, state) -> (V, 3) velocity at the state's time (Verlet carries the
+        half-step velocity; this returns v_n = u_n + a_n h/2).
+      topology, terms, dt, integrator, substeps, scene, dtype: how it was built.
       internal_step, to_internal, to_public: the same step on the internal component-major
         (3, V) state, and the layout conversions; rollouts scan ``internal_step``.
     """
@@ -58,6 +57,13 @@ class Simulator:
     internal_step: Callable = None
     to_internal: Callable = None
     to_public: Callable = None
+    substeps: int = 1
+    velocity_fn: Callable = None
+
+    @property
+    def h(self):
+        """The integrator's (sub)step length dt / substeps, s."""
+        return self.dt / self.substeps
 
     def params(self, scene_params=None):
         """The scene's parameters (or ``scene_params``) as a pytree of jnp arrays of this dtype."""
@@ -65,16 +71,23 @@ class Simulator:
         return Params(*(jnp.asarray(np.asarray(a), self.dtype) for a in p))
 
 
-def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
+def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, substeps=1, cg_tol=None,
+                   cg_maxiter=integrators.CG_MAXITER):
     """Build the step for a scene.
 
     Args:
       scene: :class:`jaxplush.scene.Scene`.
       dt: time step, s (static: a new dt builds a new step).
-      integrator: one of :data:`INTEGRATORS`.
+      integrator: one of :data:`INTEGRATORS` (see :mod:`jaxplush.integrators` for order,
+        stability and damping of each).
       assembly: force assembly, "ring" (default) or "segment" (see :mod:`jaxplush.model`).
       terms: override the automatic :class:`jaxplush.model.Terms` selection (e.g. to keep a
         term compiled in while sweeping its parameter through zero).
+      substeps: integrator steps per ``step_fn`` call, each of length h = dt / substeps (static).
+        The floor and pins are applied after every substep; the report's per-step damping D
+        acts per substep.
+      cg_tol, cg_maxiter: ``implicit_euler`` only: relative CG residual (default 1e-5 in
+        float32, 1e-10 in float64) and the static cap on CG iterations per step.
 
     Returns:
       :class:`Simulator`. The dtype is float64 when ``jax_enable_x64`` is on, else float32.
@@ -84,45 +97,30 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
     dt = float(dt)
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive number, got {dt!r}")
+    if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
+        raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+    substeps = int(substeps)
+    h = dt / substeps
     dtype = jnp.result_type(float)
     topo = model.build_topology(scene)
     terms = model.Terms.for_scene(scene) if terms is None else terms
     kernel = model.make_force_fn(topo, terms, scene.temperature, assembly)
-    gravity = np.asarray(scene.gravity, np.float64)[:, None]
-    fixed = topo.fixed
+    system = integrators.System(
+        topo=topo, terms=terms, kernel=kernel, gravity=np.asarray(scene.gravity, np.float64)[:, None],
+        constrain=constraints.make_constrain(topo, terms, scene, h), h=h, temperature=scene.temperature)
+    scheme = integrators.build(integrator, system, cg_tol=cg_tol, cg_maxiter=cg_maxiter)
 
     # Internally everything is component-major, (3, V): see model.make_force_fn.
-    def accel(params, x, v):
-        f, volume = kernel(params, x, v)
-        a = f * (1.0 / model.vertex_mass(topo, params))
-        if terms.gravity:
-            with jax.named_scope("gravity"):
-                a = a + jnp.asarray(gravity, x.dtype)
-        return a, volume
-
-    constrain = constraints.make_constrain(topo, terms, scene, dt)
-
     def internal_init(params, x0=None, v0=None):
         x = jnp.asarray(topo.x0 if x0 is None else x0, dtype).T
         v = jnp.zeros_like(x) if v0 is None else jnp.asarray(v0, dtype).T
-        a0, _ = accel(params, x, v)
-        u = v - 0.5 * dt * a0
-        if terms.fixed:
-            u = u.at[:, fixed].set(0.0)
-        return State(x, u)
+        return scheme.init(params, x, v)
 
-    def internal_step(params, state):
-        x, u = state
-        a, _ = accel(params, x, u)
-        if terms.verlet_damping:
-            with jax.named_scope("verlet_damping"):
-                f = model.per_vertex(topo, _damping_factor(params.damping))
-                u_new = (1.0 - f) * u + a * dt
-        else:
-            u_new = u + a * dt
-        x_new = x + u_new * dt
-        x_new, u_new = constrain(x, x_new, u_new)
-        return State(x_new, u_new)
+    if substeps == 1:
+        internal_step = scheme.step
+    else:
+        def internal_step(params, state):
+            return jax.lax.fori_loop(0, substeps, lambda _, s: scheme.step(params, s), state)
 
     def init_fn(params, x0=None, v0=None):
         return to_public(internal_init(params, x0, v0))
@@ -137,22 +135,20 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None):
     def status_fn(params, state):
         return diagnostics.object_status(topo, terms, state.x)
 
+    def velocity_fn(params, state):
+        return scheme.velocity(params, to_internal(state)).T
+
     return Simulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
                      topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype,
-                     internal_step=internal_step, to_internal=to_internal, to_public=to_public)
+                     internal_step=internal_step, to_internal=to_internal, to_public=to_public,
+                     substeps=substeps, velocity_fn=velocity_fn)
 
 
 def to_internal(state):
-    """(V, 3) public state -> (3, V) internal layout."""
-    return State(*(jnp.asarray(a).T for a in state))
+    """(V, 3) public state -> (3, V) internal layout (any integrator's state NamedTuple)."""
+    return type(state)(*(jnp.asarray(a).T for a in state))
 
 
 def to_public(state):
-    """(3, V) internal state -> (V, 3) public layout."""
-    return State(*(a.T for a in state))
-
-
-def _damping_factor(damping):
-    """f = 1/D for D > 0, else 0 (no damping), with a gradient that is finite everywhere."""
-    safe = jnp.where(damping > 0, damping, 1.0)
-    return jnp.where(damping > 0, 1.0 / safe, 0.0)
+    """(3, V) internal state -> (V, 3) public layout (any integrator's state NamedTuple)."""
+    return type(state)(*(a.T for a in state))

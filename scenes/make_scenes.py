@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Build the example scenes in this folder: ``python scenes/make_scenes.py``.
 
-Writes ``ball_drop.obj``, ``bear.obj``, ``hanging.obj`` and ``two_plushies.obj`` next to
+Writes ``ball_drop.obj``, ``bear.obj``, ``hanging.obj``, ``two_plushies.obj`` and ``plush_pile.obj`` next to
 this script (atomically, through :func:`jaxplush.scene_writer.write_scene`), prints a
 parameter table per scene, then re-reads every file it wrote and checks it (closed,
 consistently wound, positive volume with trimesh; then ``jaxplush.scene.load_scene``).
@@ -593,7 +593,29 @@ def scene_two_plushies():
             dict(gravity=GRAVITY, floor=FLOOR, temperature=TEMPERATURE))
 
 
-SCENES = (scene_ball_drop, scene_bear, scene_hanging, scene_two_plushies)
+PILE_FRICTION = 0.6  # floor Coulomb coefficient of the pile scene
+
+
+def scene_plush_pile():
+    radius = 0.08
+    v, f = ball_mesh(3, radius)
+    # two balls side by side on the floor (1 cm apart), a third dropped onto the gap between them
+    objs, infos = [], []
+    for name, x, lift in (("left", -radius - 0.005, 0.002), ("right", radius + 0.005, 0.002),
+                          ("top", 0.0, 2 * radius + 0.06)):
+        obj, info = make_object(name, v, f, total_weight=0.08, k=800.0,
+                                translate=(x, FLOOR + lift - v[:, 1].min(), 0.0))
+        objs.append(obj)
+        infos.append(info)
+    text = ("Three plushies piled up: two balls (radius 0.08 m, 0.08 kg, k = 800 N/m) side by side "
+            "on the floor, 1 cm apart, and a third dropped onto the gap between them from 6 cm above "
+            "their tops. Soft-soft contact (on by default for several objects) holds the pile; the "
+            f"floor has Coulomb friction {PILE_FRICTION:g} so the lower balls do not slide apart.")
+    return ("plush_pile.obj", text, objs, infos,
+            dict(gravity=GRAVITY, floor=FLOOR, temperature=TEMPERATURE, floor_friction=PILE_FRICTION))
+
+
+SCENES = (scene_ball_drop, scene_bear, scene_hanging, scene_two_plushies, scene_plush_pile)
 
 
 # --------------------------------------------------------------------------- output

@@ -262,7 +262,7 @@ def test_simulate_explodes(work, tmp_path):
     m = re.search(r"simulation failed at step (\d+)", err)
     assert m, err
     assert 1 <= int(m.group(1)) <= STEPS
-    assert "stable dt" in err  # the hint
+    assert "stable verlet step limit" in err  # the hint
     assert not out.exists()
     assert listing(tmp_path) == ["scene.obj"]
     assert "wrote" not in stdout

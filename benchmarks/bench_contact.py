@@ -1,0 +1,83 @@
+"""Soft-soft contact cost: two plushies pressed together, with and without contact compiled in.
+
+Two icosphere plushies (k = 500 N/m, 0.1 kg, radius 0.1 m, gas, no gravity) start touching and
+inflate into each other, so the contact is active for the whole run. The same scene is timed
+with contact (the default for several objects) and with ``terms.contact = None``. Throughput is
+the median of repeated ``jaxplush.rollout`` runs of ``--steps`` steps (one compiled scan);
+compile time reported apart. Target (issue 5): contact at no less than half the steps/s.
+
+Usage: python benchmarks/bench_contact.py [--sizes 2,3,4] [--steps 500] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import platform
+import statistics
+import sys
+import time
+
+import jax
+import numpy as np
+import trimesh
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+import jaxplush  # noqa: E402
+from jaxplush import contact  # noqa: E402
+
+
+def pair_scene(subdivisions, gap=0.0):
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.1)
+    lines = ["gravity 0 0 0"]
+    for i, (name, x) in enumerate((("a", -0.1 - gap / 2), ("b", 0.1 + gap / 2))):
+        off = i * len(m.vertices)
+        lines += [f"o {name}", "k_structural 500", "total_weight 0.1", "nmol 0.0005", f"translate {x!r} 0 0"]
+        lines += [f"v {float(a)!r} {float(b)!r} {float(c)!r}" for a, b, c in m.vertices]
+        lines += [f"f {a + 1 + off} {b + 1 + off} {c + 1 + off}" for a, b, c in m.faces]
+        lines.append("END_OBJECT")
+    return jaxplush.parse_scene("\n".join(lines) + "\n", f"<pair {subdivisions}>")
+
+
+def bench(sim, steps, repeats):
+    p = sim.params()
+    s = sim.init_fn(p)
+    t0 = time.perf_counter()
+    out = jaxplush.rollout(sim, p, s, 1, steps)
+    jax.block_until_ready(out)
+    compile_s = time.perf_counter() - t0
+    assert not out[2].failed, "run failed"
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(jaxplush.rollout(sim, p, s, 1, steps))
+        times.append(time.perf_counter() - t0)
+    return compile_s, steps / statistics.median(times), out[0]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="2,3,4", help="icosphere subdivisions (2: 162, 3: 642, 4: 2562 vertices)")
+    ap.add_argument("--steps", type=int, default=500)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--dt", type=float, default=1e-4)
+    args = ap.parse_args(argv)
+    print(f"# jax {jax.__version__}, {jax.devices()[0].device_kind}, {platform.machine()}, "
+          f"{os.cpu_count()} cores; {args.steps}-step rollouts, median of {args.repeats}")
+    print("| vertices per plush | capacity | candidates at end | compile with / without (s) "
+          "| steps/s without contact | steps/s with contact | ratio |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for sub in (int(s) for s in args.sizes.split(",")):
+        scene = pair_scene(sub)
+        sim = jaxplush.make_simulator(scene, args.dt)
+        bare = jaxplush.make_simulator(scene, args.dt, terms=dataclasses.replace(sim.terms, contact=None))
+        c0, r0, _ = bench(bare, args.steps, args.repeats)
+        c1, r1, final = bench(sim, args.steps, args.repeats)
+        counts = contact.candidate_counts(sim, np.asarray(final.x))[0]
+        print(f"| {scene.objects[0].n_vertices} | {sim.terms.contact.capacity[0]} | {counts[1]}, {counts[2]} "
+              f"| {c1:.1f} / {c0:.1f} | {r0:,.0f} | {r1:,.0f} | {r1 / r0:.2f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

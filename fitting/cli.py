@@ -1,0 +1,166 @@
+"""Command line ``jaxplush-fit``: fit parameters to a target, or (``jaxplush-fit sweep ...``) sweep them.
+
+    jaxplush-fit SCENE.obj TARGET.h5 --params k_structural,damping,nmol [--objects NAMES]
+        [--iterations N] [--optimizer adam|lbfgs] [--lr LR] [--dt DT] [--noise SIGMA | --noise-free]
+        --out FIT.h5 [--out-scene FITTED.obj] [--resume] [--checkpoint-every N]
+
+Every input is validated before anything is traced or written; a bad input prints one message
+(no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
+exits 3. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130; ``--resume`` continues it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import warnings
+
+EXIT_USAGE = 2
+EXIT_FAILED = 3
+EXIT_INTERRUPTED = 130
+
+
+def _parser():
+    p = argparse.ArgumentParser(
+        prog="jaxplush-fit",
+        description="Fit material parameters of a jaxplush scene to a target deformation (HDF5) by gradients "
+                    "through the rollout. 'jaxplush-fit sweep ...' runs batched parameter sweeps.")
+    p.add_argument("scene", help="extended-OBJ scene; its values of the fitted parameters are the start")
+    p.add_argument("target", help="target HDF5: 'positions' [T, V, 3] or 'points' [T, M, 3], and 'times' [T] "
+                                  "(any 'jaxplush simulate' output)")
+    p.add_argument("--params", default="k_structural,damping,nmol",
+                   help="comma-separated parameters to fit (k = k_structural; also dashpot, drag; total_weight "
+                        "only with a warning). Default: k_structural,damping,nmol")
+    p.add_argument("--objects", default=None, help="comma-separated object names to fit (default: all)")
+    p.add_argument("--iterations", type=int, default=200, help="maximum iterations (default 200)")
+    p.add_argument("--optimizer", default="adam", help="adam (default) or lbfgs")
+    p.add_argument("--lr", type=float, default=None, help="learning rate in log space (adam default 0.05)")
+    p.add_argument("--dt", type=float, default=None, help="time step, s (default: the target's)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--noise", type=float, default=None,
+                   help="measurement noise per coordinate, m (default: the target's 'noise' attribute)")
+    g.add_argument("--noise-free", action="store_true", help="the target is exact (synthetic)")
+    p.add_argument("--out", required=True, help="output FIT.h5 (also the checkpoint file)")
+    p.add_argument("--out-scene", default=None, help="also write the scene with the fitted values (.obj)")
+    p.add_argument("--resume", action="store_true", help="continue the interrupted fit saved in --out")
+    p.add_argument("--checkpoint-every", type=int, default=10, help="iterations between checkpoints (default 10)")
+    p.add_argument("--force", action="store_true", help="allow fitting total_weight jointly with k/dashpot/nmol")
+    p.add_argument("--method", default="auto", help="gradient method: auto, checkpoint, plain, adjoint")
+    p.add_argument("--x64", action="store_true", help="fit in float64")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "sweep":
+        from fitting.sweep_cli import main as sweep_main
+        return sweep_main(argv[1:])
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as e:  # argparse has printed its usage message
+        return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
+    from jaxplush.errors import JaxplushError
+    try:
+        return _fit(args)
+    except JaxplushError as e:
+        code = EXIT_FAILED if type(e).__name__ in ("FitError", "SimulationError") else EXIT_USAGE
+        print(f"jaxplush-fit: error: {e}", file=sys.stderr)
+        return code
+
+
+def _check_path(path, exts, what):
+    from jaxplush.errors import JaxplushError
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in exts:
+        raise JaxplushError(f"{path}: {what} must end in {' or '.join(exts)}")
+    d = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(d):
+        raise JaxplushError(f"{path}: output directory {d} does not exist")
+    if os.path.isdir(path):
+        raise JaxplushError(f"{path}: is a directory")
+
+
+def _fit(args):
+    from jaxplush.errors import JaxplushError
+    # --- everything checked before anything is traced or written
+    if args.iterations < 1:
+        raise JaxplushError(f"--iterations must be >= 1, got {args.iterations}")
+    if args.checkpoint_every < 1:
+        raise JaxplushError(f"--checkpoint-every must be >= 1, got {args.checkpoint_every}")
+    if args.optimizer not in ("adam", "lbfgs"):
+        raise JaxplushError(f"--optimizer must be adam or lbfgs, got {args.optimizer!r}")
+    for name, val in (("--lr", args.lr), ("--dt", args.dt)):
+        if val is not None and not (val == val and 0 < val < float("inf")):
+            raise JaxplushError(f"{name} must be a positive number, got {val}")
+    if args.noise is not None and not (args.noise == args.noise and 0 <= args.noise < float("inf")):
+        raise JaxplushError(f"--noise must be a number >= 0, got {args.noise}")
+    _check_path(args.out, (".h5", ".hdf5"), "--out")
+    if args.out_scene is not None:
+        _check_path(args.out_scene, (".obj",), "--out-scene")
+    for a, b in ((args.out, args.target), (args.out, args.scene), (args.out_scene, args.scene),
+                 (args.out_scene, args.target)):
+        if a is not None and os.path.abspath(a) == os.path.abspath(b):
+            raise JaxplushError(f"{a}: an output must not overwrite an input")
+    if args.resume and not os.path.exists(args.out):
+        raise JaxplushError(f"{args.out}: no checkpoint to resume (the file does not exist); run without --resume")
+    if args.x64:
+        import jax
+        jax.config.update("jax_enable_x64", True)
+    import jaxplush
+    from fitting import fit as _fit_mod
+    from fitting.targets import load_target
+
+    names = _fit_mod.canonical_names(args.params)
+    scene = jaxplush.load_scene(args.scene)
+    target = load_target(args.target, scene, args.dt)
+
+    # SIGTERM behaves like Ctrl-C: save, then exit
+    def _term(signum, frame):
+        raise KeyboardInterrupt
+    old = signal.signal(signal.SIGTERM, _term) if hasattr(signal, "SIGTERM") else None
+    printed = set()
+
+    def show(ws):
+        for w in ws:
+            msg = str(w.message)
+            if msg not in printed:
+                printed.add(msg)
+                print(f"warning: {msg}", file=sys.stderr)
+
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                result = _fit_mod.fit(
+                    scene, target, names, args.objects, iterations=args.iterations, optimizer=args.optimizer,
+                    lr=args.lr, noise=args.noise, noise_free=args.noise_free, method=args.method,
+                    force=args.force, progress=not args.quiet, checkpoint_path=args.out,
+                    checkpoint_every=args.checkpoint_every, resume=args.resume)
+            except BaseException:
+                show(caught)
+                raise
+        # the identifiability warnings are printed with its summary below
+        printed.update(result.identifiability.warnings if result.identifiability is not None else ())
+        show(caught)
+    except KeyboardInterrupt:
+        saved = os.path.exists(args.out)
+        print(f"jaxplush-fit: interrupted; " + (f"state saved to {args.out}; continue with --resume"
+                                                 if saved else "nothing written"), file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
+    if args.out_scene:
+        result.write_scene(args.out_scene)
+    print(result.table())
+    if result.identifiability is not None:
+        print(result.identifiability.summary())
+    print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,725 @@
+"""Fit material parameters of a scene to a target by gradients through the rollout.
+
+``fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None, ...)``:
+
+* the fitted variables are theta = log(p) for the chosen parameters of the chosen objects
+  (positivity for free); every other parameter stays at the scene's value;
+* the loss is :func:`fitting.losses.make_loss` summed over the target's frames by
+  :func:`fitting.gradients.rollout_loss` (bounded-memory gradients through the rollout);
+* optimisers: optax Adam (default; learning rate ``lr`` in log space, cosine-decayed to 1% over
+  ``iterations``) or optax L-BFGS with its zoom line search; one jitted update per iteration;
+* a step whose rollout blows up (non-finite loss or gradient, an inverted object, damping < 1)
+  is rejected: the fit goes back to the last accepted point and halves the step, so parameters
+  never become NaN; a start that blows up, or too many rejections in a row, raise
+  :class:`FitError`;
+* stops at ``iterations`` or when converged: gradient max-norm below ``gtol``, relative loss
+  change below ``rtol`` for ``patience`` accepted iterations in a row, a step below ``xtol``
+  in log space, or the loss below ``ftol``;
+* checkpoints (``checkpoint_path``, every ``checkpoint_every`` iterations, atomically) hold the
+  complete loop state, so ``resume=True`` continues an interrupted (Ctrl-C or killed) fit to
+  the same answer; Ctrl-C saves before it exits;
+* afterwards: the identifiability report (:mod:`fitting.identifiability`) and a health check of
+  the fitted rollout.
+
+The result is the best (lowest-loss) accepted point, a :class:`FitResult`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import jaxplush
+from jaxplush import diagnostics, model
+from jaxplush.errors import JaxplushError
+from jaxplush.progress import Progress
+from jaxplush.types import PARAM_NAMES, Params
+
+from fitting import identifiability as _ident
+from fitting import losses as _losses
+from fitting.targets import Target, load_target
+
+#: Accepted spellings of parameter names.
+ALIASES = {"k": "k_structural", "stiffness": "k_structural", "mass": "total_weight", "weight": "total_weight"}
+#: Parameters that scale with the mass under the exact symmetry of physics.md §9.1.
+_MASS_CONFOUNDED = ("k_structural", "dashpot", "nmol")
+OPTIMIZERS = ("adam", "lbfgs")
+#: Default learning rates (log space) per optimiser (L-BFGS: none, the line search sets the step).
+DEFAULT_LR = {"adam": 0.05, "lbfgs": None}
+MAX_REJECTIONS = 30
+
+
+class FitError(JaxplushError):
+    """A fit that cannot proceed (the rollout blows up at the start or for every step tried)."""
+
+
+def canonical_names(names):
+    """Parameter names (strings or one comma-separated string) -> canonical tuple; validated."""
+    if isinstance(names, str):
+        names = [n for n in names.split(",")]
+    out = []
+    for n in names:
+        n = str(n).strip()
+        c = ALIASES.get(n, n)
+        if c not in PARAM_NAMES:
+            raise JaxplushError(f"unknown parameter {n!r}; fittable: {', '.join(PARAM_NAMES)} (k = k_structural)")
+        if c in out:
+            raise JaxplushError(f"parameter {c!r} given twice")
+        out.append(c)
+    if not out:
+        raise JaxplushError("no parameters to fit")
+    return tuple(out)
+
+
+def check_mass_fit(names, force=False):
+    """physics.md §9.1: mass is set by the same symmetry as k, c and nRT. Warn; refuse jointly."""
+    if "total_weight" not in names:
+        return
+    others = [n for n in names if n in _MASS_CONFOUNDED]
+    msg = ("fitting total_weight: with gravity, scaling (k_structural, dashpot, nmol, total_weight) together "
+           "leaves every trajectory unchanged (physics.md §9.1); mass must be measured, not fitted")
+    if others and not force:
+        raise JaxplushError(f"refusing to fit total_weight jointly with {', '.join(others)}: {msg}. "
+                            "Fix the mass, or force it (force=True / --force)")
+    warnings.warn(msg, stacklevel=3)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Problem:
+    """Everything the loop needs, built and validated before any tracing.
+
+    Attributes:
+      scene, target, sim: what is fitted, to what, with which simulator.
+      names: fitted parameter names (P_n,); objects: fitted object indices (O_f,).
+      base: :class:`Params` (numpy float64) holding the start values (fitted) and fixed values.
+      theta0: (P_n, O_f) float64 log start values.
+      loss: :class:`fitting.losses.Loss`.
+      method: gradient method of :func:`fitting.gradients.rollout_loss`.
+    """
+
+    scene: object
+    target: Target
+    sim: object
+    names: tuple
+    objects: tuple
+    base: Params
+    theta0: np.ndarray
+    loss: _losses.Loss
+    method: str
+    noise: float | None
+
+    @property
+    def labels(self):
+        names = self.scene.object_names
+        return tuple(f"{n}[{names[o]}]" for n in self.names for o in self.objects)
+
+    def to_params(self, theta):
+        """(P_n, O_f) log values -> full :class:`Params` (jnp, the simulator's dtype)."""
+        dtype = self.sim.dtype
+        vals = {n: jnp.asarray(np.asarray(getattr(self.base, n)), dtype) for n in PARAM_NAMES}
+        idx = np.asarray(self.objects)
+        for i, n in enumerate(self.names):
+            vals[n] = vals[n].at[idx].set(jnp.exp(theta[i]).astype(dtype))
+        return Params(**vals)
+
+    def loss_fn(self, theta):
+        """Normalised loss at log values theta (jax; differentiable)."""
+        from fitting.gradients import rollout_loss
+        p = self.to_params(theta)
+        lo = self.loss
+        return rollout_loss(self.sim, p, self.sim.init_fn(p), lo.frame_steps, lo.loss_fn, lo.aux,
+                            method=self.method)
+
+    @property
+    def start(self):
+        """dict name -> (O_f,) exact start values (float64)."""
+        return {n: np.array(getattr(self.base, n), np.float64)[list(self.objects)] for n in self.names}
+
+    def params_at(self, theta):
+        """Full :class:`Params` of numpy float64 arrays at log values theta (nothing traced)."""
+        vals = {n: np.array(getattr(self.base, n), np.float64) for n in PARAM_NAMES}
+        for n, v in self.values(theta).items():
+            vals[n][list(self.objects)] = v
+        return Params(**vals)
+
+    def values(self, theta):
+        """dict name -> (O_f,) float64 values at theta."""
+        th = np.asarray(theta, np.float64)
+        return {n: np.exp(th[i]) for i, n in enumerate(self.names)}
+
+    def valid(self, theta):
+        """Whether theta is an admissible point (finite; the Verlet damping D >= 1)."""
+        th = np.asarray(theta, np.float64)
+        if not np.all(np.isfinite(th)):
+            return False
+        if "damping" in self.names and np.any(np.exp(th[self.names.index("damping")]) < 1.0):
+            return False
+        return True
+
+    def frames(self, theta):
+        """(T, V, 3) simulated positions at the target's steps and (T, O) health codes (jax)."""
+        p = self.to_params(theta)
+        return _ident.frames_at_steps(self.sim, p, self.sim.init_fn(p), self.loss.frame_steps)
+
+
+def build_problem(scene, target, params=("k_structural", "damping", "nmol"), objects=None, *, dt=None,
+                  start=None, noise=None, noise_free=False, method="auto", force=False):
+    """Validate a fit's inputs and build its :class:`Problem` (see :func:`fit` for the arguments)."""
+    names = canonical_names(params)
+    check_mass_fit(names, force)
+    if objects is None:
+        objs = tuple(range(scene.n_objects))
+    else:
+        if isinstance(objects, str):
+            objects = [o.strip() for o in objects.split(",") if o.strip()]
+        objs = []
+        for o in objects:
+            if isinstance(o, (int, np.integer)) and not isinstance(o, bool):
+                if not 0 <= o < scene.n_objects:
+                    raise JaxplushError(f"object index {o} out of range: the scene has {scene.n_objects} object(s)")
+                i = int(o)
+            elif o in scene.object_names:
+                i = scene.object_names.index(o)
+            else:
+                raise JaxplushError(f"unknown object {o!r}; the scene's objects: {', '.join(scene.object_names)}")
+            if i in objs:
+                raise JaxplushError(f"object {scene.object_names[i]!r} given twice")
+            objs.append(i)
+        if not objs:
+            raise JaxplushError("no objects to fit")
+        objs = tuple(objs)
+    # start values: the scene's, overridden by `start` {name: scalar or (O,) or {object: value}}
+    base = {n: np.array(getattr(scene.params, n), np.float64) for n in PARAM_NAMES}
+    for key, val in (start or {}).items():
+        n = canonical_names([key])[0]
+        if isinstance(val, dict):
+            for o, v in val.items():
+                base[n][scene.object_names.index(o) if isinstance(o, str) else int(o)] = float(v)
+        else:
+            v = np.broadcast_to(np.asarray(val, np.float64), (scene.n_objects,))
+            base[n][list(objs)] = v[list(objs)]
+    for n in names:
+        for o in objs:
+            v = base[n][o]
+            oname = scene.object_names[o]
+            if n == "nmol" and not scene.objects[o].has_gas:
+                raise JaxplushError(f"cannot fit nmol of object {oname!r}: it has no gas (no 'nmol' line in "
+                                    f"{scene.path})")
+            if not (np.isfinite(v) and v > 0):
+                hint = " (0 means off; give a start value >= 1)" if n == "damping" else ""
+                raise JaxplushError(f"cannot fit {n} of object {oname!r}: its start value is {v:g}{hint}; "
+                                    "fitting works in log space and needs a positive start value")
+            if n == "damping" and v < 1:
+                raise JaxplushError(f"cannot fit damping of object {oname!r}: start value {v:g} < 1 "
+                                    "(the per-step factor 1/D must be <= 1)")
+    fit_scene = scene.replace(params=Params(**base))
+    if not isinstance(target, Target):
+        target = load_target(target, scene, dt)
+    elif dt is not None:
+        target = target.on_grid(dt)
+    if target.kind == "positions" and target.positions.shape[1] != scene.n_vertices:
+        raise JaxplushError(f"{target.path}: target has {target.positions.shape[1]} vertices, the scene "
+                            f"{scene.n_vertices}")
+    keep = target.steps > 0
+    if not keep.any():
+        raise JaxplushError(f"{target.path}: the target holds only the initial frame (t = 0), which does not "
+                            "depend on the parameters")
+    target = target.select(keep)
+    if noise is not None and not (np.isfinite(noise) and noise >= 0):
+        raise JaxplushError(f"noise must be a number >= 0, got {noise!r}")
+    sim = jaxplush.make_simulator(fit_scene, target.dt, terms=model.Terms.for_scene(fit_scene))
+    loss = _losses.make_loss(target, sim.topology, sim.dtype, noise=noise, noise_free=noise_free,
+                             check_volume=sim.terms.gas)
+    theta0 = np.log(np.stack([base[n][list(objs)] for n in names]))
+    sigma = None if noise_free else (target.noise if noise is None else float(noise))
+    return Problem(scene=fit_scene, target=target, sim=sim, names=names, objects=objs,
+                   base=Params(**base), theta0=theta0, loss=loss, method=method, noise=sigma)
+
+
+def make_optimizer(name, lr=None, iterations=100):
+    """optax optimiser for the log-parameters: "adam" (cosine-decayed lr) or "lbfgs"."""
+    if name not in OPTIMIZERS:
+        raise JaxplushError(f"unknown optimizer {name!r}; expected {' or '.join(OPTIMIZERS)}")
+    if name == "adam":
+        lr = DEFAULT_LR["adam"] if lr is None else float(lr)
+        if not (np.isfinite(lr) and lr > 0):
+            raise JaxplushError(f"learning rate must be > 0, got {lr!r}")
+        return optax.adam(optax.cosine_decay_schedule(lr, max(int(iterations), 1), alpha=0.01))
+    if lr is not None and not (np.isfinite(lr) and lr > 0):
+        raise JaxplushError(f"learning rate must be > 0, got {lr!r}")
+    return optax.lbfgs(learning_rate=None if lr is None else float(lr))
+
+
+@dataclasses.dataclass
+class LoopState:
+    """The complete state of the optimisation loop (what a checkpoint holds).
+
+    ``theta`` is the next point to evaluate, with ``opt_state`` the optimiser state to use
+    there; ``anchor`` the last accepted point it was reached from (None before the first).
+    """
+
+    theta: np.ndarray
+    opt_state: object
+    anchor: np.ndarray | None = None
+    scale: float = 1.0
+    iteration: int = 0           # evaluations done (accepted + rejected)
+    rejected: int = 0
+    rejected_in_row: int = 0
+    stall: int = 0
+    best_theta: np.ndarray | None = None
+    best_loss: float = math.inf
+    done: bool = False
+    reason: str = ""
+    h_iter: list = dataclasses.field(default_factory=list)
+    h_loss: list = dataclasses.field(default_factory=list)
+    h_theta: list = dataclasses.field(default_factory=list)
+    h_gnorm: list = dataclasses.field(default_factory=list)
+    h_time: list = dataclasses.field(default_factory=list)
+    h_rejected: list = dataclasses.field(default_factory=list)
+    wall: float = 0.0
+
+    def snapshot(self):
+        """A copy that later iterations do not change (lists copied; arrays are never mutated)."""
+        return dataclasses.replace(self, **{f.name: list(getattr(self, f.name)) for f in dataclasses.fields(self)
+                                            if f.name.startswith("h_")})
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FitResult:
+    """The outcome of :func:`fit`.
+
+    Attributes:
+      params: full :class:`jaxplush.types.Params` (numpy float64) with the fitted values.
+      names: fitted parameter names; objects: fitted object names.
+      values: dict name -> (O_f,) fitted values; start: dict name -> (O_f,) start values.
+      loss: normalised loss at the fitted values (see :mod:`fitting.losses`); loss_start.
+      history: dict of arrays over accepted iterations: "iteration", "loss", "grad_norm",
+        "time" (s), each fitted name (n, O_f); and "rejected" (iterations whose step was rejected).
+      iterations: evaluations done; rejected: steps rejected (blow-ups).
+      converged: bool; reason: why the loop stopped.
+      identifiability: :class:`fitting.identifiability.IdentifiabilityReport` (or None).
+      frames: (T, V, 3) simulated positions at the target frames with the fitted values.
+      steps: (T,) their steps; dt.
+      optimizer, lr, normalisation ("noise"/"motion"), scale2 (m²), noise.
+      scene_text, scene_path, target_path, wall_time (s), warnings.
+    """
+
+    params: Params
+    names: tuple
+    objects: tuple
+    values: dict
+    start: dict
+    loss: float
+    loss_start: float
+    history: dict
+    iterations: int
+    rejected: int
+    converged: bool
+    reason: str
+    identifiability: object
+    frames: np.ndarray
+    steps: np.ndarray
+    dt: float
+    optimizer: str
+    lr: float | None
+    normalisation: str
+    scale2: float
+    noise: float | None
+    scene_text: str
+    scene_path: str
+    target_path: str
+    wall_time: float
+    warnings: tuple = ()
+    loop: object = None     # the final LoopState (for saving a resumable file)
+    problem: object = None  # the Problem that was solved
+    settings: dict = dataclasses.field(default_factory=dict)
+
+    def table(self):
+        """The fitted values as a text table (with start values and standard errors)."""
+        rep = self.identifiability
+        se = {} if rep is None else dict(zip(rep.labels, rep.stderr))
+        rows = [f"{'parameter':<14} {'object':<14} {'start':>12} {'fitted':>12} {'std. error':>11}"]
+        for n in self.names:
+            for j, o in enumerate(self.objects):
+                e = se.get(f"{n}[{o}]", np.nan)
+                es = "-" if not np.isfinite(e) and e == e and rep is None else (
+                    f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined")
+                rows.append(f"{n:<14} {o:<14} {self.start[n][j]:>12.6g} {self.values[n][j]:>12.6g} {es:>11}")
+        rows.append(f"loss {self.loss_start:.4g} -> {self.loss:.4g} ({self.normalisation}-normalised) after "
+                    f"{self.iterations} iterations ({self.rejected} rejected), {self.wall_time:.1f} s; {self.reason}")
+        return "\n".join(rows)
+
+    def save(self, path):
+        """Write FIT.h5 atomically (see :mod:`fitting.io`)."""
+        from fitting import io as _io
+        return _io.save_fit(self, path)
+
+    def write_scene(self, path):
+        """Write the scene with the fitted values (extended OBJ), ready to simulate."""
+        from fitting import io as _io
+        return _io.write_fitted_scene(self, path)
+
+
+def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None, *, iterations=200,
+        optimizer="adam", lr=None, dt=None, start=None, noise=None, noise_free=False, gtol=1e-9, rtol=1e-7,
+        xtol=1e-7, ftol=0.0, patience=5, method="auto", force=False, callback=None, progress=False,
+        checkpoint_path=None, checkpoint_every=10, resume=False, identifiability=True, check_dt=True):
+    """Fit parameters of ``scene`` to ``target``.
+
+    Args:
+      scene: :class:`jaxplush.scene.Scene`; its values of the fitted parameters are the start.
+      target: :class:`fitting.targets.Target` or a path (loaded with :func:`load_target`).
+      params: names to fit (``k`` = ``k_structural``; also ``dashpot``, ``drag``; ``total_weight``
+        only alone, with a warning, unless ``force``).
+      objects: object names or indices to fit (default all); the others keep their values.
+      iterations: maximum number of iterations (evaluations of loss and gradient).
+      optimizer: "adam" (default) or "lbfgs".
+      lr: learning rate in log space (Adam default 0.05; L-BFGS: line search unless given).
+      dt: time step (default: the target's).
+      start: optional start values {name: value, (O,) array or {object: value}} overriding the scene's.
+      noise: measurement noise sigma per coordinate (m) for the normalisation and the report
+        (default: the target's ``noise`` attribute, if any).
+      noise_free: the target is exact (normalise by its motion; ignore any noise value).
+      gtol, rtol, xtol, ftol, patience: convergence criteria (module docstring).
+      method: gradient method of :func:`fitting.gradients.rollout_loss`.
+      force: allow fitting ``total_weight`` jointly with k/dashpot/nmol.
+      callback: called after every accepted iteration with a dict (iteration, loss, values,
+        grad_norm); returning True stops the fit.
+      progress: draw a progress bar (loss and parameters) on stderr.
+      checkpoint_path: FIT.h5 to checkpoint into (atomically) every ``checkpoint_every``
+        iterations, on Ctrl-C, and at the end.
+      resume: continue from the checkpoint in ``checkpoint_path`` (it must be the same fit).
+      identifiability: compute the identifiability report at the optimum.
+      check_dt: warn when dt exceeds the estimated stability limit at the start values.
+
+    Returns:
+      :class:`FitResult`.
+
+    Raises:
+      JaxplushError / TrajectoryError: bad input (before anything is traced).
+      FitError: the fit cannot proceed (the rollout blows up at the start or for every step).
+      KeyboardInterrupt: after saving the checkpoint (when ``checkpoint_path`` is given).
+    """
+    t_start = time.perf_counter()
+    if int(iterations) < 1:
+        raise JaxplushError(f"iterations must be >= 1, got {iterations}")
+    if checkpoint_every is not None and int(checkpoint_every) < 1:
+        raise JaxplushError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
+    if resume and checkpoint_path is None:
+        raise JaxplushError("resume needs a checkpoint_path (the FIT.h5 of the interrupted fit)")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        prob = build_problem(scene, target, params, objects, dt=dt, start=start, noise=noise,
+                             noise_free=noise_free, method=method, force=force)
+    notes = [str(w.message) for w in caught]
+    for msg in notes:
+        warnings.warn(msg, stacklevel=2)
+    opt = make_optimizer(optimizer, lr, iterations)
+    settings = dict(optimizer=optimizer, lr=lr, iterations=int(iterations), names=list(prob.names),
+                    objects=[prob.scene.object_names[o] for o in prob.objects], dt=prob.target.dt,
+                    noise_free=bool(noise_free), noise=-1.0 if prob.noise is None else float(prob.noise),
+                    method=method, gtol=gtol, rtol=rtol, xtol=xtol, ftol=ftol, patience=int(patience),
+                    frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind)
+    dtype = prob.sim.dtype
+    step_fn = _make_step(prob, opt, optimizer)
+
+    if resume:
+        from fitting import io as _io
+        loop = _io.load_checkpoint(checkpoint_path, prob, opt, settings)
+    else:
+        th0 = jnp.asarray(prob.theta0, dtype)
+        loop = LoopState(theta=np.asarray(th0), opt_state=jax.jit(opt.init)(th0))
+        loop.best_theta = np.asarray(th0)
+    est = jaxplush.estimate_stable_dt(prob.sim, prob.sim.params(prob.params_at(loop.theta))) if check_dt else None
+    if est is not None and prob.target.dt > est.dt_max:
+        msg = (f"dt = {prob.target.dt:g} s exceeds the estimated stability limit {est.dt_max:.3g} s at the start "
+               "values; expect rejected steps")
+        warnings.warn(msg, stacklevel=2)
+        notes.append(msg)
+
+    def save(state, status="running"):
+        if checkpoint_path is not None:
+            from fitting import io as _io
+            _io.save_checkpoint(checkpoint_path, prob, state, settings, status=status)
+
+    last_saved = loop.iteration
+    wall_before = loop.wall
+    bar = Progress(int(iterations), "fit", enabled=progress, unit="it")
+    bar.done = min(loop.iteration, int(iterations))
+    t_loop = time.perf_counter() - loop.wall
+    consistent = loop      # the last loop state that is not half-way through an iteration
+    try:
+        with bar:
+            while not loop.done and loop.iteration < int(iterations):
+                consistent = loop.snapshot()
+                _iterate(prob, opt, optimizer, step_fn, loop, gtol, rtol, xtol, ftol, int(patience))
+                consistent = loop
+                loop.wall = time.perf_counter() - t_loop
+                if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
+                    vals = prob.values(loop.h_theta[-1])
+                    bar.update(1, extra=_progress_text(loop.h_loss[-1], vals))
+                    if callback is not None:
+                        stop = callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1], values=vals,
+                                             grad_norm=loop.h_gnorm[-1]))
+                        if stop is True and not loop.done:
+                            loop.done, loop.reason = True, "stopped by the callback"
+                else:
+                    bar.update(1, extra="step rejected (rollout blew up); halving the step")
+                if checkpoint_every and loop.iteration - last_saved >= int(checkpoint_every) and not loop.done:
+                    save(loop)
+                    last_saved = loop.iteration
+    except KeyboardInterrupt:
+        # Ctrl-C may land anywhere, also inside an iteration: save the last consistent state
+        consistent.wall = time.perf_counter() - t_loop
+        save(consistent, "interrupted")
+        raise
+    if not loop.done:
+        loop.reason = f"reached the iteration limit ({int(iterations)})"
+    result = _finish(prob, loop, settings, notes, identifiability, time.perf_counter() - t_start + wall_before)
+    if checkpoint_path is not None:
+        from fitting import io as _io
+        _io.save_fit(result, checkpoint_path)
+    return result
+
+
+def _progress_text(loss, vals):
+    parts = [f"loss {loss:.4g}"]
+    for n, v in vals.items():
+        short = "k" if n == "k_structural" else n
+        parts.append(f"{short} " + ",".join(f"{x:.4g}" for x in np.atleast_1d(v)))
+    return " ".join(parts)
+
+
+def _make_step(prob, opt, optimizer):
+    """The jitted update: (theta, opt_state) -> (loss, grad, updates, new_opt_state) at theta."""
+    loss_fn = prob.loss_fn
+    if optimizer == "lbfgs":
+        vg = optax.value_and_grad_from_state(loss_fn)
+
+        def step(theta, state):
+            loss, g = vg(theta, state=state)
+            updates, new_state = opt.update(g, state, theta, value=loss, grad=g, value_fn=loss_fn)
+            return loss, g, updates, new_state
+    else:
+        vg = jax.value_and_grad(loss_fn)
+
+        def step(theta, state):
+            loss, g = vg(theta)
+            updates, new_state = opt.update(g, state, theta)
+            return loss, g, updates, new_state
+    return jax.jit(step)
+
+
+def _iterate(prob, opt, optimizer, step_fn, loop, gtol, rtol, xtol, ftol, patience):
+    """One evaluation at loop.theta: accept and step, or reject and halve the step."""
+    dtype = prob.sim.dtype
+    t0 = time.perf_counter()
+    theta = jnp.asarray(loop.theta, dtype)
+    ok = prob.valid(loop.theta)
+    if ok:
+        loss, g, updates, new_state = step_fn(theta, loop.opt_state)
+        loss = float(loss)
+        g = np.asarray(g)
+        ok = math.isfinite(loss) and bool(np.all(np.isfinite(g)))
+    it = loop.iteration
+    loop.iteration += 1
+    if not ok:
+        loop.rejected += 1
+        loop.rejected_in_row += 1
+        loop.h_rejected.append(it)
+        if loop.anchor is None:
+            raise FitError("the rollout blows up (non-finite loss or gradient, or an object turned inside out) "
+                           "at the start values; start closer to a stable setting or use a smaller dt")
+        if loop.rejected_in_row > MAX_REJECTIONS:
+            raise FitError(f"{loop.rejected_in_row} steps in a row blew up the rollout; the last good values were "
+                           + _progress_text(loop.best_loss, prob.values(loop.anchor)))
+        loop.scale *= 0.5
+        loop.theta = loop.anchor + 0.5 * (loop.theta - loop.anchor)
+        if optimizer == "lbfgs":  # its memory holds the rejected pair: start it afresh there
+            loop.opt_state = jax.jit(opt.init)(jnp.asarray(loop.theta, dtype))
+        return
+    loop.rejected_in_row = 0
+    gnorm = float(np.max(np.abs(g)))
+    prev = loop.h_loss[-1] if loop.h_loss else None
+    loop.h_iter.append(it)
+    loop.h_loss.append(loss)
+    loop.h_theta.append(np.asarray(loop.theta, np.float64))
+    loop.h_gnorm.append(gnorm)
+    loop.h_time.append(loop.wall + time.perf_counter() - t0)
+    if loss < loop.best_loss:
+        loop.best_loss, loop.best_theta = loss, np.asarray(loop.theta)
+    # L-BFGS's line search already chose the step (and stored the loss there): never rescale it
+    step = np.asarray(updates) if optimizer == "lbfgs" else loop.scale * np.asarray(updates)
+    # convergence (on accepted points)
+    if prev is not None and abs(prev - loss) <= rtol * max(abs(loss), 1e-300):
+        loop.stall += 1
+    else:
+        loop.stall = 0
+    if loss <= ftol:
+        loop.done, loop.reason = True, f"converged: loss {loss:.3g} <= ftol {ftol:g}"
+    elif gnorm <= gtol:
+        loop.done, loop.reason = True, f"converged: gradient max-norm {gnorm:.3g} <= gtol {gtol:g}"
+    elif loop.stall >= patience:
+        loop.done, loop.reason = True, f"converged: relative loss change <= rtol {rtol:g} for {patience} iterations"
+    elif float(np.max(np.abs(step))) <= xtol:
+        loop.done, loop.reason = True, f"converged: step {float(np.max(np.abs(step))):.3g} <= xtol {xtol:g} (log space)"
+    if loop.done:
+        return
+    loop.anchor = np.asarray(loop.theta)
+    loop.theta = (np.asarray(loop.theta, dtype) + step.astype(dtype)).astype(dtype)
+    loop.opt_state = new_state
+
+
+def _finish(prob, loop, settings, notes, want_ident, wall):
+    """Health check, identifiability and the :class:`FitResult` at the best accepted point."""
+    best = loop.best_theta if loop.h_loss else np.asarray(prob.theta0)
+    th = jnp.asarray(best, prob.sim.dtype)
+    if want_ident:
+        frames, codes, jac = _ident.frames_and_jacobian(prob.frames, th)
+    else:
+        frames, codes = jax.jit(prob.frames)(th)
+        frames, codes = np.asarray(frames, np.float64), np.asarray(codes)
+    notes = list(notes)
+    bad = diagnostics.first_failure(codes)
+    if bad is not None:
+        t, o, c = bad
+        raise FitError(f"the fitted rollout fails at step {prob.loss.frame_steps[t]}, object "
+                       f"{prob.scene.object_names[o]!r}: {diagnostics.MESSAGES[c]}")
+    if (codes == diagnostics.VOLUME_CLAMPED).any():
+        t, o = (int(a[0]) for a in np.nonzero(codes == diagnostics.VOLUME_CLAMPED))
+        msg = (f"object {prob.scene.object_names[o]!r}: {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
+               f"at step {prob.loss.frame_steps[t]} of the fitted rollout")
+        warnings.warn(msg, stacklevel=3)
+        notes.append(msg)
+    report = None
+    if want_ident:
+        report = _report(prob, frames, jac)
+        for w in report.warnings:
+            warnings.warn(w, stacklevel=3)
+    vals = prob.values(best)
+    full = {n: np.array(getattr(prob.base, n), np.float64) for n in PARAM_NAMES}
+    for n in prob.names:
+        full[n][list(prob.objects)] = vals[n]
+    hist = dict(iteration=np.asarray(loop.h_iter, np.int64), loss=np.asarray(loop.h_loss, np.float64),
+                grad_norm=np.asarray(loop.h_gnorm, np.float64), time=np.asarray(loop.h_time, np.float64),
+                rejected=np.asarray(loop.h_rejected, np.int64))
+    th = np.asarray(loop.h_theta, np.float64).reshape(-1, len(prob.names), len(prob.objects))
+    for i, n in enumerate(prob.names):
+        hist[n] = np.exp(th[:, i])
+    converged = loop.reason.startswith("converged")
+    return FitResult(
+        params=Params(**full), names=prob.names, objects=tuple(prob.scene.object_names[o] for o in prob.objects),
+        values=vals, start=prob.start, loss=float(loop.best_loss if loop.h_loss else np.nan),
+        loss_start=float(loop.h_loss[0]) if loop.h_loss else float("nan"), history=hist,
+        iterations=loop.iteration, rejected=loop.rejected, converged=converged, reason=loop.reason,
+        identifiability=report, frames=frames, steps=np.asarray(prob.loss.frame_steps, np.int64),
+        dt=prob.target.dt, optimizer=settings["optimizer"], lr=settings["lr"],
+        normalisation=prob.loss.normalisation, scale2=prob.loss.scale2, noise=prob.noise,
+        scene_text=prob.scene.text, scene_path=prob.scene.path, target_path=prob.target.path,
+        wall_time=float(wall), warnings=tuple(notes), loop=loop, problem=prob,
+        settings=settings)
+
+
+def identifiability_at(prob, theta):
+    """The :class:`fitting.identifiability.IdentifiabilityReport` of a problem at log values theta."""
+    frames, _, jac = _ident.frames_and_jacobian(prob.frames, jnp.asarray(theta, prob.sim.dtype))
+    return _report(prob, frames, jac)
+
+
+def _report(prob, frames, jac):
+    if prob.target.kind == "positions":
+        residual = frames - prob.target.positions
+    else:
+        residual = np.concatenate([_nearest_residual(x, p) for x, p in zip(frames, prob.target.points)])
+    return _ident.analyse(jac, residual, prob.labels, noise=prob.noise)
+
+
+def _nearest_residual(x, p):
+    """(V, 3) vector from each vertex to its nearest target point (numpy, chunked)."""
+    out = np.empty_like(x)
+    for a in range(0, len(x), 512):
+        d2 = ((x[a:a + 512, None, :] - p[None, :, :]) ** 2).sum(-1)
+        out[a:a + 512] = x[a:a + 512] - p[np.argmin(d2, axis=1)]
+    return out
+
+
+# --------------------------------------------------------------------------- synthetic recovery
+
+#: The recovery scenario's true parameters (physics.md §9.4: dynamics determine k, damping and
+#: nmol): a soft pressurised ball hanging from one pinned top vertex, released undeformed; it
+#: inflates, sags and rings on its pin, damped by the Verlet damping.
+RECOVERY_TRUTH = dict(k_structural=50.0, damping=1000.0, inflation=1.05, total_weight=0.1, radius=0.1)
+
+
+def recovery_scene_text(subdivisions=2, k_structural=50.0, damping=1000.0, nmol=None, *, inflation=1.05,
+                        total_weight=0.1, radius=0.1, height=1.0):
+    """Scene text of the recovery scenario: an icosphere ball (radius 0.1 m) pinned at its top.
+
+    ``nmol`` defaults to the gas that inflates the free ball to ``inflation`` x its size
+    (physics.md §8.5: n = k s (s - 1) sum L² / (3 R T)).
+    """
+    import trimesh
+    from jaxplush.scene_writer import format_scene
+    from jaxplush.types import GAS_CONSTANT
+    mesh = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=radius)
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces, np.int64)
+    if nmol is None:
+        e = mesh.edges_unique
+        sum_l2 = float(np.sum((v[e[:, 0]] - v[e[:, 1]]) ** 2))
+        nmol = k_structural * inflation * (inflation - 1) * sum_l2 / (3 * GAS_CONSTANT * 293.15)
+    obj = dict(name="ball", vertices=v, faces=f, k_structural=float(k_structural), damping=float(damping),
+               nmol=float(nmol), total_weight=float(total_weight), translate=(0.0, float(height), 0.0),
+               fixed=[int(np.argmax(v[:, 1]))])
+    return format_scene([obj], gravity=(0.0, -9.81, 0.0), temperature=293.15,
+                        header=f"fitting recovery scenario: level-{int(subdivisions)} icosphere ball pinned at its top")
+
+
+def synthetic_recovery(subdivisions=3, noise=0.0, point_cloud=False, progress=True, *, factors=(2.0, 0.5, 2.0),
+                       optimizer="lbfgs", iterations=60, steps=1600, save_every=20, dt=5e-4, seed=0, n_points=None,
+                       checkpoint_path=None):
+    """Recover k_structural, damping and nmol from a synthetic target (the issue's acceptance run).
+
+    A target is simulated with known parameters (:data:`RECOVERY_TRUTH`), optionally with
+    Gaussian noise of ``noise`` m per coordinate or as a point cloud sampled on the surface;
+    the fit starts from the truth times ``factors`` (k x2, damping x0.5, nmol x2 by default).
+
+    Returns:
+      dict: true, start and fitted values, relative errors, wall time of the fit (s), loss,
+      iterations, the identifiability summary, and the :class:`FitResult` ("result").
+    """
+    truth = recovery_scene_text(subdivisions)
+    scene_true = jaxplush.parse_scene(truth, "<recovery truth>")
+    t0 = time.perf_counter()
+    target = _make_recovery_target(scene_true, steps, dt, save_every, noise, point_cloud, n_points, seed)
+    t_target = time.perf_counter() - t0
+    true_vals = {n: float(getattr(scene_true.params, n)[0]) for n in ("k_structural", "damping", "nmol")}
+    start_vals = {n: v * f for (n, v), f in zip(true_vals.items(), factors)}
+    scene = jaxplush.parse_scene(recovery_scene_text(subdivisions, start_vals["k_structural"], start_vals["damping"],
+                                                     start_vals["nmol"]), "<recovery start>")
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = fit(scene, target, ("k_structural", "damping", "nmol"), optimizer=optimizer, iterations=iterations,
+                  noise_free=not noise, progress=progress, checkpoint_path=checkpoint_path, check_dt=False)
+    wall = time.perf_counter() - t0
+    fitted = {n: float(res.values[n][0]) for n in true_vals}
+    errors = {n: fitted[n] / true_vals[n] - 1.0 for n in true_vals}
+    return dict(vertices=scene.n_vertices, noise=noise, point_cloud=point_cloud, true=true_vals, start=start_vals,
+                fitted=fitted, errors=errors, max_error=max(abs(e) for e in errors.values()), wall_time=wall,
+                target_time=t_target, loss=res.loss, iterations=res.iterations, rejected=res.rejected,
+                converged=res.converged, reason=res.reason, frames=target.n_frames, steps=steps, dt=dt,
+                identifiability=res.identifiability.summary() if res.identifiability else "", result=res)
+
+
+def _make_recovery_target(scene, steps, dt, save_every, noise, point_cloud, n_points, seed):
+    from fitting.targets import make_target
+    return make_target(scene, steps, dt, save_every, noise=noise, point_cloud=point_cloud,
+                       n_points=n_points or (2 * scene.n_vertices if point_cloud else None), seed=seed)

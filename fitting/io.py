@@ -1,0 +1,302 @@
+"""FIT.h5: the fit's result, its history and a resumable checkpoint (HDF5, written atomically).
+
+Layout:
+
+* attributes: ``status`` ("running" while checkpointing, "interrupted" after Ctrl-C, "done"),
+  ``loss``, ``loss_start``, ``iterations``, ``rejected``, ``converged``, ``reason``,
+  ``optimizer``, ``lr`` (NaN: default), ``dt``, ``normalisation``, ``scale2``, ``noise`` (NaN:
+  unknown), ``wall_time``, ``scene`` (the scene text, start values), ``scene_path``,
+  ``target_path``, ``fitted_scene`` (the scene text with the fitted values, when done),
+  ``settings`` (JSON), ``warnings`` (JSON list), ``jaxplush_version``;
+* ``params/<name>`` [n_objects]: every fitted parameter's values for all objects (objects not
+  fitted keep the scene's); attribute ``objects`` the fitted objects, ``object_names`` all;
+  ``start/<name>`` likewise for the start values;
+* ``history/loss``, ``history/iteration``, ``history/grad_norm``, ``history/time`` [n] and
+  ``history/<name>`` [n, n_fitted_objects] over accepted iterations; ``history/rejected``;
+* ``identifiability/``: ``jtj``, ``eigenvalues``, ``eigenvectors``, ``sensitivity``, ``stderr``,
+  ``determined`` datasets; attributes ``labels``, ``condition``, ``sigma``, ``n_data``,
+  ``warnings`` (JSON), ``summary``;
+* ``fitted/positions`` [T, V, 3], ``fitted/steps``, ``fitted/times``: the fitted rollout at the
+  target frames;
+* ``checkpoint/``: the optimisation loop's complete state (log values, optimiser state leaves,
+  history, counters, RNG-free), enough for ``--resume`` to continue to the same answer.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+
+import h5py
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.io import atomic_path
+from jaxplush.types import PARAM_NAMES
+
+#: Settings that must agree between a checkpoint and the fit resuming it.
+_RESUME_KEYS = ("optimizer", "lr", "names", "objects", "dt", "noise_free", "noise", "method", "frame_steps",
+                "target_kind", "target_hash", "scene_hash")
+
+
+def fingerprint(prob):
+    """Hashes of the scene text and the target data, to recognise the same fit on resume."""
+    scene_hash = hashlib.sha1(prob.scene.text.encode()).hexdigest()
+    h = hashlib.sha1(np.ascontiguousarray(prob.target.data, np.float64).tobytes())
+    h.update(np.asarray(prob.target.steps, np.int64).tobytes())
+    return scene_hash, h.hexdigest()
+
+
+def _settings(prob, settings):
+    s = dict(settings)
+    s["scene_hash"], s["target_hash"] = fingerprint(prob)
+    return s
+
+
+def _write_values(group, prob, values_by_name):
+    names = prob.scene.object_names
+    for n in prob.names:
+        full = np.array(getattr(prob.base, n), np.float64)
+        full[list(prob.objects)] = values_by_name[n]
+        group.create_dataset(n, data=full)
+    group.attrs["objects"] = np.asarray([names[o] for o in prob.objects], dtype=object)
+    group.attrs["object_names"] = np.asarray(names, dtype=object)
+
+
+def _write_loop(f, prob, loop, settings):
+    g = f.create_group("checkpoint")
+    g.create_dataset("theta", data=np.asarray(loop.theta))
+    if loop.anchor is not None:
+        g.create_dataset("anchor", data=np.asarray(loop.anchor))
+    g.create_dataset("best_theta", data=np.asarray(loop.best_theta))
+    for key in ("scale", "best_loss", "wall"):
+        g.attrs[key] = float(getattr(loop, key))
+    for key in ("iteration", "rejected", "rejected_in_row", "stall"):
+        g.attrs[key] = int(getattr(loop, key))
+    g.attrs["done"] = bool(loop.done)
+    g.attrs["reason"] = loop.reason
+    g.attrs["settings"] = json.dumps(_settings(prob, settings))
+    leaves = jax.tree_util.tree_leaves(loop.opt_state)
+    og = g.create_group("opt_state")
+    og.attrs["n_leaves"] = len(leaves)
+    for i, leaf in enumerate(leaves):
+        og.create_dataset(f"{i:05d}", data=np.asarray(leaf))
+    hg = g.create_group("history")
+    n_p = len(prob.names) * len(prob.objects)
+    hg.create_dataset("iteration", data=np.asarray(loop.h_iter, np.int64))
+    hg.create_dataset("loss", data=np.asarray(loop.h_loss, np.float64))
+    hg.create_dataset("theta", data=np.asarray(loop.h_theta, np.float64).reshape(-1, n_p))
+    hg.create_dataset("grad_norm", data=np.asarray(loop.h_gnorm, np.float64))
+    hg.create_dataset("time", data=np.asarray(loop.h_time, np.float64))
+    hg.create_dataset("rejected", data=np.asarray(loop.h_rejected, np.int64))
+
+
+def _history(f, prob, loop):
+    hg = f.create_group("history")
+    th = np.asarray(loop.h_theta, np.float64).reshape(-1, len(prob.names), len(prob.objects))
+    hg.create_dataset("loss", data=np.asarray(loop.h_loss, np.float64))
+    hg.create_dataset("iteration", data=np.asarray(loop.h_iter, np.int64))
+    hg.create_dataset("grad_norm", data=np.asarray(loop.h_gnorm, np.float64))
+    hg.create_dataset("time", data=np.asarray(loop.h_time, np.float64))
+    hg.create_dataset("rejected", data=np.asarray(loop.h_rejected, np.int64))
+    for i, n in enumerate(prob.names):
+        hg.create_dataset(n, data=np.exp(th[:, i]))
+
+
+def _common_attrs(f, prob, settings, status):
+    from jaxplush import __version__
+    a = f.attrs
+    a["status"] = status
+    a["scene"] = prob.scene.text
+    a["scene_path"] = prob.scene.path
+    a["target_path"] = os.fspath(prob.target.path)
+    a["dt"] = float(prob.target.dt)
+    a["optimizer"] = settings["optimizer"]
+    a["lr"] = math.nan if settings["lr"] is None else float(settings["lr"])
+    a["normalisation"] = prob.loss.normalisation
+    a["scale2"] = float(prob.loss.scale2)
+    a["noise"] = math.nan if prob.noise is None else float(prob.noise)
+    a["settings"] = json.dumps(_settings(prob, settings))
+    a["jaxplush_version"] = __version__
+
+
+def save_checkpoint(path, prob, loop, settings, status="running"):
+    """Write the loop state (and the best values so far) to ``path`` atomically."""
+    with atomic_path(path, ".h5") as tmp:
+        with h5py.File(tmp, "w") as f:
+            _common_attrs(f, prob, settings, status)
+            f.attrs["loss"] = float(loop.best_loss)
+            f.attrs["iterations"] = int(loop.iteration)
+            f.attrs["rejected"] = int(loop.rejected)
+            _write_values(f.create_group("params"), prob, prob.values(loop.best_theta))
+            _write_values(f.create_group("start"), prob, prob.start)
+            _history(f, prob, loop)
+            _write_loop(f, prob, loop, settings)
+    return os.fspath(path)
+
+
+def save_fit(result, path):
+    """Write a :class:`fitting.fit.FitResult` as FIT.h5 (status "done"), atomically."""
+    loop = result.loop
+    prob = result.problem
+    with atomic_path(path, ".h5") as tmp:
+        with h5py.File(tmp, "w") as f:
+            _common_attrs(f, prob, result.settings, "done")
+            a = f.attrs
+            a["loss"] = float(result.loss)
+            a["loss_start"] = float(result.loss_start)
+            a["iterations"] = int(result.iterations)
+            a["rejected"] = int(result.rejected)
+            a["converged"] = bool(result.converged)
+            a["reason"] = result.reason
+            a["wall_time"] = float(result.wall_time)
+            a["warnings"] = json.dumps(list(result.warnings) + (
+                list(result.identifiability.warnings) if result.identifiability is not None else []))
+            a["fitted_scene"] = fitted_scene_text(result)
+            _write_values(f.create_group("params"), prob, result.values)
+            _write_values(f.create_group("start"), prob, result.start)
+            hg = f.create_group("history")
+            for k, v in result.history.items():
+                hg.create_dataset(k, data=np.asarray(v))
+            rep = result.identifiability
+            if rep is not None:
+                ig = f.create_group("identifiability")
+                for k in ("jtj", "eigenvalues", "eigenvectors", "sensitivity", "stderr"):
+                    ig.create_dataset(k, data=np.asarray(getattr(rep, k), np.float64))
+                ig.create_dataset("determined", data=np.asarray(rep.determined, bool))
+                ig.attrs["labels"] = np.asarray(rep.labels, dtype=object)
+                ig.attrs["condition"] = float(rep.condition)
+                ig.attrs["sigma"] = float(rep.sigma)
+                ig.attrs["n_data"] = int(rep.n_data)
+                ig.attrs["warnings"] = json.dumps(list(rep.warnings))
+                ig.attrs["weakest"] = rep.weakest
+                ig.attrs["summary"] = rep.summary()
+            fg = f.create_group("fitted")
+            fg.create_dataset("positions", data=np.asarray(result.frames), compression="gzip", compression_opts=1)
+            fg.create_dataset("steps", data=np.asarray(result.steps, np.int64))
+            fg.create_dataset("times", data=np.asarray(result.steps, np.float64) * result.dt)
+            if loop is not None:
+                _write_loop(f, prob, loop, result.settings)
+    return os.fspath(path)
+
+
+def load_checkpoint(path, prob, opt, settings):
+    """The :class:`fitting.fit.LoopState` saved in ``path``, checked to belong to this fit."""
+    from fitting.fit import LoopState
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise JaxplushError(f"{path}: no checkpoint to resume (the file does not exist); run without --resume")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise TrajectoryError(path, "not an HDF5 file: cannot resume from it") from None
+    with f:
+        if "checkpoint" not in f:
+            raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
+        g = f["checkpoint"]
+        saved = json.loads(g.attrs["settings"])
+        mine = _settings(prob, settings)
+        for k in _RESUME_KEYS:
+            if _norm(saved.get(k)) != _norm(mine.get(k)):
+                raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "
+                                    f"{saved.get(k)!r}, now {mine.get(k)!r}); run without --resume to start over")
+        template = opt.init(jnp.asarray(np.asarray(g["theta"])))
+        leaves, treedef = jax.tree_util.tree_flatten(template)
+        og = g["opt_state"]
+        if int(og.attrs["n_leaves"]) != len(leaves):
+            raise JaxplushError(f"{path}: optimizer state does not match this optax version / optimizer")
+        restored = []
+        for i, leaf in enumerate(leaves):
+            arr = np.asarray(og[f"{i:05d}"][()])
+            if arr.shape != np.shape(leaf):
+                raise JaxplushError(f"{path}: optimizer state leaf {i} has shape {arr.shape}, expected "
+                                    f"{np.shape(leaf)}")
+            restored.append(jnp.asarray(arr, dtype=jnp.asarray(leaf).dtype))
+        hg = g["history"]
+        n_p = len(prob.names) * len(prob.objects)
+        shape = (len(prob.names), len(prob.objects))
+        loop = LoopState(
+            theta=np.asarray(g["theta"][()]),
+            opt_state=jax.tree_util.tree_unflatten(treedef, restored),
+            anchor=np.asarray(g["anchor"][()]) if "anchor" in g else None,
+            scale=float(g.attrs["scale"]), iteration=int(g.attrs["iteration"]), rejected=int(g.attrs["rejected"]),
+            rejected_in_row=int(g.attrs["rejected_in_row"]), stall=int(g.attrs["stall"]),
+            best_theta=np.asarray(g["best_theta"][()]), best_loss=float(g.attrs["best_loss"]),
+            done=bool(g.attrs["done"]), reason=str(g.attrs["reason"]),
+            h_iter=[int(i) for i in hg["iteration"][()]], h_loss=[float(x) for x in hg["loss"][()]],
+            h_theta=[t.reshape(shape) for t in np.asarray(hg["theta"][()]).reshape(-1, n_p)],
+            h_gnorm=[float(x) for x in hg["grad_norm"][()]], h_time=[float(x) for x in hg["time"][()]],
+            h_rejected=[int(i) for i in hg["rejected"][()]], wall=float(g.attrs["wall"]))
+    return loop
+
+
+def _norm(v):
+    """Settings compared after a JSON round trip (tuples -> lists, floats exact)."""
+    return json.loads(json.dumps(v))
+
+
+def load_fit(path):
+    """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, fitted."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise TrajectoryError(path, "no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise TrajectoryError(path, "not an HDF5 file") from None
+    out = {}
+    with f:
+        out["attrs"] = {k: _attr(f.attrs[k]) for k in f.attrs}
+        for grp in ("params", "start", "history", "identifiability", "fitted"):
+            if grp in f:
+                out[grp] = {k: f[grp][k][()] for k in f[grp].keys()}
+                out[grp + "_attrs"] = {k: _attr(f[grp].attrs[k]) for k in f[grp].attrs}
+    return out
+
+
+def _attr(v):
+    if isinstance(v, bytes):
+        return v.decode()
+    if isinstance(v, np.ndarray) and v.dtype == object:
+        return [x.decode() if isinstance(x, bytes) else x for x in v]
+    return v
+
+
+def fitted_scene_text(result):
+    """The scene text with the fitted values, in the extended OBJ format."""
+    from jaxplush.scene_writer import format_scene
+    scene = result.problem.scene
+    objects = []
+    p = result.params
+    for i, o in enumerate(scene.objects):
+        a, b = o.vertex_slice
+        fa, fb = o.face_slice
+        obj = dict(name=o.name, vertices=scene.vertices[a:b], faces=scene.faces[fa:fb] - a,
+                   fixed=[j - a for j in o.fixed] or None)
+        for n in ("k_structural", "dashpot", "drag", "total_weight"):
+            obj[n] = float(p[PARAM_NAMES.index(n)][i])
+        d = float(p.damping[i])
+        obj["damping"] = d if d > 0 else None
+        if o.has_gas:
+            obj["nmol"] = float(p.nmol[i])
+        objects.append(obj)
+    lines = [f"fitted by jaxplush-fit from scene {result.scene_path} and target {result.target_path}",
+             f"loss {result.loss:.6g} ({result.normalisation}-normalised); {result.reason}"]
+    for n in result.names:
+        for j, o in enumerate(result.objects):
+            lines.append(f"{n} of {o}: start {result.start[n][j]:.6g}, fitted {result.values[n][j]:.6g}")
+    return format_scene(objects, gravity=scene.gravity, floor=scene.floor, temperature=scene.temperature,
+                        header="\n".join(lines))
+
+
+def write_fitted_scene(result, path):
+    """Write :func:`fitted_scene_text` to ``path`` atomically."""
+    text = fitted_scene_text(result)
+    with atomic_path(path, ".obj") as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
+            fh.write(text)
+    return os.fspath(path)

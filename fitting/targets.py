@@ -1,0 +1,358 @@
+"""Fitting targets: read, validate and write target deformations (HDF5; numpy only, never traced).
+
+A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io`, so every
+``jaxplush simulate`` output is one. It holds either
+
+* ``positions`` float [T, V, 3]: the scene's vertices, in the scene's order, at T frames; or
+* ``points`` float [T, M, 3]: a point cloud per frame (a scan; M unrelated to V, no
+  correspondence), fitted with a symmetric Chamfer distance (:mod:`fitting.losses`),
+
+and ``times`` float [T] (s, increasing). The frames may be any subset of the rollout (only the
+final shape, say) and may be noisy. Optional: attribute ``dt`` (the target's time step, used
+when no dt is given), attribute ``noise`` (the standard deviation of the measurement noise per
+coordinate, m; used to normalise the loss), and ``faces``/``object_id``/``object_names`` (checked
+against the scene when present).
+
+:func:`load_target` validates everything against the scene *before* anything is traced: the file
+is readable HDF5, the datasets exist and have the right shapes, vertex and object counts match
+the scene (or points are given), the times lie on the dt grid, and all values are finite. Each
+problem raises :class:`jaxplush.errors.TrajectoryError` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import h5py
+import numpy as np
+
+from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.io import atomic_path
+
+#: Times must lie within this fraction of dt of a multiple of dt (float32-written times included).
+GRID_TOLERANCE = 1e-3
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Target:
+    """A validated fitting target (numpy).
+
+    Attributes:
+      positions: (T, V, 3) target vertex positions (m), or None for a point-cloud target.
+      points: (T, M, 3) target point clouds (m), or None for a positions target.
+      steps: (T,) int64 step index of each frame on the ``dt`` grid (strictly increasing).
+      times: (T,) frame times, s (as stored).
+      dt: time step of the grid, s.
+      path: file the target came from ("<memory>" for one built in memory).
+      noise: measurement noise standard deviation per coordinate (m) if known, else None.
+      params: dict name -> (O,) parameter values stored with the target (a simulated target
+        records its true parameters), possibly empty.
+    """
+
+    positions: np.ndarray | None
+    points: np.ndarray | None
+    steps: np.ndarray
+    times: np.ndarray
+    dt: float
+    path: str
+    noise: float | None = None
+    params: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def kind(self):
+        """"positions" or "points"."""
+        return "positions" if self.positions is not None else "points"
+
+    @property
+    def data(self):
+        """(T, V or M, 3) the target's frames, whichever kind."""
+        return self.positions if self.positions is not None else self.points
+
+    @property
+    def n_frames(self):
+        return len(self.steps)
+
+    def select(self, frames):
+        """A target with only the given frames (indices or a boolean mask, in order)."""
+        idx = np.arange(self.n_frames)[frames]
+        if idx.size == 0:
+            raise ValueError("a target needs at least one frame")
+        sel = lambda a: None if a is None else a[idx]  # noqa: E731
+        return dataclasses.replace(self, positions=sel(self.positions), points=sel(self.points),
+                                   steps=self.steps[idx], times=self.times[idx])
+
+    def on_grid(self, dt):
+        """This target with its frame steps recomputed for time step ``dt`` (validated)."""
+        dt = float(dt)
+        if dt == self.dt:
+            return self
+        steps = _grid_steps(self.path, self.times, dt, self.times.dtype)
+        return dataclasses.replace(self, steps=steps, dt=dt)
+
+    def save(self, path, scene=None):
+        """Write the target to ``path`` atomically in the trajectory schema.
+
+        With ``scene``, its faces, object ids and names and its scene text are stored too.
+        """
+        with atomic_path(path, ".h5") as tmp:
+            with h5py.File(tmp, "w") as f:
+                f.create_dataset(self.kind, data=np.asarray(self.data), compression="gzip", compression_opts=1)
+                f.create_dataset("times", data=np.asarray(self.times, np.float64))
+                f.attrs["dt"] = float(self.dt)
+                f.attrs["steps"] = int(self.steps[-1])
+                if self.noise is not None:
+                    f.attrs["noise"] = float(self.noise)
+                for name, val in self.params.items():
+                    f.attrs[name] = np.asarray(val, np.float64)
+                if scene is not None:
+                    f.create_dataset("faces", data=np.asarray(scene.faces, np.int32))
+                    f.create_dataset("object_id", data=np.asarray(scene.object_id, np.int32))
+                    f.create_dataset("object_names", data=np.asarray(scene.object_names, dtype=object),
+                                     dtype=h5py.string_dtype("utf-8"))
+                    f.attrs["scene"] = scene.text
+        return os.fspath(path)
+
+
+def load_target(path, scene, dt=None, kind=None):
+    """Read a target file and validate it against a scene.
+
+    Args:
+      path: HDF5 file with ``positions`` [T, V, 3] or ``points`` [T, M, 3], and ``times`` [T].
+      scene: the :class:`jaxplush.scene.Scene` that will be fitted.
+      dt: the fit's time step (s); default: the file's ``dt`` attribute. Every frame time must
+        be a multiple of it.
+      kind: "positions" or "points" to choose when a file holds both (default: positions).
+
+    Returns:
+      :class:`Target`.
+
+    Raises:
+      TrajectoryError: naming the file and the problem.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise TrajectoryError(path, "no such file")
+    if os.path.isdir(path):
+        raise TrajectoryError(path, "is a directory, not a target file")
+    try:
+        fh = h5py.File(path, "r")
+    except OSError as e:
+        reason = "not an HDF5 file" if h5py.is_hdf5(path) is False else f"cannot read: {e}"
+        raise TrajectoryError(path, reason) from None
+    try:
+        with fh:
+            raw = _read(path, fh, kind)
+    except JaxplushError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as e:  # a damaged file part-way through
+        raise TrajectoryError(path, f"cannot read: {e}") from None
+    return _validate(path, raw, scene, dt)
+
+
+def _dataset(path, fh, name, required=True):
+    if name not in fh:
+        if required:
+            raise TrajectoryError(path, f"missing dataset '{name}'")
+        return None
+    obj = fh[name]
+    if not isinstance(obj, h5py.Dataset):
+        raise TrajectoryError(path, f"'{name}' is a group, expected a dataset")
+    return obj
+
+
+def _read(path, fh, kind):
+    if kind not in (None, "positions", "points"):
+        raise ValueError(f"kind must be 'positions' or 'points', got {kind!r}")
+    have = [k for k in ("positions", "points") if k in fh]
+    if not have:
+        raise TrajectoryError(path, "missing dataset 'positions' (or 'points' for a point-cloud target)")
+    kind = kind or have[0]
+    if kind not in have:
+        raise TrajectoryError(path, f"missing dataset '{kind}'")
+    out = {"kind": kind}
+    for name, required in ((kind, True), ("times", True), ("faces", False), ("object_id", False),
+                           ("object_names", False)):
+        ds = _dataset(path, fh, name, required)
+        if ds is not None:
+            if ds.dtype.kind not in "fiub" and name != "object_names":
+                raise TrajectoryError(path, f"'{name}' must be numeric, got dtype {ds.dtype}")
+            out[name] = ds[()]
+    attrs = fh.attrs
+    out["dt_attr"] = attrs["dt"] if "dt" in attrs else None
+    out["noise"] = attrs["noise"] if "noise" in attrs else None
+    out["params"] = {n: np.asarray(attrs[n], np.float64) for n in
+                     ("k_structural", "damping", "dashpot", "drag", "nmol", "total_weight") if n in attrs}
+    return out
+
+
+def _validate(path, raw, scene, dt):
+    kind = raw["kind"]
+    data = np.asarray(raw[kind])
+    if data.ndim != 3 or data.shape[2] != 3:
+        what = "[T, V, 3]" if kind == "positions" else "[T, M, 3]"
+        raise TrajectoryError(path, f"'{kind}' must have shape {what}, got {list(data.shape)}")
+    n_frames, n = data.shape[:2]
+    if n_frames == 0:
+        raise TrajectoryError(path, f"'{kind}' holds no frames")
+    if n == 0:
+        raise TrajectoryError(path, f"'{kind}' holds no points")
+    if kind == "positions" and n != scene.n_vertices:
+        raise TrajectoryError(path, f"'positions' has {n} vertices but the scene {scene.path} has "
+                                    f"{scene.n_vertices}")
+    names = raw.get("object_names")
+    if names is not None:
+        names = [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(names)]
+        if len(names) != scene.n_objects:
+            raise TrajectoryError(path, f"the target has {len(names)} object(s) {names} but the scene "
+                                        f"{scene.path} has {scene.n_objects} {list(scene.object_names)}")
+    if kind == "positions":
+        oid = raw.get("object_id")
+        if oid is not None:
+            oid = np.asarray(oid)
+            if oid.shape != (n,):
+                raise TrajectoryError(path, f"'object_id' must have shape [{n}], got {list(oid.shape)}")
+            n_obj = int(oid.max()) + 1 if oid.size else 0
+            if n_obj != scene.n_objects:
+                raise TrajectoryError(path, f"'object_id' describes {n_obj} object(s) but the scene "
+                                            f"{scene.path} has {scene.n_objects}")
+            if not np.array_equal(oid, scene.object_id):
+                raise TrajectoryError(path, f"'object_id' does not match the scene {scene.path}: its "
+                                            "objects' vertices are numbered differently")
+        faces = raw.get("faces")
+        if faces is not None and not _same_faces(np.asarray(faces), scene.faces):
+            raise TrajectoryError(path, f"'faces' differ from the scene {scene.path}'s: the target was "
+                                        "made from a different mesh")
+
+    times = np.asarray(raw["times"], np.float64)
+    if times.shape != (n_frames,):
+        raise TrajectoryError(path, f"'times' must have shape [{n_frames}] (one per frame of '{kind}'), "
+                                    f"got {list(times.shape)}")
+    if not np.all(np.isfinite(times)):
+        raise TrajectoryError(path, f"'times' has non-finite values (first at frame "
+                                    f"{int(np.argmin(np.isfinite(times)))})")
+    if times[0] < 0:
+        raise TrajectoryError(path, f"'times' must be >= 0, got {times[0]:g} at frame 0")
+    if n_frames > 1 and np.any(np.diff(times) <= 0):
+        i = int(np.argmax(np.diff(times) <= 0)) + 1
+        raise TrajectoryError(path, f"'times' must be strictly increasing; frame {i} (t = {times[i]:g} s) "
+                                    f"follows t = {times[i - 1]:g} s")
+
+    if dt is None:
+        if raw["dt_attr"] is None:
+            raise TrajectoryError(path, "no 'dt' attribute: give the fit's time step (--dt)")
+        dt = raw["dt_attr"]
+        where = "the target's 'dt' attribute"
+    else:
+        where = "dt"
+    try:
+        dt = float(np.asarray(dt).reshape(()))
+    except (TypeError, ValueError):
+        raise TrajectoryError(path, f"{where} must be a number, got {dt!r}") from None
+    if not (np.isfinite(dt) and dt > 0):
+        raise TrajectoryError(path, f"{where} must be a positive number, got {dt!r}")
+    steps = _grid_steps(path, times, dt, raw["times"].dtype)
+
+    data = data.astype(np.float64)
+    bad = ~np.isfinite(data).all(axis=2)
+    if bad.any():
+        t, i = (int(a[0]) for a in np.nonzero(bad))
+        what = "vertex" if kind == "positions" else "point"
+        raise TrajectoryError(path, f"'{kind}' has non-finite values (first at frame {t}, {what} {i})")
+
+    noise = raw["noise"]
+    if noise is not None:
+        noise = float(np.asarray(noise).reshape(()))
+        if not (np.isfinite(noise) and noise >= 0):
+            raise TrajectoryError(path, f"attribute 'noise' must be a finite number >= 0, got {noise!r}")
+    params = {k: v for k, v in raw["params"].items() if v.shape == (scene.n_objects,)}
+    return Target(positions=data if kind == "positions" else None, points=data if kind == "points" else None,
+                  steps=steps, times=times, dt=dt, path=path, noise=noise, params=params)
+
+
+def _grid_steps(path, times, dt, stored_dtype):
+    """(T,) int64 step of every frame time on the dt grid; TrajectoryError when off the grid."""
+    ratio = np.asarray(times, np.float64) / dt
+    steps = np.rint(ratio)
+    eps = np.finfo(stored_dtype if np.dtype(stored_dtype).kind == "f" else np.float64).eps
+    off = np.abs(ratio - steps) > GRID_TOLERANCE + 8 * eps * np.abs(ratio)
+    if off.any():
+        i = int(np.argmax(off))
+        raise TrajectoryError(path, f"frame {i} at t = {times[i]:.9g} s is not on the dt = {dt:g} s grid "
+                                    f"({ratio[i]:.6g} steps); resample the target or give a dt that "
+                                    "divides every frame time")
+    steps = steps.astype(np.int64)
+    if len(steps) > 1 and np.any(np.diff(steps) <= 0):
+        i = int(np.argmax(np.diff(steps) <= 0)) + 1
+        raise TrajectoryError(path, f"frames {i - 1} and {i} fall on the same step of the dt = {dt:g} s grid")
+    return steps
+
+
+def _same_faces(a, b):
+    if a.ndim != 2 or a.shape != b.shape:
+        return False
+    key = lambda f: np.unique(np.sort(f.astype(np.int64), axis=1), axis=0)  # noqa: E731
+    return np.array_equal(key(a), key(b))
+
+
+def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise=0.0, point_cloud=False,
+                n_points=None, seed=0, sim=None):
+    """Simulate a synthetic target with known parameters (for tests, notebooks and benchmarks).
+
+    Args:
+      scene: :class:`jaxplush.scene.Scene`.
+      steps, dt, save_every: the rollout: ``steps`` steps of ``dt``, a frame every ``save_every``
+        steps (and at the last step), frame 0 the initial state.
+      params: :class:`jaxplush.types.Params` of the truth (default: the scene's).
+      frames: which saved frames to keep (indices into the saved frames, frame 0 = step 0;
+        default all but the initial one).
+      noise: standard deviation (m) of Gaussian noise added to every coordinate.
+      point_cloud: store ``points`` instead of ``positions``: per frame ``n_points`` points drawn
+        uniformly (by area) on the simulated surface, then noised; no correspondence with vertices.
+      n_points: points per frame (default: the vertex count).
+      seed: random seed of the noise and the samples.
+      sim: a prebuilt simulator for ``scene`` and ``dt``.
+
+    Returns:
+      :class:`Target` with ``path`` "<memory>" (``.save(path, scene)`` writes it).
+    """
+    import jax
+    import jaxplush
+    from jaxplush import diagnostics
+    from jaxplush.errors import SimulationError
+    from fitting.identifiability import frames_at_steps
+    steps, save_every = int(steps), int(save_every)
+    if steps < 1 or save_every < 1:
+        raise ValueError(f"steps and save_every must be >= 1, got {steps} and {save_every}")
+    saved = list(range(0, steps + 1, save_every))
+    if saved[-1] != steps:
+        saved.append(steps)
+    sim = sim or jaxplush.make_simulator(scene, dt)
+    p = sim.params(params)
+    pos, codes = jax.jit(lambda q: frames_at_steps(sim, q, sim.init_fn(q), saved))(p)
+    bad = diagnostics.first_failure(np.asarray(codes))
+    if bad is not None:
+        t, o, c = bad
+        raise SimulationError(saved[t], o, scene.object_names[o], diagnostics.MESSAGES[c])
+    pos = np.asarray(pos, np.float64)
+    idx = np.arange(1, len(pos)) if frames is None else np.arange(len(pos))[frames]
+    pos, steps_kept = pos[idx], np.asarray(saved, np.int64)[idx]
+    rng = np.random.default_rng(seed)
+    if point_cloud:
+        pos = np.stack([sample_surface(x, scene.faces, n_points or scene.n_vertices, rng) for x in pos])
+    if noise:
+        pos = pos + rng.normal(0.0, noise, pos.shape)
+    truth = {n: np.asarray(v, np.float64) for n, v in zip(p._fields, p.as_numpy())}
+    return Target(positions=None if point_cloud else pos, points=pos if point_cloud else None,
+                  steps=steps_kept, times=steps_kept * float(dt), dt=float(dt), path="<memory>",
+                  noise=float(noise) if noise else 0.0, params=truth)
+
+
+def sample_surface(x, faces, n, rng):
+    """(n, 3) points drawn uniformly by area on the triangle mesh (x (V, 3), faces (F, 3))."""
+    a, b, c = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    f = rng.choice(len(faces), size=n, p=area / area.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    return (1 - s)[:, None] * a[f] + (s * (1 - r2))[:, None] * b[f] + (s * r2)[:, None] * c[f]

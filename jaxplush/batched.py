@@ -1,0 +1,510 @@
+"""Batched simulation: B parameter points of one scene advanced together, batch on the last axis.
+
+``make_batched_simulator(scene, dt, batch)`` builds the same physics as
+:func:`jaxplush.make_simulator` (springs, edge dashpot, air drag, gas, gravity, the floor and its
+optional friction/restitution, pinned vertices, the report's Verlet damping, several objects;
+only the terms the scene or the parameter batch needs are traced) for a static batch of B
+parameter points. It exists for throughput: a plain ``jax.vmap`` of the single-scene step puts
+the batch on the leading axis, so every one-ring gather moves single floats B times over, and a
+64-point batch runs no faster in total than one scene. Here every array carries the batch on
+its *last* axis:
+
+* positions and velocities are component-major, batch-last: a tuple ``(x, y, z)`` of three
+  (V, B) arrays (the public layout is (B, V, 3));
+* parameters are a :class:`jaxplush.types.Params` of (O, B) arrays;
+* the one-ring gathers are K row gathers ``x_c[ring[k]]`` (one per ring slot), each moving
+  contiguous rows of B floats, and every force term is elementwise on (V, B) arrays, which
+  XLA's CPU backend vectorises along B (benchmarks/RESULTS.md, "Batch sweeps").
+
+Only the Verlet integrator is batched. A scene whose :class:`jaxplush.model.Terms` selects
+something this module does not implement (soft-soft contact, or a Terms field added later)
+raises ``NotImplementedError`` before anything is traced.
+
+Health is tracked per batch point and object exactly as in :mod:`jaxplush.rollouts`: the
+rollout carries (O, B) status codes, the step at which each failure was seen and the last
+healthy state of every point; :func:`locate_failures` then finds the exact failing step of each
+failed point. One point blowing up never touches the others (nothing is reduced across B).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxplush import constraints, diagnostics, model
+from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
+
+#: Terms fields this module implements. Any other field of :class:`jaxplush.model.Terms` that is
+#: switched on raises ``NotImplementedError`` (a term added to the single-scene step later must
+#: not be silently dropped here).
+SUPPORTED_TERMS = frozenset({"spring", "dashpot", "drag", "gas", "gravity", "floor", "fixed",
+                             "verlet_damping", "floor_friction", "floor_restitution"})
+
+
+class BatchedHealth(NamedTuple):
+    """Carried health record of a batched rollout (cf. :class:`jaxplush.rollouts.Health`).
+
+    Attributes:
+      code: (O, B) int32 first failure code per object and point (diagnostics.OK if none).
+      bad_step: (O, B) int32 step at whose checked frame the failure was seen (-1: none).
+      warn_step: (O, B) int32 first checked step with the volume clamp active (-1: none).
+      good_state: internal state: the last checked state at which the point was healthy.
+      good_step: (B,) int32 step number of each point's ``good_state``.
+    """
+
+    code: jax.Array
+    bad_step: jax.Array
+    warn_step: jax.Array
+    good_state: State
+    good_step: jax.Array
+
+    @property
+    def failed(self):
+        """(B,) bool: points with a failure in any object."""
+        return np.asarray(self.bad_step).max(axis=0) >= 0
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BatchedSimulator:
+    """A simulator for B parameter points of one scene (see the module docstring for layouts).
+
+    Attributes:
+      init_fn: (params, x0=None, v0=None) -> internal State; params leaves (O, B); x0, v0 (V, 3)
+        shared or (B, V, 3) per point; defaults: rest positions, zero velocity.
+      step_fn: (params, state) -> state, one time step of every point (internal layout).
+      status_fn: (params, x) -> (O, B) int32 health codes (:mod:`jaxplush.diagnostics`).
+      force_fn: (params, x, v) -> (f, volume): internal forces (tuple of 3 (V, B)), volumes
+        (O, B) or None without gas.
+      topology, terms, dt, substeps, batch, scene, dtype: how it was built.
+    """
+
+    init_fn: Callable
+    step_fn: Callable
+    status_fn: Callable
+    force_fn: Callable
+    topology: model.Topology
+    terms: model.Terms
+    dt: float
+    substeps: int
+    batch: int
+    scene: object
+    dtype: object
+    integrator: str = "verlet"
+
+    def params(self, values=None):
+        """Broadcast parameters to a batch: ``values`` is a Params of scalars, (O,) or (O, B)
+        arrays (default: the scene's); returns a Params of (O, B) arrays of this dtype."""
+        values = self.scene.params if values is None else values
+        shape = (self.topology.n_objects, self.batch)
+        out = []
+        for name, a in zip(Params._fields, values):
+            a = np.asarray(a, np.float64)
+            if a.ndim == 1:
+                a = a[:, None]
+            try:
+                out.append(jnp.asarray(np.broadcast_to(a, shape), self.dtype))
+            except ValueError:
+                raise ValueError(f"parameter {name}: shape {a.shape} does not broadcast to "
+                                 f"(n_objects, batch) = {shape}") from None
+        return Params(*out)
+
+    def to_public(self, state):
+        """Internal state -> State of (B, V, 3) arrays."""
+        return State(*(jnp.stack(comp, axis=-1).transpose(1, 0, 2) for comp in state))
+
+    def to_internal(self, state):
+        """State of (V, 3) or (B, V, 3) arrays -> internal state (tuples of three (V, B))."""
+        return State(*(_to_soa(a, self.batch, self.dtype) for a in state))
+
+
+def _to_soa(a, batch, dtype):
+    a = jnp.asarray(a, dtype)
+    if a.ndim == 2:
+        a = jnp.broadcast_to(a[None], (batch,) + a.shape)
+    if a.shape[0] != batch or a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"expected (V, 3) or ({batch}, V, 3) positions/velocities, got {a.shape}")
+    return tuple(a[:, :, c].T for c in range(3))
+
+
+def check_terms(terms):
+    """Raise NotImplementedError if ``terms`` selects anything this module does not implement."""
+    extra = [f.name for f in dataclasses.fields(terms)
+             if f.name not in SUPPORTED_TERMS and getattr(terms, f.name)]
+    if extra:
+        raise NotImplementedError(
+            f"the batched simulator does not implement the term(s) {', '.join(extra)} that this scene "
+            f"needs; simulate such scenes one at a time with jaxplush.simulate")
+
+
+def terms_for(scene, params=None):
+    """The :class:`jaxplush.model.Terms` a batch of parameters needs: the scene's selection, plus
+    the dashpot, drag and Verlet damping wherever any point of ``params`` (a Params of arrays,
+    numpy) switches them on. A term compiled in with a zero coefficient changes nothing."""
+    terms = model.Terms.for_scene(scene)
+    if params is None:
+        return terms
+    on = {name: bool(np.any(np.asarray(getattr(params, key)) > 0))
+          for name, key in (("dashpot", "dashpot"), ("drag", "drag"), ("verlet_damping", "damping"))}
+    return dataclasses.replace(terms, **{k: getattr(terms, k) or v for k, v in on.items()})
+
+
+def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, substeps=1):
+    """Build the batched step for a scene.
+
+    Args:
+      scene: :class:`jaxplush.scene.Scene`.
+      dt: time step, s (static).
+      batch: number of parameter points B advanced together (static).
+      integrator: only "verlet" is batched.
+      terms: the :class:`jaxplush.model.Terms` to compile (default: :func:`terms_for` the scene).
+      substeps: Verlet steps of dt / substeps per ``step_fn`` call (as in make_simulator).
+
+    Returns:
+      :class:`BatchedSimulator` (float64 when ``jax_enable_x64`` is on, else float32).
+
+    Raises:
+      NotImplementedError: another integrator, or terms this module does not implement.
+      ValueError: bad dt, batch or substeps.
+    """
+    if integrator != "verlet":
+        raise NotImplementedError(f"the batched simulator implements only the 'verlet' integrator, "
+                                  f"not {integrator!r}")
+    dt = float(dt)
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive number, got {dt!r}")
+    if isinstance(batch, bool) or int(batch) != batch or batch < 1:
+        raise ValueError(f"batch must be a positive integer, got {batch!r}")
+    if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
+        raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+    batch, substeps = int(batch), int(substeps)
+    h = dt / substeps
+    terms = terms_for(scene) if terms is None else terms
+    check_terms(terms)
+    dtype = jnp.result_type(float)
+    topo = model.build_topology(scene)
+    kernel = _make_force_fn(topo, terms, scene.temperature)
+    gravity = tuple(float(g) for g in scene.gravity)
+    fixed = topo.fixed
+    x0_fixed = np.ascontiguousarray(topo.x0[fixed].T)                 # (3, P)
+    floor = _make_floor(topo, terms, scene, h)
+
+    def accel(params, x, v):
+        f, volume = kernel(params, x, v)
+        inv_m = 1.0 / _vertex_mass(topo, params)
+        a = tuple(fc * inv_m for fc in f)
+        if terms.gravity:
+            with jax.named_scope("gravity"):
+                a = tuple(ac + jnp.asarray(g, ac.dtype) for ac, g in zip(a, gravity))
+        return a, volume
+
+    def pin(comps, values=None):
+        if not terms.fixed:
+            return comps
+        with jax.named_scope("fixed"):
+            return tuple(c.at[fixed].set(0.0 if values is None else jnp.asarray(values[i], c.dtype)[:, None])
+                         for i, c in enumerate(comps))
+
+    def init_fn(params, x0=None, v0=None):
+        x = _to_soa(topo.x0 if x0 is None else x0, batch, dtype)
+        v = tuple(jnp.zeros_like(c) for c in x) if v0 is None else _to_soa(v0, batch, dtype)
+        a0, _ = accel(params, x, v)
+        u = tuple(vc - (0.5 * h) * ac for vc, ac in zip(v, a0))
+        return State(x, pin(u))
+
+    def substep(params, state):
+        x, u = state
+        a, _ = accel(params, x, u)
+        if terms.verlet_damping:
+            with jax.named_scope("verlet_damping"):
+                keep = 1.0 - _per_vertex(topo, _damping_factor(params.damping))
+                u_new = tuple(keep * uc + ac * h for uc, ac in zip(u, a))
+        else:
+            u_new = tuple(uc + ac * h for uc, ac in zip(u, a))
+        x_new = tuple(xc + uc * h for xc, uc in zip(x, u_new))
+        if terms.floor:
+            x_new, u_new = floor(x, x_new, u_new)
+        return State(pin(x_new, x0_fixed), pin(u_new))
+
+    if substeps == 1:
+        step_fn = substep
+    else:
+        def step_fn(params, state):
+            return jax.lax.fori_loop(0, substeps, lambda _, s: substep(params, s), state)
+
+    def status_fn(params, x):
+        return _status(topo, terms, x)
+
+    return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=kernel,
+                            topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
+                            dtype=dtype)
+
+
+def _make_floor(topo, terms, scene, h):
+    """The floor projection of :mod:`jaxplush.constraints` on component tuples.
+
+    The plain projection (y >= H, vertical velocity set to the one that lands the vertex on the
+    floor) is written out on the (V, B) y-component. With floor friction or restitution the
+    shared single-scene hook itself is applied to stacked (3, V, B) arrays (every operation in
+    it is elementwise), so both stay one implementation.
+    """
+    if not terms.floor:
+        return None
+    height = float(scene.floor)
+    if getattr(terms, "floor_friction", 0.0) or getattr(terms, "floor_restitution", 0.0):
+        shared = constraints.make_constrain(topo, dataclasses.replace(terms, fixed=False), scene, h)
+
+        def floor(x_old, x, v):
+            xs, vs = shared(jnp.stack(x_old), jnp.stack(x), jnp.stack(v))
+            return tuple(xs), tuple(vs)
+        return floor
+
+    def floor(x_old, x, v):
+        with jax.named_scope("floor"):
+            below = x[1] < height
+            vy = jnp.where(below, (height - x_old[1]) / h, v[1])
+            # y from the projected velocity, not from x[1]: then the (expensive) unprojected
+            # velocity has one consumer and XLA does not compute the forces twice. Identical
+            # where the vertex is above the floor; on it, max(.) returns the floor up to 1 ulp.
+            y = jnp.maximum(x_old[1] + vy * h, height)
+            return (x[0], y, x[2]), (v[0], vy, v[2])
+    return floor
+
+
+def _damping_factor(damping):
+    """f = 1/D for D > 0, else 0, with a finite gradient everywhere (as the single-scene step)."""
+    safe = jnp.where(damping > 0, damping, 1.0)
+    return jnp.where(damping > 0, 1.0 / safe, 0.0)
+
+
+def _per_vertex(topo, values):
+    """(O, B) per-object values -> (V, B), or (1, B) for a single object (broadcasts)."""
+    if topo.n_objects == 1:
+        return values[:1]
+    return values[topo.vertex_object]
+
+
+def _per_object_sum(topo, values):
+    """(O, B) sums over each object's contiguous vertex range of a (V, B) array."""
+    if topo.n_objects == 1:
+        return jnp.sum(values, axis=0)[None]
+    return jnp.stack([jnp.sum(values[a:b], axis=0) for a, b in topo.vertex_slices])
+
+
+def _vertex_mass(topo, params):
+    return _per_vertex(topo, params.total_weight / jnp.asarray(topo.count, params.total_weight.dtype)[:, None])
+
+
+def _make_force_fn(topo, terms, temperature):
+    """Batched ring force kernel: (params, x, v) -> (f, volume) with x, v, f tuples of 3 (V, B)."""
+    ring = np.ascontiguousarray(topo.ring.T)                            # (K, V)
+    mask = np.ascontiguousarray(topo.ring_mask.T)
+    rest = np.ascontiguousarray(topo.ring_rest.T)
+    n_ring = ring.shape[0]
+    slots = [np.ascontiguousarray(ring[k]) for k in range(n_ring)]
+    full = [bool(mask[k].all()) for k in range(n_ring)]
+    rt = GAS_CONSTANT * temperature
+
+    def gather(a, k):
+        # One row gather per ring slot: 1-D index table, rows of B contiguous floats. (A single
+        # (K, V) index gather, or one over the flattened table, is ~100x slower on XLA:CPU.)
+        return a.at[slots[k]].get(mode="promise_in_bounds")
+
+    def force_fn(params, x, v):
+        dtype = x[0].dtype
+        eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
+        with jax.named_scope("spring"):
+            d = [[gather(x[c], k) - x[c] for c in range(3)] for k in range(n_ring)]   # K x 3 x (V, B)
+            k_v = _per_vertex(topo, params.k_structural)
+            if terms.dashpot:
+                c_v = _per_vertex(topo, params.dashpot)
+            f = [0.0, 0.0, 0.0]
+            for k in range(n_ring):
+                dx, dy, dz = d[k]
+                inv_l = jax.lax.rsqrt(dx * dx + dy * dy + dz * dz + eps2)
+                w = k_v * (1.0 - jnp.asarray(rest[k], dtype)[:, None] * inv_l)          # T / l
+                if terms.dashpot:
+                    with jax.named_scope("dashpot"):
+                        dv = [gather(v[c], k) - v[c] for c in range(3)]
+                        w = w + c_v * (dv[0] * dx + dv[1] * dy + dv[2] * dz) * inv_l * inv_l
+                if not full[k]:
+                    w = jnp.where(mask[k][:, None], w, 0.0)
+                f = [f[0] + w * dx, f[1] + w * dy, f[2] + w * dz]
+        if terms.drag:
+            with jax.named_scope("drag"):
+                dm = _per_vertex(topo, params.drag) * _vertex_mass(topo, params)
+                f = [fc - dm * vc for fc, vc in zip(f, v)]
+        volume = None
+        if terms.gas:
+            with jax.named_scope("gas"):
+                # dV/dx_i = 1/6 sum_k d_k x d_{k+1} over the ordered ring (model._ring_force_fn).
+                g = [0.0, 0.0, 0.0]
+                for k in range(n_ring):
+                    (ax, ay, az), (bx, by, bz) = d[k], d[(k + 1) % n_ring]
+                    g = [g[0] + (ay * bz - az * by), g[1] + (az * bx - ax * bz), g[2] + (ax * by - ay * bx)]
+                g = [gc / 6.0 for gc in g]
+                volume = _ring_volumes(topo, x, g)
+                v0 = jnp.asarray(topo.rest_volume, dtype)[:, None]
+                p = params.nmol * rt / jnp.maximum(volume, VOLUME_EPS * v0)          # (O, B)
+                p_v = _per_vertex(topo, p)
+                f = [fc + p_v * gc for fc, gc in zip(f, g)]
+        return tuple(f), volume
+
+    return force_fn
+
+
+def _ring_volumes(topo, x, g):
+    """(O, B) volumes 1/3 sum_i (x_i - r_o).dV/dx_i, r_o the object's first vertex (homogeneity)."""
+    if topo.n_objects == 1:
+        s = sum((x[c] - x[c][:1]) * g[c] for c in range(3))
+    else:
+        counts = np.asarray(topo.count, np.int64)
+        s = 0.0
+        for c in range(3):
+            r = jnp.repeat(jnp.stack([x[c][a] for a, _ in topo.vertex_slices]), counts, axis=0,
+                           total_repeat_length=topo.n_vertices)
+            s = s + (x[c] - r) * g[c]
+    return _per_object_sum(topo, s) / 3.0
+
+
+def face_volumes(topo, x):
+    """(O, B) signed volumes from faces about each object's centroid (as diagnostics uses)."""
+    out = []
+    for (a, b), (fa, fb) in zip(topo.vertex_slices, topo.face_slices):
+        faces = topo.faces[fa:fb]
+        rel = [x[c] - jnp.mean(x[c][a:b], axis=0) for c in range(3)]
+        p, q, r = ([rel[c][faces[:, i]] for c in range(3)] for i in range(3))
+        cross = (q[1] * r[2] - q[2] * r[1], q[2] * r[0] - q[0] * r[2], q[0] * r[1] - q[1] * r[0])
+        out.append(jnp.sum(p[0] * cross[0] + p[1] * cross[1] + p[2] * cross[2], axis=0) / 6.0)
+    return jnp.stack(out)
+
+
+def _status(topo, terms, x):
+    """(O, B) int32 status codes, as :func:`jaxplush.diagnostics.object_status` per point."""
+    finite = jnp.isfinite(x[0]) & jnp.isfinite(x[1]) & jnp.isfinite(x[2])
+    finite = _per_object_sum(topo, finite.astype(jnp.int32)) == jnp.asarray(topo.count, jnp.int32)[:, None]
+    code = jnp.where(finite, diagnostics.OK, diagnostics.NON_FINITE)
+    if terms.gas:
+        vol = face_volumes(topo, x)
+        v0 = jnp.asarray(topo.rest_volume, x[0].dtype)[:, None]
+        code = jnp.where(finite & (vol <= 0), diagnostics.INVERTED, code)
+        code = jnp.where(finite & (vol > 0) & (vol < VOLUME_EPS * v0), diagnostics.VOLUME_CLAMPED, code)
+    return code.astype(jnp.int32)
+
+
+# --------------------------------------------------------------------------- rollout
+
+def initial_health(bsim, state, step0=0):
+    """A fresh :class:`BatchedHealth` for ``state`` (internal) at step ``step0`` (scalar or (B,))."""
+    shape = (bsim.topology.n_objects, bsim.batch)
+    neg = jnp.full(shape, -1, jnp.int32)
+    good_step = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (bsim.batch,))
+    return BatchedHealth(jnp.zeros(shape, jnp.int32), neg, neg, state, good_step)
+
+
+def _select(pred, a, b):
+    """Per batch point: a where pred (B,) else b, over an internal state."""
+    return jax.tree_util.tree_map(lambda p, q: jnp.where(pred, p, q), a, b)
+
+
+def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe):
+    step_fn = bsim.step_fn
+
+    def steps(s):
+        return jax.lax.scan(lambda c, _: (step_fn(params, c), None), s, None, length=save_every)[0]
+
+    def frame(carry, i):
+        s, h = carry
+        s = steps(s)
+        step = step0 + (i + 1) * save_every                                  # (B,)
+        code = bsim.status_fn(params, s.x)
+        new_bad = (code >= diagnostics.ERROR) & (h.bad_step < 0)
+        new_warn = (code == diagnostics.VOLUME_CLAMPED) & (h.warn_step < 0)
+        healthy = jnp.all(code < diagnostics.ERROR, axis=0) & jnp.all(h.bad_step < 0, axis=0)
+        h = BatchedHealth(
+            code=jnp.where(new_bad, code, h.code),
+            bad_step=jnp.where(new_bad, step, h.bad_step),
+            warn_step=jnp.where(new_warn, step, h.warn_step),
+            good_state=_select(healthy, s, h.good_state),
+            good_step=jnp.where(healthy, step, h.good_step))
+        out = None if observe is None else observe(params, i, s.x, aux)
+        return (s, h), out
+
+    (state, health), out = jax.lax.scan(frame, (state, health), jnp.arange(n_frames, dtype=jnp.int32))
+    return state, out, health
+
+
+_core_jit = jax.jit(_core, static_argnames=("bsim", "n_frames", "save_every", "observe"))
+
+
+def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0, observe=None, aux=None):
+    """Run ``n_frames * save_every`` steps of every point, checking health every ``save_every``.
+
+    Compiled once per (simulator, n_frames, save_every, observe); new parameter values, states
+    or ``aux`` reuse it.
+
+    Args:
+      bsim: :class:`BatchedSimulator`.
+      params: Params of (O, B) arrays (:meth:`BatchedSimulator.params`).
+      state: internal state (from ``bsim.init_fn`` or a previous rollout).
+      n_frames, save_every: number of frames and steps per frame (static).
+      health: a :class:`BatchedHealth` to continue; default fresh.
+      step0: step number of ``state`` (scalar or (B,)), for chunked runs.
+      observe: optional static ``observe(params, i, x, aux) -> pytree`` evaluated after frame i
+        (0-based within this call) on the internal positions x; its outputs are stacked over
+        frames. Default: no per-frame output. :func:`positions_observer` keeps the positions.
+      aux: traced data passed to ``observe`` (e.g. target frames).
+
+    Returns:
+      (final internal state, stacked observations or None, health).
+    """
+    if n_frames < 1 or save_every < 1:
+        raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    step0 = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (bsim.batch,))
+    if health is None:
+        health = initial_health(bsim, state, step0)
+    return _core_jit(bsim, params, state, health, step0, aux, n_frames=int(n_frames),
+                     save_every=int(save_every), observe=observe)
+
+
+def positions_observer(params, i, x, aux):
+    """``observe`` for :func:`rollout` keeping each frame's positions as (B, V, 3)."""
+    return jnp.stack(x, axis=-1).transpose(1, 0, 2)
+
+
+def locate_failures(bsim, params, health):
+    """Find the exact failing step of every failed point by re-running it from its last healthy
+    state one step at a time (points are independent, so all are re-run together).
+
+    Returns:
+      (step (O, B), code (O, B)) int numpy arrays: the first step at which each object of each
+      point was unhealthy and why (-1 / diagnostics.OK where none).
+    """
+    bad = np.asarray(health.bad_step)
+    code = np.asarray(health.code)
+    if not (bad >= 0).any():
+        return bad, code
+    start = np.asarray(health.good_step)
+    span = int(np.max(np.where(bad >= 0, bad - start[None], 0)))
+    fresh = initial_health(bsim, health.good_state, start)
+    _, _, h = _core_jit(bsim, params, health.good_state, fresh, jnp.asarray(start, jnp.int32), None,
+                        n_frames=max(span, 1), save_every=1, observe=None)
+    b, c = np.asarray(h.bad_step), np.asarray(h.code)
+    found = (bad >= 0) & (b >= 0)
+    # (found is all of bad >= 0 for a deterministic step; otherwise keep the frame-level record)
+    return np.where(found, b, bad), np.where(found, c, code)
+
+
+@functools.lru_cache(maxsize=None)
+def _public_fn():
+    return jax.jit(lambda x: jnp.stack(x, axis=-1).transpose(1, 0, 2))
+
+
+def positions(state):
+    """(B, V, 3) numpy positions of an internal state (or of its ``x`` tuple)."""
+    x = state.x if isinstance(state, State) else state
+    return np.asarray(_public_fn()(tuple(x)))

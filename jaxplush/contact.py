@@ -1,0 +1,440 @@
+"""Soft-soft contact between plushies (physics.md §7): a smooth penalty derived from a potential.
+
+Model. For every vertex p of object A near object B, let q be the closest point of B's surface and
+s the signed distance (positive outside B). Each such vertex carries the energy
+
+    U(p) = k_c / 2 * phi(delta - s)²,   phi(z) = softplus(beta z) / beta,   beta = 10 / delta,
+
+a smooth ramp that starts about ``delta`` (the contact thickness) outside B and grows
+quadratically inside. The force on p and on the three vertices of q's triangle is -dU/dx, taken
+with ``jax.grad`` of the summed energy: it is translation and rotation invariant, so linear and
+angular momentum are conserved to round-off. It is applied both ways (A's vertices against B's
+faces and B's vertices against A's faces).
+
+Sign (the inside test, the backstop for deep penetration): s = (p - a).n on the interior of the
+closest face (smooth through zero); where the closest point lies on an edge or a vertex, s = +-|p - q|
+with the sign of (p - q).N for the angle-weighted pseudo-normal N of that feature (Baerentzen and
+Aanaes), which classifies inside and outside correctly at any depth, so a vertex that got deep
+inside is still pushed out along the shortest way.
+
+Candidates (static shapes, no N_A x F_B work):
+
+1. broad phase per object pair: only vertices inside the other object's bounding box, inflated
+   by ``2 delta + 1.5 x`` the longest rest edge, take part; they are compacted into a list of
+   fixed capacity (``jnp.nonzero(size=...)``);
+2. narrow phase: each candidate vertex finds the nearest candidate vertex of the other object
+   (a cap_A x cap_B distance table), and the closest face is searched among the faces touching
+   that vertex or its one-ring (a static table, about 24 faces). On a fair mesh the closest face
+   of any point within an edge length of the surface is among them.
+
+The cost is O(cap_A cap_B + (cap_A + cap_B) W) per pair and step, set by the capacities (which
+follow the contact area, not the meshes). If more vertices than the capacity fall in an overlap
+box the step cannot be exact: the force is then poisoned with NaN, so the rollout's health check
+stops the run at that step (:func:`capacity_report` outside ``jit`` tells which pair overflowed and
+the capacity needed; rebuild with ``with_capacity``).
+
+Self-collision (``self_collision on``) is cloth-style: an unsigned-distance penalty between each
+vertex and its own object's faces more than two rest edges away (inside/outside is not
+meaningful against one's own far surface). It is O(N²) per object and meant for meshes of at most
+about a thousand vertices.
+
+Defaults (physics.md §6, §9.1): thickness delta = half the mean rest edge length of the pair's
+finer object; stiffness k_c = kappa m omega_G² with omega_G² = 2 k n_max / m the Gershgorin bound
+of the springs (physics.md §4), i.e. k_c = kappa 2 n_max min(k_A, k_B), kappa = 0.1: contact raises
+omega_max² by at most about 10% (the stable dt drops by about 5%), and k_c scales with k, hence
+with mass under the symmetry (k, c, nRT, M) -> lambda (k, c, nRT, M), unlike a fixed absolute
+stiffness. ``contact_stiffness K`` (N/m) in a scene fixes it instead.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: kappa of the default stiffness k_c = kappa * 2 * n_max * min(k_A, k_B).
+STIFFNESS_FACTOR = 0.1
+#: Default thickness, as a fraction of the pair's finer mean rest edge length.
+THICKNESS_FACTOR = 0.5
+#: Sharpness of the softplus ramp, beta * delta.
+SHARPNESS = 10.0
+#: Default candidate capacity per object and pair: max(MIN_CAPACITY, n / CAPACITY_DIVISOR), <= n.
+MIN_CAPACITY = 128
+CAPACITY_DIVISOR = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactConfig:
+    """Static soft-soft contact settings (hashable; part of :class:`jaxplush.model.Terms`).
+
+    Attributes:
+      pairs: ((A, B), ...) object pairs with A < B that may touch.
+      self_objects: objects with self-collision.
+      thickness: ((A, B) -> delta) as a tuple aligned with ``pairs``, m; ``self_thickness`` per
+        entry of ``self_objects``.
+      stiffness: fixed k_c in N/m, or None for the default kappa 2 n_max min(k_A, k_B).
+      capacity: (O,) candidate vertices per object and pair.
+    """
+
+    pairs: tuple
+    self_objects: tuple
+    thickness: tuple
+    self_thickness: tuple
+    stiffness: float | None
+    capacity: tuple
+
+    def __bool__(self):
+        return bool(self.pairs or self.self_objects)
+
+
+def config_for_scene(scene):
+    """:class:`ContactConfig` from a scene's keywords, or None when nothing can touch.
+
+    Soft-soft contact is on for every pair of a multi-object scene (``contact off`` disables it);
+    self-collision only with ``self_collision on``.
+    """
+    n_obj = scene.n_objects
+    want_pairs = n_obj > 1 and getattr(scene, "contact", True)
+    selfs = tuple(range(n_obj)) if getattr(scene, "self_collision", False) else ()
+    if not want_pairs and not selfs:
+        return None
+    mean_edge = []
+    for o in scene.objects:
+        f = scene.faces[o.face_slice[0]:o.face_slice[1]]
+        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        mean_edge.append(float(np.linalg.norm(scene.vertices[e[:, 0]] - scene.vertices[e[:, 1]], axis=1).mean()))
+    fixed = getattr(scene, "contact_thickness", None)
+    pairs = tuple((a, b) for a in range(n_obj) for b in range(a + 1, n_obj)) if want_pairs else ()
+    thick = tuple(fixed if fixed is not None else THICKNESS_FACTOR * min(mean_edge[a], mean_edge[b])
+                  for a, b in pairs)
+    self_thick = tuple(fixed if fixed is not None else THICKNESS_FACTOR * mean_edge[o] for o in selfs)
+    cap = getattr(scene, "contact_capacity", None)
+    capacity = tuple(min(o.n_vertices, cap if cap is not None else
+                         max(MIN_CAPACITY, -(-o.n_vertices // CAPACITY_DIVISOR))) for o in scene.objects)
+    return ContactConfig(pairs=pairs, self_objects=selfs, thickness=thick, self_thickness=self_thick,
+                         stiffness=getattr(scene, "contact_stiffness", None), capacity=capacity)
+
+
+def with_capacity(terms, capacity):
+    """``terms`` with every object's candidate capacity raised to at least ``capacity`` (an int or (O,))."""
+    cfg = terms.contact
+    cap = np.broadcast_to(np.asarray(capacity, np.int64), (len(cfg.capacity),))
+    return dataclasses.replace(terms, contact=dataclasses.replace(
+        cfg, capacity=tuple(int(max(c, n)) for c, n in zip(cfg.capacity, cap))))
+
+
+# --------------------------------------------------------------------------- static tables
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Tables:
+    faces: np.ndarray        # (F, 3)
+    near_faces: np.ndarray   # (V, W) faces touching a vertex or its one-ring (padded by repetition)
+    face_adj: np.ndarray     # (F, 3) face across edge (f[e], f[e+1])
+    ring: np.ndarray         # (V, K) ordered one-ring (padded by repeating the last)
+    margin: tuple            # per pair: broad-phase inflation, m
+    self_exclude: tuple      # per self object: (n, n) bool, rest distance below two longest edges
+    n_max: int               # largest valence
+
+
+def _tables(topo, cfg):
+    faces = np.asarray(topo.faces, np.int64)
+    n_v = topo.n_vertices
+    vf = [[] for _ in range(n_v)]
+    for fi, f in enumerate(faces):
+        for v in f:
+            vf[v].append(fi)
+    ring = np.asarray(topo.ring, np.int64)
+    near = []
+    for v in range(n_v):
+        s = set(vf[v])
+        for u in set(ring[v][topo.ring_mask[v]].tolist()):
+            s.update(vf[u])
+        near.append(sorted(s))
+    w = max(len(s) for s in near)
+    near_faces = np.array([s + [s[0]] * (w - len(s)) for s in near], np.int32)
+    edge_face = {}
+    for fi, f in enumerate(faces):
+        for e in range(3):
+            edge_face[(int(f[e]), int(f[(e + 1) % 3]))] = fi
+    face_adj = np.array([[edge_face[(int(f[(e + 1) % 3]), int(f[e]))] for e in range(3)] for f in faces], np.int32)
+    longest = [float(topo.rest_length[topo.edge_object == o].max()) for o in range(topo.n_objects)]
+    margin = tuple(2.0 * d + 1.5 * max(longest[a], longest[b]) for (a, b), d in zip(cfg.pairs, cfg.thickness))
+    excl = []
+    for o in cfg.self_objects:
+        a, b = topo.vertex_slices[o]
+        x0 = topo.x0[a:b]
+        d2 = np.sum((x0[:, None] - x0[None]) ** 2, axis=-1)
+        excl.append(d2 < (2.0 * longest[o]) ** 2)
+    return _Tables(faces=faces.astype(np.int32), near_faces=near_faces, face_adj=face_adj,
+                   ring=ring.astype(np.int32), margin=margin, self_exclude=tuple(excl),
+                   n_max=int(topo.ring_mask.sum(axis=1).max()))
+
+
+# --------------------------------------------------------------------------- geometry on (x, y, z) tuples
+
+
+def _sub(u, v):
+    return tuple(a - b for a, b in zip(u, v))
+
+
+def _add(u, v):
+    return tuple(a + b for a, b in zip(u, v))
+
+
+def _scale(u, s):
+    return tuple(a * s for a in u)
+
+
+def _dot(u, v):
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _cross(u, v):
+    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+
+def _gather(x, idx):
+    """x (3, V), idx int array of any shape -> tuple of 3 arrays of idx's shape."""
+    return tuple(x[c][idx] for c in range(3))
+
+
+def _closest(p, a, b, c, tiny):
+    """Closest point of triangles (a, b, c) to points p (all broadcastable tuples).
+
+    Returns (d2, inside, plane, e, t): the squared unsigned distance, whether the closest point is
+    interior, the signed plane distance (p - a).n^, the nearest edge e (0: ab, 1: bc, 2: ca) and the
+    parameter t in [0, 1] of the closest point along it (used only where not ``inside``).
+    """
+    ab, ac, ap = _sub(b, a), _sub(c, a), _sub(p, a)
+    d00, d01, d11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
+    d20, d21 = _dot(ap, ab), _dot(ap, ac)
+    den = jnp.maximum(d00 * d11 - d01 * d01, tiny)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    inside = (v >= 0) & (w >= 0) & (v + w <= 1)
+    n = _cross(ab, ac)
+    plane = _dot(ap, n) * jax.lax.rsqrt(den)           # |n|² = d00 d11 - d01²
+    best = None
+    for e, (e0, e1) in enumerate(((a, b), (b, c), (c, a))):
+        d = _sub(e1, e0)
+        t = jnp.clip(_dot(_sub(p, e0), d) / jnp.maximum(_dot(d, d), tiny), 0.0, 1.0)
+        r = _sub(p, _add(e0, _scale(d, t)))
+        d2 = _dot(r, r)
+        if best is None:
+            best = (d2, jnp.zeros_like(d2, dtype=jnp.int32), t)
+        else:
+            closer = d2 < best[0]
+            best = (jnp.where(closer, d2, best[0]), jnp.where(closer, e, best[1]), jnp.where(closer, t, best[2]))
+    d2 = jnp.where(inside, plane * plane, best[0])
+    return d2, inside, plane, best[1], best[2]
+
+
+def _argmin(d, axis):
+    """First index of the minimum along ``axis`` (a min and an int min: XLA's CPU argmin, a
+    variadic reduction, is several times slower)."""
+    m = jnp.min(d, axis=axis, keepdims=True)
+    iota = jax.lax.broadcasted_iota(jnp.int32, d.shape, axis % d.ndim)
+    return jnp.min(jnp.where(d <= m, iota, d.shape[axis]), axis=axis).clip(0, d.shape[axis] - 1)
+
+
+def _unit(u, tiny):
+    return _scale(u, jax.lax.rsqrt(_dot(u, u) + tiny))
+
+
+# --------------------------------------------------------------------------- energy
+
+
+def make_contact_energy(topo, cfg):
+    """Build ``energy(params, x) -> (U, overflow)`` on component-major x (3, V).
+
+    U is the total contact energy (J); overflow a bool scalar, True when some pair had more
+    candidate vertices than its capacity (the energy is then incomplete).
+    """
+    tab = _tables(topo, cfg)
+    slices = topo.vertex_slices
+    faces, near_faces, face_adj, ring = tab.faces, tab.near_faces, tab.face_adj, tab.ring
+    ring_next = np.roll(ring, -1, axis=1)                        # next neighbour around the ring
+    tiny_len = float(topo.length_eps)
+
+    def stiffness(params, a, b, dtype):
+        if cfg.stiffness is not None:
+            return jnp.asarray(cfg.stiffness, dtype)
+        k = params.k_structural
+        return STIFFNESS_FACTOR * 2.0 * tab.n_max * jnp.minimum(k[a], k[b])
+
+    def ramp_energy(s, delta, kc):
+        beta = SHARPNESS / delta
+        phi = jax.nn.softplus(beta * (delta - s)) / beta
+        return 0.5 * kc * phi * phi
+
+    def vertex_pseudo_normal(x, v, tiny):
+        """Angle-weighted normal of the surface at vertices v (any shape) from their one-rings."""
+        c = _gather(x, v)
+        d = _sub(_gather(x, jnp.asarray(ring)[v]), tuple(ci[..., None] for ci in c))
+        dn = _gather(x, jnp.asarray(ring_next)[v])
+        dn = _sub(dn, tuple(ci[..., None] for ci in c))
+        cr = _cross(d, dn)
+        sin = jnp.sqrt(_dot(cr, cr) + tiny)
+        ang = jnp.arctan2(sin, _dot(d, dn))
+        return tuple(jnp.sum(ang * ci / sin, axis=-1) for ci in cr)
+
+    def signed_distance(x, p, f, tiny):
+        """Signed distance (positive outside) of points p (tuple of (Q,)) to faces f (Q,)."""
+        tri = jnp.asarray(faces)[f]
+        a, b, c = (_gather(x, tri[..., i]) for i in range(3))
+        _, inside, plane, e, t = _closest(p, a, b, c, tiny)
+        corners = (a, b, c)
+        e0 = tuple(jnp.select([e == 0, e == 1], [a[i], b[i]], c[i]) for i in range(3))
+        e1 = tuple(jnp.select([e == 0, e == 1], [b[i], c[i]], a[i]) for i in range(3))
+        q = _add(e0, _scale(_sub(e1, e0), t))
+        r = _sub(p, q)
+        dist = jnp.sqrt(_dot(r, r) + tiny)
+        # pseudo-normal of the closest feature (no gradient: only its sign is used)
+        xs = jax.lax.stop_gradient(x)
+        fa = jnp.asarray(face_adj)[f, e]
+        ta = jnp.asarray(faces)[fa]
+        ga, gb, gc = (_gather(xs, ta[..., i]) for i in range(3))
+        sa, sb, sc = (jax.lax.stop_gradient(v_) for v_ in corners)
+        n_edge = _add(_unit(_cross(_sub(sb, sa), _sub(sc, sa)), tiny),
+                      _unit(_cross(_sub(gb, ga), _sub(gc, ga)), tiny))
+        tri_s = jnp.asarray(faces)[f]
+        vid = jnp.where(t <= 0.0, jnp.take_along_axis(tri_s, e[..., None], -1)[..., 0],
+                        jnp.take_along_axis(tri_s, ((e + 1) % 3)[..., None], -1)[..., 0])
+        n_vert = vertex_pseudo_normal(xs, vid, tiny)
+        at_vertex = (t <= 0.0) | (t >= 1.0)
+        n_feat = tuple(jnp.where(at_vertex, nv, ne) for nv, ne in zip(n_vert, n_edge))
+        sign = jnp.where(_dot(jax.lax.stop_gradient(r), n_feat) >= 0, 1.0, -1.0)
+        return jnp.where(inside, plane, sign * dist)
+
+    def directed(x, q_idx, q_valid, target, delta, kc, tiny):
+        """Energy of query vertices q_idx against the faces near their nearest target vertices."""
+        xs = jax.lax.stop_gradient(x)
+        ps = _gather(xs, q_idx)
+        fset = jnp.asarray(near_faces)[target]                      # (Q, W)
+        tri = jnp.asarray(faces)[fset]                              # (Q, W, 3)
+        a, b, c = (_gather(xs, tri[..., i]) for i in range(3))
+        d2, *_ = _closest(tuple(pi[:, None] for pi in ps), a, b, c, tiny)
+        f = jnp.take_along_axis(fset, _argmin(d2, 1)[:, None], 1)[:, 0]
+        s = signed_distance(x, _gather(x, q_idx), f, tiny)
+        return jnp.sum(jnp.where(q_valid, ramp_energy(s, delta, kc), 0.0))
+
+    def energy(params, x):
+        dtype = x.dtype
+        tiny = jnp.asarray(tiny_len ** 2, dtype)
+        total = jnp.zeros((), dtype)
+        overflow = jnp.zeros((), bool)
+        xs = jax.lax.stop_gradient(x)
+        for (oa, ob), delta, margin in zip(cfg.pairs, cfg.thickness, tab.margin):
+            (a0, a1), (b0, b1) = slices[oa], slices[ob]
+            cap_a, cap_b = cfg.capacity[oa], cfg.capacity[ob]
+            xa, xb = xs[:, a0:a1], xs[:, b0:b1]
+            lo_a, hi_a = xa.min(axis=1, keepdims=True), xa.max(axis=1, keepdims=True)
+            lo_b, hi_b = xb.min(axis=1, keepdims=True), xb.max(axis=1, keepdims=True)
+            in_a = jnp.all((xa >= lo_b - margin) & (xa <= hi_b + margin), axis=0)
+            in_b = jnp.all((xb >= lo_a - margin) & (xb <= hi_a + margin), axis=0)
+            n_a, n_b = jnp.sum(in_a), jnp.sum(in_b)
+            overflow = overflow | (n_a > cap_a) | (n_b > cap_b)
+            ia = jnp.nonzero(in_a, size=cap_a, fill_value=0)[0]
+            ib = jnp.nonzero(in_b, size=cap_b, fill_value=0)[0]
+            va, vb = jnp.arange(cap_a) < n_a, jnp.arange(cap_b) < n_b
+            pa, pb = _gather(xa, ia), _gather(xb, ib)
+            d2 = sum((pa[c][:, None] - pb[c][None, :]) ** 2 for c in range(3))
+            d2 = jnp.where(va[:, None] & vb[None, :], d2, jnp.inf)
+            near_b = b0 + ib[_argmin(d2, 1)]
+            near_a = a0 + ia[_argmin(d2, 0)]
+            kc = stiffness(params, oa, ob, dtype)
+            any_a, any_b = n_a > 0, n_b > 0
+            total = total + directed(x, a0 + ia, va & any_b, near_b, delta, kc, tiny)
+            total = total + directed(x, b0 + ib, vb & any_a, near_a, delta, kc, tiny)
+        for o, delta, excl in zip(cfg.self_objects, cfg.self_thickness, tab.self_exclude):
+            total = total + self_energy(params, x, o, delta, excl, tiny)
+        return total, overflow
+
+    def self_energy(params, x, o, delta, excl, tiny):
+        a0, a1 = slices[o]
+        n = a1 - a0
+        xs = jax.lax.stop_gradient(x)
+        xo = xs[:, a0:a1]
+        d2 = sum((xo[c][:, None] - xo[c][None, :]) ** 2 for c in range(3))
+        d2 = jnp.where(jnp.asarray(excl), jnp.inf, d2)
+        target = a0 + _argmin(d2, 1)
+        q_idx = np.arange(a0, a1)
+        fset = jnp.asarray(near_faces)[target]                     # (n, W), faces of object o
+        tri = jnp.asarray(faces)[fset]                             # (n, W, 3)
+        # faces with a corner within the exclusion radius (at rest) of the query are its own
+        own = jnp.any(jnp.asarray(excl)[np.arange(n)[:, None, None], tri - a0], axis=-1)
+        ps = _gather(xs, q_idx)
+        a, b, c = (_gather(xs, tri[..., i]) for i in range(3))
+        d2f, *_ = _closest(tuple(pi[:, None] for pi in ps), a, b, c, tiny)
+        d2f = jnp.where(own, jnp.inf, d2f)
+        j = _argmin(d2f, 1)
+        f = jnp.take_along_axis(fset, j[:, None], 1)[:, 0]
+        valid = jnp.isfinite(jnp.take_along_axis(d2f, j[:, None], 1)[:, 0])
+        p = _gather(x, q_idx)
+        tri_f = jnp.asarray(faces)[f]
+        fa, fb, fc = (_gather(x, tri_f[:, i]) for i in range(3))
+        d2u, *_ = _closest(p, fa, fb, fc, tiny)
+        s = jnp.sqrt(d2u + tiny)
+        kc = (jnp.asarray(cfg.stiffness, x.dtype) if cfg.stiffness is not None
+              else STIFFNESS_FACTOR * 2.0 * tab.n_max * params.k_structural[o])
+        return jnp.sum(jnp.where(valid, ramp_energy(s, delta, kc), 0.0))
+
+    return energy
+
+
+def make_contact_force(topo, cfg):
+    """Build ``force(params, x) -> f`` (3, V), the contact force -dU/dx; NaN on capacity overflow."""
+    energy = make_contact_energy(topo, cfg)
+
+    # jit: inlined under an outer jit; outside one (e.g. an eager init_fn) it compiles once
+    # instead of dispatching hundreds of small operations one by one.
+    @jax.jit
+    def force(params, x):
+        g, overflow = jax.grad(energy, argnums=1, has_aux=True)(params, x)
+        return jnp.where(overflow, jnp.nan, -g)
+
+    return force
+
+
+# --------------------------------------------------------------------------- outside jit
+
+
+def candidate_counts(sim, x):
+    """Candidate vertices per (pair, object) at public positions x (V, 3), numpy; for checks.
+
+    Returns a list of ((A, B), n_A, n_B, cap_A, cap_B).
+    """
+    cfg = sim.terms.contact
+    topo = sim.topology
+    x = np.asarray(x, np.float64)
+    tab_margin = _tables_margin(topo, cfg)
+    out = []
+    for (oa, ob), margin in zip(cfg.pairs, tab_margin):
+        (a0, a1), (b0, b1) = topo.vertex_slices[oa], topo.vertex_slices[ob]
+        xa, xb = x[a0:a1], x[b0:b1]
+        n_a = int(np.all((xa >= xb.min(0) - margin) & (xa <= xb.max(0) + margin), axis=1).sum())
+        n_b = int(np.all((xb >= xa.min(0) - margin) & (xb <= xa.max(0) + margin), axis=1).sum())
+        out.append(((oa, ob), n_a, n_b, cfg.capacity[oa], cfg.capacity[ob]))
+    return out
+
+
+def _tables_margin(topo, cfg):
+    longest = [float(topo.rest_length[topo.edge_object == o].max()) for o in range(topo.n_objects)]
+    return tuple(2.0 * d + 1.5 * max(longest[a], longest[b]) for (a, b), d in zip(cfg.pairs, cfg.thickness))
+
+
+def capacity_report(sim, x):
+    """None if every pair's candidates fit at positions x (V, 3); else a message naming the pair
+    and the capacity needed (for a :class:`jaxplush.errors.SimulationError` hint)."""
+    if sim.terms.contact is None:
+        return None
+    names = sim.scene.object_names
+    for (oa, ob), n_a, n_b, cap_a, cap_b in candidate_counts(sim, x):
+        if n_a > cap_a or n_b > cap_b:
+            return (f"contact candidates of objects {names[oa]!r}/{names[ob]!r} overflowed "
+                    f"({n_a}/{cap_a} and {n_b}/{cap_b}): raise 'contact_capacity' to at least "
+                    f"{max(n_a, n_b)}")
+    return None

@@ -1,0 +1,229 @@
+"""Fitting (fitting.fit, fitting.identifiability, fitting.io): synthetic recovery, finite-difference
+check of the fit's loss, identifiability flags, blow-up handling, Ctrl-C save and resume."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxplush
+from conftest import icosphere_text
+from fitting import fit as F
+from fitting.io import load_fit
+from fitting.targets import Target, make_target
+from jaxplush.errors import JaxplushError
+
+NAMES = ("k_structural", "damping", "nmol")
+
+
+def _hanging(subdivisions=1, **kw):
+    return jaxplush.parse_scene(F.recovery_scene_text(subdivisions, **kw), "<hanging>")
+
+
+@pytest.fixture(scope="module")
+def small():
+    """42-vertex hanging ball: truth, a start off by x2 / x0.5, and a 200-step target."""
+    truth = _hanging()
+    p = truth.params
+    start = _hanging(k_structural=2 * p.k_structural[0], damping=0.5 * p.damping[0], nmol=2 * p.nmol[0])
+    target = make_target(truth, 200, 1e-3, 20)
+    return truth, start, target
+
+
+# --------------------------------------------------------------------------- recovery
+
+def test_recovery_162_vertices():
+    """k, damping and nmol from x2 / x0.5 / x2 starts, noise-free, within 1% (the fast version of the
+    issue's 642-vertex acceptance run, which is test_recovery_acceptance)."""
+    r = F.synthetic_recovery(2, steps=400, progress=False)
+    assert r["vertices"] == 162
+    assert r["max_error"] < 0.01, r["errors"]
+    res = r["result"]
+    assert res.converged and res.loss < 1e-6 * res.loss_start
+    rep = res.identifiability
+    assert rep.determined.all() and not rep.warnings and rep.condition < 1e6
+    assert np.all(np.isfinite(res.history["loss"]))
+    assert res.history["k_structural"].shape == (len(res.history["loss"]), 1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("noise,point_cloud,tol", [(0.0, False, 0.01), (1e-3, False, 0.05), (0.0, True, 0.05)],
+                         ids=["noise-free", "noise-1mm", "point-cloud"])
+def test_recovery_acceptance(noise, point_cloud, tol):
+    """Issue 3 acceptance: 642 vertices, starts off by x2 and x0.5; within 1% noise-free, 5% with
+    1 mm noise. The time limit (under 2 minutes) is measured by benchmarks/bench_fit.py, not asserted."""
+    r = F.synthetic_recovery(3, noise=noise, point_cloud=point_cloud, progress=False)
+    assert r["vertices"] == 642
+    assert r["max_error"] < tol, r["errors"]
+
+
+# --------------------------------------------------------------------------- the loss and its gradient
+
+@pytest.mark.parametrize("kind", ["positions", "points"])
+def test_fit_loss_gradient_matches_finite_differences(x64, kind):
+    truth = _hanging()
+    p = truth.params
+    start = _hanging(k_structural=1.3 * p.k_structural[0], damping=0.7 * p.damping[0], nmol=1.2 * p.nmol[0])
+    target = make_target(truth, 90, 1e-3, 30, point_cloud=(kind == "points"), n_points=60)
+    prob = F.build_problem(start, target, NAMES, noise_free=True)       # the fit's default method, "auto"
+    assert prob.sim.dtype == jnp.float64
+    theta = jnp.asarray(prob.theta0)
+    vg = jax.jit(jax.value_and_grad(prob.loss_fn))     # one compiled function for values and gradient
+    loss = lambda t: float(vg(t)[0])  # noqa: E731
+    value, g = vg(theta)
+    g = np.asarray(g)
+    assert np.all(g != 0)
+    h = 1e-5
+    for i in range(len(NAMES)):
+        e = np.zeros(theta.shape)
+        e[i, 0] = h
+        fd = (loss(theta + e) - loss(theta - e)) / (2 * h)
+        assert g[i, 0] == pytest.approx(fd, rel=1e-6, abs=1e-9 * float(value)), (NAMES[i], g[i, 0], fd)
+    if kind == "positions":
+        # the loss is what fitting.losses says: the mean squared vertex distance over the frames / s²
+        frames, _ = jax.jit(prob.frames)(theta)
+        d = np.asarray(frames) - target.data
+        assert float(value) == pytest.approx(np.mean(np.sum(d ** 2, -1)) / prob.loss.scale2, rel=1e-10)
+        # autodiff through the rollout with and without checkpointing gives the same gradient
+        for method in ("plain", "checkpoint"):
+            other = F.build_problem(start, target, NAMES, noise_free=True, method=method)
+            np.testing.assert_allclose(np.asarray(jax.jit(jax.grad(other.loss_fn))(theta)), g, rtol=1e-9, atol=0,
+                                       err_msg=method)
+
+
+# --------------------------------------------------------------------------- identifiability
+
+def _free_ball():
+    """Zero-gravity pressurised ball, strongly damped (D = 10): it inflates and settles."""
+    text = icosphere_text(subdivisions=1, radius=0.1, k=50.0, mass=0.05, nmol=2e-4, damping=10.0,
+                          gravity=(0.0, 0.0, 0.0))
+    return jaxplush.parse_scene(text, "<free ball>")
+
+
+def test_static_target_flags_damping_and_the_k_nmol_tradeoff():
+    scene = _free_ball()
+    frames = make_target(scene, 400, 1e-3, 10)
+    static = frames.select([-1])                           # only the settled final shape (0.9^400 ~ e^-42)
+    assert static.steps.tolist() == [400]
+    rep = F.identifiability_at(F.build_problem(scene, static, NAMES, noise_free=True), np.log(
+        [[50.0], [10.0], [2e-4]]))
+    labels = dict(zip(rep.labels, rep.determined))
+    assert not labels["damping[ball]"] and labels["k_structural[ball]"] and labels["nmol[ball]"]
+    text = " ".join(rep.warnings)
+    assert "damping[ball] is not determined by the target" in text
+    assert "only the ratio k_structural[ball]/nmol[ball] is determined" in text
+    assert rep.condition > 1e6 and not np.isfinite(rep.stderr[1])
+
+    dynamic = frames.select(slice(0, 10))                 # the inflation transient, steps 10..100
+    rep = F.identifiability_at(F.build_problem(scene, dynamic, NAMES, noise_free=True), np.log(
+        [[50.0], [10.0], [2e-4]]))
+    assert rep.determined.all() and rep.condition < 1e6 and not rep.warnings, rep.summary()
+    # the least determined direction is mostly damping (its sensitivity is the smallest)
+    assert rep.weakest.split(",")[0].endswith("log damping[ball]") and "weakest combination" in rep.summary()
+
+
+def test_identifiability_wording():
+    from fitting.identifiability import analyse
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=200)
+    b = rng.normal(size=200)
+    # raising p0 and p2 together leaves the features unchanged: only p0/p2 is determined
+    jac = np.stack([a, b, -a + 1e-9 * b, 1e-9 * b], axis=1)    # ... and p3 not at all
+    rep = analyse(jac, 1e-3 * rng.normal(size=200), ["p0", "p1", "p2", "p3"])
+    assert list(rep.determined) == [True, True, True, False]
+    assert any("only the ratio p0/p2 is determined" in w for w in rep.warnings), rep.warnings
+    assert any("p3 is not determined" in w for w in rep.warnings)
+    # raising p0 while lowering p2 leaves them unchanged: only the product
+    rep = analyse(np.stack([a, b, a + 1e-9 * b], 1), 1e-3 * rng.normal(size=200), ["p0", "p1", "p2"])
+    assert any("only the product p0*p2 is determined" in w for w in rep.warnings), rep.warnings
+    good = analyse(np.stack([a, b], 1), 1e-3 * rng.normal(size=200), ["p0", "p1"])
+    # standard errors: sigma^2 (J^T J)^-1
+    cov = good.sigma ** 2 * np.linalg.inv(good.jtj)
+    np.testing.assert_allclose(good.stderr, np.sqrt(np.diag(cov)), rtol=1e-10)
+    assert not good.warnings
+
+
+# --------------------------------------------------------------------------- blow-ups
+
+def test_blown_up_step_is_rejected_and_the_step_halved():
+    truth = _hanging()
+    target = make_target(truth, 200, 3e-3, 20)
+    start = _hanging(k_structural=25.0, nmol=truth.params.nmol[0])
+    # a log-step of 2.5 takes k from 25 to ~300 N/m: unstable at dt = 3 ms, the rollout blows up
+    res = F.fit(start, target, ("k_structural",), optimizer="adam", lr=2.5, iterations=25, noise_free=True,
+                check_dt=False)
+    assert res.rejected >= 1 and len(res.history["rejected"]) == res.rejected
+    assert np.all(np.isfinite(res.history["loss"])) and np.all(np.isfinite(res.history["k_structural"]))
+    assert res.loss < res.loss_start and np.isfinite(res.values["k_structural"]).all()
+    # a start that blows up cannot proceed: FitError (the CLI's exit 3), after the dt warning
+    with pytest.warns(UserWarning, match="exceeds the estimated stability limit"):
+        with pytest.raises(F.FitError, match="blows up .* at the start values"):
+            F.fit(_hanging(k_structural=3000.0), target, ("k_structural",), iterations=3)
+
+
+# --------------------------------------------------------------------------- inputs
+
+def test_parameter_and_object_selection():
+    two = icosphere_text(name="a", translate=(-1, 0, 0), nmol=1e-4) + icosphere_text(
+        name="b", translate=(1, 0, 0), nmol=1e-4, k=80.0, offset=42, header=False)
+    scene = jaxplush.parse_scene(two, "<two>")
+    target = Target(positions=scene.vertices[None] + 0.01, points=None, steps=np.array([10]), times=np.array([0.01]),
+                    dt=1e-3, path="<memory>")     # nothing is simulated here
+    prob = F.build_problem(scene, target, "k,nmol", objects="b", noise_free=True)
+    assert prob.names == ("k_structural", "nmol") and prob.objects == (1,)
+    p = prob.to_params(jnp.log(jnp.asarray([[200.0], [3e-4]])))
+    np.testing.assert_allclose(np.asarray(p.k_structural), [100.0, 200.0], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(p.nmol), [1e-4, 3e-4], rtol=1e-6)
+    assert prob.labels == ("k_structural[b]", "nmol[b]")
+    with pytest.raises(JaxplushError, match="unknown object 'c'"):
+        F.build_problem(scene, target, "k", objects="c")
+    with pytest.raises(JaxplushError, match="unknown parameter 'stiff'"):
+        F.build_problem(scene, target, "stiff")
+    with pytest.raises(JaxplushError, match="damping of object 'a': its start value is 0"):
+        F.build_problem(scene, target, "damping")
+    with pytest.raises(JaxplushError, match="refusing to fit total_weight jointly with k_structural"):
+        F.build_problem(scene, target, "k,total_weight")
+    with pytest.warns(UserWarning, match="mass must be measured, not fitted"):
+        F.build_problem(scene, target, "total_weight,damping", start={"damping": 100.0})
+    # start values from the caller; dashpot is compiled in when fitted
+    prob = F.build_problem(scene, target, "dashpot", start={"dashpot": {"a": 0.1, "b": 0.2}})
+    assert prob.sim.terms.dashpot and np.allclose(np.exp(prob.theta0), [[0.1, 0.2]])
+
+
+# --------------------------------------------------------------------------- Ctrl-C, checkpoint, resume
+
+def test_ctrl_c_saves_and_resume_reaches_the_same_answer(small, tmp_path):
+    _, start, target = small
+    kw = dict(optimizer="adam", iterations=12, noise_free=True, identifiability=False, check_dt=False)
+    ref = F.fit(start, target, NAMES, **kw)
+
+    out = tmp_path / "FIT.h5"
+
+    def interrupt(info):
+        if info["iteration"] == 5:
+            os.kill(os.getpid(), signal.SIGINT)   # a real Ctrl-C, delivered between iterations
+
+    with pytest.raises(KeyboardInterrupt):
+        F.fit(start, target, NAMES, checkpoint_path=out, checkpoint_every=100, callback=interrupt, **kw)
+    saved = load_fit(out)
+    assert saved["attrs"]["status"] == "interrupted" and saved["attrs"]["iterations"] == 6
+    assert len(saved["history"]["loss"]) == 6
+
+    res = F.fit(start, target, NAMES, checkpoint_path=out, resume=True, **kw)
+    assert res.iterations == ref.iterations == 12
+    np.testing.assert_array_equal(res.history["loss"], ref.history["loss"])
+    for n in NAMES:
+        np.testing.assert_array_equal(res.values[n], ref.values[n])
+    done = load_fit(out)
+    assert done["attrs"]["status"] == "done"
+    np.testing.assert_array_equal(done["params"]["k_structural"], ref.params.k_structural)
+    # resuming another fit from this file is refused
+    with pytest.raises(JaxplushError, match="checkpoint is of a different fit \\(names"):
+        F.fit(start, target, ("k_structural",), iterations=2, noise_free=True, checkpoint_path=out, resume=True)
+    with pytest.raises(JaxplushError, match="no checkpoint to resume"):
+        F.fit(start, target, NAMES, checkpoint_path=tmp_path / "none.h5", resume=True)

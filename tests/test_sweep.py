@@ -1,0 +1,313 @@
+"""Batched simulation (jaxplush.batched) and parameter sweeps (fitting.sweep, jaxplush-fit sweep).
+
+The batched step must be the single-scene step, point for point: it is checked against separate
+``jaxplush.simulate`` runs in float32 and float64, with every term compiled in, on two objects.
+Blow-ups are located per point to the same exact step as ``simulate`` reports. Sweep losses are
+checked against targets simulated at known parameters (the minimum is the truth) and against
+direct numpy evaluations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import h5py
+import numpy as np
+import pytest
+
+import jaxplush
+from jaxplush import batched, model
+from conftest import icosphere_scene, icosphere_text
+
+from fitting import sweep as sweep_mod
+from fitting.sweep import SweepError, load_sweep, sweep
+from fitting.sweep_cli import main as sweep_main, parse_grid_spec
+
+DT = 2e-4
+TRUE_K, TRUE_NMOL = 300.0, 2e-3
+
+
+def _two_object_scene(**kw):
+    """Two icospheres with every term on: gas, floor, a pin, dashpot, drag, Verlet damping."""
+    # (soft-soft contact is not batched; switch it off where this checkout has it)
+    off = "contact off\n" if "contact" in {f.name for f in dataclasses.fields(jaxplush.Scene)} else ""
+    text = (off
+            + icosphere_text(subdivisions=1, nmol=1e-3, dashpot=0.01, drag=0.5, damping=200.0, floor=-0.12,
+                             fixed=(0,), **kw)
+            + icosphere_text(subdivisions=1, nmol=2e-3, k=200.0, name="b2", translate=(0.3, 0, 0), offset=42,
+                             header=False))
+    return jaxplush.parse_scene(text, "<two>")
+
+
+def _ball(**kw):
+    kw = dict(dict(subdivisions=1, nmol=1e-3, k=200.0, floor=-0.12), **kw)
+    return icosphere_scene(**kw)
+
+
+def _point_params(scene, **values):
+    """Params of (O,) numpy arrays with some entries replaced: values name -> (O,) list."""
+    p = scene.params
+    return p._replace(**{k: np.asarray(v, np.float64) for k, v in values.items()})
+
+
+def _check_against_simulate(scene, points, steps, save_every, tol):
+    bsim = batched.make_batched_simulator(scene, DT, len(points))
+    pb = bsim.params(jaxplush.Params(*(np.stack(a, axis=1) for a in zip(*points))))
+    state = bsim.init_fn(pb)
+    final, frames, health = batched.rollout(bsim, pb, state, steps // save_every, save_every,
+                                            observe=batched.positions_observer)
+    assert not health.failed.any()
+    frames = np.asarray(frames)                                        # (T, B, V, 3)
+    sim = jaxplush.make_simulator(scene, DT)
+    assert sim.terms == bsim.terms
+    for b, p in enumerate(points):
+        traj = jaxplush.simulate(scene, steps, DT, save_every, params=p, check_dt=False, sim=sim)
+        ref = traj.positions[1:]
+        moved = np.abs(ref - scene.vertices).max()
+        assert moved > 1e-3                                              # the run does something
+        err = np.abs(frames[:, b] - ref).max() / np.abs(ref).max()
+        assert err < tol, (b, err)
+        np.testing.assert_array_equal(batched.positions(final)[b], frames[-1, b])
+
+
+POINTS = [dict(k_structural=[100.0, 200.0], nmol=[1e-3, 2e-3]),
+          dict(k_structural=[400.0, 150.0], nmol=[2e-3, 1e-3], dashpot=[0.0, 0.02]),
+          dict(k_structural=[250.0, 300.0], damping=[0.0, 50.0], drag=[2.0, 0.0], total_weight=[0.08, 0.05])]
+
+
+def test_batched_matches_separate_simulate_runs_float32():
+    scene = _two_object_scene()
+    _check_against_simulate(scene, [_point_params(scene, **v) for v in POINTS], 300, 100, 1e-5)
+
+
+def test_batched_matches_separate_simulate_runs_float64(x64):
+    scene = _two_object_scene()
+    _check_against_simulate(scene, [_point_params(scene, **v) for v in POINTS], 300, 100, 1e-12)
+
+
+def test_batched_floor_friction_and_restitution_match_simulate():
+    if "floor_friction" not in {f.name for f in dataclasses.fields(model.Terms)}:
+        pytest.skip("this checkout has no floor friction/restitution")
+    scene = _ball(floor=-0.11, gravity=(2.0, -9.81, 0.0), extra="")
+    scene = jaxplush.parse_scene("floor_friction 0.4\nfloor_restitution 0.5\n" + scene.text, "<friction>")
+    assert scene.floor_friction == 0.4
+    _check_against_simulate(scene, [_point_params(scene, k_structural=[k]) for k in (150.0, 300.0)], 400, 100, 1e-5)
+
+
+def test_blow_up_is_located_per_point_at_simulates_step():
+    scene = _ball()
+    ks = [200.0, 1e5, 300.0]                       # the middle point is far beyond the stable dt
+    bsim = batched.make_batched_simulator(scene, DT, 3)
+    pb = bsim.params(scene.params._replace(k_structural=np.array([ks])))
+    _, _, health = batched.rollout(bsim, pb, bsim.init_fn(pb), 10, 50)
+    np.testing.assert_array_equal(health.failed, [False, True, False])
+    step, code = batched.locate_failures(bsim, pb, health)
+    with pytest.raises(jaxplush.SimulationError) as e:
+        jaxplush.simulate(scene, 500, DT, 50, params=_point_params(scene, k_structural=[1e5]), check_dt=False)
+    assert step[0, 1] == e.value.step
+    assert jaxplush.diagnostics.MESSAGES[int(code[0, 1])] == e.value.reason
+    assert step[0, 0] == step[0, 2] == -1
+    # the last healthy state of the failed point is finite and earlier than the failure
+    good = batched.positions(health.good_state)
+    assert np.all(np.isfinite(good)) and int(health.good_step[1]) < step[0, 1]
+
+
+def test_unsupported_terms_and_integrators_raise_before_tracing():
+    two = jaxplush.parse_scene(icosphere_text(subdivisions=0) + icosphere_text(
+        subdivisions=0, name="b", translate=(0.5, 0, 0), offset=12, header=False), "<contact>")
+    if getattr(batched.terms_for(two), "contact", None):
+        with pytest.raises(NotImplementedError, match="contact"):
+            batched.make_batched_simulator(two, DT, 2)
+
+    @dataclasses.dataclass(frozen=True)
+    class FutureTerms(model.Terms):
+        magnetism: bool = False
+
+    scene = _ball(subdivisions=0)
+    batched.make_batched_simulator(scene, DT, 2, terms=FutureTerms(**dataclasses.asdict(batched.terms_for(scene))))
+    with pytest.raises(NotImplementedError, match="magnetism"):
+        batched.make_batched_simulator(scene, DT, 2, terms=FutureTerms(magnetism=True))
+    with pytest.raises(NotImplementedError, match="verlet"):
+        batched.make_batched_simulator(scene, DT, 2, integrator="rk4")
+
+
+def test_grid_is_a_cartesian_product_and_points_are_zipped():
+    two = _two_object_scene()
+    grid = {"k": [100.0, 200.0], "nmol@b2": [1e-3, 2e-3, 3e-3]}
+    axes = sweep_mod._axes(two, grid, "grid")
+    vals = sweep_mod._point_values(axes, "grid")
+    assert [a.label for a in axes] == ["k_structural", "nmol@b2"]
+    np.testing.assert_array_equal(vals[:, 0], np.repeat([100.0, 200.0], 3))      # last axis fastest
+    np.testing.assert_array_equal(vals[:, 1], np.tile([1e-3, 2e-3, 3e-3], 2))
+    p = sweep_mod._point_params(two, axes, vals)
+    np.testing.assert_array_equal(p.k_structural, np.repeat(vals[:, :1], 2, axis=1))   # all objects
+    np.testing.assert_array_equal(p.nmol[:, 0], 1e-3)                                  # object 0 untouched
+    np.testing.assert_array_equal(p.nmol[:, 1], vals[:, 1])
+    pts = sweep_mod._axes(two, sweep_mod._normalise_points([{"k@0": 1.0, "drag": 2.0}, {"k@0": 3.0, "drag": 4.0}]),
+                          "points")
+    np.testing.assert_array_equal(sweep_mod._point_values(pts, "points"), [[1.0, 2.0], [3.0, 4.0]])
+
+
+@pytest.mark.parametrize("spec, match", [
+    (dict(grid={"stiffness": [1.0]}), "unknown parameter"),
+    (dict(grid={"k@nobody": [1.0]}), "no object 'nobody'"),
+    (dict(grid={"k": [-1.0]}), "must be >= 0"),
+    (dict(grid={"damping": [0.5]}), "must be 0"),
+    (dict(grid={"k": [np.nan]}), "finite"),
+    (dict(grid={"k": []}), "non-empty"),
+    (dict(grid={"k": [1.0], "k_structural@b2": [2.0]}), "both set k_structural"),
+    (dict(grid={"k": [1.0]}, points={"k": [1.0]}), "exactly one"),
+    (dict(points={"k": [1.0, 2.0], "drag": [1.0]}), "same number"),
+])
+def test_bad_sweep_specs_are_clear_errors(spec, match):
+    with pytest.raises(SweepError, match=match):
+        sweep(_two_object_scene(), steps=10, dt=DT, progress=False, **spec)
+
+
+def test_nmol_cannot_be_swept_on_an_object_without_gas():
+    with pytest.raises(SweepError, match="no gas"):
+        sweep(_ball(nmol=None), {"nmol": [1e-3]}, steps=10, dt=DT, progress=False)
+
+
+def test_chunks_compile_once_and_match_one_batch():
+    scene = _ball()
+    grid = {"k": [150.0, 200.0, 250.0, 300.0, 350.0]}
+    n0 = batched._core_jit._cache_size()
+    small = sweep(scene, grid, steps=200, dt=DT, batch=2, progress=False)   # 3 chunks, last one padded
+    assert batched._core_jit._cache_size() == n0 + 1
+    whole = sweep(scene, grid, steps=200, dt=DT, batch=5, progress=False)
+    np.testing.assert_allclose(small.final_positions, whole.final_positions, rtol=0, atol=1e-6)
+    assert small.final_positions.shape == (5, scene.n_vertices, 3)
+    # each point is the separate simulation with that k
+    traj = jaxplush.simulate(scene, 200, DT, 200, params=_point_params(scene, k_structural=[350.0]), check_dt=False)
+    np.testing.assert_allclose(small.final_positions[4], traj.positions[-1], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(small.volume[4], traj.volumes[-1], rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def truth_target():
+    from fitting.targets import make_target
+    scene = _ball()
+    return scene, make_target(scene, 400, DT, 100, frames=[0, 2, 4],
+                              params=_point_params(scene, k_structural=[TRUE_K], nmol=[TRUE_NMOL]))
+
+
+def test_loss_landscape_has_its_minimum_at_the_true_parameters(truth_target):
+    scene, target = truth_target
+    assert list(target.steps) == [0, 200, 400]                  # a step-0 frame is part of the loss
+    res = sweep(scene, {"k": [200.0, TRUE_K, 450.0], "nmol": [1e-3, TRUE_NMOL, 3e-3]}, steps=400, dt=DT,
+                target=target, progress=False, batch=4)
+    best = res.best()
+    assert (best["k_structural"], best["nmol"]) == (TRUE_K, TRUE_NMOL)
+    assert best["loss"] < 1e-10 < np.sort(res.loss)[1]
+    # one off-truth point against a direct evaluation
+    i = 2                                                        # k = 200, nmol = 3e-3
+    traj = jaxplush.simulate(scene, 400, DT, 200, params=_point_params(scene, k_structural=[200.0], nmol=[3e-3]),
+                             check_dt=False)
+    direct = np.mean([np.mean(np.sum((x - y) ** 2, axis=1)) for x, y in zip(traj.positions, target.positions)])
+    np.testing.assert_allclose(res.loss[i], direct, rtol=1e-4)
+
+
+def test_point_cloud_target_uses_the_chamfer_distance(truth_target):
+    from fitting.targets import Target
+    scene, target = truth_target
+    # a correspondence-free cloud: the true vertices, shuffled (Chamfer distance 0 at the truth)
+    rng = np.random.default_rng(0)
+    cloud = np.stack([y[rng.permutation(len(y))] for y in target.positions[1:]])
+    target = Target(positions=None, points=cloud, steps=target.steps[1:], times=target.times[1:], dt=DT,
+                    path="<memory>")
+    res = sweep(scene, {"nmol": [1e-3, TRUE_NMOL, 3e-3], "k": [TRUE_K]}, steps=400, dt=DT, target=target,
+                progress=False)
+    assert res.target_kind == "points" and res.best()["nmol"] == TRUE_NMOL
+    assert res.best()["loss"] < 1e-5 * np.sort(res.loss)[1]      # 0 up to float32 rounding
+    traj = jaxplush.simulate(scene, 400, DT, 200, params=_point_params(scene, nmol=[1e-3], k_structural=[TRUE_K]),
+                             check_dt=False)
+    d = []
+    for x, p in zip(traj.positions[1:], cloud):
+        d2 = np.sum((x[:, None] - p[None]) ** 2, axis=2)
+        d.append(d2.min(axis=1).mean() + d2.min(axis=0).mean())
+    assert np.mean(d) > 1e-6
+    np.testing.assert_allclose(res.loss[0], np.mean(d), rtol=1e-4)
+
+
+def test_failed_points_are_reported_not_nan(truth_target):
+    scene, target = truth_target
+    with pytest.warns(UserWarning, match="1 of 3 sweep point"):
+        res = sweep(scene, {"k": [200.0, 1e5, TRUE_K]}, steps=400, dt=DT, target=target, progress=False)
+    np.testing.assert_array_equal(res.failed, [False, True, False])
+    assert np.isnan(res.loss[1]) and np.all(np.isfinite(res.loss[[0, 2]]))
+    assert np.all(np.isfinite(res.final_positions)) and res.final_step[1] < res.fail_step[1, 0] <= 400
+    assert res.fail_code[1, 0] >= jaxplush.diagnostics.ERROR and res.fail_step[0, 0] == -1
+    assert "1 point(s) failed" in res.table() and "step" in res.table()
+
+
+def test_save_schema_frames_and_plots(tmp_path, truth_target):
+    scene, target = truth_target
+    res = sweep(scene, {"k": [200.0, TRUE_K], "nmol": [1e-3, TRUE_NMOL]}, steps=400, dt=DT, target=target,
+                save_every=200, progress=False)
+    assert res.frames.shape == (3, 4, scene.n_vertices, 3) and list(res.frame_steps) == [0, 200, 400]
+    np.testing.assert_array_equal(res.frames[-1], res.final_positions)
+    path = tmp_path / "sweep.h5"
+    res.save(path)
+    assert sorted(os.listdir(tmp_path)) == ["sweep.h5"]           # atomic: no temporary left behind
+    d = load_sweep(path)
+    assert d["attrs"]["scene"] == scene.text and list(d["attrs"]["labels"]) == ["k_structural", "nmol"]
+    assert d["values"].shape == (4, 2) and d["params/k_structural"].shape == (4, 1)
+    np.testing.assert_array_equal(d["loss"], res.loss)
+    np.testing.assert_array_equal(d["axes/nmol"], [1e-3, TRUE_NMOL])
+    for key in ("final_positions", "final_step", "summary/volume", "summary/centroid_height",
+                "summary/max_displacement", "failure/code", "failure/step", "frames", "faces"):
+        assert key in d
+    assert res.plot(tmp_path / "map.png") == os.fspath(tmp_path / "map.png")
+    one = sweep(scene, {"k": [200.0, TRUE_K]}, steps=400, dt=DT, progress=False)
+    one.plot(tmp_path / "curve.png")                              # no target: the final volume
+    assert (tmp_path / "map.png").stat().st_size > 1000 and (tmp_path / "curve.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match="no target"):
+        one.quantity("loss")
+
+
+def test_parse_grid_spec():
+    np.testing.assert_allclose(parse_grid_spec("k=100:1000:4")[1], [100, 400, 700, 1000])
+    np.testing.assert_allclose(parse_grid_spec("nmol=0.001:0.1:3", log=True)[1], [1e-3, 1e-2, 1e-1])
+    assert parse_grid_spec("k@ball=1,2.5")[0] == "k@ball"
+    np.testing.assert_array_equal(parse_grid_spec("k@ball=1,2.5")[1], [1.0, 2.5])
+    for bad in ("k", "k=", "k=1:2", "k=1:2:0", "k=a:2:3", "k=1,x", "k=1:2:3.5"):
+        with pytest.raises(ValueError):
+            parse_grid_spec(bad)
+    with pytest.raises(ValueError, match="--log"):
+        parse_grid_spec("k=0:1:3", log=True)
+
+
+def test_cli_writes_sweep_and_rejects_bad_input(tmp_path, truth_target, capsys):
+    scene, target = truth_target
+    obj = tmp_path / "ball.obj"
+    obj.write_text(scene.text)
+    tgt = tmp_path / "target.h5"
+    target.save(tgt, scene)
+    out, png = tmp_path / "out.h5", tmp_path / "out.png"
+    rc = sweep_main([str(obj), "--grid", f"k={TRUE_K},450", "--grid", f"nmol={TRUE_NMOL}", "--target", str(tgt),
+                     "--steps", "400", "--out", str(out), "--plot", str(png), "--quiet"])
+    text = capsys.readouterr().out
+    assert rc == 0 and out.exists() and png.exists()
+    assert f"minimum: k_structural = {TRUE_K:g}" in text
+    bad = tmp_path / "bad.h5"
+    wrong = tmp_path / "wrong.h5"                                  # a target of another mesh
+    with h5py.File(wrong, "w") as f:
+        f["positions"] = np.zeros((1, 12, 3))
+        f["times"] = [0.08]
+        f.attrs["dt"] = DT
+    for argv, msg in [
+        ([str(obj), "--grid", "k=1:2:x", "--steps", "10", "--dt", "1e-4"], "integer"),
+        ([str(obj), "--grid", "spring=1", "--steps", "10", "--dt", "1e-4"], "unknown parameter"),
+        ([str(tmp_path / "none.obj"), "--grid", "k=1", "--steps", "10", "--dt", "1e-4"], "no such file"),
+        ([str(obj), "--grid", "k=1", "--steps", "10"], "--dt is required"),
+        ([str(obj), "--grid", "k=1", "--steps", "400", "--target", str(wrong)], "wrong.h5"),
+        ([str(obj), "--grid", "k=1", "--steps", "10", "--target", str(tgt)], "--steps is 10"),
+    ]:
+        rc = sweep_main(argv + ["--out", str(bad), "--quiet"])
+        err = capsys.readouterr().err
+        assert rc == 2 and msg in err and "Traceback" not in err, (argv, err)
+        assert not bad.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ball.obj", "out.h5", "out.png", "target.h5",
+                                                           "wrong.h5"]
