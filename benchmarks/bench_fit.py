@@ -147,6 +147,10 @@ def main(argv=None):
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--skip-memory", action="store_true")
     ap.add_argument("--memory-steps", type=int, default=10_000)
+    ap.add_argument("--skip-fit", action="store_true", help="skip the time-to-fit runs")
+    ap.add_argument("--skip-point-cloud", action="store_true", help="skip the point-cloud time-to-fit run")
+    ap.add_argument("--skip-sweep", action="store_true", help="skip the sweep throughput run")
+    ap.add_argument("--skip-gradients", action="store_true", help="skip the gradient cost table")
     ap.add_argument("--_child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args._child:
@@ -159,8 +163,8 @@ def main(argv=None):
           f"min of {args.repeats}\n")
     print("| vertices | method | compile (s) | wall (ms) | ratio to forward | CPU (ms) | CPU ratio |")
     print("|---:|---|---:|---:|---:|---:|---:|")
-    rows = gradient_ratio([int(s) for s in args.sizes.split(",")], args.steps, args.repeats, args.dashpot,
-                          tuple(args.methods.split(",")))
+    rows = [] if args.skip_gradients else gradient_ratio(
+        [int(s) for s in args.sizes.split(",")], args.steps, args.repeats, args.dashpot, tuple(args.methods.split(",")))
     for r in rows:
         print(f"| {r['vertices']} | {r['method']} | {r['compile_s']:.1f} | {r['ms']:.1f} | {r['ratio']:.2f} | "
               f"{r['cpu_ms']:.1f} | {r['cpu_ratio']:.2f} |", flush=True)
@@ -178,9 +182,29 @@ def main(argv=None):
             print(f"| {r['method']} | {seg} | {r['compiled_mib']:.0f} | {r['temp_mib']:.0f} | {rss} | {r['note']} |",
                   flush=True)
 
-    # ------------------------------------------------------------------------------------------
-    # LEAD: time-to-fit and sweep throughput sections go here (fitting.fit / sweeps).
-    # ------------------------------------------------------------------------------------------
+    if not args.skip_fit:
+        from fitting.fit import synthetic_recovery
+        print("\n## Time to fit: synthetic recovery at 642 vertices (k, damping, nmol from x2 / x0.5 starts, "
+              "L-BFGS)\n")
+        print("| target | k error | damping error | nmol error | iterations | fit wall time (s) |")
+        print("|---|---:|---:|---:|---:|---:|")
+        for label, noise, cloud in (("positions, noise-free", 0.0, False), ("positions, 1 mm noise", 1e-3, False),
+                                    ("point cloud, noise-free", 0.0, True)):
+            if cloud and args.skip_point_cloud:
+                continue
+            r = synthetic_recovery(3, noise=noise, point_cloud=cloud, progress=False)
+            e = r["errors"]
+            print(f"| {label} | {100 * e['k_structural']:+.4f}% | {100 * e['damping']:+.4f}% | "
+                  f"{100 * e['nmol']:+.4f}% | {r['iterations']} | {r['wall_time']:.1f} |", flush=True)
+
+    if not args.skip_sweep:
+        import bench_sweep
+        print("\n## Sweep throughput (642 vertices, 1000 steps; total simulated steps/s over the batch)\n")
+        print("| batch | method | total steps/s | vs unbatched |")
+        print("|---:|---|---:|---:|")
+        scene = bench_sweep.ball_scene(3) if hasattr(bench_sweep, "ball_scene") else None
+        for r in bench_sweep.bench(scene, 2e-4, [64], 1000, args.repeats, vmap=False):
+            print(f"| {r['batch']} | {r['method']} | {r['steps_per_s']:,.0f} | {r['speedup']:.2f}x |", flush=True)
 
 
 if __name__ == "__main__":
