@@ -126,9 +126,14 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
         step, obj, code = _rollout.locate_failure(sim, p, health)
         hint = _hint(sim, p)
         if getattr(sim.terms, "contact", None) is not None:
+            # An overflowing candidate list poisons the force at the state *before* the failing
+            # step, which may lie after the last healthy saved frame: check there.
             from jaxplush import contact
-            overflow = contact.capacity_report(sim, health.good_state.x)
-            hint = overflow or hint
+            before = health.good_state
+            n = step - 1 - int(health.good_step)
+            if n >= 1:
+                before = _rollout.rollout(sim, p, before, 1, n)[0]
+            hint = contact.capacity_report(sim, before.x) or hint
         raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code], hint=hint)
     positions = np.concatenate([frames[0][None]] + frames[1:], axis=0)
     saved = np.arange(len(positions)) * save_every

@@ -594,6 +594,9 @@ def scene_two_plushies():
 
 
 PILE_FRICTION = 0.6  # floor Coulomb coefficient of the pile scene
+# Contact candidates per object pair: the top ball settles with about half its vertices inside a
+# lower ball's bounding box, over the default of max(128, n/8) (which overflows at step ~1200).
+PILE_CAPACITY = 352
 
 
 def scene_plush_pile():
@@ -612,7 +615,8 @@ def scene_plush_pile():
             "their tops. Soft-soft contact (on by default for several objects) holds the pile; the "
             f"floor has Coulomb friction {PILE_FRICTION:g} so the lower balls do not slide apart.")
     return ("plush_pile.obj", text, objs, infos,
-            dict(gravity=GRAVITY, floor=FLOOR, temperature=TEMPERATURE, floor_friction=PILE_FRICTION))
+            dict(gravity=GRAVITY, floor=FLOOR, temperature=TEMPERATURE, floor_friction=PILE_FRICTION,
+                 contact_capacity=PILE_CAPACITY))
 
 
 SCENES = (scene_ball_drop, scene_bear, scene_hanging, scene_two_plushies, scene_plush_pile)

@@ -344,6 +344,7 @@ def test_capacity_overflow_is_reported_and_a_larger_capacity_fixes_it():
     with pytest.raises(jaxplush.SimulationError) as e:
         jaxplush.simulate(scene, steps=20, dt=1e-4, save_every=10, check_dt=False)
     assert e.value.step == 1
+    assert "contact_capacity" in str(e.value)          # the error says what to raise, not just "NaN"
     sim = jaxplush.make_simulator(scene, 1e-4)
     report = contact.capacity_report(sim, scene.vertices)
     assert report is not None and "contact_capacity" in report
