@@ -19,7 +19,6 @@ import sys
 import time
 
 import jax
-import numpy as np
 import trimesh
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
@@ -69,8 +68,8 @@ def main(argv=None):
     print(f"# jaxplush {jaxplush.__version__}, jax {jax.__version__}, {jax.devices()[0].device_kind}, "
           f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}; float32; 1000-step rollouts, "
           f"median of {args.repeats}")
-    print(f"| vertices | assembly | compile (s) | steps/s | dt_stable (s) | real-time x |")
-    print(f"|---:|---|---:|---:|---:|---:|")
+    print("| vertices | assembly | compile (s) | steps/s | dt_stable (s) | real-time x |")
+    print("|---:|---|---:|---:|---:|---:|")
     for sub in [int(s) for s in args.sizes.split(",")]:
         scene = ball_scene(sub, args.dashpot)
         for assembly in args.assembly.split(","):

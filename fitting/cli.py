@@ -17,6 +17,8 @@ import signal
 import sys
 import warnings
 
+from jaxplush.io import check_output_path
+
 EXIT_USAGE = 2
 EXIT_FAILED = 3
 EXIT_INTERRUPTED = 130
@@ -71,18 +73,6 @@ def main(argv=None):
         return code
 
 
-def _check_path(path, exts, what):
-    from jaxplush.errors import JaxplushError
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in exts:
-        raise JaxplushError(f"{path}: {what} must end in {' or '.join(exts)}")
-    d = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(d):
-        raise JaxplushError(f"{path}: output directory {d} does not exist")
-    if os.path.isdir(path):
-        raise JaxplushError(f"{path}: is a directory")
-
-
 def _fit(args):
     from jaxplush.errors import JaxplushError
     # --- everything checked before anything is traced or written
@@ -97,9 +87,9 @@ def _fit(args):
             raise JaxplushError(f"{name} must be a positive number, got {val}")
     if args.noise is not None and not (args.noise == args.noise and 0 <= args.noise < float("inf")):
         raise JaxplushError(f"--noise must be a number >= 0, got {args.noise}")
-    _check_path(args.out, (".h5", ".hdf5"), "--out")
+    check_output_path(args.out, (".h5", ".hdf5"), "--out")
     if args.out_scene is not None:
-        _check_path(args.out_scene, (".obj",), "--out-scene")
+        check_output_path(args.out_scene, (".obj",), "--out-scene")
     for a, b in ((args.out, args.target), (args.out, args.scene), (args.out_scene, args.scene),
                  (args.out_scene, args.target)):
         if a is not None and os.path.abspath(a) == os.path.abspath(b):
@@ -147,7 +137,7 @@ def _fit(args):
         show(caught)
     except KeyboardInterrupt:
         saved = os.path.exists(args.out)
-        print(f"jaxplush-fit: interrupted; " + (f"state saved to {args.out}; continue with --resume"
+        print("jaxplush-fit: interrupted; " + (f"state saved to {args.out}; continue with --resume"
                                                  if saved else "nothing written"), file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:

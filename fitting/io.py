@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
-from jaxplush.io import atomic_path
+from jaxplush.io import atomic_path, open_hdf5
 from jaxplush.types import PARAM_NAMES
 
 #: Settings that must agree between a checkpoint and the fit resuming it.
@@ -242,14 +242,8 @@ def _norm(v):
 def load_fit(path):
     """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, fitted."""
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise TrajectoryError(path, "no such file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise TrajectoryError(path, "not an HDF5 file") from None
     out = {}
-    with f:
+    with open_hdf5(path) as f:
         out["attrs"] = {k: _attr(f.attrs[k]) for k in f.attrs}
         for grp in ("params", "start", "history", "identifiability", "fitted"):
             if grp in f:

@@ -659,14 +659,9 @@ def load_sweep(path):
     import h5py
 
     from jaxplush.errors import TrajectoryError
+    from jaxplush.io import open_hdf5
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise TrajectoryError(path, "no such file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise TrajectoryError(path, "not an HDF5 file") from None
-    with f:
+    with open_hdf5(path) as f:
         if f.attrs.get("format") != FORMAT:
             raise TrajectoryError(path, f"not a sweep file (attribute format != {FORMAT!r})")
         out = {"attrs": {k: f.attrs[k] for k in f.attrs}}

@@ -22,6 +22,8 @@ import warnings
 
 import numpy as np
 
+from jaxplush.io import check_output_path
+
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 
@@ -102,18 +104,6 @@ def main(argv=None):
         return EXIT_INTERRUPTED
 
 
-def _check_out(path, exts, what):
-    from jaxplush.errors import JaxplushError
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in exts:
-        raise JaxplushError(f"{path}: {what} must end in {' or '.join(exts)}")
-    d = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(d):
-        raise JaxplushError(f"{path}: output directory {d} does not exist")
-    if os.path.isdir(path):
-        raise JaxplushError(f"{path}: is a directory")
-
-
 def _run(args):
     from jaxplush.errors import JaxplushError
     # --- everything checked before anything is traced or written
@@ -138,9 +128,9 @@ def _run(args):
         raise JaxplushError(f"--save-every must be >= 1, got {args.save_every}")
     if args.batch < 1:
         raise JaxplushError(f"--batch must be >= 1, got {args.batch}")
-    _check_out(args.out, (".h5", ".hdf5"), "--out")
+    check_output_path(args.out, (".h5", ".hdf5"), "--out")
     if args.plot is not None:
-        _check_out(args.plot, (".png", ".pdf", ".svg", ".jpg", ".jpeg"), "--plot")
+        check_output_path(args.plot, (".png", ".pdf", ".svg", ".jpg", ".jpeg"), "--plot")
     for out in (args.out, args.plot):
         for inp in (args.scene, args.target):
             if out is not None and inp is not None and os.path.abspath(out) == os.path.abspath(inp):

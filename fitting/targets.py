@@ -28,7 +28,7 @@ import h5py
 import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
-from jaxplush.io import atomic_path
+from jaxplush.io import atomic_path, open_hdf5
 
 #: Times must lie within this fraction of dt of a multiple of dt (float32-written times included).
 GRID_TOLERANCE = 1e-3
@@ -131,15 +131,7 @@ def load_target(path, scene, dt=None, kind=None):
       TrajectoryError: naming the file and the problem.
     """
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise TrajectoryError(path, "no such file")
-    if os.path.isdir(path):
-        raise TrajectoryError(path, "is a directory, not a target file")
-    try:
-        fh = h5py.File(path, "r")
-    except OSError as e:
-        reason = "not an HDF5 file" if h5py.is_hdf5(path) is False else f"cannot read: {e}"
-        raise TrajectoryError(path, reason) from None
+    fh = open_hdf5(path)
     try:
         with fh:
             raw = _read(path, fh, kind)

@@ -7,12 +7,13 @@ partial output.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 import warnings
 
 import numpy as np
+
+from jaxplush.io import check_output_path
 
 EXIT_USAGE = 2
 EXIT_FAILED = 3
@@ -65,16 +66,6 @@ def main(argv=None):
         return 130
 
 
-def _check_out(path, exts):
-    from jaxplush.errors import JaxplushError
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in exts:
-        raise JaxplushError(f"{path}: output must end in {' or '.join(exts)}")
-    d = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(d):
-        raise JaxplushError(f"{path}: output directory {d} does not exist")
-
-
 def _simulate(args):
     from jaxplush.errors import JaxplushError
     if args.steps < 1:
@@ -85,7 +76,7 @@ def _simulate(args):
         raise JaxplushError(f"--save-every must be >= 1, got {args.save_every}")
     if args.substeps < 1:
         raise JaxplushError(f"--substeps must be >= 1, got {args.substeps}")
-    _check_out(args.out, (".h5", ".hdf5"))
+    check_output_path(args.out, (".h5", ".hdf5"))
     if args.x64:
         import jax
         jax.config.update("jax_enable_x64", True)

@@ -299,7 +299,7 @@ def mesit(system):
     steps where symplectic Euler stays within 10%; tests/test_hard_cases.py: it blows up at 0.9x
     the explicit limit where Verlet is stable.
     """
-    topo, terms, h = system.topo, system.terms, system.h
+    topo, h = system.topo, system.h
     valence = topo.ring_mask.sum(axis=1).astype(np.float64)
 
     def init(params, x, v):

@@ -42,6 +42,33 @@ def atomic_path(path, suffix=None):
         raise
 
 
+def check_output_path(path, exts, what="output"):
+    """Before any work: ``path`` must end in one of ``exts``, lie in an existing directory and not
+    be a directory itself; else a :class:`JaxplushError` naming the path and the problem."""
+    path = os.fspath(path)
+    if os.path.splitext(path)[1].lower() not in exts:
+        raise JaxplushError(f"{path}: {what} must end in {' or '.join(exts)}")
+    d = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(d):
+        raise JaxplushError(f"{path}: output directory {d} does not exist")
+    if os.path.isdir(path):
+        raise JaxplushError(f"{path}: is a directory")
+
+
+def open_hdf5(path):
+    """Open an existing HDF5 file read-only; a :class:`TrajectoryError` names the file when it is
+    missing, a directory, or not HDF5. Use as ``with open_hdf5(path) as f: ...``."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise TrajectoryError(path, "no such file")
+    if os.path.isdir(path):
+        raise TrajectoryError(path, "is a directory, not an HDF5 file")
+    try:
+        return h5py.File(path, "r")
+    except OSError:
+        raise TrajectoryError(path, "not an HDF5 file") from None
+
+
 def save_trajectory(traj, path):
     """Write a :class:`jaxplush.simulate.Trajectory` to ``path`` atomically."""
     from jaxplush import __version__
@@ -74,13 +101,7 @@ def save_trajectory(traj, path):
 def load_trajectory(path):
     """Read a trajectory file into a dict of numpy arrays and attributes (validated shapes)."""
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise TrajectoryError(path, "no such file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise TrajectoryError(path, "not an HDF5 file") from None
-    with f:
+    with open_hdf5(path) as f:
         for key in ("positions", "faces"):
             if key not in f:
                 raise TrajectoryError(path, f"missing dataset '{key}'")

@@ -57,6 +57,7 @@ from matplotlib.ticker import FuncFormatter, MaxNLocator
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.io import open_hdf5
 
 __all__ = ["render", "STILL_EXTENSIONS", "ANIMATION_EXTENSIONS"]
 
@@ -226,14 +227,7 @@ def _select_frames(n_frames, max_frames):
 def _read_trajectory(path, frame, max_frames):
     """Open, validate and read what is needed to draw; raise TrajectoryError on bad input."""
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise TrajectoryError(path, "file not found")
-    if os.path.isdir(path):
-        raise TrajectoryError(path, "is a directory, not a trajectory file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise TrajectoryError(path, f"not a readable HDF5 file ({exc})") from None
+    f = open_hdf5(path)
     try:
         with f:
             return _read_open_file(path, f, frame, max_frames)

@@ -8,7 +8,6 @@ state so a failure can be located to the exact step afterwards, outside ``jit``.
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import functools
 
-import jax
 import numpy as np
 import pytest
 import trimesh
@@ -25,7 +24,7 @@ import trimesh
 import jaxplush
 from jaxplush import model, stability
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
-from conftest import icosphere_scene, icosphere_text
+from conftest import icosphere_scene
 
 ALL = jaxplush.INTEGRATORS
 SOUND = ("symplectic_euler", "rk4", "verlet", "implicit_euler")

@@ -6,7 +6,6 @@ directory, never into the checkout.
 
 from __future__ import annotations
 
-import os
 import pathlib
 
 import pytest

@@ -143,7 +143,7 @@ def test_frame_out_of_range(traj, tmp_path, frame):
 
 
 def test_missing_file(tmp_path):
-    with pytest.raises(TrajectoryError, match="not found"):
+    with pytest.raises(TrajectoryError, match="no such file"):
         render(tmp_path / "nope.h5", tmp_path / "x.gif")
     _only(tmp_path)
 
