@@ -6,14 +6,18 @@ B it times a ``steps``-step rollout (one compiled scan, compile time apart, min 
 
 * ``unbatched``: ``jaxplush.rollout`` of one scene (the reference, steps/s);
 * ``vmap``: ``jax.vmap`` of that rollout over B parameter points (batch on the leading axis);
-* ``batched``: :func:`jaxplush.batched.rollout` (batch on the last axis, what ``sweep`` uses);
+* ``batched, 1 call``: :func:`jaxplush.batched.rollout` with the whole batch in one compiled
+  call (``chunk=B``; batch on the last axis);
+* ``batched``: :func:`jaxplush.batched.rollout` as ``sweep`` uses it: the batch cut into chunks
+  of ``default_chunk(B)`` points (16 at B = 64) that run concurrently, one per core;
 
-and prints total steps/s (B x steps / best time) and the speed-up over ``unbatched``: the median,
-over the repeats, of the ratio to an unbatched run timed just before (so that changes in the load
-of a shared machine cancel; on a quiet machine it equals the ratio of the best times).
+and prints total steps/s (B x steps / best time), the speed-up over ``unbatched`` (the median,
+over the repeats, of the ratio to an unbatched run timed just before, so that changes in the
+load of a shared machine cancel; on a quiet machine it equals the ratio of the best times), and
+the process CPU time per simulated step (all threads; the cores used are CPU time / wall time).
 
 Usage: python benchmarks/bench_sweep.py [--subdivisions 3] [--batches 1,8,16,64] [--steps 1000]
-       [--repeats 5] [--no-vmap] [--dashpot]
+       [--repeats 5] [--no-vmap] [--no-one-call] [--dashpot]
 """
 
 from __future__ import annotations
@@ -41,32 +45,36 @@ def _compile(fn):
     return time.perf_counter() - t0
 
 
-def _once(fn):
-    t0 = time.perf_counter()
+def _once(fn, cpu=False):
+    c0, t0 = time.process_time(), time.perf_counter()
     jax.block_until_ready(fn())
-    return time.perf_counter() - t0
+    t, c = time.perf_counter() - t0, time.process_time() - c0
+    return (t, c) if cpu else t
 
 
 def _paired(fn, ref, repeats):
-    """Best time of ``fn`` and the median ratio ref_time / fn_time over interleaved repeats (each
-    ``fn`` run right after a run of the reference, so slow drifts in machine load cancel)."""
-    best, ratios = np.inf, []
+    """Best time of ``fn``, the median ratio ref_time / fn_time over interleaved repeats (each
+    ``fn`` run right after a run of the reference, so slow drifts in machine load cancel) and the
+    CPU time of the best run."""
+    best, cpu, ratios = np.inf, np.nan, []
     for _ in range(repeats):
         r = _once(ref)
-        t = _once(fn)
-        best = min(best, t)
+        t, c = _once(fn, cpu=True)
+        if t < best:
+            best, cpu = t, c
         ratios.append(r / t)
-    return best, float(np.median(ratios))
+    return best, float(np.median(ratios)), cpu
 
 
-def bench(scene, dt, batches, steps, repeats, vmap=True):
+def bench(scene, dt, batches, steps, repeats, vmap=True, one_call=True):
     sim = jaxplush.make_simulator(scene, dt)
     p = sim.params()
     s = sim.init_fn(p)
     ref = lambda: jaxplush.rollout(sim, p, s, 1, steps)  # noqa: E731
     c1 = _compile(ref)
-    t1 = min(_once(ref) for _ in range(repeats))
-    rows = [dict(batch=1, method="unbatched", compile_s=c1, steps_per_s=steps / t1, speedup=1.0)]
+    t1, cpu1 = min(_once(ref, cpu=True) for _ in range(repeats))
+    rows = [dict(batch=1, method="unbatched", compile_s=c1, steps_per_s=steps / t1, speedup=1.0,
+                 cpu_us=cpu1 / steps * 1e6)]
     for b in batches:
         ks = np.linspace(0.8, 1.2, b) * float(p.k_structural[0])
         fns = []
@@ -75,16 +83,21 @@ def bench(scene, dt, batches, steps, repeats, vmap=True):
             pb = pb._replace(k_structural=jnp.asarray(ks, sim.dtype)[:, None])
             run = jax.jit(jax.vmap(lambda q: jaxplush.rollout(sim, q, sim.init_fn(q), 1, steps)[0].x))
             fns.append(("vmap", lambda run=run, pb=pb: run(pb)))
-        bsim = batched.make_batched_simulator(scene, dt, b)
-        bp = bsim.params()._replace(k_structural=jnp.asarray(ks[None, :], bsim.dtype))
-        bs = bsim.init_fn(bp)
-        fns.append(("batched", lambda: batched.rollout(bsim, bp, bs, 1, steps)))
+        for name, chunk in (("batched, 1 call", b), ("batched", None)):
+            if name != "batched" and (not one_call or batched.default_chunk(b) == b):
+                continue
+            bsim = batched.make_batched_simulator(scene, dt, b, chunk=chunk)
+            bp = bsim.params()._replace(k_structural=jnp.asarray(ks[None, :], bsim.dtype))
+            bs = bsim.init_fn(bp)
+            fns.append((name if chunk else f"batched ({-(-b // bsim.chunk)} x {bsim.chunk})",
+                        lambda bsim=bsim, bp=bp, bs=bs: batched.rollout(bsim, bp, bs, 1, steps)))
         for name, fn in fns:
             c = _compile(fn)
-            if name == "batched":
+            if name.startswith("batched"):
                 assert not fn()[2].failed.any()
-            t, ratio = _paired(fn, ref, repeats)
-            rows.append(dict(batch=b, method=name, compile_s=c, steps_per_s=b * steps / t, speedup=b * ratio))
+            t, ratio, cpu = _paired(fn, ref, repeats)
+            rows.append(dict(batch=b, method=name, compile_s=c, steps_per_s=b * steps / t, speedup=b * ratio,
+                             cpu_us=cpu / (b * steps) * 1e6))
     return rows
 
 
@@ -97,6 +110,7 @@ def main(argv=None):
     ap.add_argument("--dt", type=float, default=2e-4)
     ap.add_argument("--no-vmap", action="store_true", help="skip the jax.vmap comparison")
     ap.add_argument("--dashpot", action="store_true", help="also compile the edge dashpot")
+    ap.add_argument("--no-one-call", action="store_true", help="skip the one-call batched comparison")
     args = ap.parse_args(argv)
     scene = ball_scene(args.subdivisions, args.dashpot)
     print(f"# jaxplush {jaxplush.__version__}, jax {jax.__version__}, {jax.devices()[0].device_kind}, "
@@ -104,12 +118,13 @@ def main(argv=None):
           f"{jnp.result_type(float).__name__ if hasattr(jnp.result_type(float), '__name__') else 'float32'}; "
           f"{scene.n_vertices} vertices, {args.steps}-step rollouts, min of {args.repeats}, "
           f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
-    print("| batch | method | compile (s) | total steps/s (best) | vs unbatched (paired median) |")
-    print("|---:|---|---:|---:|---:|")
+    print("| batch | method | compile (s) | total steps/s (best) | vs unbatched (paired median) | "
+          "CPU us per step | cores used |")
+    print("|---:|---|---:|---:|---:|---:|---:|")
     for r in bench(scene, args.dt, [int(b) for b in args.batches.split(",")], args.steps, args.repeats,
-                   vmap=not args.no_vmap):
+                   vmap=not args.no_vmap, one_call=not args.no_one_call):
         print(f"| {r['batch']} | {r['method']} | {r['compile_s']:.2f} | {r['steps_per_s']:,.0f} | "
-              f"{r['speedup']:.2f}x |", flush=True)
+              f"{r['speedup']:.2f}x | {r['cpu_us']:.2f} | {r['cpu_us'] * r['steps_per_s'] / 1e6:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

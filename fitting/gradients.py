@@ -18,8 +18,10 @@ Methods (all give the same value and gradient up to rounding; tests/test_gradien
   fused backward kernel per step (:func:`_make_force_vjp`). The forward pass keeps every step's
   positions (and velocities when dashpot, drag or Verlet damping need them) if that fits in
   ``memory_budget`` bytes, else it keeps a checkpoint every ``segment`` steps and recomputes one
-  segment at a time. Supports springs, gas, gravity, Verlet damping, dashpot, drag, the floor,
-  pins and soft-soft contact; not floor friction/restitution or substeps > 1.
+  segment at a time; it also evaluates each frame loss's own gradient as it passes the frame
+  and keeps it (one (V, 3) array per frame, plus the cotangents of ``aux``), so the backward
+  pass is a plain loop of step VJPs. Supports springs, gas, gravity, Verlet damping, dashpot,
+  drag, the floor, pins and soft-soft contact; not floor friction/restitution or substeps > 1.
 * ``"auto"``: ``"adjoint"`` where supported (:func:`adjoint_supported`), else ``"checkpoint"``.
 
 Measured (benchmarks/bench_fit.py, benchmarks/RESULTS.md): the adjoint's value_and_grad costs
@@ -141,13 +143,51 @@ _ADJOINT_TERMS = frozenset(("spring", "dashpot", "drag", "gas", "gravity", "floo
                             "contact"))
 
 
-def _make_force_vjp(topo, terms, temperature):
-    """``force_vjp(params, x, u, lam)``: the transposed linearisation of the internal force.
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
-    For F = F(x, u; k, c, nmol) (springs, dashpot, gas, contact; (3, V) arrays) and a cotangent
-    ``lam`` (3, V), returns (J_x^T lam, J_u^T lam, k_bar, c_bar, n_bar, f_dot, p_extra): (O,)
-    cotangents of k_structural, dashpot and nmol, sum_o F.lam (for the mass), and the contact
-    term's parameter cotangents (a Params, or None without contact).
+
+def _ring_sum(a):
+    """Sum of a (K, V) array over the ring axis as K - 1 row additions. XLA's CPU backend lowers
+    ``jnp.sum(a, axis=0)`` over this short leading axis to a reduction kernel that costs more than
+    the elementwise work around it; row additions fuse into their producers instead."""
+    out = a[0]
+    for r in range(1, a.shape[0]):
+        out = out + a[r]
+    return out
+
+
+def _fan(a, b):
+    """sum_k a_k x b_{k+1} around the ring (wrapping), for a, b lists of three (K, V) arrays:
+    static row slices rather than a materialised ``jnp.roll``."""
+    inner = _cross([v[:-1] for v in a], [v[1:] for v in b])
+    wrap = _cross([v[-1] for v in a], [v[0] for v in b])
+    return [_ring_sum(p) + q for p, q in zip(inner, wrap)]
+
+
+class _Dens(NamedTuple):
+    """One backward step's parameter cotangents, kept per vertex where they are sums over vertices of
+    per-vertex terms (reduced once, at the end of the backward pass): ``k`` (V,) with
+    k_bar = per_object_sum(k); ``c`` (V,) the dashpot's; ``damp`` (V,) sum of u.u_bar (the damping
+    factor's cotangent is minus its per-object sum); ``drag`` (V,) likewise; ``nmol`` (O,) the
+    gas's nmol cotangent; ``f_gas`` (O,) the gas's and contact's share of sum F.lam (for the mass
+    cotangent; the springs' and dashpot's shares are k k_bar and c c_bar); ``extra`` contact's
+    Params or None."""
+
+    k: object
+    c: object
+    damp: object
+    drag: object
+    nmol: object
+    f_gas: object
+    extra: object
+
+
+def _make_force_vjp(topo, terms, temperature):
+    """``force_vjp(params, x, u, lam) -> (jx, ju, dens)``: the transposed linearisation of the
+    internal force F = F(x, u; k, c, nmol) (springs, dashpot, gas, contact; (3, V) arrays) for a
+    cotangent ``lam`` (3, V): J_x^T lam, J_u^T lam and the parameter cotangents as a
+    :class:`_Dens` (``damp`` and ``drag`` None: they belong to the integrator).
 
     Written in the one-ring form of :func:`jaxplush.model.make_force_fn`: every term is a
     gather of a neighbour's value minus the vertex's own, so the transpose needs gathers only,
@@ -159,11 +199,12 @@ def _make_force_vjp(topo, terms, temperature):
       springs   J_x^T lam_i = sum_j k (1 - L/l) delta + k L/l³ t d
       dashpot   J_x^T lam_i = sum_j c/l² [(dv.d) delta + t dv - 2 (dv.d) t d / l²]
                 J_u^T lam_i = sum_j c/l² t d
-      gas       J_x^T lam   = P H_V lam + P'(V) (g.lam) g,   g = dV/dx
+      gas       J_x^T lam   = P H_V lam + P'(V) (g.lam) g,   g = dV/dx = 1/6 sum_k d_k x d_{k+1},
+                H_V lam = 1/6 sum_k (delta_k x d_{k+1} + d_k x delta_{k+1})
 
     The forces are linear in k, c and nmol, so their cotangents are sums the pass computes
     anyway: sum_i lam_i.f_i^spring = k sum_{ij} (1 - L/l)(lam_i.d) = -k/2 sum_{ij} (1 - L/l) t
-    (each edge seen from both ends).
+    (each edge seen from both ends); ``dens.k`` keeps the per-vertex -1/2 sum_j (1 - L/l) t.
     """
     ring = np.ascontiguousarray(topo.ring.T)                  # (K, V), neighbour-major
     mask = np.ascontiguousarray(topo.ring_mask.T)
@@ -177,9 +218,6 @@ def _make_force_vjp(topo, terms, temperature):
 
     def gather(a):
         return a.at[ring].get(mode="promise_in_bounds")
-
-    def cross(a, b):
-        return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
     def force_vjp(params, x, u, lam):
         dtype = x.dtype
@@ -195,9 +233,10 @@ def _make_force_vjp(topo, terms, temperature):
         k = model.per_vertex(topo, params.k_structural)
         w = k * s                                                        # spring tension / l
         coef = k * rest * inv_l * inv_l * inv_l                          # of t d
-        k_dens = -0.5 * jnp.sum(s * t, axis=0)                           # (V,)
+        dens_k = -0.5 * _ring_sum(s * t)                                 # (V,)
         zero = jnp.zeros((topo.n_objects,), dtype)
-        c_bar = n_bar = zero
+        dens_c = None
+        n_bar = f_gas = zero
         ju = jnp.zeros_like(x)
         extra = None
         if terms.dashpot:
@@ -210,22 +249,14 @@ def _make_force_vjp(topo, terms, temperature):
             w = w + c * q
             coef = coef - 2.0 * c * q * inv_l2
             ct = c * inv_l2 * t
-            ju = jnp.stack([jnp.sum(ct * d[i], axis=0) for i in range(3)])
+            ju = jnp.stack([_ring_sum(ct * d[i]) for i in range(3)])
             extra = [ct * dv[i] for i in range(3)]
-            c_bar = model.per_object_sum(topo, -0.5 * jnp.sum(q * t, axis=0))
-        jx = jnp.stack([jnp.sum(w * dl[i] + coef * t * d[i] + (extra[i] if extra else 0.0), axis=0)
-                        for i in range(3)])
-        k_bar = model.per_object_sum(topo, k_dens)
-        f_dot = params.k_structural * k_bar
-        if terms.dashpot:
-            f_dot = f_dot + params.dashpot * c_bar
+            dens_c = -0.5 * _ring_sum(q * t)
+        ctt = coef * t
+        jx = jnp.stack([_ring_sum(w * dl[i] + ctt * d[i] + (extra[i] if extra else 0.0)) for i in range(3)])
         if terms.gas:
-            # m_k = d_{k+1} - d_{k-1} around the ring: g = 1/6 sum_k d_k x d_{k+1} = 1/12 sum_k d_k x m_k,
-            # and its directional derivative 1/6 sum_k (delta_k x d_{k+1} + d_k x delta_{k+1})
-            # = 1/6 sum_k delta_k x m_k (re-indexing the ring; padded entries repeat a neighbour).
-            m = [jnp.roll(a, -1, axis=0) - jnp.roll(a, 1, axis=0) for a in d]
-            g = jnp.stack([jnp.sum(a, axis=0) for a in cross(d, m)]) / 12.0
-            h = jnp.stack([jnp.sum(a, axis=0) for a in cross(dl, m)]) / 6.0
+            g = jnp.stack(_fan(d, d)) / 6.0
+            h = jnp.stack([a + b for a, b in zip(_fan(dl, d), _fan(d, dl))]) / 6.0
             volume = _object_volumes(topo, x, g)
             v_clamp = VOLUME_EPS * jnp.asarray(topo.rest_volume, dtype)
             v_safe = jnp.maximum(volume, v_clamp)
@@ -235,7 +266,7 @@ def _make_force_vjp(topo, terms, temperature):
             g_lam = model.per_object_sum(topo, jnp.sum(g * lam, axis=0))  # dV.lam per object
             jx = jx + model.per_vertex(topo, p) * h + model.per_vertex(topo, dp * g_lam) * g
             n_bar = g_lam * rt / v_safe
-            f_dot = f_dot + p * g_lam
+            f_gas = p * g_lam
         p_extra = None
         if contact_force is not None:
             # soft-soft contact (jaxplush.contact, -grad of a penalty energy on candidate lists):
@@ -243,8 +274,8 @@ def _make_force_vjp(topo, terms, temperature):
             fc, vjp_c = jax.vjp(contact_force, params, x)
             p_extra, jxc = vjp_c(lam)
             jx = jx + jxc
-            f_dot = f_dot + model.per_object_sum(topo, jnp.sum(fc * lam, axis=0))
-        return jx, ju, k_bar, c_bar, n_bar, f_dot, p_extra
+            f_gas = f_gas + model.per_object_sum(topo, jnp.sum(fc * lam, axis=0))
+        return jx, ju, _Dens(dens_k, dens_c, None, None, n_bar, f_gas, p_extra)
 
     return force_vjp
 
@@ -256,10 +287,14 @@ def _object_volumes(topo, x, g):
     return jnp.stack([jnp.sum((x[:, a:b] - x[:, a:a + 1]) * g[:, a:b]) for a, b in topo.vertex_slices]) / 3.0
 
 
-def _make_step_vjp(sim):
-    """``step_vjp(params, x, u, x_next, x_bar, u_bar) -> (x_bar, u_bar, params_bar)``: the VJP of
+_Y_ROW = np.arange(3)[:, None] == 1                # (3, 1): the vertical component
+
+
+def _make_step_dens_vjp(sim):
+    """``step_vjp(params, x, u, x_next, x_bar, u_bar) -> (x_bar, u_bar, dens)``: the VJP of
     ``sim.internal_step`` at the state (x, u) (internal (3, V) layout), given the positions
-    ``x_next`` it produced. The step (jaxplush.step, verlet)::
+    ``x_next`` it produced, with the parameter cotangents as per-vertex densities
+    (:class:`_Dens`, reduced by :func:`_reduce_dens`). The step (jaxplush.step, verlet)::
 
         a  = F(x, u)/m - drag u + g;   u' = (1 - f) u + a dt;   x' = x + u' dt;
         floor (y >= H): below = x'_y < H  ->  u'_y = (H - x_y)/dt, x'_y = H;  pins: x' = x0, u' = 0.
@@ -280,36 +315,60 @@ def _make_step_vjp(sim):
             x_bar, u_bar = x_bar * keep, u_bar * keep
         x_out = x_bar
         if terms.floor:
-            below = x_next[1] <= floor
-            uy = u_bar[1]
-            x_bar = x_bar.at[1].set(jnp.where(below, 0.0, x_bar[1]))
-            u_bar = u_bar.at[1].set(jnp.where(below, 0.0, uy))
-            x_out = x_bar.at[1].add(jnp.where(below, -uy / dt, 0.0))
+            # (3, V) masks rather than row updates: one elementwise fusion, no dynamic-update-slice
+            below = (x_next[1] <= floor)[None] & _Y_ROW
+            uy = u_bar[1][None]
+            x_bar = jnp.where(below, 0.0, x_bar)
+            u_bar = jnp.where(below, 0.0, u_bar)
+            x_out = x_bar + jnp.where(below, -uy / dt, 0.0)
         ut = u_bar + dt * x_bar                                  # cotangent of u' (before x' = x + u' dt)
         a_bar = dt * ut
         mass = model.vertex_mass(topo, params)
         lam = a_bar / mass                                       # cotangent of the internal force
-        jx, ju, k_bar, c_bar, n_bar, f_dot, p_extra = force_vjp(params, x, u, lam)
-        zero = jnp.zeros((topo.n_objects,), dtype)
-        d_bar = drag_bar = zero
+        jx, ju, dens = force_vjp(params, x, u, lam)
         if terms.verlet_damping:
             fd = model.per_vertex(topo, _damping_factor(params.damping))
             u_out = (1.0 - fd) * ut + ju
-            f_bar = -model.per_object_sum(topo, jnp.sum(u * ut, axis=0))
-            d_bar = jax.vjp(_damping_factor, params.damping)[1](f_bar)[0]
+            dens = dens._replace(damp=jnp.sum(u * ut, axis=0))
         else:
             u_out = ut + ju
         if terms.drag:
             u_out = u_out - model.per_vertex(topo, params.drag) * a_bar
-            drag_bar = -model.per_object_sum(topo, jnp.sum(u * a_bar, axis=0))
-        m_bar = -f_dot / params.total_weight
-        p_bar = Params(k_structural=k_bar, damping=d_bar, dashpot=c_bar, drag=drag_bar, nmol=n_bar,
-                       total_weight=m_bar)
-        if p_extra is not None:
-            p_bar = jax.tree_util.tree_map(jnp.add, p_bar, p_extra)
-        return x_out + jx, u_out, p_bar
+            dens = dens._replace(drag=jnp.sum(u * a_bar, axis=0))
+        return x_out + jx, u_out, dens
 
     return step_vjp
+
+
+def _reduce_dens(topo, params, dens):
+    """Params cotangent from (sums over steps of) :class:`_Dens` densities."""
+    zero = jnp.zeros_like(params.k_structural)
+
+    def obj(a):
+        return zero if a is None else model.per_object_sum(topo, a)
+
+    k_bar, c_bar = obj(dens.k), obj(dens.c)
+    d_bar = zero
+    if dens.damp is not None:
+        d_bar = jax.vjp(_damping_factor, params.damping)[1](-obj(dens.damp))[0]
+    f_dot = params.k_structural * k_bar + params.dashpot * c_bar + dens.f_gas
+    p_bar = Params(k_structural=k_bar, damping=d_bar, dashpot=c_bar, drag=-obj(dens.drag), nmol=dens.nmol,
+                   total_weight=-f_dot / params.total_weight)
+    if dens.extra is not None:
+        p_bar = jax.tree_util.tree_map(jnp.add, p_bar, dens.extra)
+    return p_bar
+
+
+def _make_step_vjp(sim):
+    """``step_vjp(params, x, u, x_next, x_bar, u_bar) -> (x_bar, u_bar, params_bar)``: one step's
+    VJP (:func:`_make_step_dens_vjp`) with its parameter cotangents reduced to a Params."""
+    step_vjp = _make_step_dens_vjp(sim)
+
+    def f(params, x, u, x_next, x_bar, u_bar):
+        x_bar, u_bar, dens = step_vjp(params, x, u, x_next, x_bar, u_bar)
+        return x_bar, u_bar, _reduce_dens(sim.topology, params, dens)
+
+    return f
 
 
 def _damping_factor(damping):
@@ -319,9 +378,9 @@ def _damping_factor(damping):
 
 
 class _Plan(NamedTuple):
-    """Static layout of an adjoint rollout: ``n_seg`` segments of ``seg`` steps (the last padded
-    to cover ``n_steps``); ``store``: every state is kept from the forward pass (one segment),
-    else each segment is recomputed from its checkpoint in the backward pass; ``keep_u``: the
+    """Static layout of an adjoint rollout: ``n_seg`` segments of ``seg`` steps (the last one
+    possibly shorter); ``store``: every state is kept from the forward pass (one segment), else
+    each segment is recomputed from its checkpoint in the backward pass; ``keep_u``: the
     backward pass needs the velocities (dashpot, drag or Verlet damping)."""
 
     n_steps: int
@@ -344,161 +403,189 @@ def _plan(sim, n_steps, segment, memory_budget, itemsize):
     return _Plan(n_steps, seg, -(-n_steps // seg), False, keep_u)
 
 
+def _split(tree):
+    """Leaves of ``tree`` that carry cotangents (inexact dtypes), and functions to rebuild the
+    tree with them replaced and to build its cotangent (float0 zeros for the other leaves)."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    idx = [i for i, a in enumerate(leaves) if jnp.issubdtype(jnp.result_type(a), jnp.inexact)]
+
+    def rebuild(diff, like):
+        """``like`` (a tree of ``tree``'s structure) with its differentiable leaves replaced."""
+        out = jax.tree_util.tree_leaves(like)
+        for i, a in zip(idx, diff):
+            out[i] = a
+        return jax.tree_util.tree_unflatten(treedef, out)
+
+    def cotangent(diff_bar):
+        out = [np.zeros(np.shape(a), jax.dtypes.float0) for a in leaves]
+        for i, a in zip(idx, diff_bar):
+            out[i] = a
+        return jax.tree_util.tree_unflatten(treedef, out)
+
+    return [leaves[i] for i in idx], rebuild, cotangent
+
+
 def _adjoint_fn(sim, plan, steps, table, loss_fn):
-    """The custom-VJP loss ``f(params, x0, u0, aux, consts)`` for one static configuration."""
-    step_vjp = _make_step_vjp(sim)
+    """The custom-VJP loss ``f(params, x0, u0, aux, consts)`` for one static configuration.
+
+    Forward: one scan over the frames, each running the steps up to its frame in a loop with
+    (static-table) dynamic bounds, so no step is wrapped in a per-step ``cond``; with gradients
+    it also evaluates each frame loss's own VJP there (the cotangents of its position, aux slice
+    and closed-over constants, to be scaled by the output cotangent), and records the states
+    (every one, or one checkpoint per segment) into preallocated buffers. Backward: segments in
+    reverse, each a loop of fused step VJPs that adds a frame's position cotangent where one
+    lies and accumulates per-vertex parameter densities, reduced once at the end.
+    """
+    step_vjp = _make_step_dens_vjp(sim)
+    topo = sim.topology
     n_steps, seg, n_seg = plan.n_steps, plan.seg, plan.n_seg
-    padded = n_seg * seg != n_steps
-    table_j = np.asarray(table)
-    first_frame = steps[0] == 0
+    n_frames = len(steps)
+    hi = np.asarray(steps, np.int32)
+    lo = np.concatenate([[0], hi[:-1]]).astype(np.int32)
+    table_np = np.asarray(table, np.int32)                  # (n_steps + 1,) frame index or -1
 
     def frame_loss(x, aux, consts, j):
         return loss_fn(x.T, _take(aux, j), *consts)
 
-    def frame_index(n):
-        """(frame j clipped to a valid index, whether step n is a frame)."""
-        nc = jnp.minimum(n, n_steps)
-        j = jnp.asarray(table_j)[nc]
-        hit = j >= 0
-        if padded:
-            hit = hit & (n <= n_steps)
-        return jnp.maximum(j, 0), hit
-
-    def advance(params, s, n):
-        if padded:
-            return jax.lax.cond(n <= n_steps, lambda s: sim.internal_step(params, s), lambda s: s, s)
-        return sim.internal_step(params, s)
-
-    def forward(params, x0, u0, aux, consts, keep):
+    def forward(params, x0, u0, aux, consts, grads):
         dtype = x0.dtype
-        loss0 = frame_loss(x0, aux, consts, 0).astype(dtype) if first_frame else jnp.zeros((), dtype)
+        shape = x0.shape
+        keep_u = plan.keep_u
+        if grads:
+            aux_d, aux_rebuild, _ = _split(aux)
+            con_d, con_rebuild, _ = _split(consts)
+        if grads and plan.store:
+            n_buf = n_steps + 1
+        elif grads:
+            n_buf = n_seg + 1                           # one checkpoint per segment + a scratch slot
+        else:
+            n_buf = 0
+        bufs = (jnp.zeros((n_buf,) + shape, dtype), jnp.zeros((n_buf,) + shape, dtype) if keep_u else None) \
+            if grads else None
 
-        def one_step(carry, n):
-            s, acc = carry
-            s_new = advance(params, s, n)
-            j, hit = frame_index(n)
-            acc = acc + jax.lax.cond(hit, lambda: frame_loss(s_new.x, aux, consts, j).astype(dtype),
-                                     lambda: jnp.zeros((), dtype))
-            out = (s.x, s.v if plan.keep_u else None) if keep else None
-            return (s_new, acc), out
+        def record(bufs, n, s):
+            """Keep state ``n`` (every one, or the first of each segment) in the buffers."""
+            if plan.store:
+                i = n
+            else:
+                i = jnp.where(n % seg == 0, n // seg, n_seg)
+            xs, us = bufs
+            xs = jax.lax.dynamic_update_index_in_dim(xs, s.x, i, 0)
+            if keep_u:
+                us = jax.lax.dynamic_update_index_in_dim(us, s.v, i, 0)
+            return xs, us
 
-        def segment(carry, first):
-            start = carry[0]
-            carry, ys = jax.lax.scan(one_step, carry, first + jnp.arange(1, seg + 1))
-            return carry, (start if not keep else None, ys)
+        def one_step(n, carry):                         # step n: state n - 1 -> state n
+            s, bufs = carry
+            if grads:
+                bufs = record(bufs, n - 1, s)
+            return sim.internal_step(params, s), bufs
 
-        (s_end, loss), (ckpts, ys) = jax.lax.scan(segment, (State(x0, u0), loss0), jnp.arange(n_seg) * seg)
-        return loss, s_end, ckpts, ys
-
-    def split(tree):
-        """Leaves of ``tree`` that carry cotangents (inexact dtypes), and a rebuild function."""
-        leaves, treedef = jax.tree_util.tree_flatten(tree)
-        idx = [i for i, a in enumerate(leaves) if jnp.issubdtype(jnp.result_type(a), jnp.inexact)]
-
-        def rebuild(diff, like):
-            """``like`` (a tree of ``tree``'s structure) with its differentiable leaves replaced."""
-            out = jax.tree_util.tree_leaves(like)
-            for i, a in zip(idx, diff):
-                out[i] = a
-            return jax.tree_util.tree_unflatten(treedef, out)
-
-        def cotangent(diff_bar):
-            out = [np.zeros(np.shape(a), jax.dtypes.float0) for a in leaves]
-            for i, a in zip(idx, diff_bar):
-                out[i] = a
-            return jax.tree_util.tree_unflatten(treedef, out)
-
-        return [leaves[i] for i in idx], rebuild, cotangent
-
-    @jax.custom_vjp
-    def f(params, x0, u0, aux, consts):
-        return forward(params, x0, u0, aux, consts, keep=False)[0]
-
-    def fwd(params, x0, u0, aux, consts):
-        loss, s_end, ckpts, ys = forward(params, x0, u0, aux, consts, keep=plan.store)
-        return loss, (params, x0, s_end, ckpts, ys, aux, consts)
-
-    def bwd(res, g):
-        params, x0, s_end, ckpts, ys, aux, consts = res
-        dtype = x0.dtype
-        aux_d, aux_rebuild, aux_cot = split(aux)
-        con_d, con_rebuild, con_cot = split(consts)
-
-        def frame_vjp(x, j):
-            """(x_bar, aux_j_bar, consts_bar) of g * loss_fn at frame j, x (3, V)."""
+        def frame(carry, j):
+            s, bufs, acc, c_acc = carry
+            s, bufs = jax.lax.fori_loop(jnp.asarray(lo)[j] + 1, jnp.asarray(hi)[j] + 1, one_step, (s, bufs))
+            if not grads:
+                return (s, bufs, acc + frame_loss(s.x, aux, consts, j).astype(dtype), c_acc), None
             aux_j = _take(aux, j)
 
             def h(x, a_d, c_d):
-                a = aux_rebuild(a_d, aux_j)
-                return loss_fn(x.T, a, *con_rebuild(c_d, consts)).astype(dtype) * g
-            return jax.grad(h, argnums=(0, 1, 2))(x, [a[j] for a in aux_d], con_d)
+                return loss_fn(x.T, aux_rebuild(a_d, aux_j), *con_rebuild(c_d, consts)).astype(dtype)
+            val, (gx, ga, gc) = jax.value_and_grad(h, argnums=(0, 1, 2))(s.x, [a[j] for a in aux_d], con_d)
+            c_acc = [a + b for a, b in zip(c_acc, gc)]
+            return (s, bufs, acc + val, c_acc), (gx, ga)
 
-        def frame_zero(x):
-            return (jnp.zeros_like(x), [jnp.zeros(a.shape[1:], a.dtype) for a in aux_d],
-                    [jnp.zeros_like(c) for c in con_d])
+        c0 = [jnp.zeros_like(c) for c in con_d] if grads else []
+        (s_end, bufs, loss, c_acc), outs = jax.lax.scan(frame, (State(x0, u0), bufs, jnp.zeros((), dtype), c0),
+                                                        jnp.arange(n_frames))
+        if grads and plan.store:
+            bufs = record(bufs, n_steps, s_end)
+        return loss, s_end, bufs, outs, c_acc
 
-        def add_frame(carry, x, n):
-            x_bar, p_bar, a_bar, c_bar = carry
-            j, hit = frame_index(n)
-            fx, fa, fc = jax.lax.cond(hit, lambda: frame_vjp(x, j), lambda: frame_zero(x))
-            a_bar = [b.at[j].add(v) for b, v in zip(a_bar, fa)]
-            c_bar = [b + v for b, v in zip(c_bar, fc)]
-            return x_bar + fx, p_bar, a_bar, c_bar
+    @jax.custom_vjp
+    def f(params, x0, u0, aux, consts):
+        return forward(params, x0, u0, aux, consts, grads=False)[0]
 
-        def back_segment(carry, k):
-            """Reverse the ``seg`` steps of segment k. The state a step's VJP needs is read one
-            iteration ahead into the carry: XLA then gathers from a loop buffer rather than
-            fusing a dynamic slice of the stored trajectory into every gather (about 1.4x
-            faster here)."""
-            first = k * seg
-            if plan.store:
-                xs, us = ys[0][0], (ys[1][0] if plan.keep_u else None)
-            else:
-                xs, us = recompute(jax.tree_util.tree_map(lambda a: a[k], ckpts), first)
+    def fwd(params, x0, u0, aux, consts):
+        loss, s_end, bufs, (gx, ga), gc = forward(params, x0, u0, aux, consts, grads=True)
+        return loss, (params, s_end, bufs, gx, ga, gc, aux, consts)
 
-            def read(i):
-                x = jax.lax.dynamic_index_in_dim(xs, i, keepdims=False)
-                u = jax.lax.dynamic_index_in_dim(us, i, keepdims=False) if plan.keep_u else x
-                return x, u
+    def bwd(res, g):
+        params, s_end, (xs, us), gx, ga, gc, aux, consts = res
+        dtype = s_end.x.dtype
+        _, _, aux_cot = _split(aux)
+        _, _, con_cot = _split(consts)
+        frame_of = jnp.asarray(table_np)
+        gx = gx * g.astype(dtype)
 
-            def back_step(inner, i):
-                (x_bar, u_bar, p_bar, a_bar, c_bar), x_next, x, u = inner
-                n = first + i + 1                        # this iteration reverses step n: s_{n-1} -> s_n
-                x_bar, p_bar, a_bar, c_bar = add_frame((x_bar, p_bar, a_bar, c_bar), x_next, n)
+        def add_frame(x_bar, n):
+            j = frame_of[n]
+            hit = (j >= 0).astype(dtype)
+            return x_bar + hit * jax.lax.dynamic_index_in_dim(gx, jnp.maximum(j, 0), keepdims=False)
 
-                def vjp(x_bar, u_bar):
-                    return step_vjp(params, x, u, x_next, x_bar, u_bar)
+        def reverse(carry, states, first, last):
+            """Reverse steps last, ..., first + 1, with ``states(n)`` -> (x_n, u_n) for
+            first <= n <= last. The state a step's VJP needs is read one iteration ahead into the
+            carry: XLA then gathers from a loop buffer rather than fusing a dynamic slice of the
+            stored trajectory into every gather (about 1.4x faster here)."""
+            x_bar, u_bar, dens = carry
 
-                if padded:
-                    zero_p = jax.tree_util.tree_map(jnp.zeros_like, p_bar)
-                    x_bar, u_bar, pb = jax.lax.cond(n <= n_steps, vjp, lambda xb, ub: (xb, ub, zero_p),
-                                                    x_bar, u_bar)
-                else:
-                    x_bar, u_bar, pb = vjp(x_bar, u_bar)
-                p_bar = jax.tree_util.tree_map(jnp.add, p_bar, pb)
-                return ((x_bar, u_bar, p_bar, a_bar, c_bar), x) + read(jnp.maximum(i - 1, 0)), None
+            def body(i, inner):
+                (x_bar, u_bar, dens), x_next, x, u = inner
+                n = last - i                              # reverses step n: state n - 1 -> state n
+                x_bar = add_frame(x_bar, n)
+                x_bar, u_bar, d = step_vjp(params, x, u, x_next, x_bar, u_bar)
+                dens = jax.tree_util.tree_map(jnp.add, dens, d)
+                return ((x_bar, u_bar, dens), x) + states(jnp.maximum(n - 2, first))
 
-            cots, x_next = carry
-            inner, _ = jax.lax.scan(back_step, (cots, x_next) + read(seg - 1), jnp.arange(seg), reverse=True)
-            return inner[:2], None
+            init = ((x_bar, u_bar, dens), states(last)[0]) + states(last - 1)
+            out = jax.lax.fori_loop(0, last - first, body, init)
+            return out[0]
 
-        def recompute(start, first):
-            def body(s, n):
-                return advance(params, s, n), (s.x, s.v if plan.keep_u else None)
-            return jax.lax.scan(body, start, first + jnp.arange(1, seg + 1))[1]
+        zeros = jnp.zeros_like(s_end.x)
+        terms = sim.terms
+        per_v = jnp.zeros((topo.n_vertices,), dtype)
+        per_o = jnp.zeros((topo.n_objects,), dtype)
+        dens0 = _Dens(per_v, per_v if terms.dashpot else None, per_v if terms.verlet_damping else None,
+                      per_v if terms.drag else None, per_o, per_o,
+                      jax.tree_util.tree_map(jnp.zeros_like, params) if terms.contact else None)
+        carry = (zeros, zeros, dens0)
 
-        zeros = jnp.zeros_like(x0)
-        p_zero = jax.tree_util.tree_map(jnp.zeros_like, params)
-        init = ((zeros, zeros, p_zero, [jnp.zeros_like(a) for a in aux_d], [jnp.zeros_like(c) for c in con_d]),
-                s_end.x)
-        ((x_bar, u_bar, p_bar, a_bar, c_bar), _), _ = jax.lax.scan(back_segment, init, jnp.arange(n_seg),
-                                                                  reverse=True)
-        if first_frame:
-            fx, fa, fc = frame_vjp(x0, 0)
-            x_bar = x_bar + fx
-            a_bar = [b.at[0].add(v) for b, v in zip(a_bar, fa)]
-            c_bar = [b + v for b, v in zip(c_bar, fc)]
-        return p_bar, x_bar, u_bar, aux_cot(a_bar), con_cot(c_bar)
+        def read(buf_x, buf_u, i):
+            x = jax.lax.dynamic_index_in_dim(buf_x, i, keepdims=False)
+            u = jax.lax.dynamic_index_in_dim(buf_u, i, keepdims=False) if plan.keep_u else x
+            return x, u
+
+        if plan.store:
+            carry = reverse(carry, lambda n: read(xs, us, n), 0, n_steps)
+        else:
+            def recompute(k):
+                """States first, ..., last of segment k, from its checkpoint, in (seg + 1) buffers."""
+                first = k * seg
+                last = jnp.minimum(first + seg, n_steps)
+                s0 = State(*read(xs, us, k))
+                bx = jnp.zeros((seg + 1,) + zeros.shape, dtype).at[0].set(s0.x)
+                bu = jnp.zeros((seg + 1,) + zeros.shape, dtype).at[0].set(s0.v) if plan.keep_u else None
+
+                def body(i, c):
+                    s, bx, bu = c
+                    s = sim.internal_step(params, s)
+                    bx = jax.lax.dynamic_update_index_in_dim(bx, s.x, i, 0)
+                    if plan.keep_u:
+                        bu = jax.lax.dynamic_update_index_in_dim(bu, s.v, i, 0)
+                    return s, bx, bu
+                _, bx, bu = jax.lax.fori_loop(1, last - first + 1, body, (s0, bx, bu))
+                return first, last, bx, bu
+
+            def back_segment(carry, k):
+                first, last, bx, bu = recompute(k)
+                return reverse(carry, lambda n: read(bx, bu, n - first), first, last), None
+
+            carry, _ = jax.lax.scan(back_segment, carry, jnp.arange(n_seg), reverse=True)
+        x_bar, u_bar, dens = carry
+        x_bar = add_frame(x_bar, 0)
+        p_bar = _reduce_dens(topo, params, dens)
+        g_ = g.astype(dtype)
+        return (p_bar, x_bar, u_bar, aux_cot([a * g_ for a in ga]), con_cot([c * g_ for c in gc]))
 
     f.defvjp(fwd, bwd)
     return f

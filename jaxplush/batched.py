@@ -12,9 +12,18 @@ its *last* axis:
 * positions and velocities are component-major, batch-last: a tuple ``(x, y, z)`` of three
   (V, B) arrays (the public layout is (B, V, 3));
 * parameters are a :class:`jaxplush.types.Params` of (O, B) arrays;
-* the one-ring gathers are K row gathers ``x_c[ring[k]]`` (one per ring slot), each moving
-  contiguous rows of B floats, and every force term is elementwise on (V, B) arrays, which
-  XLA's CPU backend vectorises along B (benchmarks/RESULTS.md, "Batch sweeps").
+* the one-ring gather is one row gather over the flattened (K V,) neighbour table from the
+  three components side by side, each row 3 B contiguous floats, and every force term is
+  elementwise on (V, B) arrays, which XLA's CPU backend vectorises along B (benchmarks/RESULTS.md,
+  "Batch sweeps").
+
+:func:`rollout` runs a batch as independent chunks of ``bsim.chunk`` points (16 at B = 64,
+:func:`default_chunk`), one compiled call each, dispatched concurrently from a thread pool, one
+thread per CPU core: a 16-point step keeps its working set in a core's L2 cache, and the chunks
+use every core, where one call on the whole batch keeps about one core busy (its XLA
+operations mostly wait on each other). The rollout is compiled with two XLA:CPU options of its
+own (:data:`ROLLOUT_COMPILER_OPTIONS`). Points are independent, so chunking changes the results
+only by rounding (chunks of another width vectorise differently).
 
 Only the Verlet integrator is batched. A scene whose :class:`jaxplush.model.Terms` selects
 something this module does not implement (soft-soft contact, or a Terms field added later)
@@ -30,6 +39,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, NamedTuple
 
 import jax
@@ -44,6 +56,9 @@ from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
 #: not be silently dropped here).
 SUPPORTED_TERMS = frozenset({"spring", "dashpot", "drag", "gas", "gravity", "floor", "fixed",
                              "verlet_damping", "floor_friction", "floor_restitution"})
+
+#: Points per compiled rollout call of a larger batch (:func:`default_chunk`).
+MAX_CHUNK = 16
 
 
 class BatchedHealth(NamedTuple):
@@ -81,6 +96,7 @@ class BatchedSimulator:
       force_fn: (params, x, v) -> (f, volume): internal forces (tuple of 3 (V, B)), volumes
         (O, B) or None without gas.
       topology, terms, dt, substeps, batch, scene, dtype: how it was built.
+      chunk: points per compiled rollout call (see :func:`rollout`).
     """
 
     init_fn: Callable
@@ -94,6 +110,7 @@ class BatchedSimulator:
     batch: int
     scene: object
     dtype: object
+    chunk: int = None
     integrator: str = "verlet"
 
     def params(self, values=None):
@@ -153,7 +170,7 @@ def terms_for(scene, params=None):
     return dataclasses.replace(terms, **{k: getattr(terms, k) or v for k, v in on.items()})
 
 
-def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, substeps=1):
+def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, substeps=1, chunk=None):
     """Build the batched step for a scene.
 
     Args:
@@ -163,13 +180,15 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
       integrator: only "verlet" is batched.
       terms: the :class:`jaxplush.model.Terms` to compile (default: :func:`terms_for` the scene).
       substeps: Verlet steps of dt / substeps per ``step_fn`` call (as in make_simulator).
+      chunk: points per compiled rollout call (:func:`rollout` runs the batch as independent
+        chunks, concurrently on the CPU's cores); default :func:`default_chunk` (16).
 
     Returns:
       :class:`BatchedSimulator` (float64 when ``jax_enable_x64`` is on, else float32).
 
     Raises:
       NotImplementedError: another integrator, or terms this module does not implement.
-      ValueError: bad dt, batch or substeps.
+      ValueError: bad dt, batch, substeps or chunk.
     """
     if integrator != "verlet":
         raise NotImplementedError(f"the batched simulator implements only the 'verlet' integrator, "
@@ -177,11 +196,11 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     dt = float(dt)
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive number, got {dt!r}")
-    if isinstance(batch, bool) or int(batch) != batch or batch < 1:
-        raise ValueError(f"batch must be a positive integer, got {batch!r}")
-    if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
-        raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+    for name, value in (("batch", batch), ("substeps", substeps)) + ((("chunk", chunk),) if chunk is not None else ()):
+        if isinstance(value, bool) or int(value) != value or value < 1:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
     batch, substeps = int(batch), int(substeps)
+    chunk = default_chunk(batch) if chunk is None else min(int(chunk), batch)
     h = dt / substeps
     terms = terms_for(scene) if terms is None else terms
     check_terms(terms)
@@ -241,7 +260,24 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
 
     return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=kernel,
                             topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
-                            dtype=dtype)
+                            dtype=dtype, chunk=chunk)
+
+
+def default_chunk(batch):
+    """Points per compiled rollout call for a batch of ``batch``: the whole batch up to
+    :data:`MAX_CHUNK` points, else chunks of MAX_CHUNK (the last one padded), which run
+    concurrently, one per core. Measured at 642 vertices (float32; benchmarks/bench_sweep.py):
+    a 16-point chunk's step keeps its working set (about 1 MB) in the core's 2 MB L2 cache and
+    fills whole 512-bit vectors; 32-point chunks cost 2.5x the CPU time per point-step, 8-point
+    ones 2x, and widths that are no multiple of 8 (11, 13, 22) over 3x."""
+    return batch if batch <= MAX_CHUNK else MAX_CHUNK
+
+
+def _n_cores():
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:                 # not on Linux
+        return os.cpu_count() or 1
 
 
 def _make_floor(topo, terms, scene, h):
@@ -305,23 +341,28 @@ def _make_force_fn(topo, terms, temperature):
     mask = np.ascontiguousarray(topo.ring_mask.T)
     rest = np.ascontiguousarray(topo.ring_rest.T)
     n_ring = ring.shape[0]
-    slots = [np.ascontiguousarray(ring[k]) for k in range(n_ring)]
+    flat = ring.reshape(-1)
     full = [bool(mask[k].all()) for k in range(n_ring)]
     rt = GAS_CONSTANT * temperature
 
-    def gather(a, k):
-        # One row gather per ring slot: 1-D index table, rows of B contiguous floats. (A single
-        # (K, V) index gather, or one over the flattened table, is ~100x slower on XLA:CPU.)
-        return a.at[slots[k]].get(mode="promise_in_bounds")
+    def neighbours(a):
+        """K x 3 x (V, B): component c of a at every vertex's k-th ring neighbour. One row
+        gather over the flattened (K V,) table from the three components side by side (rows of
+        3 B contiguous floats): one XLA op instead of 3 K (each op costs ~1 us of dispatch in
+        XLA:CPU's while loop, as much as a gather's own work at small B)."""
+        b = a[0].shape[1]
+        g = jnp.concatenate(a, axis=1).at[flat].get(mode="promise_in_bounds").reshape(n_ring, -1, 3 * b)
+        return [[g[k, :, c * b:(c + 1) * b] for c in range(3)] for k in range(n_ring)]
 
     def force_fn(params, x, v):
         dtype = x[0].dtype
         eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
         with jax.named_scope("spring"):
-            d = [[gather(x[c], k) - x[c] for c in range(3)] for k in range(n_ring)]   # K x 3 x (V, B)
+            d = [[n[c] - x[c] for c in range(3)] for n in neighbours(x)]            # K x 3 x (V, B)
             k_v = _per_vertex(topo, params.k_structural)
             if terms.dashpot:
                 c_v = _per_vertex(topo, params.dashpot)
+                vn = neighbours(v)
             f = [0.0, 0.0, 0.0]
             for k in range(n_ring):
                 dx, dy, dz = d[k]
@@ -329,7 +370,7 @@ def _make_force_fn(topo, terms, temperature):
                 w = k_v * (1.0 - jnp.asarray(rest[k], dtype)[:, None] * inv_l)          # T / l
                 if terms.dashpot:
                     with jax.named_scope("dashpot"):
-                        dv = [gather(v[c], k) - v[c] for c in range(3)]
+                        dv = [vn[k][c] - v[c] for c in range(3)]
                         w = w + c_v * (dv[0] * dx + dv[1] * dy + dv[2] * dz) * inv_l * inv_l
                 if not full[k]:
                     w = jnp.where(mask[k][:, None], w, 0.0)
@@ -438,14 +479,87 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
     return state, out, health
 
 
-_core_jit = jax.jit(_core, static_argnames=("bsim", "n_frames", "save_every", "observe"))
+#: XLA:CPU compiler options of the rollout, set on this one function (no process-wide flag),
+#: each measured with benchmarks/bench_sweep.py on this repo's 2-core AVX-512 Xeon: 512-bit
+#: vectors (XLA prefers 256 even where AVX-512 exists; ~10% fewer CPU cycles per step), and
+#: XLA's own loop for the volume reduction instead of a YNNPACK call (~15% fewer: the call
+#: costs more than the 642-row sum it does). Results agree with the defaults to rounding.
+#: Where the installed XLA rejects them, the rollout compiles with the defaults.
+ROLLOUT_COMPILER_OPTIONS = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_ynn_fusion_type": ""}
+
+
+class _LazyJit:
+    """``jax.jit(fn, compiler_options=ROLLOUT_COMPILER_OPTIONS)``, built at first use after
+    checking that this jax/XLA accepts the options (a tiny compile), else a plain jit."""
+
+    def __init__(self, fn, static_argnames):
+        self._fn, self._static, self._jit = fn, static_argnames, None
+        self._lock = threading.Lock()
+
+    def _get(self):
+        with self._lock:
+            if self._jit is None:
+                kw = dict(compiler_options=dict(ROLLOUT_COMPILER_OPTIONS))
+                try:
+                    jax.jit(lambda a: a + 1, **kw).lower(np.float32(0)).compile()
+                except Exception:                       # unknown option, or no compiler_options
+                    kw = {}
+                self._jit = jax.jit(self._fn, static_argnames=self._static, **kw)
+            return self._jit
+
+    def __call__(self, *args, **kwargs):
+        return self._get()(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._get(), name)
+
+
+_core_jit = _LazyJit(_core, ("bsim", "n_frames", "save_every", "observe"))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _split(tree, n, chunk):
+    """Every leaf (batch on its last axis) padded to n * chunk points by repeating its last point,
+    then cut into n chunks: a list of n trees."""
+    def cut(a, i):
+        pad = n * chunk - a.shape[-1]
+        if pad:
+            a = jnp.concatenate([a, jnp.repeat(a[..., -1:], pad, axis=-1)], axis=-1)
+        return a[..., i * chunk:(i + 1) * chunk]
+    return [jax.tree_util.tree_map(lambda a: cut(a, i), tree) for i in range(n)]
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _join(parts, batch):
+    """Inverse of _split for rollout outputs (padding dropped): state and health leaves joined on
+    their last axis, observations (frames first, then the batch) on axis 1."""
+    def cat(axis):
+        return lambda *a: jax.lax.slice_in_dim(jnp.concatenate(a, axis=axis), 0, batch, axis=axis)
+    (states, outs, healths) = zip(*parts)
+    out = None if outs[0] is None else jax.tree_util.tree_map(cat(1), *outs)
+    return (jax.tree_util.tree_map(cat(-1), *states), out, jax.tree_util.tree_map(cat(-1), *healths))
+
+
+_pool_lock = threading.Lock()
+_pool = None
+
+
+def _executor():
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=_n_cores(), thread_name_prefix="jaxplush-batched")
+        return _pool
 
 
 def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0, observe=None, aux=None):
     """Run ``n_frames * save_every`` steps of every point, checking health every ``save_every``.
 
     Compiled once per (simulator, n_frames, save_every, observe); new parameter values, states
-    or ``aux`` reuse it.
+    or ``aux`` reuse it. The batch runs as ceil(batch / bsim.chunk) independent chunks (the last
+    one padded with copies of the last point), one compiled call each, dispatched from a pool of
+    threads (one per CPU core) so that they run concurrently; points are independent, so the
+    result is that of one call on the whole batch (to rounding).
 
     Args:
       bsim: :class:`BatchedSimulator`.
@@ -456,19 +570,44 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
       step0: step number of ``state`` (scalar or (B,)), for chunked runs.
       observe: optional static ``observe(params, i, x, aux) -> pytree`` evaluated after frame i
         (0-based within this call) on the internal positions x; its outputs are stacked over
-        frames. Default: no per-frame output. :func:`positions_observer` keeps the positions.
-      aux: traced data passed to ``observe`` (e.g. target frames).
+        frames. Every output leaf must have the batch on its leading axis (as
+        :func:`positions_observer`'s (B, V, 3)). Default: no per-frame output.
+      aux: traced data passed to ``observe`` (e.g. target frames), shared by all points.
 
     Returns:
-      (final internal state, stacked observations or None, health).
+      (final internal state, stacked observations (frames, B, ...) or None, health).
     """
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
     step0 = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (bsim.batch,))
     if health is None:
         health = initial_health(bsim, state, step0)
-    return _core_jit(bsim, params, state, health, step0, aux, n_frames=int(n_frames),
-                     save_every=int(save_every), observe=observe)
+    static = dict(n_frames=int(n_frames), save_every=int(save_every), observe=observe)
+    n = -(-bsim.batch // (bsim.chunk or bsim.batch))
+    if n == 1:
+        return _core_jit(bsim, params, state, health, step0, aux, **static)
+    parts = _split((params, state, health, step0), n, bsim.chunk)
+    out = [None] * n
+    todo = iter(range(1, n))
+    lock = threading.Lock()
+
+    def work():                       # run chunks until none is left, one at a time
+        while True:
+            with lock:
+                i = next(todo, None)
+            if i is None:
+                return
+            out[i] = jax.block_until_ready(_core_jit(bsim, *parts[i], aux, **static))
+
+    # Chunk 0 here first (it compiles, once), then this thread and (cores - 1) pool threads each
+    # run one chunk at a time: as many chunks in flight as cores.
+    out[0] = _core_jit(bsim, *parts[0], aux, **static)
+    helpers = [_executor().submit(work) for _ in range(min(_n_cores(), n) - 1)]
+    jax.block_until_ready(out[0])
+    work()
+    for h in helpers:
+        h.result()
+    return _join(out, bsim.batch)
 
 
 def positions_observer(params, i, x, aux):
@@ -491,8 +630,7 @@ def locate_failures(bsim, params, health):
     start = np.asarray(health.good_step)
     span = int(np.max(np.where(bad >= 0, bad - start[None], 0)))
     fresh = initial_health(bsim, health.good_state, start)
-    _, _, h = _core_jit(bsim, params, health.good_state, fresh, jnp.asarray(start, jnp.int32), None,
-                        n_frames=max(span, 1), save_every=1, observe=None)
+    _, _, h = rollout(bsim, params, health.good_state, max(span, 1), 1, health=fresh, step0=start)
     b, c = np.asarray(h.bad_step), np.asarray(h.code)
     found = (bad >= 0) & (b >= 0)
     # (found is all of bad >= 0 for a deterministic step; otherwise keep the frame-level record)

@@ -186,17 +186,28 @@ def verlet(system):
             u = u.at[:, fixed].set(0.0)
         return State(x, u)
 
+    gravity = [float(g) for g in np.asarray(system.gravity).reshape(3)]
+
     def step(params, state):
+        # system.accel's arithmetic, written row by row (x, y, z) and stacked at the end: XLA
+        # then fuses the update into fewer loops over V (about 5% faster per step).
         x, u = state
-        a, _ = system.accel(params, x, u)
+        f, _ = system.kernel(params, x, u)
+        inv_m = 1.0 / model.vertex_mass(topo, params)
+        keep = None
         if terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
-                f = model.per_vertex(topo, damping_factor(params.damping))
-                u_new = (1.0 - f) * u + a * h
-        else:
-            u_new = u + a * h
-        x_new = x + u_new * h
-        x_new, u_new = system.constrain(x, x_new, u_new)
+                keep = 1.0 - model.per_vertex(topo, damping_factor(params.damping))
+        xs, us = [], []
+        for c in range(3):
+            a = f[c] * inv_m
+            if terms.gravity:
+                with jax.named_scope("gravity"):
+                    a = a + jnp.asarray(gravity[c], x.dtype)
+            uc = (u[c] if keep is None else keep * u[c]) + a * h
+            us.append(uc)
+            xs.append(x[c] + uc * h)
+        x_new, u_new = system.constrain(x, jnp.stack(xs), jnp.stack(us))
         return State(x_new, u_new)
 
     def velocity(params, state):

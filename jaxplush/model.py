@@ -123,7 +123,10 @@ class Terms:
                    floor_restitution=float(getattr(scene, "floor_restitution", 0.0)) if has_floor else 0.0)
 
     def names(self):
-        return tuple(f.name for f in dataclasses.fields(self) if getattr(self, f.name))
+        out = tuple(f.name for f in dataclasses.fields(self) if getattr(self, f.name))
+        if self.contact and getattr(self.contact, "friction", 0.0) > 0:
+            out += ("contact_friction",)
+        return out
 
 
 def per_vertex(topo, values):
@@ -155,7 +158,7 @@ def pressure(topo, params, volume, temperature):
     return params.nmol * (GAS_CONSTANT * temperature) / jnp.maximum(volume, VOLUME_EPS * v0)
 
 
-def make_force_fn(topo, terms, temperature, assembly="ring"):
+def make_force_fn(topo, terms, temperature, assembly="ring", h=None):
     """Build the force kernel ``force_fn(params, x, v) -> (f, volume)`` on component-major arrays.
 
     The kernel works on (3, V) arrays (x, y, z rows): every gather then moves single floats
@@ -171,6 +174,8 @@ def make_force_fn(topo, terms, temperature, assembly="ring"):
       temperature: gas temperature (K), a Python float.
       assembly: "ring" (per-vertex one-ring gathers, default) or "segment" (per-edge and
         per-face terms scattered with ``segment_sum``).
+      h: the integrator's step, s; needed only by contact friction (which at most stops the
+        relative sliding within one step).
 
     Returns:
       force_fn: (params, x (3, V), v (3, V)) -> (f (3, V) internal forces in N, volume (O,) or
@@ -185,12 +190,12 @@ def make_force_fn(topo, terms, temperature, assembly="ring"):
     if not terms.contact:
         return kernel
     from jaxplush import contact as _contact
-    contact_force = _contact.make_contact_force(topo, terms.contact)
+    contact_force = _contact.make_contact_force(topo, terms.contact, h)
 
     def force_fn(params, x, v):
         f, volume = kernel(params, x, v)
         with jax.named_scope("contact"):
-            f = f + contact_force(params, x)
+            f = f + contact_force(params, x, v)
         return f, volume
 
     return force_fn
@@ -206,44 +211,65 @@ def _object_volumes_soa(topo, x, g):
     return per_object_sum(topo, jnp.sum((x - r) * g, axis=0)) / 3.0
 
 
+def _sum_rows(ops):
+    """Sums over axis 0 of several equal-shape (K, V) arrays as ONE variadic reduction.
+
+    XLA then emits a single loop over V that evaluates every operand per neighbour slot and
+    keeps the K-sums in registers, instead of one reduction (and one pass over the gathered
+    table) per output component.
+    """
+    zero = jnp.zeros((), ops[0].dtype)
+    return jax.lax.reduce(tuple(ops), (zero,) * len(ops),
+                          lambda a, b: tuple(ai + bi for ai, bi in zip(a, b)), (0,))
+
+
 def _ring_force_fn(topo, terms, temperature):
-    # Neighbour-major (K, V) tables: each gather X[ring] then fills contiguous rows and the
-    # sums over the ring run across rows, which vectorises along V (benchmarks/RESULTS.md).
-    ring = np.ascontiguousarray(topo.ring.T)
+    # Neighbour-major tables: row j of the (K+1, V) index table holds every vertex's j-th ring
+    # neighbour and row K repeats row 0, so "the next neighbour" of slot j is row j+1. One
+    # gather -> (3 or 6, K(+1), V) (velocities stacked under positions for the dashpot) feeds
+    # variadic reductions over the rows (_sum_rows), each one fused, vectorised loop over V
+    # that reads the gathered table. XLA fuses a gather with a single consumer into it, and a
+    # reduction with a fused gather is not vectorised (2x slower), so the table always has two
+    # consumers: the spring and gas reductions, or, without gas, the spring force split into
+    # (x, y) and (z) reductions (benchmarks/RESULTS.md).
+    ring = np.ascontiguousarray(topo.ring.T)                            # (K, V)
+    n_slots = ring.shape[0]
+    table = np.ascontiguousarray(np.concatenate([ring, ring[:1]], axis=0)) if terms.gas else ring
     mask = np.ascontiguousarray(topo.ring_mask.T)
     ring_rest = np.ascontiguousarray(topo.ring_rest.T)
     all_real = bool(mask.all())
-
-    def gather(a):
-        return a.at[ring].get(mode="promise_in_bounds")      # (K, V); indices are valid by construction
 
     def force_fn(params, x, v):
         dtype = x.dtype
         rest = jnp.asarray(ring_rest, dtype)
         eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
         with jax.named_scope("spring"):
-            d = [gather(x[c]) - x[c] for c in range(3)]                 # 3 x (K, V)
+            src = jnp.concatenate([x, v]) if terms.dashpot else x
+            t = src.at[:, table].get(mode="promise_in_bounds")          # indices valid by construction
+            de = [t[c] - x[c] for c in range(3)]                        # 3 x (K(+1), V)
+            d = [dc[:n_slots] for dc in de]                             # 3 x (K, V)
             inv_l = jax.lax.rsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + eps2)
             k = per_vertex(topo, params.k_structural)
             w = k * (1.0 - rest * inv_l)                                # T / l
             if terms.dashpot:
                 with jax.named_scope("dashpot"):
-                    dv = [gather(v[c]) - v[c] for c in range(3)]
+                    dv = [t[3 + c, :n_slots] - v[c] for c in range(3)]
                     c_ = per_vertex(topo, params.dashpot)
                     w = w + c_ * (dv[0] * d[0] + dv[1] * d[1] + dv[2] * d[2]) * inv_l * inv_l
             if not all_real:
                 w = jnp.where(mask, w, 0.0)
-            f = jnp.stack([jnp.sum(w * d[c], axis=0) for c in range(3)])
+            fs = [w * d[c] for c in range(3)]
+            f = jnp.stack(_sum_rows(fs) if terms.gas else _sum_rows(fs[:2]) + _sum_rows(fs[2:]))
         if terms.drag:
             with jax.named_scope("drag"):
                 f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params)) * v
         volume = None
         if terms.gas:
             with jax.named_scope("gas"):
-                n = [jnp.roll(dc, -1, axis=0) for dc in d]              # next neighbour in the ring
-                g = jnp.stack([jnp.sum(d[1] * n[2] - d[2] * n[1], axis=0),
-                               jnp.sum(d[2] * n[0] - d[0] * n[2], axis=0),
-                               jnp.sum(d[0] * n[1] - d[1] * n[0], axis=0)]) / 6.0
+                n = [dc[1:] for dc in de]                               # next neighbour in the ring
+                g = jnp.stack(_sum_rows([d[1] * n[2] - d[2] * n[1],
+                                         d[2] * n[0] - d[0] * n[2],
+                                         d[0] * n[1] - d[1] * n[0]])) / 6.0
                 volume = _object_volumes_soa(topo, x, g)
                 p = pressure(topo, params, volume, temperature)
                 f = f + per_vertex(topo, p) * g

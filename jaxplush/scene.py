@@ -24,11 +24,12 @@ Scene level (anywhere, at most once each):
   ``floor_restitution E``   floor restitution (0 <= E <= 1; default 0: vertices stop on impact)
   ``contact on|off``        soft-soft contact between objects (default on when there are several)
   ``self_collision on|off`` each object against its own faces (default off; O(N²), small meshes)
+  ``contact_friction MU``   Coulomb friction between objects in contact (>= 0; default 0: none)
   ``contact_stiffness K``   contact penalty stiffness, N/m (> 0; default 0.1 x 2 n_max min(k_A, k_B),
                             which scales with the objects' stiffness and mass, see jaxplush.contact)
   ``contact_thickness D``   contact thickness, m (> 0; default half the finer mean edge length)
   ``contact_capacity N``    candidate vertices per object and pair (integer >= 1; default
-                            max(128, n/8)); a run that needs more stops with an error
+                            max(64, n/16)); jaxplush.simulate reruns with a larger one if needed
 
 An object's vertices are the vertices its faces use; indices in ``f`` and ``fixed`` are
 1-based and global to the file, or negative (relative to the vertices defined so far).
@@ -70,6 +71,7 @@ _SCENE_KEYS = {
     "temperature": (1, lambda v: v > 0, "must be > 0"),
     "floor_friction": (1, lambda v: v >= 0, "must be >= 0"),
     "floor_restitution": (1, lambda v: 0 <= v <= 1, "must be between 0 and 1"),
+    "contact_friction": (1, lambda v: v >= 0, "must be >= 0"),
     "contact_stiffness": (1, lambda v: v > 0, "must be > 0 (N/m)"),
     "contact_thickness": (1, lambda v: v > 0, "must be > 0 (m)"),
     "contact_capacity": (1, lambda v: v >= 1 and v == int(v) and v < 2 ** 31, "must be an integer >= 1"),
@@ -125,7 +127,7 @@ class Scene:
       floor_friction, floor_restitution: floor Coulomb coefficient and restitution (0: none).
       contact, self_collision: soft-soft contact between objects / of each object with itself.
       contact_stiffness (N/m), contact_thickness (m), contact_capacity: None for the defaults
-        of :mod:`jaxplush.contact`.
+        of :mod:`jaxplush.contact`; contact_friction: Coulomb coefficient between objects (0: none).
     """
 
     path: str
@@ -144,6 +146,7 @@ class Scene:
     contact_stiffness: float | None = None
     contact_thickness: float | None = None
     contact_capacity: int | None = None
+    contact_friction: float = 0.0
 
     @property
     def n_objects(self):
@@ -466,7 +469,8 @@ class _Parser:
                     raise self.err(self.scene_keys[key][1], f"'{key}' needs a 'floor'")
         extra = {k: self.scene_keys[k][0][0] for k in ("floor_friction", "floor_restitution", "contact",
                                                         "self_collision", "contact_stiffness",
-                                                        "contact_thickness") if k in self.scene_keys}
+                                                        "contact_thickness", "contact_friction")
+                 if k in self.scene_keys}
         if "contact_capacity" in self.scene_keys:
             extra["contact_capacity"] = int(self.scene_keys["contact_capacity"][0][0])
         if floor is not None:

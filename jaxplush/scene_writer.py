@@ -11,7 +11,7 @@ The format (read by :func:`jaxplush.load_scene`):
 * Scene keywords, written at the top: ``gravity GX GY GZ``, ``floor H``, ``temperature T``,
   and the contact keywords ``floor_friction MU``, ``floor_restitution E``, ``contact on|off``,
   ``self_collision on|off``, ``contact_stiffness K``, ``contact_thickness D``,
-  ``contact_capacity N`` (see :mod:`jaxplush.scene`).
+  ``contact_capacity N``, ``contact_friction MU`` (see :mod:`jaxplush.scene`).
 
 Objects are given in their own coordinates with 0-based *local* face and fixed indices;
 :func:`format_scene` offsets them to 1-based global indices. Every float is written with
@@ -153,6 +153,7 @@ def format_scene(
     contact_stiffness: float | None = None,
     contact_thickness: float | None = None,
     contact_capacity: int | None = None,
+    contact_friction: float | None = None,
 ) -> str:
     """Return the text of a scene file.
 
@@ -172,6 +173,7 @@ def format_scene(
       contact, self_collision: write ``contact on|off`` / ``self_collision on|off``.
       contact_stiffness (N/m, > 0), contact_thickness (m, > 0), contact_capacity (int >= 1):
         override the contact defaults. None leaves any of these out (the parser's default).
+      contact_friction: Coulomb coefficient between objects (>= 0).
 
     Returns:
       The file contents (ends with a newline).
@@ -208,7 +210,8 @@ def format_scene(
             ("floor_friction", floor_friction, lambda v: v >= 0, ">= 0"),
             ("floor_restitution", floor_restitution, lambda v: 0 <= v <= 1, "in [0, 1]"),
             ("contact_stiffness", contact_stiffness, lambda v: v > 0, "> 0"),
-            ("contact_thickness", contact_thickness, lambda v: v > 0, "> 0")):
+            ("contact_thickness", contact_thickness, lambda v: v > 0, "> 0"),
+            ("contact_friction", contact_friction, lambda v: v >= 0, ">= 0")):
         if val is None:
             continue
         v = float(val)

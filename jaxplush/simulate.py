@@ -79,9 +79,44 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
     Returns:
       :class:`Trajectory`.
 
+    Soft-soft contact keeps fixed-capacity candidate lists (:mod:`jaxplush.contact`); if a pair
+    overflows them, the run is repeated with a larger capacity (up to
+    :data:`MAX_CAPACITY_RETRIES` times), with a warning naming the capacity to set in the scene.
+
     Raises:
       SimulationError: the run blew up (which step, which object, why).
     """
+    sim = sim or make_simulator(scene, dt, integrator, substeps=substeps)
+    notes = ()
+    for attempt in range(MAX_CAPACITY_RETRIES + 1):
+        try:
+            traj = _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
+                             retry=attempt < MAX_CAPACITY_RETRIES)
+            return dataclasses.replace(traj, warnings=notes + traj.warnings) if notes else traj
+        except _CapacityOverflow as e:
+            # The candidate lists of soft-soft contact were too short: the step cannot be exact.
+            # The result does not depend on the capacity, so rerun with a larger one.
+            from jaxplush import contact
+            need = -(-int(1.25 * e.need) // 32) * 32
+            msg = (f"contact candidates overflowed at step {e.step} ({e.detail}); reran with "
+                   f"contact_capacity {need} (set it in the scene to skip the rerun)")
+            warnings.warn(msg, stacklevel=2)
+            notes += (msg,)
+            sim = make_simulator(scene, sim.dt, sim.integrator, terms=contact.with_capacity(sim.terms, need),
+                                 substeps=sim.substeps)
+
+
+#: How often :func:`simulate` raises the contact capacity and reruns before giving up.
+MAX_CAPACITY_RETRIES = 4
+
+
+class _CapacityOverflow(Exception):
+    def __init__(self, step, need, detail):
+        super().__init__(detail)
+        self.step, self.need, self.detail = step, need, detail
+
+
+def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim, retry=True):
     steps = int(steps)
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
@@ -91,7 +126,6 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
     if save_every < 1:
         raise ValueError(f"save_every must be >= 1, got {save_every}")
     t0 = time.perf_counter()
-    sim = sim or make_simulator(scene, dt, integrator, substeps=substeps)
     p = sim.params(params)
     notes = []
     if check_dt and sim.integrator not in stability.UNCONDITIONAL:
@@ -133,7 +167,11 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
             n = step - 1 - int(health.good_step)
             if n >= 1:
                 before = _rollout.rollout(sim, p, before, 1, n)[0]
-            hint = contact.capacity_report(sim, before.x) or hint
+            report = contact.capacity_report(sim, before.x)
+            if report is not None and retry:
+                need = max(max(c[1], c[2]) for c in contact.candidate_counts(sim, before.x))
+                raise _CapacityOverflow(step, need, report.split(":")[0])
+            hint = report or hint
         raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code], hint=hint)
     positions = np.concatenate([frames[0][None]] + frames[1:], axis=0)
     saved = np.arange(len(positions)) * save_every

@@ -104,7 +104,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     dtype = jnp.result_type(float)
     topo = model.build_topology(scene)
     terms = model.Terms.for_scene(scene) if terms is None else terms
-    kernel = model.make_force_fn(topo, terms, scene.temperature, assembly)
+    kernel = model.make_force_fn(topo, terms, scene.temperature, assembly, h=h)
     system = integrators.System(
         topo=topo, terms=terms, kernel=kernel, gravity=np.asarray(scene.gravity, np.float64)[:, None],
         constrain=constraints.make_constrain(topo, terms, scene, h), h=h, temperature=scene.temperature)

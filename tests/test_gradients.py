@@ -322,3 +322,27 @@ def test_vmap_over_params_and_integer_aux():
     grad_plain = jax.jit(jax.grad(functools.partial(f, method="plain")))
     ref = [grad_plain(p._replace(k_structural=k[None])).k_structural[0] for k in ks]
     np.testing.assert_allclose(got, ref, rtol=1e-4)
+
+
+@pytest.mark.parametrize("frames,segment", [((7, 14, 21, 23), 7), ((1, 2, 9), 1), ((0, 4, 8), 4)])
+def test_adjoint_frames_on_segment_boundaries(x64, frames, segment):
+    """Frames that fall on checkpoint boundaries, on every step, at step 0 and in a short last
+    segment: the adjoint (recomputing segments, and storing every state) equals plain autodiff."""
+    sim, p, _ = _setup("full")
+    v0 = _v0(sim)
+    x0 = np.asarray(sim.topology.x0)
+    rng = np.random.default_rng(5)
+    aux = (jnp.asarray(x0[None] + 1e-3 * rng.standard_normal((len(frames),) + x0.shape)),
+           jnp.linspace(0.5, 1.5, len(frames))[:, None] * jnp.ones((1, sim.topology.n_vertices)))
+
+    def f(q, method, seg):
+        return G.rollout_loss(sim, q, sim.init_fn(q, v0=v0), frames, _sq_loss, aux, method=method, segment=seg)
+
+    ref_v, ref_g = jax.jit(jax.value_and_grad(functools.partial(f, method="plain", seg=None)))(p)
+    ref_g = np.asarray(jnp.stack(list(ref_g)))
+    assert np.abs(ref_g).max() > 0
+    for seg in (segment, None):
+        v, g = jax.jit(jax.value_and_grad(functools.partial(f, method="adjoint", seg=seg)))(p)
+        assert float(v) == pytest.approx(float(ref_v), rel=1e-12)
+        np.testing.assert_allclose(np.asarray(jnp.stack(list(g))), ref_g, rtol=1e-10,
+                                   atol=1e-10 * np.abs(ref_g).max(), err_msg=str(seg))

@@ -90,6 +90,21 @@ def test_ring_and_segment_assemblies_agree(x64):
     assert jnp.allclose(out[0][1], out[1][1], rtol=1e-12)
 
 
+@pytest.mark.parametrize("kw", [dict(), dict(dashpot=0.02, drag=3.0)], ids=["spring", "spring+dashpot+drag"])
+def test_ring_and_segment_assemblies_agree_without_gas(x64, kw):
+    """The gas-free ring kernel (no next-neighbour row; spring force as two reductions)."""
+    text = (icosphere_text(subdivisions=1, **kw)
+            + icosphere_text(subdivisions=2, k=50.0, translate=(1, 0, 0), name="b2", offset=42,
+                             header=False, **kw))
+    scene = jaxplush.parse_scene(text, "<two, no gas>")
+    x = jnp.asarray(_perturbed(scene, 0.05))
+    v = jnp.asarray(np.random.default_rng(4).standard_normal(x.shape))
+    sims = [jaxplush.make_simulator(scene, 1e-4, assembly=a) for a in ("ring", "segment")]
+    out = [sim.force_fn(sim.params(), x, v) for sim in sims]
+    assert out[0][1] is None and out[1][1] is None
+    assert jnp.abs(out[0][0] - out[1][0]).max() < 1e-10 * jnp.abs(out[0][0]).max()
+
+
 # 3. Energy -----------------------------------------------------------------------------------
 
 def _energy_error(dt, t_end=0.2):
