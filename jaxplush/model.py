@@ -195,7 +195,7 @@ def make_force_fn(topo, terms, temperature, assembly="ring", h=None):
     def force_fn(params, x, v):
         f, volume = kernel(params, x, v)
         with jax.named_scope("contact"):
-            f = f + contact_force(params, x, v)
+            f = contact_force(params, x, v, base=f)
         return f, volume
 
     return force_fn
