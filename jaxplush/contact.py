@@ -49,6 +49,7 @@ stiffness. ``contact_stiffness K`` (N/m) in a scene fixes it instead.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -216,12 +217,23 @@ def _pick(a, j):
     return jnp.take_along_axis(a, j[:, None], 1, mode="promise_in_bounds")[:, 0]
 
 
-def _closest(p, a, b, c, tiny):
-    """Closest point of triangles (a, b, c) to points p (all broadcastable tuples).
+class _Closest(NamedTuple):
+    d2: jax.Array       # squared unsigned distance
+    inside: jax.Array   # the closest point is interior to the triangle
+    plane: jax.Array    # signed plane distance (p - a).n
+    e: jax.Array        # nearest edge (0: ab, 1: bc, 2: ca), used only where not ``inside``
+    t: jax.Array        # parameter in [0, 1] of the closest point along edge e
+    v: jax.Array        # barycentric weights of b and c of the projection on the plane
+    w: jax.Array
+    n: tuple            # unit outward plane normal
+    r: tuple            # p minus the closest point of edge e
 
-    Returns (d2, inside, plane, e, t): the squared unsigned distance, whether the closest point is
-    interior, the signed plane distance (p - a).n^, the nearest edge e (0: ab, 1: bc, 2: ca) and the
-    parameter t in [0, 1] of the closest point along it (used only where not ``inside``).
+
+def _closest(p, a, b, c, tiny):
+    """Closest point of triangles (a, b, c) to points p (all broadcastable tuples): a :class:`_Closest`.
+
+    Interior: the plane projection (barycentric weights 1 - v - w, v, w); elsewhere the nearest
+    point of the nearest edge. Unused fields cost nothing under ``jit`` (dead code).
     """
     ab, ac, ap = _sub(b, a), _sub(c, a), _sub(p, a)
     d00, d01, d11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
@@ -230,8 +242,8 @@ def _closest(p, a, b, c, tiny):
     v = (d11 * d20 - d01 * d21) / den
     w = (d00 * d21 - d01 * d20) / den
     inside = (v >= 0) & (w >= 0) & (v + w <= 1)
-    n = _cross(ab, ac)
-    plane = _dot(ap, n) * jax.lax.rsqrt(den)           # |n|² = d00 d11 - d01²
+    n = _scale(_cross(ab, ac), jax.lax.rsqrt(den))       # |ab x ac|² = d00 d11 - d01²
+    plane = _dot(ap, n)
     best = None
     for e, (e0, e1) in enumerate(((a, b), (b, c), (c, a))):
         d = _sub(e1, e0)
@@ -239,12 +251,13 @@ def _closest(p, a, b, c, tiny):
         r = _sub(p, _add(e0, _scale(d, t)))
         d2 = _dot(r, r)
         if best is None:
-            best = (d2, jnp.zeros_like(d2, dtype=jnp.int32), t)
+            best = (d2, jnp.zeros_like(d2, dtype=jnp.int32), t, r)
         else:
             closer = d2 < best[0]
-            best = (jnp.where(closer, d2, best[0]), jnp.where(closer, e, best[1]), jnp.where(closer, t, best[2]))
+            best = (jnp.where(closer, d2, best[0]), jnp.where(closer, e, best[1]), jnp.where(closer, t, best[2]),
+                    tuple(jnp.where(closer, ri, bi) for ri, bi in zip(r, best[3])))
     d2 = jnp.where(inside, plane * plane, best[0])
-    return d2, inside, plane, best[1], best[2]
+    return _Closest(d2, inside, plane, best[1], best[2], v, w, n, best[3])
 
 
 def _argmin(d, axis):
@@ -300,7 +313,8 @@ def make_contact_energy(topo, cfg):
         """Signed distance (positive outside) of points p (tuple of (Q,)) to faces f (Q,)."""
         tri = jnp.asarray(faces)[f]
         a, b, c = (_gather(x, tri[..., i]) for i in range(3))
-        _, inside, plane, e, t = _closest(p, a, b, c, tiny)
+        cl = _closest(p, a, b, c, tiny)
+        inside, plane, e, t = cl.inside, cl.plane, cl.e, cl.t
         corners = (a, b, c)
         e0 = tuple(jnp.select([e == 0, e == 1], [a[i], b[i]], c[i]) for i in range(3))
         e1 = tuple(jnp.select([e == 0, e == 1], [b[i], c[i]], a[i]) for i in range(3))
@@ -477,30 +491,9 @@ def make_contact_force(topo, cfg, h=None):
         # differentiable part: closest point on the face (v, i1, i2) and its barycentric weights
         p, a = P, A
         b, c = tuple(_pick(bi, k) for bi in B), tuple(_pick(ci, k) for ci in C)
-        ab, ac, ap = _sub(b, a), _sub(c, a), _sub(p, a)
-        d00, d01, d11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
-        d20, d21 = _dot(ap, ab), _dot(ap, ac)
-        den = jnp.maximum(d00 * d11 - d01 * d01, tiny)
-        bv = (d11 * d20 - d01 * d21) / den
-        bw = (d00 * d21 - d01 * d20) / den
-        inside = (bv >= 0) & (bw >= 0) & (bv + bw <= 1)
-        n_plane = _scale(_cross(ab, ac), jax.lax.rsqrt(den))                 # unit, outward
-        plane = _dot(ap, n_plane)
-        corners = (a, b, c)
-        best = None
-        for e in range(3):
-            e0, e1 = corners[e], corners[(e + 1) % 3]
-            de = _sub(e1, e0)
-            t = jnp.clip(_dot(_sub(p, e0), de) / jnp.maximum(_dot(de, de), tiny), 0.0, 1.0)
-            r = _sub(p, _add(e0, _scale(de, t)))
-            dist2 = _dot(r, r)
-            if best is None:
-                best = (dist2, jnp.zeros_like(q_idx), t, r)
-            else:
-                closer = dist2 < best[0]
-                best = (jnp.where(closer, dist2, best[0]), jnp.where(closer, e, best[1]),
-                        jnp.where(closer, t, best[2]), tuple(jnp.where(closer, ri, bi) for ri, bi in zip(r, best[3])))
-        dist2, e, t, r = best
+        cl = _closest(p, a, b, c, tiny)
+        inside, plane, n_plane, e, t, r = cl.inside, cl.plane, cl.n, cl.e, cl.t, cl.r
+        bv, bw, dist2 = cl.v, cl.w, cl.d2                       # dist2 is the edge distance where not inside
         dist = jnp.sqrt(dist2 + tiny)
         # sign of the edge and corner regions from the closest feature's pseudo-normal
         at_v = ((e == 0) & (t <= 0.0)) | ((e == 2) & (t >= 1.0))
