@@ -19,19 +19,22 @@ inside is still pushed out along the shortest way.
 
 Candidates (static shapes, no N_A x F_B work):
 
-1. broad phase per object pair: only vertices inside the other object's bounding box, inflated
-   by ``2 delta + 1.5 x`` the longest rest edge, take part; they are compacted into a list of
-   fixed capacity (``jnp.nonzero(size=...)``);
+1. broad phase per object pair: only vertices inside the other object's bounding box and bounding
+   sphere, both inflated by ``2 delta + 1.5 x`` the longest rest edge, take part; they are
+   compacted into a list of fixed capacity (``jnp.nonzero(size=...)``);
 2. narrow phase: each candidate vertex finds the nearest candidate vertex of the other object
-   (a cap_A x cap_B distance table), and the closest face is searched among the faces touching
-   that vertex or its one-ring (a static table, about 24 faces). On a fair mesh the closest face
-   of any point within an edge length of the surface is among them.
+   (a cap_A x cap_B distance table, its argmin one packed integer min), and the closest face is
+   searched among the faces of that vertex's one-ring (the force, :func:`make_contact_force`),
+   or among the faces touching that vertex or its one-ring (about 24; the reference energy,
+   :func:`make_contact_energy`). On a fair mesh the closest face of any point within an edge
+   length of the surface is among them.
 
-The cost is O(cap_A cap_B + (cap_A + cap_B) W) per pair and step, set by the capacities (which
+The cost is O(cap_A cap_B + (cap_A + cap_B) K) per pair and step, set by the capacities (which
 follow the contact area, not the meshes). If more vertices than the capacity fall in an overlap
-box the step cannot be exact: the force is then poisoned with NaN, so the rollout's health check
-stops the run at that step (:func:`capacity_report` outside ``jit`` tells which pair overflowed and
-the capacity needed; rebuild with ``with_capacity``).
+region the step cannot be exact: the force is then poisoned with NaN, so the rollout's health
+check stops the run at that step; :func:`jaxplush.simulate` then reruns with a larger capacity
+(:func:`capacity_report` outside ``jit`` tells which pair overflowed and the capacity needed;
+``with_capacity`` rebuilds).
 
 Self-collision (``self_collision on``) is cloth-style: an unsigned-distance penalty between each
 vertex and its own object's faces more than two rest edges away (inside/outside is not
