@@ -64,11 +64,10 @@ def grown(sim, steps):
         state, _, health = jaxplush.rollout(sim, p, sim.init_fn(p), 1, steps)
         if not health.failed:
             return sim
-        good = health.good_state.x
-        need = max(max(c[1], c[2]) for c in contact.candidate_counts(sim, np.asarray(good)))
-        need = max(need, max(max(c[1], c[2]) for c in contact.candidate_counts(sim, np.asarray(state.x)))
-                   if np.isfinite(np.asarray(state.x)).all() else need)
-        cap = -(-int(1.25 * need) // 32) * 32
+        need = contact.needed_capacity(sim, np.asarray(health.good_state.x))
+        if np.isfinite(np.asarray(state.x)).all():
+            need = max(need, contact.needed_capacity(sim, np.asarray(state.x)))
+        cap = contact.grown_capacity(need)
         sim = jaxplush.make_simulator(sim.scene, sim.dt, terms=contact.with_capacity(sim.terms, cap))
     return sim
 

@@ -58,6 +58,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxplush import model as _model
+
 #: kappa of the default stiffness k_c = kappa * 2 * n_max * min(k_A, k_B).
 STIFFNESS_FACTOR = 0.1
 #: Default thickness, as a fraction of the pair's finer mean rest edge length.
@@ -67,6 +69,8 @@ SHARPNESS = 10.0
 #: Default candidate capacity per object and pair: max(MIN_CAPACITY, n / CAPACITY_DIVISOR), <= n.
 MIN_CAPACITY = 64
 CAPACITY_DIVISOR = 16
+#: Below the friction cone, contact friction removes at most this fraction of the relative sliding
+#: velocity per step; each contact is seen from both objects, so 0.5 never reverses the sliding.
 FRICTION_CLAMP = 0.5
 
 
@@ -460,7 +464,6 @@ def make_contact_force(topo, cfg, h=None):
     friction = float(getattr(cfg, "friction", 0.0))
     if friction > 0 and h is None:
         raise ValueError("contact friction needs the integrator step h")
-    count = np.asarray(topo.count, np.float64)
 
     def narrow(x, v, mass, q_idx, q_valid, target, delta, kc, tiny):
         """(indices (4Q,), force rows 3 x (4Q,)) of query vertices q_idx against the faces around
@@ -536,8 +539,7 @@ def make_contact_force(topo, cfg, h=None):
         dtype = x.dtype
         if friction > 0 and v is None:
             raise ValueError("contact friction needs the velocities")
-        mass = jnp.repeat(params.total_weight / count, np.asarray(topo.count).astype(np.int64), total_repeat_length=n_v) \
-            if friction > 0 else None
+        mass = _model.vertex_mass(topo, params) if friction > 0 else None
         tiny = jnp.asarray(tiny_len ** 2, dtype)
         f = jnp.zeros((3, n_v), dtype) if base is None else base
         overflow = jnp.zeros((), bool)
@@ -640,6 +642,17 @@ def candidate_counts(sim, x):
 def _tables_margin(topo, cfg):
     longest = [float(topo.rest_length[topo.edge_object == o].max()) for o in range(topo.n_objects)]
     return tuple(2.0 * d + 1.5 * max(longest[a], longest[b]) for (a, b), d in zip(cfg.pairs, cfg.thickness))
+
+
+def needed_capacity(sim, x):
+    """The largest candidate count of any object in any pair at positions x (V, 3)."""
+    return max((max(n_a, n_b) for _, n_a, n_b, _, _ in candidate_counts(sim, x)), default=0)
+
+
+def grown_capacity(need):
+    """The capacity :func:`jaxplush.simulate` reruns with after an overflow: 1.25 x the need,
+    rounded up to a multiple of 32."""
+    return -(-int(1.25 * need) // 32) * 32
 
 
 def capacity_report(sim, x):

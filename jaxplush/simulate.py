@@ -97,9 +97,10 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
             # The candidate lists of soft-soft contact were too short: the step cannot be exact.
             # The result does not depend on the capacity, so rerun with a larger one.
             from jaxplush import contact
-            need = -(-int(1.25 * e.need) // 32) * 32
-            msg = (f"contact candidates overflowed at step {e.step} ({e.detail}); reran with "
-                   f"contact_capacity {need} (set it in the scene to skip the rerun)")
+            need = contact.grown_capacity(e.need)
+            msg = (f"contact candidates overflowed at step {e.step} ({e.need} needed, capacity "
+                   f"{max(sim.terms.contact.capacity)}); reran with contact_capacity {need} "
+                   f"(set it in the scene to skip the rerun)")
             warnings.warn(msg, stacklevel=2)
             notes += (msg,)
             sim = make_simulator(scene, sim.dt, sim.integrator, terms=contact.with_capacity(sim.terms, need),
@@ -111,9 +112,9 @@ MAX_CAPACITY_RETRIES = 4
 
 
 class _CapacityOverflow(Exception):
-    def __init__(self, step, need, detail):
-        super().__init__(detail)
-        self.step, self.need, self.detail = step, need, detail
+    def __init__(self, step, need):
+        super().__init__(f"contact capacity overflow at step {step}: {need} candidates needed")
+        self.step, self.need = step, need
 
 
 def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim, retry=True):
@@ -169,8 +170,7 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
                 before = _rollout.rollout(sim, p, before, 1, n)[0]
             report = contact.capacity_report(sim, before.x)
             if report is not None and retry:
-                need = max(max(c[1], c[2]) for c in contact.candidate_counts(sim, before.x))
-                raise _CapacityOverflow(step, need, report.split(":")[0])
+                raise _CapacityOverflow(step, contact.needed_capacity(sim, before.x))
             hint = report or hint
         raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code], hint=hint)
     positions = np.concatenate([frames[0][None]] + frames[1:], axis=0)

@@ -131,6 +131,8 @@ def test_scene_keywords_are_parsed():
     ("contact_stiffness 0", "must be > 0"),
     ("contact_thickness x", "expects a number"),
     ("contact_capacity 2.5", "must be an integer >= 1"),
+    ("contact_friction -0.5", "'contact_friction' -0.5 must be >= 0"),
+    ("contact_friction nan", "contact_friction"),
     ("contact maybe", "'contact' expects 'on' or 'off'"),
     ("self_collision", "'self_collision' expects 'on' or 'off'"),
 ])
@@ -392,7 +394,7 @@ def test_capacity_overflow_is_detected_and_simulate_reruns_with_a_larger_capacit
     assert health.failed
     report = contact.capacity_report(sim, scene.vertices)
     assert report is not None and "contact_capacity" in report
-    need = max(max(c[1], c[2]) for c in contact.candidate_counts(sim, scene.vertices))
+    need = contact.needed_capacity(sim, scene.vertices)
     assert need > 4
     bigger = jaxplush.make_simulator(scene, 1e-4, terms=contact.with_capacity(sim.terms, need))
     assert contact.capacity_report(bigger, scene.vertices) is None
