@@ -22,8 +22,10 @@ its *last* axis:
 thread per CPU core: a 16-point step keeps its working set in a core's L2 cache, and the chunks
 use every core, where one call on the whole batch keeps about one core busy (its XLA
 operations mostly wait on each other). The rollout is compiled with two XLA:CPU options of its
-own (:data:`ROLLOUT_COMPILER_OPTIONS`). Points are independent, so chunking changes the results
-only by rounding (chunks of another width vectorise differently).
+own (:data:`ROLLOUT_COMPILER_OPTIONS`), and carries the positions folded to rows of at least 48
+floats (:func:`_folded`: at 16 points a row, XLA:CPU leaves the small in-place position update
+scalar; folded, it vectorises it, about 10% less CPU per step). Points are independent, so
+chunking changes the results only by rounding (chunks of another width vectorise differently).
 
 Only the Verlet integrator is batched. A scene whose :class:`jaxplush.model.Terms` selects
 something this module does not implement (soft-soft contact, or a Terms field added later)
@@ -244,7 +246,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
                 u_new = tuple(keep * uc + ac * h for uc, ac in zip(u, a))
         else:
             u_new = tuple(uc + ac * h for uc, ac in zip(u, a))
-        x_new = tuple(xc + uc * h for xc, uc in zip(x, u_new))
+        x_new = tuple(_folded(lambda xc, uc: xc + uc * h, xc, uc) for xc, uc in zip(x, u_new))
         if terms.floor:
             x_new, u_new = floor(x, x_new, u_new)
         return State(pin(x_new, x0_fixed), pin(u_new))
@@ -301,14 +303,45 @@ def _make_floor(topo, terms, scene, h):
 
     def floor(x_old, x, v):
         with jax.named_scope("floor"):
-            below = x[1] < height
+            # below = x[1] < height, written out: x[1] is computed on the folded view (_folded),
+            # and reading it here made XLA copy the projected velocity every step.
+            below = x_old[1] + v[1] * h < height
             vy = jnp.where(below, (height - x_old[1]) / h, v[1])
             # y from the projected velocity, not from x[1]: then the (expensive) unprojected
             # velocity has one consumer and XLA does not compute the forces twice. Identical
             # where the vertex is above the floor; on it, max(.) returns the floor up to 1 ulp.
-            y = jnp.maximum(x_old[1] + vy * h, height)
+            y = _folded(lambda yc, vc: jnp.maximum(yc + vc * h, height), x_old[1], vy)
             return (x[0], y, x[2]), (v[0], vy, v[2])
     return floor
+
+
+#: Minimum row width (floats) of the position update (see :func:`_folded`).
+_FOLD_WIDTH = 48
+
+
+def _fold_factor(n_rows, width):
+    """Smallest r dividing ``n_rows`` with r * width >= _FOLD_WIDTH (1 if none up to 64)."""
+    for r in range(1, 65):
+        if r * width >= _FOLD_WIDTH and n_rows % r == 0:
+            return r
+    return 1
+
+
+def _folded(fn, *arrays):
+    """``fn`` (elementwise) applied to (V, B) arrays viewed as (V / r, r B) (r = :func:`_fold_factor`).
+
+    A bare reshape, so the result is identical. It exists for XLA:CPU's code generation: an
+    elementwise loop over rows of 16 floats (a 16-point chunk) with a body as small as the position
+    update x + h u is fully unrolled by LLVM and then left scalar, while rows of 48 floats keep
+    the loop and vectorise it (measured at 642 vertices: the three position updates drop from
+    ~7 us to ~2 us per chunk step). :func:`_core` carries the positions in the same folded shape,
+    so the update stays in place.
+    """
+    v, b = arrays[0].shape
+    r = _fold_factor(v, b)
+    if r == 1:
+        return fn(*arrays)
+    return fn(*(a.reshape(v // r, r * b) for a in arrays)).reshape(v, b)
 
 
 def _damping_factor(damping):
@@ -456,7 +489,14 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
     step_fn = bsim.step_fn
 
     def steps(s):
-        return jax.lax.scan(lambda c, _: (step_fn(params, c), None), s, None, length=save_every)[0]
+        # The positions are carried folded (see _folded): the in-place position update then runs
+        # on rows of >= _FOLD_WIDTH floats, which XLA:CPU vectorises.
+        v, b = s.x[0].shape
+        r = _fold_factor(v, b)
+        fold = lambda st: State(tuple(a.reshape(v // r, r * b) for a in st.x), st.v)       # noqa: E731
+        unfold = lambda st: State(tuple(a.reshape(v, b) for a in st.x), st.v)              # noqa: E731
+        return unfold(jax.lax.scan(lambda c, _: (fold(step_fn(params, unfold(c))), None), fold(s), None,
+                                   length=save_every)[0])
 
     def frame(carry, i):
         s, h = carry

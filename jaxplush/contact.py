@@ -20,21 +20,36 @@ inside is still pushed out along the shortest way.
 Candidates (static shapes, no N_A x F_B work):
 
 1. broad phase per object pair: only vertices inside the other object's bounding box and bounding
-   sphere, both inflated by ``2 delta + 1.5 x`` the longest rest edge, take part; they are
+   sphere, both inflated by ``2 delta + 1.5 x`` the longest rest edge (the force's reach) plus
+   twice the skin s (:func:`skin_distance`, half the longest rest edge), take part; they are
    compacted into a list of fixed capacity (``jnp.nonzero(size=...)``);
 2. narrow phase: each candidate vertex finds the nearest candidate vertex of the other object
    (a cap_A x cap_B distance table, its argmin one packed integer min), and the closest face is
-   searched among the faces of that vertex's one-ring (the force, :func:`make_contact_force`),
-   or among the faces touching that vertex or its one-ring (about 24; the reference energy,
+   searched among the faces of that vertex's one-ring (the force, :func:`make_contact`), or
+   among the faces touching that vertex or its one-ring (about 24; the reference energy,
    :func:`make_contact_energy`). On a fair mesh the closest face of any point within an edge
    length of the surface is among them.
 
-The cost is O(cap_A cap_B + (cap_A + cap_B) K) per pair and step, set by the capacities (which
-follow the contact area, not the meshes). If more vertices than the capacity fall in an overlap
-region the step cannot be exact: the force is then poisoned with NaN, so the rollout's health
-check stops the run at that step; :func:`jaxplush.simulate` then reruns with a larger capacity
-(:func:`capacity_report` outside ``jit`` tells which pair overflowed and the capacity needed;
-``with_capacity`` rebuilds).
+Temporal coherence (Verlet lists). Rollouts carry the candidate lists from step to step
+(:class:`ContactCache`, ``Simulator.coherent``): they are rebuilt by the search above only once
+some vertex has moved more than s/2 since the last build, which the skin makes exact (a vertex
+now within reach of the other object's box and sphere was within reach + 2 s of them at the
+build); between rebuilds each query's nearest vertex is walked to the nearest of itself and its
+one-ring, which follows any sliding of less than an edge per step. A resting or slowly moving
+contact then costs only the narrow phase; ``make_simulator(..., coherent_contact=False)`` and the
+single ``step_fn`` search every step (the same forces but for near-ties between faces).
+
+The search over a vertex's ring runs on slot-major (K, Q) arrays, and values are gathered and
+picked several at a time: XLA:CPU vectorises such elementwise loops, while its reductions over a
+short leading axis, its 2-D concatenations and its atan2 run element by element, and each XLA
+operation costs about a microsecond of dispatch inside the step's loop (benchmarks/RESULTS.md).
+
+The cost is O(cap_A cap_B) per rebuild and O((cap_A + cap_B) K) per pair and step, set by the
+capacities (which follow the contact area, not the meshes). If more vertices than the capacity
+fall in an overlap region the step cannot be exact: the force is then poisoned with NaN, so the
+rollout's health check stops the run at that step; :func:`jaxplush.simulate` then reruns with a
+larger capacity (:func:`capacity_report` outside ``jit`` tells which pair overflowed and the
+capacity needed; ``with_capacity`` rebuilds).
 
 Self-collision (``self_collision on``) is cloth-style: an unsigned-distance penalty between each
 vertex and its own object's faces more than two rest edges away (inside/outside is not
@@ -59,6 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush import model as _model
+from jaxplush.model import _sum_rows
 
 #: kappa of the default stiffness k_c = kappa * 2 * n_max * min(k_A, k_B).
 STIFFNESS_FACTOR = 0.1
@@ -66,12 +82,15 @@ STIFFNESS_FACTOR = 0.1
 THICKNESS_FACTOR = 0.5
 #: Sharpness of the softplus ramp, beta * delta.
 SHARPNESS = 10.0
-#: Default candidate capacity per object and pair: max(MIN_CAPACITY, n / CAPACITY_DIVISOR), <= n.
-MIN_CAPACITY = 64
-CAPACITY_DIVISOR = 16
+#: Default candidate capacity per object and pair: max(MIN_CAPACITY, n / CAPACITY_DIVISOR), <= n
+#: (two 2562-vertex balls pressed together need about 200, the skin included).
+MIN_CAPACITY = 96
+CAPACITY_DIVISOR = 12
 #: Below the friction cone, contact friction removes at most this fraction of the relative sliding
 #: velocity per step; each contact is seen from both objects, so 0.5 never reverses the sliding.
 FRICTION_CLAMP = 0.5
+#: Skin of the coherent candidate cache, as a fraction of the pair's longest rest edge.
+SKIN_FACTOR = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,7 +192,7 @@ def _tables(topo, cfg):
             edge_face[(int(f[e]), int(f[(e + 1) % 3]))] = fi
     face_adj = np.array([[edge_face[(int(f[(e + 1) % 3]), int(f[e]))] for e in range(3)] for f in faces], np.int32)
     longest = [float(topo.rest_length[topo.edge_object == o].max()) for o in range(topo.n_objects)]
-    margin = tuple(2.0 * d + 1.5 * max(longest[a], longest[b]) for (a, b), d in zip(cfg.pairs, cfg.thickness))
+    margin = _tables_margin(topo, cfg)
     excl = []
     for o in cfg.self_objects:
         a, b = topo.vertex_slices[o]
@@ -265,6 +284,40 @@ def _closest(p, a, b, c, tiny):
                     tuple(jnp.where(closer, ri, bi) for ri, bi in zip(r, best[3])))
     d2 = jnp.where(inside, plane * plane, best[0])
     return _Closest(d2, inside, plane, best[1], best[2], v, w, n, best[3])
+
+
+def _angle(y, x):
+    """atan2(y, x) for y >= 0 (an angle in [0, pi]) by a minimax polynomial of atan on [0, 1]
+    (error about 2e-6 rad in float32): plain arithmetic that XLA:CPU vectorises, where its atan2 runs
+    element by element (about 15 ns each)."""
+    ax = jnp.abs(x)
+    hi, lo = jnp.maximum(y, ax), jnp.minimum(y, ax)
+    t = lo / jnp.maximum(hi, jnp.finfo(y.dtype).tiny)
+    t2 = t * t
+    a = t * (0.99997726 + t2 * (-0.33262347 + t2 * (0.19354346 + t2 * (-0.11643287 + t2 * (0.05265332 + t2 * -0.01172120)))))
+    a = jnp.where(y > ax, 0.5 * np.pi - a, a)
+    return jnp.where(x < 0, np.pi - a, a)
+
+
+def _face_distance2(ap, ab, ac, tiny):
+    """Squared distance of points a + ap to triangles (a, a + ab, a + ac), for the search only: the
+    interior test without divisions and each division used once (XLA:CPU materialises a division
+    with several users as an operation of its own); the edge distances by |ap|² - (ap.d)²/|d|²,
+    which loses relative precision for points very near an edge line (irrelevant to which face
+    is nearest)."""
+    d00, d01, d11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
+    d20, d21 = _dot(ap, ab), _dot(ap, ac)
+    den = jnp.maximum(d00 * d11 - d01 * d01, tiny)
+    nv, nw = d11 * d20 - d01 * d21, d00 * d21 - d01 * d20
+    inside = (nv >= 0) & (nw >= 0) & (nv + nw <= den)
+    cr = _cross(ab, ac)
+    pl = _dot(ap, cr)
+    best = None
+    for o, e in ((ap, ab), (ap, ac), (_sub(ap, ab), _sub(ac, ab))):
+        oo, oe, ee = _dot(o, o), _dot(o, e), jnp.maximum(_dot(e, e), tiny)
+        de = jnp.where(oe <= 0, oo, jnp.where(oe >= ee, oo - 2 * oe + ee, oo - oe * oe / ee))
+        best = de if best is None else jnp.minimum(best, de)
+    return jnp.where(inside, pl * pl / den, jnp.maximum(best, 0.0))
 
 
 def _argmin(d, axis):
@@ -409,8 +462,10 @@ def make_contact_energy(topo, cfg):
     return energy
 
 
-def make_contact_force(topo, cfg, h=None):
-    """Build ``force(params, x) -> f`` (3, V), the contact force -dU/dx; NaN on capacity overflow.
+def make_contact(topo, cfg, h=None):
+    """Build ``(force, cache_ops)``: ``force(params, x, v=None, base=None, cache=None) -> f`` (3, V),
+    the contact force -dU/dx, NaN on capacity overflow, and the :class:`CacheOps` of its candidate
+    cache (None without object pairs).
 
     The soft-soft part is assembled in closed form rather than by ``jax.grad`` of the energy (the
     reverse pass through the gathers cost as much as the search): for a query vertex p whose
@@ -465,38 +520,62 @@ def make_contact_force(topo, cfg, h=None):
     if friction > 0 and h is None:
         raise ValueError("contact friction needs the integrator step h")
 
+    # neighbour-major ring table (K + 1, V): row j holds every vertex's j-th ring neighbour and row K
+    # repeats row 0, so "the next neighbour" of slot j is row j + 1 (as in model._ring_force_fn)
+    ring_t = np.ascontiguousarray(np.concatenate([ring.T, ring.T[:1]], axis=0))
+
     def narrow(x, v, mass, q_idx, q_valid, target, delta, kc, tiny):
         """(indices (4Q,), force rows 3 x (4Q,)) of query vertices q_idx against the faces around
-        their nearest vertices ``target``."""
-        # the faces (v, ring_k, ring_k+1) around the nearest vertex v: one gather of the ring
-        rk = _take(ring, target)                                              # (Q, K)
-        val = _take(valence, target)[:, None]                                 # (Q, 1)
-        P, A, B = _gather(x, q_idx), _gather(x, target), _gather(x, rk)
-        C = tuple(jnp.roll(bi, -1, axis=1) for bi in B)                      # ring_next
-        slot = jnp.arange(n_k)
-        real = (slot < val - 1) | (slot == n_k - 1)                           # padded slots are degenerate
-        # selection (no gradient)
-        ps, As, Bs, Cs = (tuple(jax.lax.stop_gradient(ci) for ci in u) for u in (P, A, B, C))
-        As2 = tuple(ai[:, None] for ai in As)
-        d2, *_ = _closest(tuple(pi[:, None] for pi in ps), As2, Bs, Cs, tiny)
-        k = _argmin(jnp.where(real, d2, jnp.inf), 1)                          # (Q,)
-        # face normals around v, the angle-weighted pseudo-normal of v and of the two spokes of face k
-        d, dn = _sub(Bs, As2), _sub(Cs, As2)
-        cr = _cross(d, dn)
+        their nearest vertices ``target``.
+
+        The search over v's ring works on slot-major (K, Q) arrays, so each operation is one
+        vectorised loop over all slots and queries; values are gathered and picked several at a
+        time (each XLA operation costs about a microsecond of dispatch in the step's loop)."""
+        rk = jnp.asarray(ring_t).at[:, target].get(mode="promise_in_bounds")    # (K + 1, Q)
+        val = _take(valence, target)                                          # (Q,)
+        pa = x.at[:, jnp.stack([q_idx, target])].get(mode="promise_in_bounds")   # (3, 2, Q)
+        P, A = tuple(pa[c, 0] for c in range(3)), tuple(pa[c, 1] for c in range(3))
+        # the search (no gradient)
+        xs = jax.lax.stop_gradient(x)
+        g = xs.at[:, rk].get(mode="promise_in_bounds")                        # (3, K + 1, Q)
+        As = tuple(jax.lax.stop_gradient(ai)[None] for ai in A)
+        ps = tuple(jax.lax.stop_gradient(pi)[None] for pi in P)
+        d = tuple(g[c] - As[c] for c in range(3))                            # (K + 1, Q) spokes
+        d0, d1 = tuple(dc[:n_k] for dc in d), tuple(dc[1:] for dc in d)       # spokes j and j + 1
+        slot = jnp.arange(n_k)[:, None]
+        real = (slot < val[None] - 1) | (slot == n_k - 1)                     # padded slots are degenerate
+        # the distances to the K faces around v, ending in a square root: XLA:CPU does not copy an
+        # expensive operation into each of its consumers, so the (K, Q) table is computed once, in
+        # one vectorised loop, and the minimum over its rows is a short elementwise chain (a
+        # reduction over the leading axis would be a scalar loop)
+        dist = jnp.sqrt(jnp.where(real, _face_distance2(_sub(ps, As), d0, d1, tiny), jnp.inf))
+        best, k = dist[0], jnp.zeros(dist.shape[1:], jnp.int32)              # (Q,) the closest face
+        for j in range(1, n_k):
+            closer = dist[j] < best
+            best, k = jnp.where(closer, dist[j], best), jnp.where(closer, j, k)
+        cr = _cross(d0, d1)
         sin = jnp.sqrt(_dot(cr, cr) + tiny)
-        unit = tuple(ci / sin for ci in cr)                                   # degenerate slots: ~0
-        ang = jnp.arctan2(sin, _dot(d, dn))
-        n_vertex = tuple(jnp.sum(ang * ui, axis=-1) for ui in unit)
-        v1 = val[:, 0]
-        kp = jnp.where(k == 0, n_k - 1, jnp.where(k == n_k - 1, v1 - 2, k - 1))   # real slot before k
-        kn = jnp.where(k == n_k - 1, 0, jnp.where(k == v1 - 2, n_k - 1, k + 1))   # real slot after k
-        n_face = tuple(_pick(ui, k) for ui in unit)
-        n_spoke0 = _add(n_face, tuple(_pick(ui, kp) for ui in unit))         # edge (v, ring_k)
-        n_spoke2 = _add(n_face, tuple(_pick(ui, kn) for ui in unit))         # edge (ring_k+1, v)
-        i1, i2 = _pick(rk, k), _pick(jnp.roll(rk, -1, axis=1), k)
+        ang = _angle(sin, _dot(d0, d1))
+        inv = 1.0 / sin
+        unit = tuple(ci * inv for ci in cr)                                   # (K, Q); degenerate slots ~0
+        n_vertex = _sum_rows(tuple(ang * u for u in unit))                   # angle-weighted normal of v
+        # the unit normals of face k and of the real slots before and after it (the faces across
+        # its spokes), and its corners, in one pick: slot k_prev is k - 1 but K - 1 for k = 0 and
+        # valence - 2 for the wrap slot K - 1; k_next is k + 1 but 0 for K - 1 and K - 1 for
+        # valence - 2
+        kp = jnp.where(k == 0, n_k - 1, jnp.where(k == n_k - 1, val - 2, k - 1))
+        kn = jnp.where(k == n_k - 1, 0, jnp.where(k == val - 2, n_k - 1, k + 1))
+        picked = jnp.take_along_axis(jnp.stack(unit), jnp.stack([k, kp, kn])[None], 1,
+                                     mode="promise_in_bounds")               # (3, 3, Q)
+        n_face, n_prev, n_next = (tuple(picked[c, i] for c in range(3)) for i in range(3))
+        corners = jnp.take_along_axis(rk, jnp.stack([k, k + 1]), 0, mode="promise_in_bounds")
+        i1, i2 = corners[0], corners[1]
+        n_spoke0 = _add(n_face, n_prev)                                      # edge (v, ring_k)
+        n_spoke2 = _add(n_face, n_next)                                      # edge (ring_k+1, v)
         # differentiable part: closest point on the face (v, i1, i2) and its barycentric weights
+        bc = x.at[:, corners].get(mode="promise_in_bounds")                   # (3, 2, Q)
         p, a = P, A
-        b, c = tuple(_pick(bi, k) for bi in B), tuple(_pick(ci, k) for ci in C)
+        b, c = tuple(bc[ci, 0] for ci in range(3)), tuple(bc[ci, 1] for ci in range(3))
         cl = _closest(p, a, b, c, tiny)
         inside, plane, n_plane, e, t, r = cl.inside, cl.plane, cl.n, cl.e, cl.t, cl.r
         bv, bw, dist2 = cl.v, cl.w, cl.d2                       # dist2 is the edge distance where not inside
@@ -507,7 +586,9 @@ def make_contact_force(topo, cfg, h=None):
                        for nv, s0, s2, nf in zip(n_vertex, n_spoke0, n_spoke2, n_face))
         sign = jnp.where(_dot(jax.lax.stop_gradient(r), n_feat) >= 0, 1.0, -1.0)
         s = jnp.where(inside, plane, sign * dist)
-        n = tuple(jnp.where(inside, npl, sign * ri / dist) for npl, ri in zip(n_plane, r))
+        num = tuple(jnp.where(inside, npl, sign * ri) for npl, ri in zip(n_plane, r))
+        den_n = jnp.where(inside, 1.0, dist)
+        n = tuple(ni / den_n for ni in num)                                  # unit outward normal
         one_t = 1.0 - t
         we = (jnp.where(e == 0, one_t, jnp.where(e == 2, t, 0.0)),
               jnp.where(e == 1, one_t, jnp.where(e == 0, t, 0.0)),
@@ -517,25 +598,63 @@ def make_contact_force(topo, cfg, h=None):
         z = beta * (delta - s)
         # -dU/ds = k_c phi(delta - s) sigmoid(beta (delta - s)), phi = softplus(z) / beta
         mag = jnp.where(q_valid, kc * jax.nn.softplus(z) / beta * jax.nn.sigmoid(z), 0.0)
-        vec = tuple(mag * ni for ni in n)                                    # force on p
+        # force on p, written to end in a division: XLA:CPU then computes it once instead of
+        # re-deriving it for every row of the scattered (3, 4Q) table
+        vec = tuple((mag * ni) / den_n for ni in num)
+        idx = jnp.concatenate([q_idx, target, i1, i2])                        # (4Q,)
         if friction > 0:
-            vq = _gather(v, q_idx)
-            va, vb, vc = _gather(v, target), _gather(v, i1), _gather(v, i2)
+            vv = v.at[:, idx].get(mode="promise_in_bounds").reshape(3, 4, -1)
+            vq, va, vb, vc = (tuple(vv[ci, i] for ci in range(3)) for i in range(4))
             rel = _sub(vq, _add(_add(_scale(va, w[0]), _scale(vb, w[1])), _scale(vc, w[2])))
             vt = _sub(rel, _scale(n, _dot(rel, n)))
             speed = jnp.sqrt(_dot(vt, vt) + tiny)
-            ma, mb, mc, mp = (_take(mass, i) for i in (target, i1, i2, q_idx))
+            mp, ma, mb, mc = _take(mass, idx).reshape(4, -1)
             m_eff = 1.0 / (1.0 / mp + w[0] ** 2 / ma + w[1] ** 2 / mb + w[2] ** 2 / mc)
             ft = jnp.minimum(friction * mag, FRICTION_CLAMP * m_eff * speed / h) / speed
             vec = _sub(vec, _scale(vt, ft))
-        rows = tuple(jnp.concatenate([vi] + [-wi * vi for wi in w]) for vi in vec)
-        return jnp.concatenate([q_idx, target, i1, i2]), rows
+        return idx, tuple(jnp.concatenate([vi] + [-wi * vi for wi in w]) for vi in vec)
+
+    def search(xs):
+        """The candidate queries of every pair and direction at positions xs (no gradient): a
+        :class:`ContactCache` (queries laid out as ``pair_of_query``)."""
+        qs, valids, targets = [], [], []
+        overflow = jnp.zeros((), bool)
+        for (oa, ob), margin in zip(cfg.pairs, tab.margin):
+            (a0, a1), (b0, b1) = slices[oa], slices[ob]
+            cap_a, cap_b = cfg.capacity[oa], cfg.capacity[ob]
+            ia, ib, n_a, n_b, near_a, near_b = _pair_candidates(xs, (a0, a1), (b0, b1), cap_a, cap_b, margin)
+            overflow = overflow | (n_a > cap_a) | (n_b > cap_b)
+            qs += [a0 + ia, b0 + ib]
+            valids += [(jnp.arange(cap_a) < n_a) & (n_b > 0), (jnp.arange(cap_b) < n_b) & (n_a > 0)]
+            targets += [near_b, near_a]
+        return ContactCache(jnp.concatenate(qs).astype(jnp.int32), jnp.concatenate(valids),
+                            jnp.concatenate(targets).astype(jnp.int32), xs, overflow)
+
+    ring_ext = np.ascontiguousarray(np.concatenate([np.arange(n_v, dtype=np.int32)[:, None], ring], axis=1))
+    half_skin2 = (0.5 * skin_distance(topo, cfg)) ** 2 if cfg.pairs else 0.0
+
+    def walk(cache, xs):
+        """Each query's target moved to the nearest of the target and its one-ring (one step of a
+        greedy descent of the vertex distance: the nearest vertex follows a sliding contact)."""
+        rk = _take(ring_ext, cache.target)                                   # (Q, K + 1)
+        p, n = _gather(xs, cache.q_idx), _gather(xs, rk)
+        d2 = sum((nc - pc[:, None]) ** 2 for nc, pc in zip(n, p))
+        return cache._replace(target=_pick(rk, _packed_argmin(d2, 1)))
+
+    def update(cache, x):
+        """The cache for positions x: rebuilt (:func:`search`) once some vertex has moved more than
+        half the skin since the last build, else the targets walked."""
+        xs = jax.lax.stop_gradient(x)
+        moved = jnp.max(jnp.sum((xs - cache.x_ref) ** 2, axis=0)) > jnp.asarray(half_skin2, xs.dtype)
+        return jax.lax.cond(moved, lambda: search(xs), lambda: walk(cache, xs))
 
     # jit: inlined under an outer jit; outside one (e.g. an eager init_fn) it compiles once
     # instead of dispatching hundreds of small operations one by one.
     @jax.jit
-    def force(params, x, v=None, base=None):
-        """Contact force (3, V), added to ``base`` (3, V) when given (saves a buffer)."""
+    def force(params, x, v=None, base=None, cache=None):
+        """Contact force (3, V), added to ``base`` (3, V) when given (saves a buffer). With a
+        ``cache`` (:class:`ContactCache`) its candidate lists and nearest vertices are used
+        instead of searching."""
         dtype = x.dtype
         if friction > 0 and v is None:
             raise ValueError("contact friction needs the velocities")
@@ -544,25 +663,55 @@ def make_contact_force(topo, cfg, h=None):
         f = jnp.zeros((3, n_v), dtype) if base is None else base
         overflow = jnp.zeros((), bool)
         if cfg.pairs:
-            xs = jax.lax.stop_gradient(x)
-            qs, valids, targets = [], [], []
-            for (oa, ob), margin in zip(cfg.pairs, tab.margin):
-                (a0, a1), (b0, b1) = slices[oa], slices[ob]
-                cap_a, cap_b = cfg.capacity[oa], cfg.capacity[ob]
-                ia, ib, n_a, n_b, near_a, near_b = _pair_candidates(xs, (a0, a1), (b0, b1), cap_a, cap_b, margin)
-                overflow = overflow | (n_a > cap_a) | (n_b > cap_b)
-                qs += [a0 + ia, b0 + ib]
-                valids += [(jnp.arange(cap_a) < n_a) & (n_b > 0), (jnp.arange(cap_b) < n_b) & (n_a > 0)]
-                targets += [near_b, near_a]
+            if cache is None:
+                cache = search(jax.lax.stop_gradient(x))
+            overflow = cache.overflow
             kc = _take(stiffness(params, dtype), jnp.asarray(pair_of_query))
-            idx, rows = narrow(x, v, mass, jnp.concatenate(qs), jnp.concatenate(valids), jnp.concatenate(targets),
+            idx, rows = narrow(x, v, mass, cache.q_idx, cache.valid, cache.target,
                                jnp.asarray(delta_q, dtype), kc, tiny)
             f = jnp.stack([fc.at[idx].add(rc, mode="promise_in_bounds") for fc, rc in zip(f, rows)])
         if self_energy is not None:
             f = f - jax.grad(lambda y: self_energy(params, y)[0])(x)
         return jnp.where(overflow, jnp.nan, f)
 
-    return force
+    ops = CacheOps(init=lambda x: search(jax.lax.stop_gradient(x)), update=update) if cfg.pairs else None
+    return force, ops
+
+
+class ContactCache(NamedTuple):
+    """Soft-soft candidate lists carried between steps (:func:`make_contact_cache`); Q queries.
+
+    Attributes:
+      q_idx: (Q,) int32 global index of each query vertex (padded slots repeat a valid index).
+      valid: (Q,) bool, the slot holds a candidate (and the other object has some).
+      target: (Q,) int32 global index of the query's nearest vertex of the other object.
+      x_ref: (3, V) positions at the last build.
+      overflow: () bool, some pair had more candidates than its capacity at the last build.
+    """
+
+    q_idx: jax.Array
+    valid: jax.Array
+    target: jax.Array
+    x_ref: jax.Array
+    overflow: jax.Array
+
+
+class CacheOps(NamedTuple):
+    """``init(x) -> ContactCache`` (a full search) and ``update(cache, x) -> ContactCache`` (rebuild
+    past half the skin, else walk the nearest vertices); x internal (3, V)."""
+
+    init: object
+    update: object
+
+
+def make_contact_force(topo, cfg, h=None):
+    """:func:`make_contact`'s force alone: ``force(params, x, v=None, base=None, cache=None)``."""
+    return make_contact(topo, cfg, h)[0]
+
+
+def make_contact_cache(topo, cfg, h=None):
+    """:func:`make_contact`'s :class:`CacheOps` (None without object pairs)."""
+    return make_contact(topo, cfg, h)[1]
 
 
 def _broad_phase(xa, xb, margin):
@@ -639,9 +788,26 @@ def candidate_counts(sim, x):
     return out
 
 
+def _longest_edges(topo):
+    return [float(topo.rest_length[topo.edge_object == o].max()) for o in range(topo.n_objects)]
+
+
+def skin_distance(topo, cfg):
+    """The Verlet-list skin s of the candidate cache (m): SKIN_FACTOR x the shortest of the pairs'
+    longest rest edges. Candidate lists are rebuilt once some vertex has moved s/2 since the last
+    build (:func:`make_contact_cache`)."""
+    longest = _longest_edges(topo)
+    return SKIN_FACTOR * min((max(longest[a], longest[b]) for a, b in cfg.pairs), default=0.0)
+
+
 def _tables_margin(topo, cfg):
-    longest = [float(topo.rest_length[topo.edge_object == o].max()) for o in range(topo.n_objects)]
-    return tuple(2.0 * d + 1.5 * max(longest[a], longest[b]) for (a, b), d in zip(cfg.pairs, cfg.thickness))
+    """Per pair: the broad phase's inflation, 2 delta + 1.5 x the longest rest edge (the region
+    where the force can act and the one-ring search is exact) plus twice the skin (so lists built
+    up to s/2 of motion ago still hold every vertex of that region)."""
+    longest = _longest_edges(topo)
+    skin = skin_distance(topo, cfg)
+    return tuple(2.0 * d + 1.5 * max(longest[a], longest[b]) + 2.0 * skin
+                 for (a, b), d in zip(cfg.pairs, cfg.thickness))
 
 
 def needed_capacity(sim, x):

@@ -158,7 +158,7 @@ def pressure(topo, params, volume, temperature):
     return params.nmol * (GAS_CONSTANT * temperature) / jnp.maximum(volume, VOLUME_EPS * v0)
 
 
-def make_force_fn(topo, terms, temperature, assembly="ring", h=None):
+def make_force_fn(topo, terms, temperature, assembly="ring", h=None, with_cache=False):
     """Build the force kernel ``force_fn(params, x, v) -> (f, volume)`` on component-major arrays.
 
     The kernel works on (3, V) arrays (x, y, z rows): every gather then moves single floats
@@ -176,10 +176,13 @@ def make_force_fn(topo, terms, temperature, assembly="ring", h=None):
         per-face terms scattered with ``segment_sum``).
       h: the integrator's step, s; needed only by contact friction (which at most stops the
         relative sliding within one step).
+      with_cache: also return the soft-soft contact's :class:`jaxplush.contact.CacheOps` (None
+        without contact); the kernel then takes an optional ``cache`` (a
+        :class:`jaxplush.contact.ContactCache`) as a fourth argument.
 
     Returns:
       force_fn: (params, x (3, V), v (3, V)) -> (f (3, V) internal forces in N, volume (O,) or
-      None when the scene has no gas).
+      None when the scene has no gas); with ``with_cache``, (force_fn, cache_ops).
     """
     if assembly == "ring":
         kernel = _ring_force_fn(topo, terms, temperature)
@@ -188,17 +191,17 @@ def make_force_fn(topo, terms, temperature, assembly="ring", h=None):
     else:
         raise ValueError(f"unknown assembly {assembly!r}; expected 'ring' or 'segment'")
     if not terms.contact:
-        return kernel
+        return (kernel, None) if with_cache else kernel
     from jaxplush import contact as _contact
-    contact_force = _contact.make_contact_force(topo, terms.contact, h)
+    contact_force, cache_ops = _contact.make_contact(topo, terms.contact, h)
 
-    def force_fn(params, x, v):
+    def force_fn(params, x, v, cache=None):
         f, volume = kernel(params, x, v)
         with jax.named_scope("contact"):
-            f = contact_force(params, x, v, base=f)
+            f = contact_force(params, x, v, base=f, cache=cache)
         return f, volume
 
-    return force_fn
+    return (force_fn, cache_ops) if with_cache else force_fn
 
 
 def _object_volumes_soa(topo, x, g):

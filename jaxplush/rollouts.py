@@ -51,15 +51,27 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
     state = sim.to_internal(state)
     health = health._replace(good_state=sim.to_internal(health.good_state))
 
+    coherent = sim.coherent
+    if coherent is not None:
+        # soft-soft contact: the candidate lists ride along in the carry (temporal coherence)
+        def one(c):
+            return coherent.step(params, *c)
+        carry0 = (state, coherent.init(state.x))
+    else:
+        def one(s):
+            return step_fn(params, s)
+        carry0 = state
+
     def steps(s):
-        return jax.lax.scan(lambda c, _: (step_fn(params, c), None), s, None, length=save_every)[0]
+        return jax.lax.scan(lambda c, _: (one(c), None), s, None, length=save_every)[0]
 
     if checkpoint:
         steps = jax.checkpoint(steps)
 
     def frame(carry, i):
-        s, h = carry
-        s = steps(s)
+        c, h = carry
+        c = steps(c)
+        s = c[0] if coherent is not None else c
         step = step0 + (i + 1) * save_every
         code = sim.status_fn(params, sim.to_public(s))
         new_bad = (code >= diagnostics.ERROR) & (h.bad_step < 0)
@@ -72,9 +84,10 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
             good_state=jax.tree_util.tree_map(lambda a, b: jnp.where(healthy, a, b), s, h.good_state),
             good_step=jnp.where(healthy, step, h.good_step),
         )
-        return (s, h), s.x
+        return (c, h), s.x
 
-    (state, health), frames = jax.lax.scan(frame, (state, health), jnp.arange(n_frames, dtype=jnp.int32))
+    (carry, health), frames = jax.lax.scan(frame, (carry0, health), jnp.arange(n_frames, dtype=jnp.int32))
+    state = carry[0] if coherent is not None else carry
     health = health._replace(good_state=sim.to_public(health.good_state))
     return sim.to_public(state), jnp.swapaxes(frames, 1, 2), health
 

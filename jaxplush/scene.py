@@ -29,7 +29,7 @@ Scene level (anywhere, at most once each):
                             which scales with the objects' stiffness and mass, see jaxplush.contact)
   ``contact_thickness D``   contact thickness, m (> 0; default half the finer mean edge length)
   ``contact_capacity N``    candidate vertices per object and pair (integer >= 1; default
-                            max(64, n/16)); jaxplush.simulate reruns with a larger one if needed
+                            max(96, n/12)); jaxplush.simulate reruns with a larger one if needed
 
 An object's vertices are the vertices its faces use; indices in ``f`` and ``fixed`` are
 1-based and global to the file, or negative (relative to the vertices defined so far).

@@ -163,14 +163,17 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
         if getattr(sim.terms, "contact", None) is not None:
             # An overflowing candidate list poisons the force at the state *before* the failing
             # step, which may lie after the last healthy saved frame: check there.
+            # The rollout carries its candidate lists, rebuilt where it needed them, so check
+            # both the last healthy state and the replayed state before the failing step.
             from jaxplush import contact
-            before = health.good_state
+            checked = [health.good_state.x]
             n = step - 1 - int(health.good_step)
             if n >= 1:
-                before = _rollout.rollout(sim, p, before, 1, n)[0]
-            report = contact.capacity_report(sim, before.x)
+                checked.append(_rollout.rollout(sim, p, health.good_state, 1, n)[0].x)
+            checked = [np.asarray(x) for x in checked if np.isfinite(np.asarray(x)).all()]
+            report = next((r for r in (contact.capacity_report(sim, x) for x in checked[::-1]) if r), None)
             if report is not None and retry:
-                raise _CapacityOverflow(step, contact.needed_capacity(sim, before.x))
+                raise _CapacityOverflow(step, max(contact.needed_capacity(sim, x) for x in checked))
             hint = report or hint
         raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code], hint=hint)
     positions = np.concatenate([frames[0][None]] + frames[1:], axis=0)

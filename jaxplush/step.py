@@ -15,7 +15,8 @@ shared floor/pin hook (:mod:`jaxplush.constraints`) after every (sub)step.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+import functools
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -42,6 +43,8 @@ class Simulator:
       topology, terms, dt, integrator, substeps, scene, dtype: how it was built.
       internal_step, to_internal, to_public: the same step on the internal component-major
         (3, V) state, and the layout conversions; rollouts scan ``internal_step``.
+      coherent: for scenes with soft-soft contact, a :class:`CoherentStep`: the step with the
+        contact candidate lists carried from step to step (rollouts scan it); None otherwise.
     """
 
     init_fn: Callable
@@ -59,6 +62,7 @@ class Simulator:
     to_public: Callable = None
     substeps: int = 1
     velocity_fn: Callable = None
+    coherent: object = None
 
     @property
     def h(self):
@@ -71,8 +75,21 @@ class Simulator:
         return Params(*(jnp.asarray(np.asarray(a), self.dtype) for a in p))
 
 
+class CoherentStep(NamedTuple):
+    """The step with soft-soft contact candidates carried between steps (temporal coherence).
+
+    ``init(x) -> cache`` searches the candidate lists at internal positions x (3, V);
+    ``step(params, state, cache) -> (state, cache)`` advances one step with the cached lists and
+    updates them after every substep (:func:`jaxplush.contact.make_contact`: rebuilt once a vertex
+    has moved half the skin, otherwise each query's nearest vertex is walked along the mesh).
+    """
+
+    init: Callable
+    step: Callable
+
+
 def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, substeps=1, cg_tol=None,
-                   cg_maxiter=integrators.CG_MAXITER):
+                   cg_maxiter=integrators.CG_MAXITER, coherent_contact=True):
     """Build the step for a scene.
 
     Args:
@@ -88,6 +105,9 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
         acts per substep.
       cg_tol, cg_maxiter: ``implicit_euler`` only: relative CG residual (default 1e-5 in
         float32, 1e-10 in float64) and the static cap on CG iterations per step.
+      coherent_contact: with soft-soft contact, let rollouts carry the contact candidate lists
+        from step to step (``Simulator.coherent``; default). False: every step searches afresh
+        (the same forces up to the rare step where the two disagree on a query's nearest vertex).
 
     Returns:
       :class:`Simulator`. The dtype is float64 when ``jax_enable_x64`` is on, else float32.
@@ -104,11 +124,26 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     dtype = jnp.result_type(float)
     topo = model.build_topology(scene)
     terms = model.Terms.for_scene(scene) if terms is None else terms
-    kernel = model.make_force_fn(topo, terms, scene.temperature, assembly, h=h)
+    kernel, cache_ops = model.make_force_fn(topo, terms, scene.temperature, assembly, h=h, with_cache=True)
     system = integrators.System(
         topo=topo, terms=terms, kernel=kernel, gravity=np.asarray(scene.gravity, np.float64)[:, None],
         constrain=constraints.make_constrain(topo, terms, scene, h), h=h, temperature=scene.temperature)
     scheme = integrators.build(integrator, system, cg_tol=cg_tol, cg_maxiter=cg_maxiter)
+    coherent = None
+    if cache_ops is not None and coherent_contact:
+        def coherent_substep(params, state, cache):
+            # the same scheme, its force kernel reading the carried candidate lists
+            sys_c = dataclasses.replace(system, kernel=functools.partial(kernel, cache=cache))
+            state = integrators.build(integrator, sys_c, cg_tol=cg_tol, cg_maxiter=cg_maxiter).step(params, state)
+            return state, cache_ops.update(cache, state.x)
+
+        if substeps == 1:
+            coherent_step = coherent_substep
+        else:
+            def coherent_step(params, state, cache):
+                return jax.lax.fori_loop(0, substeps, lambda _, c: coherent_substep(params, *c), (state, cache))
+
+        coherent = CoherentStep(init=cache_ops.init, step=coherent_step)
 
     # Internally everything is component-major, (3, V): see model.make_force_fn.
     def internal_init(params, x0=None, v0=None):
@@ -141,7 +176,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     return Simulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
                      topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype,
                      internal_step=internal_step, to_internal=to_internal, to_public=to_public,
-                     substeps=substeps, velocity_fn=velocity_fn)
+                     substeps=substeps, velocity_fn=velocity_fn, coherent=coherent)
 
 
 def to_internal(state):

@@ -15,6 +15,8 @@ Every number in the headers is computed here, not guessed (physics.md §4, §5, 
   equilibrium; the lobed bear instead gains volume by unfolding its creases (with the
   formula's nmol it swells to (V*/V0)^(1/3) = 1.16 and loses its shape), so its nmol is
   solved numerically for a measured (V*/V0)^(1/3) = 1.05 at the relaxed equilibrium.
+  The pile's flat cushions (superellipsoids) are calibrated the same way: for them the
+  formula's nmol is 4-6 times larger (see their headers) and would round them.
 * ``dashpot`` ``c = zeta_spring * sqrt(2 k m)``: the damping ratio of one spring between two
   vertex masses (§5). Modal damping ratios are reported: ``zeta_1`` (lowest deformation
   mode; for a pinned object the lowest mode), ``zeta_b`` (breathing, Rayleigh quotient of
@@ -593,29 +595,63 @@ def scene_two_plushies():
             dict(gravity=GRAVITY, floor=FLOOR, temperature=TEMPERATURE))
 
 
-PILE_FRICTION = 0.6  # Coulomb coefficient of the pile scene, on the floor and between the balls
-# Contact candidates per object pair: the top ball settles with about a third of its vertices near
-# a lower ball, over the default of max(64, n/16) (jaxplush.simulate would rerun with more).
-PILE_CAPACITY = 256
+PILE_FRICTION = 0.6  # Coulomb coefficient of the pile scene, on the floor and between the cushions
+# Contact candidates per object pair: a cushion lying on another has up to about 430 of its 642
+# vertices in the other's (margin-inflated) bounding box (measured); let every vertex take part.
+PILE_CAPACITY = 642
+# The pile: three cushions, bottom to top (half-width a, half-thickness c, mass), stacked centred.
+PILE_CUSHIONS = (("bottom", 0.12, 0.05, 0.1), ("middle", 0.09, 0.04, 0.1), ("top", 0.065, 0.03, 0.1))
+PILE_EXPONENT = 4  # superellipsoid exponent: flat faces, rounded rims
+PILE_GAP = 0.02  # m between a cushion's rest-shape top and the next one's bottom
+PILE_DRAG = 5.0  # 1/s, air drag of every cushion (see scene_plush_pile)
+
+
+def pillow_mesh(a, c, exponent, subdivisions=3):
+    """A cushion: the superellipsoid |x/a|^p + |y/c|^p + |z/a|^p = 1 on an icosphere's directions.
+
+    Each unit direction d of the icosphere is moved to the surface along its ray,
+    r(d) = (sum |d_i / a_i|^p)^(-1/p): a star-shaped, closed, outward-wound mesh with the
+    icosphere's topology, flat on top and bottom for p > 2.
+    """
+    v, f = icosphere(subdivisions, 1.0)
+    d = v / np.linalg.norm(v, axis=1, keepdims=True)
+    r = (np.abs(d[:, 0] / a) ** exponent + np.abs(d[:, 1] / c) ** exponent
+         + np.abs(d[:, 2] / a) ** exponent) ** (-1.0 / exponent)
+    return d * r[:, None], f
 
 
 def scene_plush_pile():
-    radius = 0.08
-    v, f = ball_mesh(3, radius)
-    # two balls side by side on the floor (1 cm apart), a third dropped onto the gap between them
+    # Why a stack of flat cushions and not a pyramid of balls (measured, see the README): two balls
+    # under a third roll apart, since rolling needs no slip at the floor and only friction between
+    # the plushies could stop them, and that friction, explicit and velocity level, creeps (about
+    # 1.6 cm/s per ball). A ball on a cushion, or in the groove between two, rolls off (a ball on a
+    # convex top, and along the groove, is unstable). Flat cushions need no friction to stay
+    # stacked: a flat top gives no push sideways. An air drag (PILE_DRAG) damps what the edge
+    # dashpot barely damps: the slow bounce of the whole stack on its gas springs, started by the
+    # inflation from the rest shapes (the dashpot is stiffness-proportional; zeta_1 ~ 0.02).
+    # Measured at 2 s, largest vertex speed: 0.6 m/s without drag, 0.12 m/s with 2/s, 2-3 mm/s with
+    # 5/s. Ellipsoid cushions (convex tops) drift sideways off each other; flat tops do not.
     objs, infos = [], []
-    for name, x, lift in (("left", -radius - 0.005, 0.002), ("right", radius + 0.005, 0.002),
-                          ("top", 0.0, 2 * radius + 0.06)):
-        obj, info = make_object(name, v, f, total_weight=0.08, k=800.0,
-                                translate=(x, FLOOR + lift - v[:, 1].min(), 0.0))
+    y = FLOOR + 0.002
+    for name, a, c, mass in PILE_CUSHIONS:
+        v, f = pillow_mesh(a, c, PILE_EXPONENT)
+        # nmol calibrated: the sphere formula assumes uniform scaling and overinflates a flat body
+        obj, info = make_object(name, v, f, total_weight=mass, k=800.0, calibrate=True, drag=PILE_DRAG,
+                                translate=(0.0, y + c, 0.0))
         objs.append(obj)
         infos.append(info)
-    text = ("Three plushies piled up: two balls (radius 0.08 m, 0.08 kg, k = 800 N/m) side by side "
-            "on the floor, 1 cm apart, and a third dropped onto the gap between them from 6 cm above "
-            "their tops. Soft-soft contact (on by default for several objects) holds the top ball up; "
-            f"Coulomb friction {PILE_FRICTION:g} on the floor and between the balls slows the lower "
-            "balls rolling apart under it (they still do: friction between plushies is explicit and "
-            "creeps, see README).")
+        y += 2 * c + PILE_GAP
+    sizes = ", ".join(f"{name} {2 * a * 100:g} x {2 * c * 100:g} x {2 * a * 100:g} cm"
+                      for name, a, c, _ in PILE_CUSHIONS)
+    text = (f"Three plushies piled up: three flat cushions ({sizes}; 0.1 kg and k = 800 N/m each; "
+            f"superellipsoids |x/a|^{PILE_EXPONENT} + |y/c|^{PILE_EXPONENT} + |z/a|^{PILE_EXPONENT} = 1 "
+            f"on a 642-vertex icosphere) stacked centred on the floor, each {PILE_GAP * 100:g} cm above "
+            "the one below (rest shapes); they inflate, settle on each other and come to rest. Soft-soft "
+            f"contact (on by default for several objects) holds them up; Coulomb friction {PILE_FRICTION:g} on "
+            f"the floor and between the cushions. An air drag of {PILE_DRAG:g}/s damps the slow bounce of the "
+            "stack on its gas springs, which the edge dashpot barely damps. Flat cushions rather than "
+            "balls: two balls roll apart under a third (friction between plushies is explicit and "
+            "creeps, see README), and a ball rolls off a cushion's top or out of the groove between two.")
     return ("plush_pile.obj", text, objs, infos,
             dict(gravity=GRAVITY, floor=FLOOR, temperature=TEMPERATURE, floor_friction=PILE_FRICTION,
                  contact_capacity=PILE_CAPACITY, contact_friction=PILE_FRICTION))

@@ -433,6 +433,95 @@ def test_self_collision_repels_a_folded_surface(x64):
     assert f[top, 1].sum() > 0 > f[bottom, 1].sum()            # the two sheets are pushed apart
 
 
+# --------------------------------------------------------------------------- temporal coherence
+
+
+def _thrown(sub=2, gap=0.02):
+    scene, n = two_balls(sub=sub, gap=gap)
+    v0 = np.zeros((2 * n, 3))
+    v0[:n, 0], v0[n:, 0] = 1.0, -1.0
+    v0[n:, 1] = 0.2
+    return scene, n, v0
+
+
+def test_carried_candidate_lists_give_the_search_every_step_result():
+    """Rollouts carry the candidate lists (rebuilt past half the skin, nearest vertices walked):
+    a glancing collision then follows the search-every-step trajectory to float32 rounding."""
+    scene, n, v0 = _thrown()
+    sim = jaxplush.make_simulator(scene, 2e-4)
+    ref = jaxplush.make_simulator(scene, 2e-4, terms=sim.terms, coherent_contact=False)
+    assert sim.coherent is not None and ref.coherent is None
+    p = sim.params()
+    out = [jaxplush.rollout(s, p, s.init_fn(p, None, v0), 30, 25) for s in (sim, ref)]
+    assert not out[0][2].failed and not out[1][2].failed
+    fa, fb = np.asarray(out[0][1]), np.asarray(out[1][1])
+    va = np.asarray(out[0][0].v)[:n, 0].mean()
+    assert va < -0.3                                  # they collided and came apart
+    assert np.max(np.abs(fa - fb)) < 1e-5             # m, over 750 steps and a collision
+
+
+def test_contact_cache_is_rebuilt_past_half_the_skin_and_walks_otherwise():
+    scene, n = two_balls(sub=2, gap=0.0)
+    sim = jaxplush.make_simulator(scene, 1e-4)
+    skin = contact.skin_distance(sim.topology, sim.terms.contact)
+    ops = contact.make_contact_cache(sim.topology, sim.terms.contact)
+    x = jnp.asarray(scene.vertices).T
+    cache = ops.init(x)
+    assert not bool(cache.overflow) and int(cache.valid.sum()) > 0
+    update = jax.jit(ops.update)
+    # every vertex moved by 0.4 skin: no rebuild; each target walked to the nearest of itself and its ring
+    shift = jnp.asarray([0.0, 0.4 * skin, 0.0])[:, None]
+    x1 = x.at[:, n:].add(shift)
+    c1 = update(cache, x1)
+    np.testing.assert_array_equal(np.asarray(c1.x_ref), np.asarray(x))
+    np.testing.assert_array_equal(np.asarray(c1.q_idx), np.asarray(cache.q_idx))
+    ring = np.asarray(sim.topology.ring)
+    xn = np.asarray(x1).T
+    for q, t, t1, ok in zip(*(np.asarray(a) for a in (cache.q_idx, cache.target, c1.target, cache.valid))):
+        if ok:
+            cand = np.concatenate([[t], ring[t]])
+            d = np.sum((xn[cand] - xn[q]) ** 2, axis=1)
+            assert np.isclose(np.sum((xn[t1] - xn[q]) ** 2), d.min(), rtol=1e-5, atol=1e-12)
+    # one vertex moved past half the skin: rebuilt at the new positions (a fresh search)
+    x2 = x.at[1, 0].add(0.6 * skin)
+    c2 = update(cache, x2)
+    fresh = ops.init(x2)
+    np.testing.assert_array_equal(np.asarray(c2.x_ref), np.asarray(x2))
+    for a, b in zip(c2, fresh):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_carried_lists_hold_every_vertex_in_reach():
+    """The skin argument: at every step of a collision, each vertex within the force's reach of the
+    other object (the broad phase without the skin) is among the carried candidates."""
+    scene, n, v0 = _thrown()
+    sim = jaxplush.make_simulator(scene, 2e-4)
+    p = sim.params()
+    cfg = sim.terms.contact
+    reach = contact._tables_margin(sim.topology, cfg)[0] - 2.0 * contact.skin_distance(sim.topology, cfg)
+    co = sim.coherent
+
+    @jax.jit
+    def run(state, cache):
+        def body(c, _):
+            s, k = co.step(p, *c)
+            return (s, k), (s.x, k.q_idx, k.valid)
+        return jax.lax.scan(body, (state, cache), None, length=600)[1]
+
+    s0 = sim.to_internal(sim.init_fn(p, None, v0))
+    xs, qs, valid = (np.asarray(a) for a in run(s0, co.init(s0.x)))
+    rebuilds = 0
+    for i in range(0, 600, 3):
+        x = xs[i]                                        # (3, V) after step i; the lists of step i + 1
+        in_a, in_b = contact._broad_phase(x[:, :n], x[:, n:], reach)
+        have = set(qs[i][valid[i]].tolist())
+        need = set(np.nonzero(in_a)[0].tolist()) | set((n + np.nonzero(in_b)[0]).tolist())
+        if in_a.any() and in_b.any():
+            assert need <= have, f"step {i}: {sorted(need - have)[:5]} not carried"
+        rebuilds += i > 0 and not np.array_equal(qs[i], qs[i - 1])
+    assert rebuilds >= 1
+
+
 # --------------------------------------------------------------------------- the pile scene
 
 
@@ -448,3 +537,72 @@ def test_plush_pile_scene_simulates_and_renders(tmp_path):
     gif = tmp_path / "pile.gif"
     assert cli.main(["render", str(out), "--out", str(gif), "--max-frames", "2"]) == 0
     assert gif.stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_plush_pile_holds_and_comes_to_rest():
+    """The pile scene as written, 2 s: each cushion stays on the one below, the stack comes to rest,
+    no NaN, no vertex of one cushion more than 1 mm inside another (the independent inside test).
+    About 40-90 s (three 642-vertex cushions in contact, capacity 642), hence slow."""
+    path = os.path.join(ROOT, "scenes", "plush_pile.obj")
+    scene = jaxplush.load_scene(path)
+    dt, every = 1e-4, 100
+    traj = jaxplush.simulate(scene, steps=20000, dt=dt, save_every=every)
+    pos = traj.positions
+    assert np.isfinite(pos).all()
+    objs = [pos[:, o.vertex_slice[0]:o.vertex_slice[1]] for o in scene.objects]   # bottom to top
+    end = [x[-1] for x in objs]
+    assert end[0][:, 1].min() > scene.floor - 1e-6
+    for lower, upper in zip(end, end[1:]):
+        height = np.ptp(lower[:, 1])
+        # the upper cushion rests on the lower one: its lowest point near the lower one's top, well
+        # above the lower one's lowest point, and its centre over the lower one's footprint
+        assert upper[:, 1].min() > lower[:, 1].min() + 0.8 * height
+        assert abs(upper[:, 1].min() - lower[:, 1].max()) < 0.02
+        centre = upper.mean(0)
+        half = 0.5 * np.ptp(lower[:, [0, 2]], axis=0)
+        assert np.all(np.abs(centre[[0, 2]] - lower.mean(0)[[0, 2]]) < 0.25 * half)
+    # at rest: the largest vertex speed over the last 0.1 s (frame differences), against about
+    # 0.5 m/s while the cushions inflate and land
+    speed = np.linalg.norm(np.diff(pos[-11:], axis=0), axis=2).max(axis=1) / (every * dt)
+    assert speed.max() < 0.02, speed
+    frames = list(range(0, len(pos), 20)) + [len(pos) - 1]
+    assert max(max_penetration(scene, pos[i]) for i in frames) <= 1e-3
+
+
+def _pillow(a, c, subdivisions, p=4):
+    """Superellipsoid cushion |x/a|^p + |y/c|^p + |z/a|^p = 1 on an icosphere's directions (as make_scenes)."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    d = np.asarray(m.vertices) / np.linalg.norm(m.vertices, axis=1, keepdims=True)
+    r = (np.abs(d[:, 0] / a) ** p + np.abs(d[:, 1] / c) ** p + np.abs(d[:, 2] / a) ** p) ** (-1.0 / p)
+    return d * r[:, None], np.asarray(m.faces)
+
+
+def test_small_cushion_pile_holds_and_settles(tmp_path):
+    """The pile scene at small size (162-vertex cushions, dt 2.5e-4, nmol calibrated by make_scenes for
+    these meshes), 2 s: the stack keeps its order, settles, no NaN, no penetration beyond 1 mm."""
+    from jaxplush import scene_writer
+    objs, y = [], 0.002
+    for name, a, c, nmol in (("bottom", 0.12, 0.05, 5.586e-4), ("middle", 0.09, 0.04, 4.266e-4),
+                             ("top", 0.065, 0.03, 2.622e-4)):
+        v, f = _pillow(a, c, 2)
+        objs.append(dict(name=name, vertices=v, faces=f, total_weight=0.1, k_structural=800.0, nmol=nmol,
+                         dashpot=0.2485, drag=5.0, translate=(0.0, y + c, 0.0)))
+        y += 2 * c + 0.02
+    path = tmp_path / "small_pile.obj"
+    scene_writer.write_scene(path, objs, gravity=(0, -9.81, 0), floor=0.0, floor_friction=0.6,
+                             contact_friction=0.6, contact_capacity=162)
+    scene = jaxplush.load_scene(path)
+    dt, every = 2.5e-4, 40
+    pos = jaxplush.simulate(scene, steps=8000, dt=dt, save_every=every).positions
+    assert np.isfinite(pos).all()
+    end = [pos[-1, o.vertex_slice[0]:o.vertex_slice[1]] for o in scene.objects]
+    for lower, upper in zip(end, end[1:]):
+        assert upper[:, 1].min() > lower[:, 1].min() + 0.8 * np.ptp(lower[:, 1])
+        assert abs(upper[:, 1].min() - lower[:, 1].max()) < 0.03
+        assert np.all(np.abs(upper.mean(0)[[0, 2]] - lower.mean(0)[[0, 2]]) < 0.01)
+    speed = np.linalg.norm(np.diff(pos, axis=0), axis=2).max(axis=1) / (every * dt)
+    # the coarse cushions settle less completely than the scene's (about 2 cm/s left at 2 s, against
+    # about 0.7 m/s while they inflate and land)
+    assert speed[-10:].max() < 0.05 and speed[-10:].max() < 0.1 * speed.max()
+    assert max(max_penetration(scene, pos[i]) for i in range(0, len(pos), 20)) <= 1e-3

@@ -210,6 +210,31 @@ def test_default_chunk_splits_large_batches():
     assert batched.make_batched_simulator(_ball(subdivisions=0), DT, 64).chunk == batched.MAX_CHUNK
 
 
+def test_folded_position_update_changes_no_result(monkeypatch):
+    # the rollout carries positions folded to rows of >= _FOLD_WIDTH floats (a reshape, for the
+    # vectoriser): the fold divides the vertex count, and a rollout with every term on (floor
+    # contact, a pin, two objects) gives the frames and health of the unfolded one
+    assert batched._fold_factor(642, 16) == 3 and batched._fold_factor(642, 48) == 1
+    assert batched._fold_factor(84, 5) == 12 and batched._fold_factor(67, 16) == 1    # 67: prime
+    scene = _two_object_scene()
+    assert batched._fold_factor(scene.n_vertices, 3) > 1
+    out = []
+    for width in (batched._FOLD_WIDTH, 0):                              # 0: no folding
+        monkeypatch.setattr(batched, "_FOLD_WIDTH", width)
+        bsim = batched.make_batched_simulator(scene, DT, 3)
+        points = [_point_params(scene, **v) for v in POINTS]
+        pb = bsim.params(jaxplush.Params(*(np.stack(a, axis=1) for a in zip(*points))))
+        final, frames, health = batched.rollout(bsim, pb, bsim.init_fn(pb), 5, 60,
+                                                observe=batched.positions_observer)
+        out.append((batched.positions(final), np.asarray(frames), health))
+    (x1, f1, h1), (x0, f0, h0) = out
+    assert not h1.failed.any() and not h0.failed.any()
+    assert (f1[..., 1] <= -0.12 + 1e-6).any()                          # on the floor at some point
+    np.testing.assert_allclose(f1, f0, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(x1, x0, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(h1.code), np.asarray(h0.code))
+
+
 def test_chunks_compile_once_and_match_one_batch():
     scene = _ball()
     grid = {"k": [150.0, 200.0, 250.0, 300.0, 350.0]}
