@@ -191,7 +191,7 @@ def _tables(topo, cfg):
         for e in range(3):
             edge_face[(int(f[e]), int(f[(e + 1) % 3]))] = fi
     face_adj = np.array([[edge_face[(int(f[(e + 1) % 3]), int(f[e]))] for e in range(3)] for f in faces], np.int32)
-    longest = [float(topo.rest_length[topo.edge_object == o].max()) for o in range(topo.n_objects)]
+    longest = _longest_edges(topo)
     margin = _tables_margin(topo, cfg)
     excl = []
     for o in cfg.self_objects:
@@ -679,7 +679,7 @@ def make_contact(topo, cfg, h=None):
 
 
 class ContactCache(NamedTuple):
-    """Soft-soft candidate lists carried between steps (:func:`make_contact_cache`); Q queries.
+    """Soft-soft candidate lists carried between steps (:func:`make_contact`); Q queries.
 
     Attributes:
       q_idx: (Q,) int32 global index of each query vertex (padded slots repeat a valid index).
@@ -707,11 +707,6 @@ class CacheOps(NamedTuple):
 def make_contact_force(topo, cfg, h=None):
     """:func:`make_contact`'s force alone: ``force(params, x, v=None, base=None, cache=None)``."""
     return make_contact(topo, cfg, h)[0]
-
-
-def make_contact_cache(topo, cfg, h=None):
-    """:func:`make_contact`'s :class:`CacheOps` (None without object pairs)."""
-    return make_contact(topo, cfg, h)[1]
 
 
 def _broad_phase(xa, xb, margin):
@@ -795,7 +790,7 @@ def _longest_edges(topo):
 def skin_distance(topo, cfg):
     """The Verlet-list skin s of the candidate cache (m): SKIN_FACTOR x the shortest of the pairs'
     longest rest edges. Candidate lists are rebuilt once some vertex has moved s/2 since the last
-    build (:func:`make_contact_cache`)."""
+    build (:func:`make_contact`)."""
     longest = _longest_edges(topo)
     return SKIN_FACTOR * min((max(longest[a], longest[b]) for a, b in cfg.pairs), default=0.0)
 

@@ -221,3 +221,20 @@ def ring_table(rings):
         nbr[v, len(r):] = r[-1]
         mask[v, : len(r)] = True
     return nbr, mask
+
+
+def superellipsoid(a, c, exponent, subdivisions=3):
+    """A cushion mesh: the superellipsoid |x/a|^p + |y/c|^p + |z/a|^p = 1 (p = ``exponent``).
+
+    Each unit direction d of a trimesh icosphere is moved to the surface along its ray,
+    r(d) = (sum |d_i / a_i|^p)^(-1/p): a star-shaped, closed, outward-wound mesh with the
+    icosphere's topology, flat on top and bottom for p > 2. Returns (vertices (N, 3), faces (F, 3)).
+    """
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    d = np.asarray(m.vertices, np.float64)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    r = (np.abs(d[:, 0] / a) ** exponent + np.abs(d[:, 1] / c) ** exponent
+         + np.abs(d[:, 2] / a) ** exponent) ** (-1.0 / exponent)
+    return d * r[:, None], np.asarray(m.faces, np.int64)

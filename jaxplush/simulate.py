@@ -162,9 +162,8 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
         hint = _hint(sim, p)
         if getattr(sim.terms, "contact", None) is not None:
             # An overflowing candidate list poisons the force at the state *before* the failing
-            # step, which may lie after the last healthy saved frame: check there.
-            # The rollout carries its candidate lists, rebuilt where it needed them, so check
-            # both the last healthy state and the replayed state before the failing step.
+            # step, which may lie after the last healthy saved frame; the rollout carried lists
+            # built at earlier positions, so check the last healthy state and that state.
             from jaxplush import contact
             checked = [health.good_state.x]
             n = step - 1 - int(health.good_step)

@@ -54,6 +54,7 @@ ROOT = HERE.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from jaxplush.mesh import superellipsoid  # noqa: E402
 from jaxplush.scene_writer import write_scene  # noqa: E402
 
 R_GAS = 8.314  # J/(mol K), as jaxplush.types.GAS_CONSTANT
@@ -606,20 +607,6 @@ PILE_GAP = 0.02  # m between a cushion's rest-shape top and the next one's botto
 PILE_DRAG = 5.0  # 1/s, air drag of every cushion (see scene_plush_pile)
 
 
-def pillow_mesh(a, c, exponent, subdivisions=3):
-    """A cushion: the superellipsoid |x/a|^p + |y/c|^p + |z/a|^p = 1 on an icosphere's directions.
-
-    Each unit direction d of the icosphere is moved to the surface along its ray,
-    r(d) = (sum |d_i / a_i|^p)^(-1/p): a star-shaped, closed, outward-wound mesh with the
-    icosphere's topology, flat on top and bottom for p > 2.
-    """
-    v, f = icosphere(subdivisions, 1.0)
-    d = v / np.linalg.norm(v, axis=1, keepdims=True)
-    r = (np.abs(d[:, 0] / a) ** exponent + np.abs(d[:, 1] / c) ** exponent
-         + np.abs(d[:, 2] / a) ** exponent) ** (-1.0 / exponent)
-    return d * r[:, None], f
-
-
 def scene_plush_pile():
     # Why a stack of flat cushions and not a pyramid of balls (measured, see the README): two balls
     # under a third roll apart, since rolling needs no slip at the floor and only friction between
@@ -634,7 +621,7 @@ def scene_plush_pile():
     objs, infos = [], []
     y = FLOOR + 0.002
     for name, a, c, mass in PILE_CUSHIONS:
-        v, f = pillow_mesh(a, c, PILE_EXPONENT)
+        v, f = superellipsoid(a, c, PILE_EXPONENT)
         # nmol calibrated: the sphere formula assumes uniform scaling and overinflates a flat body
         obj, info = make_object(name, v, f, total_weight=mass, k=800.0, calibrate=True, drag=PILE_DRAG,
                                 translate=(0.0, y + c, 0.0))

@@ -464,7 +464,7 @@ def test_contact_cache_is_rebuilt_past_half_the_skin_and_walks_otherwise():
     scene, n = two_balls(sub=2, gap=0.0)
     sim = jaxplush.make_simulator(scene, 1e-4)
     skin = contact.skin_distance(sim.topology, sim.terms.contact)
-    ops = contact.make_contact_cache(sim.topology, sim.terms.contact)
+    _, ops = contact.make_contact(sim.topology, sim.terms.contact)
     x = jnp.asarray(scene.vertices).T
     cache = ops.init(x)
     assert not bool(cache.overflow) and int(cache.valid.sum()) > 0
@@ -570,22 +570,15 @@ def test_plush_pile_holds_and_comes_to_rest():
     assert max(max_penetration(scene, pos[i]) for i in frames) <= 1e-3
 
 
-def _pillow(a, c, subdivisions, p=4):
-    """Superellipsoid cushion |x/a|^p + |y/c|^p + |z/a|^p = 1 on an icosphere's directions (as make_scenes)."""
-    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
-    d = np.asarray(m.vertices) / np.linalg.norm(m.vertices, axis=1, keepdims=True)
-    r = (np.abs(d[:, 0] / a) ** p + np.abs(d[:, 1] / c) ** p + np.abs(d[:, 2] / a) ** p) ** (-1.0 / p)
-    return d * r[:, None], np.asarray(m.faces)
-
-
 def test_small_cushion_pile_holds_and_settles(tmp_path):
     """The pile scene at small size (162-vertex cushions, dt 2.5e-4, nmol calibrated by make_scenes for
     these meshes), 2 s: the stack keeps its order, settles, no NaN, no penetration beyond 1 mm."""
     from jaxplush import scene_writer
+    from jaxplush.mesh import superellipsoid
     objs, y = [], 0.002
     for name, a, c, nmol in (("bottom", 0.12, 0.05, 5.586e-4), ("middle", 0.09, 0.04, 4.266e-4),
                              ("top", 0.065, 0.03, 2.622e-4)):
-        v, f = _pillow(a, c, 2)
+        v, f = superellipsoid(a, c, 4, subdivisions=2)
         objs.append(dict(name=name, vertices=v, faces=f, total_weight=0.1, k_structural=800.0, nmol=nmol,
                          dashpot=0.2485, drag=5.0, translate=(0.0, y + c, 0.0)))
         y += 2 * c + 0.02
