@@ -405,6 +405,10 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
     Raises:
       JaxplushError / TrajectoryError: bad input (before anything is traced).
       FitError: the fit cannot proceed (the rollout blows up at the start or for every step).
+
+    Soft-soft contact: an evaluation whose contact candidates overflow the capacity is not a
+    blow-up; the fit raises the capacity to what the run needs, warns, and evaluates that point
+    again (see ``contact_capacity`` in the scene format).
       KeyboardInterrupt: after saving the checkpoint (when ``checkpoint_path`` is given).
     """
     t_start = time.perf_counter()
@@ -449,6 +453,29 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
             from fitting import io as _io
             _io.save_checkpoint(checkpoint_path, prob, state, settings, status=status)
 
+    def grow_contact_capacity(theta):
+        """After a failed evaluation at theta: if soft-soft contact candidates overflowed there,
+        rebuild the problem with a capacity that fits (warning) and return True."""
+        nonlocal prob, step_fn
+        if getattr(prob.sim.terms, "contact", None) is None:
+            return False
+        from jaxplush import contact
+        from jaxplush.simulate import contact_capacity_needed
+        need = contact_capacity_needed(prob.scene, int(prob.loss.frame_steps[-1]), prob.target.dt,
+                                       params=prob.params_at(theta), sim=prob.sim)
+        if need is None:
+            return False
+        old = max(prob.sim.terms.contact.capacity)
+        sim = jaxplush.make_simulator(prob.scene, prob.target.dt, terms=contact.with_capacity(prob.sim.terms, need))
+        prob = dataclasses.replace(prob, sim=sim)
+        step_fn = _make_step(prob, opt, optimizer)
+        msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "
+               f"refitting with contact_capacity {need} (set it in the scene to skip this)")
+        warnings.warn(msg, stacklevel=3)
+        notes.append(msg)
+        bar.update(0, extra=f"contact capacity raised to {need}; recompiling")
+        return True
+
     last_saved = loop.iteration
     wall_before = loop.wall
     bar = Progress(int(iterations), "fit", enabled=progress, unit="it")
@@ -459,7 +486,17 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
         with bar:
             while not loop.done and loop.iteration < int(iterations):
                 consistent = loop.snapshot()
-                _iterate(prob, opt, optimizer, step_fn, loop, gtol, rtol, xtol, ftol, int(patience))
+                try:
+                    _iterate(prob, opt, optimizer, step_fn, loop, gtol, rtol, xtol, ftol, int(patience))
+                except FitError:
+                    if not grow_contact_capacity(consistent.theta):
+                        raise
+                    loop = consistent            # evaluate the same point again, with room for contact
+                    continue
+                if loop.h_rejected and loop.h_rejected[-1] == consistent.iteration \
+                        and grow_contact_capacity(consistent.theta):
+                    loop = consistent
+                    continue
                 consistent = loop
                 loop.wall = time.perf_counter() - t_loop
                 if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
@@ -490,11 +527,12 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
 
 
 def _progress_text(loss, vals):
-    parts = [f"loss {loss:.4g}"]
-    for n, v in vals.items():
-        short = "k" if n == "k_structural" else n
-        parts.append(f"{short} " + ",".join(f"{x:.4g}" for x in np.atleast_1d(v)))
-    return " ".join(parts)
+    return f"loss {loss:.4g} " + _values_text(vals)
+
+
+def _values_text(vals):
+    return " ".join(("k" if n == "k_structural" else n) + " " + ",".join(f"{x:.4g}" for x in np.atleast_1d(v))
+                    for n, v in vals.items())
 
 
 def _make_step(prob, opt, optimizer):

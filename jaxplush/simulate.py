@@ -111,6 +111,40 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
 MAX_CAPACITY_RETRIES = 4
 
 
+def contact_capacity_needed(scene, steps, dt, params=None, sim=None):
+    """The soft-soft contact capacity a run of ``steps`` steps needs, if ``sim``'s is too small.
+
+    Runs the simulation as :func:`simulate` does (from the scene's rest state, with ``params``),
+    raising the capacity after each overflow, and returns the capacity it finished with, or None
+    when the scene has no soft-soft contact or the simulator's capacity never overflowed. A run
+    that blows up for another reason ends the search (it returns what it has). For callers that
+    build their own rollouts, such as :func:`fitting.fit`, which must rebuild with the capacity
+    instead of rerunning (its contact force returns NaN on an overflow).
+
+    Args:
+      scene: :class:`jaxplush.scene.Scene`; steps: number of time steps; dt: time step, s.
+      params: :class:`jaxplush.types.Params` overriding the scene's values.
+      sim: the :class:`jaxplush.step.Simulator` whose capacity is in question (default: built
+        from the scene and dt).
+    """
+    sim = sim or make_simulator(scene, dt)
+    if getattr(sim.terms, "contact", None) is None:
+        return None
+    from jaxplush import contact
+    start = cap = max(sim.terms.contact.capacity)
+    for _ in range(MAX_CAPACITY_RETRIES + 1):
+        try:
+            _simulate(scene, steps, int(steps), params, None, None, False, False, sim, retry=True)
+            break
+        except _CapacityOverflow as e:
+            cap = contact.grown_capacity(e.need)
+            sim = make_simulator(scene, sim.dt, sim.integrator, terms=contact.with_capacity(sim.terms, cap),
+                                 substeps=sim.substeps)
+        except SimulationError:
+            break
+    return None if cap == start else cap
+
+
 class _CapacityOverflow(Exception):
     def __init__(self, step, need):
         super().__init__(f"contact capacity overflow at step {step}: {need} candidates needed")
@@ -159,7 +193,7 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     wall = time.perf_counter() - t0
     if health.failed:
         step, obj, code = _rollout.locate_failure(sim, p, health)
-        hint = _hint(sim, p)
+        report = None
         if getattr(sim.terms, "contact", None) is not None:
             # An overflowing candidate list poisons the force at the state *before* the failing
             # step, which may lie after the last healthy saved frame; the rollout carried lists
@@ -173,8 +207,9 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
             report = next((r for r in (contact.capacity_report(sim, x) for x in checked[::-1]) if r), None)
             if report is not None and retry:
                 raise _CapacityOverflow(step, max(contact.needed_capacity(sim, x) for x in checked))
-            hint = report or hint
-        raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code], hint=hint)
+        # (the stability hint compiles an estimate: only for a failure that is reported)
+        raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code],
+                              hint=report or _hint(sim, p))
     positions = np.concatenate([frames[0][None]] + frames[1:], axis=0)
     saved = np.arange(len(positions)) * save_every
     saved[-1] = steps

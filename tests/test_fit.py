@@ -16,6 +16,7 @@ from conftest import icosphere_text
 from fitting import fit as F
 from fitting.io import load_fit
 from fitting.targets import Target, make_target
+from jaxplush import contact
 from jaxplush.errors import JaxplushError
 
 NAMES = ("k_structural", "damping", "nmol")
@@ -164,6 +165,37 @@ def test_blown_up_step_is_rejected_and_the_step_halved():
     with pytest.warns(UserWarning, match="exceeds the estimated stability limit"):
         with pytest.raises(F.FitError, match="blows up .* at the start values"):
             F.fit(_hanging(k_structural=3000.0), target, ("k_structural",), iterations=3)
+
+
+def _pressed_pair(k_a, capacity=None):
+    """Two 12-vertex balls overlapping by 1 cm (soft-soft contact pushes them apart), no gravity."""
+    a = icosphere_text(subdivisions=0, k=k_a, mass=0.04, nmol=5e-4, gravity=(0.0, 0.0, 0.0), name="a")
+    b = icosphere_text(subdivisions=0, k=300.0, mass=0.08, nmol=8e-4, name="b", translate=(0.19, 0.0, 0.0),
+                       offset=12, header=False)
+    head = "" if capacity is None else f"contact_capacity {capacity}\n"
+    return jaxplush.parse_scene(head + a + b, "<pressed pair>")
+
+
+def test_contact_capacity_overflow_is_grown_not_rejected():
+    """A fit through soft-soft contact whose candidate lists are too short is rebuilt with a larger
+    capacity (a warning names it) and goes on; the overflow is not taken for a blow-up."""
+    from jaxplush.simulate import contact_capacity_needed
+    dt = 2e-4
+    truth = _pressed_pair(150.0)
+    target = make_target(truth, 100, dt, 25)
+    small = _pressed_pair(300.0, capacity=2)
+    assert contact_capacity_needed(_hanging(), 10, 1e-3) is None          # no soft-soft contact
+    with pytest.warns(UserWarning, match=r"contact candidates overflowed \(capacity 2\).*contact_capacity"):
+        res = F.fit(small, target, ("k_structural",), objects=["a"], iterations=4, noise_free=True, check_dt=False,
+                    identifiability=False)
+    assert res.rejected == 0 and np.all(np.isfinite(res.history["loss"]))
+    assert res.loss < res.loss_start
+    need = max(res.problem.sim.terms.contact.capacity)
+    assert need > 2 and any(f"contact_capacity {need}" in w for w in res.warnings)
+    # the grown capacity holds over the whole fitted run
+    final = jaxplush.simulate(small, 100, dt, params=res.params, sim=res.problem.sim)
+    assert not any("contact" in w for w in final.warnings)
+    assert contact.capacity_report(res.problem.sim, final.positions[-1]) is None
 
 
 # --------------------------------------------------------------------------- inputs
