@@ -283,8 +283,18 @@ def fitted_scene_text(result):
     for n in result.names:
         for j, o in enumerate(result.objects):
             lines.append(f"{n} of {o}: start {result.start[n][j]:.6g}, fitted {result.values[n][j]:.6g}")
+    # the scene's floor and contact settings carry over; the contact capacity is the one the fit
+    # ran with (raised above the scene's if its candidates overflowed: fitting.fit)
+    settings = dict(floor_friction=scene.floor_friction or None, floor_restitution=scene.floor_restitution or None,
+                    contact=False if not scene.contact else None, self_collision=True if scene.self_collision else None,
+                    contact_stiffness=scene.contact_stiffness, contact_thickness=scene.contact_thickness,
+                    contact_friction=scene.contact_friction or None, contact_capacity=scene.contact_capacity)
+    cfg = getattr(result.problem.sim.terms, "contact", None)
+    grown = any(w.startswith("contact candidates overflowed") for w in result.warnings)
+    if cfg is not None and (scene.contact_capacity is not None or grown):
+        settings["contact_capacity"] = max(cfg.capacity)
     return format_scene(objects, gravity=scene.gravity, floor=scene.floor, temperature=scene.temperature,
-                        header="\n".join(lines))
+                        header="\n".join(lines), **settings)
 
 
 def write_fitted_scene(result, path):
