@@ -71,6 +71,9 @@ def main(argv=None):
         code = EXIT_FAILED if type(e).__name__ in ("FitError", "SimulationError") else EXIT_USAGE
         print(f"jaxplush-fit: error: {e}", file=sys.stderr)
         return code
+    except KeyboardInterrupt:  # before or after the fit itself (loading, compiling, writing --out-scene)
+        print("jaxplush-fit: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def _fit(args):
@@ -92,7 +95,7 @@ def _fit(args):
         check_output_path(args.out_scene, (".obj",), "--out-scene")
     for a, b in ((args.out, args.target), (args.out, args.scene), (args.out_scene, args.scene),
                  (args.out_scene, args.target)):
-        if a is not None and os.path.abspath(a) == os.path.abspath(b):
+        if a is not None and os.path.realpath(a) == os.path.realpath(b):
             raise JaxplushError(f"{a}: an output must not overwrite an input")
     if args.resume and not os.path.exists(args.out):
         raise JaxplushError(f"{args.out}: no checkpoint to resume (the file does not exist); run without --resume")
@@ -111,6 +114,7 @@ def _fit(args):
     def _term(signum, frame):
         raise KeyboardInterrupt
     old = signal.signal(signal.SIGTERM, _term) if hasattr(signal, "SIGTERM") else None
+    before = _stamp(args.out)   # an interrupted fit says "saved" only if it wrote --out (or it resumes it)
     printed = set()
 
     def show(ws):
@@ -136,7 +140,7 @@ def _fit(args):
         printed.update(result.identifiability.warnings if result.identifiability is not None else ())
         show(caught)
     except KeyboardInterrupt:
-        saved = os.path.exists(args.out)
+        saved = os.path.exists(args.out) and (args.resume or _stamp(args.out) != before)
         print("jaxplush-fit: interrupted; " + (f"state saved to {args.out}; continue with --resume"
                                                  if saved else "nothing written"), file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -150,6 +154,15 @@ def _fit(args):
         print(result.identifiability.summary())
     print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))
     return 0
+
+
+def _stamp(path):
+    """Identity of the file at ``path`` (atomic writes replace it), or None."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns, st.st_size
 
 
 if __name__ == "__main__":

@@ -63,7 +63,7 @@ class FitError(JaxplushError):
 def canonical_names(names):
     """Parameter names (strings or one comma-separated string) -> canonical tuple; validated."""
     if isinstance(names, str):
-        names = [n for n in names.split(",")]
+        names = [n for n in names.split(",") if n.strip()]   # "k,damping," and " k, nmol" as meant
     out = []
     for n in names:
         n = str(n).strip()
@@ -201,7 +201,14 @@ def build_problem(scene, target, params=("k_structural", "damping", "nmol"), obj
         n = canonical_names([key])[0]
         if isinstance(val, dict):
             for o, v in val.items():
-                base[n][scene.object_names.index(o) if isinstance(o, str) else int(o)] = float(v)
+                if isinstance(o, str) and o in scene.object_names:
+                    i = scene.object_names.index(o)
+                elif isinstance(o, (int, np.integer)) and not isinstance(o, bool) and 0 <= o < scene.n_objects:
+                    i = int(o)
+                else:
+                    raise JaxplushError(f"start value of {n} for unknown object {o!r}; the scene's objects: "
+                                        f"{', '.join(scene.object_names)}")
+                base[n][i] = float(v)
         else:
             v = np.broadcast_to(np.asarray(val, np.float64), (scene.n_objects,))
             base[n][list(objs)] = v[list(objs)]
@@ -234,7 +241,13 @@ def build_problem(scene, target, params=("k_structural", "damping", "nmol"), obj
     target = target.select(keep)
     if noise is not None and not (np.isfinite(noise) and noise >= 0):
         raise JaxplushError(f"noise must be a number >= 0, got {noise!r}")
+    from fitting.gradients import METHODS, adjoint_supported
+    if method not in METHODS:
+        raise JaxplushError(f"unknown gradient method {method!r}; expected one of {', '.join(METHODS)}")
     sim = jaxplush.make_simulator(fit_scene, target.dt, terms=model.Terms.for_scene(fit_scene))
+    if method == "adjoint" and not adjoint_supported(sim):
+        raise JaxplushError(f"gradient method 'adjoint' does not support this scene ({scene.path}: integrator "
+                            f"{sim.integrator!r}, terms {', '.join(sim.terms.names())}); use auto or checkpoint")
     loss = _losses.make_loss(target, sim.topology, sim.dtype, noise=noise, noise_free=noise_free,
                              check_volume=sim.terms.gas)
     theta0 = np.log(np.stack([base[n][list(objs)] for n in names]))
@@ -349,8 +362,7 @@ class FitResult:
         for n in self.names:
             for j, o in enumerate(self.objects):
                 e = se.get(f"{n}[{o}]", np.nan)
-                es = "-" if not np.isfinite(e) and e == e and rep is None else (
-                    f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined")
+                es = "-" if rep is None else (f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined")
                 rows.append(f"{n:<14} {o:<14} {self.start[n][j]:>12.6g} {self.values[n][j]:>12.6g} {es:>11}")
         rows.append(f"loss {self.loss_start:.4g} -> {self.loss:.4g} ({self.normalisation}-normalised) after "
                     f"{self.iterations} iterations ({self.rejected} rejected), {self.wall_time:.1f} s; {self.reason}")
@@ -519,7 +531,14 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
         raise
     if not loop.done:
         loop.reason = f"reached the iteration limit ({int(iterations)})"
-    result = _finish(prob, loop, settings, notes, identifiability, time.perf_counter() - t_start + wall_before)
+    loop.wall = time.perf_counter() - t_loop
+    try:
+        result = _finish(prob, loop, settings, notes, identifiability, time.perf_counter() - t_start + wall_before)
+    except KeyboardInterrupt:
+        # Ctrl-C during the health check or the identifiability report (JVPs through the rollout,
+        # not short): the loop has finished, so save it; --resume goes straight to this step
+        save(loop, "interrupted")
+        raise
     if checkpoint_path is not None:
         from fitting import io as _io
         _io.save_fit(result, checkpoint_path)

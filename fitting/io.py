@@ -40,7 +40,12 @@ from jaxplush.types import PARAM_NAMES
 
 #: Settings that must agree between a checkpoint and the fit resuming it.
 _RESUME_KEYS = ("optimizer", "lr", "names", "objects", "dt", "noise_free", "noise", "method", "frame_steps",
-                "target_kind", "target_hash", "scene_hash")
+                "target_kind", "target_hash", "scene_hash", "params_hash", "dtype", "gtol", "rtol", "xtol", "ftol",
+                "patience")
+#: ... and for Adam, whose cosine learning-rate schedule spans the iterations, also these.
+_RESUME_KEYS_ADAM = ("iterations",)
+_RESUME_HINTS = {"iterations": "; Adam's learning-rate schedule spans all the iterations",
+                 "dtype": "; give --x64 as the checkpointed fit did, or leave it out likewise"}
 
 
 def fingerprint(prob):
@@ -54,6 +59,10 @@ def fingerprint(prob):
 def _settings(prob, settings):
     s = dict(settings)
     s["scene_hash"], s["target_hash"] = fingerprint(prob)
+    # the start values and the values held fixed (a `start` override is not in the scene text)
+    s["params_hash"] = hashlib.sha1(np.ascontiguousarray(np.stack([np.asarray(getattr(prob.base, n), np.float64)
+                                                                   for n in PARAM_NAMES])).tobytes()).hexdigest()
+    s["dtype"] = np.dtype(prob.sim.dtype).name
     return s
 
 
@@ -186,7 +195,6 @@ def save_fit(result, path):
 
 def load_checkpoint(path, prob, opt, settings):
     """The :class:`fitting.fit.LoopState` saved in ``path``, checked to belong to this fit."""
-    from fitting.fit import LoopState
     path = os.fspath(path)
     if not os.path.exists(path):
         raise JaxplushError(f"{path}: no checkpoint to resume (the file does not exist); run without --resume")
@@ -194,43 +202,53 @@ def load_checkpoint(path, prob, opt, settings):
         f = h5py.File(path, "r")
     except OSError:
         raise TrajectoryError(path, "not an HDF5 file: cannot resume from it") from None
-    with f:
-        if "checkpoint" not in f:
-            raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
-        g = f["checkpoint"]
-        saved = json.loads(g.attrs["settings"])
-        mine = _settings(prob, settings)
-        for k in _RESUME_KEYS:
-            if _norm(saved.get(k)) != _norm(mine.get(k)):
-                raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "
-                                    f"{saved.get(k)!r}, now {mine.get(k)!r}); run without --resume to start over")
-        template = opt.init(jnp.asarray(np.asarray(g["theta"])))
-        leaves, treedef = jax.tree_util.tree_flatten(template)
-        og = g["opt_state"]
-        if int(og.attrs["n_leaves"]) != len(leaves):
-            raise JaxplushError(f"{path}: optimizer state does not match this optax version / optimizer")
-        restored = []
-        for i, leaf in enumerate(leaves):
-            arr = np.asarray(og[f"{i:05d}"][()])
-            if arr.shape != np.shape(leaf):
-                raise JaxplushError(f"{path}: optimizer state leaf {i} has shape {arr.shape}, expected "
-                                    f"{np.shape(leaf)}")
-            restored.append(jnp.asarray(arr, dtype=jnp.asarray(leaf).dtype))
-        hg = g["history"]
-        n_p = len(prob.names) * len(prob.objects)
-        shape = (len(prob.names), len(prob.objects))
-        loop = LoopState(
-            theta=np.asarray(g["theta"][()]),
-            opt_state=jax.tree_util.tree_unflatten(treedef, restored),
-            anchor=np.asarray(g["anchor"][()]) if "anchor" in g else None,
-            scale=float(g.attrs["scale"]), iteration=int(g.attrs["iteration"]), rejected=int(g.attrs["rejected"]),
-            rejected_in_row=int(g.attrs["rejected_in_row"]), stall=int(g.attrs["stall"]),
-            best_theta=np.asarray(g["best_theta"][()]), best_loss=float(g.attrs["best_loss"]),
-            done=bool(g.attrs["done"]), reason=str(g.attrs["reason"]),
-            h_iter=[int(i) for i in hg["iteration"][()]], h_loss=[float(x) for x in hg["loss"][()]],
-            h_theta=[t.reshape(shape) for t in np.asarray(hg["theta"][()]).reshape(-1, n_p)],
-            h_gnorm=[float(x) for x in hg["grad_norm"][()]], h_time=[float(x) for x in hg["time"][()]],
-            h_rejected=[int(i) for i in hg["rejected"][()]], wall=float(g.attrs["wall"]))
+    try:
+        with f:
+            return _read_checkpoint(path, f, prob, opt, settings)
+    except (KeyError, ValueError, TypeError, OSError) as e:  # damaged, or written by another version
+        raise TrajectoryError(path, f"cannot read the checkpoint ({e}); run without --resume to start over") from None
+
+
+def _read_checkpoint(path, f, prob, opt, settings):
+    from fitting.fit import LoopState
+    if "checkpoint" not in f:
+        raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
+    g = f["checkpoint"]
+    saved = json.loads(g.attrs["settings"])
+    mine = _settings(prob, settings)
+    keys = _RESUME_KEYS + (_RESUME_KEYS_ADAM if mine.get("optimizer") == "adam" else ())
+    for k in keys:
+        if _norm(saved.get(k)) != _norm(mine.get(k)):
+            raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "
+                                f"{saved.get(k)!r}, now {mine.get(k)!r}{_RESUME_HINTS.get(k, '')}); "
+                                "run without --resume to start over")
+    template = opt.init(jnp.asarray(np.asarray(g["theta"])))
+    leaves, treedef = jax.tree_util.tree_flatten(template)
+    og = g["opt_state"]
+    if int(og.attrs["n_leaves"]) != len(leaves):
+        raise JaxplushError(f"{path}: optimizer state does not match this optax version / optimizer")
+    restored = []
+    for i, leaf in enumerate(leaves):
+        arr = np.asarray(og[f"{i:05d}"][()])
+        if arr.shape != np.shape(leaf):
+            raise JaxplushError(f"{path}: optimizer state leaf {i} has shape {arr.shape}, expected "
+                                f"{np.shape(leaf)}")
+        restored.append(jnp.asarray(arr, dtype=jnp.asarray(leaf).dtype))
+    hg = g["history"]
+    n_p = len(prob.names) * len(prob.objects)
+    shape = (len(prob.names), len(prob.objects))
+    loop = LoopState(
+        theta=np.asarray(g["theta"][()]),
+        opt_state=jax.tree_util.tree_unflatten(treedef, restored),
+        anchor=np.asarray(g["anchor"][()]) if "anchor" in g else None,
+        scale=float(g.attrs["scale"]), iteration=int(g.attrs["iteration"]), rejected=int(g.attrs["rejected"]),
+        rejected_in_row=int(g.attrs["rejected_in_row"]), stall=int(g.attrs["stall"]),
+        best_theta=np.asarray(g["best_theta"][()]), best_loss=float(g.attrs["best_loss"]),
+        done=bool(g.attrs["done"]), reason=str(g.attrs["reason"]),
+        h_iter=[int(i) for i in hg["iteration"][()]], h_loss=[float(x) for x in hg["loss"][()]],
+        h_theta=[t.reshape(shape) for t in np.asarray(hg["theta"][()]).reshape(-1, n_p)],
+        h_gnorm=[float(x) for x in hg["grad_norm"][()]], h_time=[float(x) for x in hg["time"][()]],
+        h_rejected=[int(i) for i in hg["rejected"][()]], wall=float(g.attrs["wall"]))
     return loop
 
 

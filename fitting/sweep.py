@@ -10,7 +10,8 @@ It reads like ``jax.vmap`` over parameter points: every point is an independent 
 the scene with some parameters replaced. Under the hood the points run in chunks of a static
 batch size B through :mod:`jaxplush.batched` (the batch on the last axis, which is several times
 faster in total than one simulation at a time; a plain ``vmap`` of the single-scene step is not),
-so a grid of any size compiles once. The last chunk is padded by repeating its last point.
+so a grid of any size compiles once. A sweep larger than B runs in equal batches of whole
+chunks (:func:`_outer_batch`); the last batch is padded by repeating its last point.
 
 Parameter names are those of :data:`jaxplush.types.PARAM_NAMES` (``k`` is ``k_structural``).
 A plain name applies to every object; ``name@object`` (object name or 0-based index) to one.
@@ -47,7 +48,8 @@ V vertices, A swept axes:
     failure/warn_step     [P, O] first step with the volume clamp active (-1 none)
     failure/messages      [n_codes] the message of each code (index = code)
     loss                  [P] m² (only with a target; NaN where the point failed)
-    frames, frame_steps   [T, P, V, 3], [T] (only with save_every)
+    frames, frame_steps   [T, P, V, 3], [T] (only with save_every; a failed point's frames after
+                          its final_step repeat its final_positions)
     faces [F, 3], object_id [V], object_names [O]
 """
 
@@ -93,14 +95,16 @@ def canonical_label(scene, label):
     """Resolve ``name`` or ``name@object`` -> (label, name, object indices); SweepError if bad."""
     if not isinstance(label, str) or not label.strip():
         raise SweepError(f"parameter name must be a non-empty string, got {label!r}")
-    name, _, obj = label.strip().partition("@")
+    name, at, obj = label.strip().partition("@")
     name = ALIASES.get(name.strip(), name.strip())
     if name not in PARAM_NAMES:
         raise SweepError(f"unknown parameter {label!r}; expected one of {', '.join(PARAM_NAMES)} "
                          f"(k = k_structural), optionally as name@object")
-    if not obj:
+    if not at:
         return name, name, tuple(range(scene.n_objects))
     obj = obj.strip()
+    if not obj:
+        raise SweepError(f"{label!r}: no object after '@' (objects: {', '.join(scene.object_names)})")
     names = scene.object_names
     if obj in names:
         i = names.index(obj)
@@ -112,7 +116,10 @@ def canonical_label(scene, label):
 
 
 def _check_values(scene, label, name, objects, values):
-    v = np.asarray(values, np.float64)
+    try:
+        v = np.asarray(values, np.float64)
+    except (TypeError, ValueError):
+        raise SweepError(f"{label}: values must be numbers, got {values!r}") from None
     if v.ndim == 0:
         v = v[None]
     if v.ndim != 1 or v.size == 0:
@@ -148,7 +155,11 @@ def _axes(scene, spec, what):
                 raise SweepError(f"{label!r} and {seen[(name, o)]!r} both set {name} of object "
                                  f"{scene.objects[o].name!r}")
             seen[(name, o)] = label
-        axes.append(_Axis(lab, name, objs, _check_values(scene, lab, name, objs, values)))
+        v = _check_values(scene, lab, name, objs, values)
+        if what == "grid" and len(np.unique(v)) < len(v):
+            u, n = np.unique(v, return_counts=True)
+            raise SweepError(f"{lab}: grid values must be distinct, {u[n > 1][0]:g} appears {n[n > 1][0]} times")
+        axes.append(_Axis(lab, name, objs, v))
     return tuple(axes)
 
 
@@ -180,8 +191,10 @@ def _normalise_points(points):
         if not points or not all(isinstance(p, dict) for p in points):
             raise SweepError("points must be a dict of name -> values or a non-empty list of dicts")
         keys = list(points[0])
-        if any(list(p) != keys for p in points):
-            raise SweepError("points: every point must set the same parameters")
+        for i, p in enumerate(points):
+            if set(p) != set(keys):
+                raise SweepError(f"points: every point must set the same parameters; point 0 sets "
+                                 f"{', '.join(map(str, keys))}, point {i} sets {', '.join(map(str, p))}")
         return {k: [p[k] for p in points] for k in keys}
     return points
 
@@ -216,6 +229,8 @@ def _target_frames(target, scene, steps):
     tsteps = np.asarray(target.steps, np.int64).reshape(-1)
     if len(tsteps) != len(data) or len(tsteps) == 0:
         raise SweepError(f"target: {len(tsteps)} frame steps for {len(data)} frames")
+    if np.any(np.diff(tsteps) <= 0):
+        raise SweepError(f"target frame steps must be strictly increasing, got {tsteps.tolist()}")
     if np.any(tsteps < 0) or tsteps.max() > steps:
         raise SweepError(f"target frames reach step {int(tsteps.max())} but the sweep runs {steps} steps; "
                          f"use steps >= {int(tsteps.max())}")
@@ -291,7 +306,8 @@ class SweepResult:
       warn_step: (P, O) first checked step with the volume clamp active (-1: none).
       loss: (P,) loss against the target (m²; NaN where failed), or None without a target.
       target_kind, target_path: "positions"/"points" and the target's path (None without).
-      frames, frame_steps: (T, P, V, 3) saved positions and their (T,) steps (with save_every).
+      frames, frame_steps: (T, P, V, 3) saved positions and their (T,) steps (with save_every);
+        a failed point's frames after its ``final_step`` repeat its final (last healthy) positions.
       steps, dt, integrator, save_every, scene_text, scene_path, faces, object_id,
       object_names, wall_time.
     """
@@ -350,7 +366,15 @@ class SweepResult:
             return self.loss
         if name not in QUANTITIES:
             raise ValueError(f"unknown quantity {name!r}; expected one of {', '.join(QUANTITIES)}")
-        o = self.object_names.index(obj) if isinstance(obj, str) else int(obj)
+        if isinstance(obj, str):
+            if obj not in self.object_names:
+                raise ValueError(f"no object {obj!r} in this sweep (objects: {', '.join(self.object_names)})")
+            o = self.object_names.index(obj)
+        else:
+            o = int(obj)
+            if not 0 <= o < len(self.object_names):
+                raise ValueError(f"object index {obj} out of range: the sweep has {len(self.object_names)} "
+                                 f"object(s)")
         return np.where(self.failed, np.nan, getattr(self, name)[:, o])
 
     def best(self):
@@ -408,7 +432,8 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
         or a :class:`fitting.targets.Target`; the loss of each point is computed against it.
       integrator: only "verlet" is batched.
       progress: draw a progress bar on stderr.
-      batch: points simulated together (static; one compilation for any number of points).
+      batch: at most this many points simulated together (static; one compilation for any
+        number of points; a larger sweep runs in equal batches, each whole rollout chunks).
 
     Returns:
       :class:`SweepResult`.
@@ -438,7 +463,7 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
         tgt = _load_target(target, scene, dt)
         tkind, tsteps, tdata = _target_frames(tgt, scene, steps)
     n_points = len(values)
-    batch = min(batch, n_points)
+    batch = _outer_batch(n_points, batch)
     terms = batched.terms_for(scene, pparams)
     bsim = batched.make_batched_simulator(scene, dt, batch, integrator, terms=terms)
 
@@ -524,6 +549,20 @@ def _positive_int(v, what):
     return int(v)
 
 
+def _outer_batch(n_points, batch):
+    """Points per compiled batch: at most ``batch``, the points spread evenly over the fewest
+    batches, each a whole number of rollout chunks. (Padding the last of ceil(P / batch) full
+    batches with copies of its last point could simulate almost twice the points asked for:
+    65 points in batches of 64 ran 128 simulations, now 2 x 48.)"""
+    batch = min(batch, n_points)
+    n_outer = -(-n_points // batch)
+    if n_outer == 1:
+        return batch
+    chunk = batched.default_chunk(batch)
+    per = -(-n_points // n_outer)
+    return min(batch, -(-per // chunk) * chunk)
+
+
 def _frames_per_call(n_full, n_points, batch, progress):
     """Frames per compiled call: all of them, or (with a progress bar and few chunks) an equal
     split into about 20 updates in all, when n_full has a divisor near that size (one compile)."""
@@ -581,6 +620,11 @@ class _Collector:
             if fsteps[-1] != self.steps:
                 frames = np.concatenate([frames, out["positions"][None]], axis=0)
                 fsteps = np.concatenate([fsteps, [self.steps]])
+            # A failed point's frames after its last healthy step would hold the blown-up (NaN)
+            # state: they repeat its final (last healthy) positions instead, as final_positions.
+            after = fsteps[:, None] > out["final_step"][None, :]                     # (T, P)
+            if after.any():
+                frames = np.where(after[:, :, None, None], out["positions"][None], frames)
             out["frames"], out["frame_steps"] = frames, fsteps
         return out
 
@@ -723,6 +767,9 @@ def _plot(res, where, quantity, obj, log):
         if res.kind == "grid":
             xa, ya = (np.asarray(res.axes[lab]) for lab in res.labels)
             z = res.reshape(q).T                                           # rows: second axis
+            # pcolormesh takes cell centres in increasing order: sort axes given in any order
+            ox, oy = np.argsort(xa, kind="stable"), np.argsort(ya, kind="stable")
+            xa, ya, z = xa[ox], ya[oy], z[np.ix_(oy, ox)]
             mesh = ax.pcolormesh(xa, ya, np.ma.masked_invalid(z), shading="nearest", norm=norm, cmap="viridis")
             if _geometric(xa):
                 ax.set_xscale("log")

@@ -75,6 +75,11 @@ def parse_grid_spec(spec, log=False):
             raise ValueError(f"--grid {spec!r}: the number of values must be >= 1, got {n}")
         if not (np.isfinite(a) and np.isfinite(b)):
             raise ValueError(f"--grid {spec!r}: start and stop must be finite")
+        if n == 1 and a != b:
+            raise ValueError(f"--grid {spec!r}: one value cannot run from {a:g} to {b:g}; give n >= 2, "
+                             f"or a single value as NAME=v")
+        if n > 1 and a == b:
+            raise ValueError(f"--grid {spec!r}: start and stop are equal, so the {n} values would all be {a:g}")
         if log:
             if a <= 0 or b <= 0:
                 raise ValueError(f"--grid {spec!r}: --log needs start and stop > 0")
@@ -118,6 +123,9 @@ def _run(args):
         if name in grid:
             raise JaxplushError(f"--grid {name} given twice")
         grid[name] = values
+    if args.plot is not None and len(grid) > 2:
+        raise JaxplushError(f"--plot draws one or two swept parameters (a curve or a heat map), this sweep has "
+                            f"{len(grid)} ({', '.join(grid)}); drop --plot and plot a slice of {args.out} yourself")
     if args.steps < 1:
         raise JaxplushError(f"--steps must be >= 1, got {args.steps}")
     if args.dt is not None and not (np.isfinite(args.dt) and args.dt > 0):
@@ -142,9 +150,11 @@ def _run(args):
     from fitting import sweep as _sweep
 
     scene = jaxplush.load_scene(args.scene)
-    for label, values in grid.items():   # names, objects and values, before the target is read
-        lab, name, objs = _sweep.canonical_label(scene, label)
-        _sweep._check_values(scene, lab, name, objs, values)
+    try:                                 # names, objects and values, before the target is read
+        _sweep._axes(scene, grid, "grid")
+        _sweep.batched.check_terms(_sweep.batched.terms_for(scene))
+    except (_sweep.SweepError, NotImplementedError) as e:
+        raise JaxplushError(f"{args.scene}: {e}") from None
     target, dt = None, args.dt
     if args.target is not None:
         from fitting.targets import load_target
@@ -153,7 +163,6 @@ def _run(args):
         if int(np.max(target.steps)) > args.steps:
             raise JaxplushError(f"{args.target}: the target reaches step {int(np.max(target.steps))} "
                                 f"(t = {float(np.max(target.times)):g} s) but --steps is {args.steps}")
-    _sweep.batched.check_terms(_sweep.batched.terms_for(scene))
     if args.plot is not None:
         import matplotlib
         matplotlib.use("Agg")

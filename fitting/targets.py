@@ -198,12 +198,19 @@ def _validate(path, raw, scene, dt):
         if len(names) != scene.n_objects:
             raise TrajectoryError(path, f"the target has {len(names)} object(s) {names} but the scene "
                                         f"{scene.path} has {scene.n_objects} {list(scene.object_names)}")
+        if names != list(scene.object_names):
+            raise TrajectoryError(path, f"'object_names' {names} differ from the scene {scene.path}'s "
+                                        f"{list(scene.object_names)}: the target's objects are other objects "
+                                        "or in another order")
     if kind == "positions":
         oid = raw.get("object_id")
         if oid is not None:
             oid = np.asarray(oid)
             if oid.shape != (n,):
                 raise TrajectoryError(path, f"'object_id' must have shape [{n}], got {list(oid.shape)}")
+            if oid.size and not (np.all(np.isfinite(oid)) and np.all(oid == np.rint(oid)) and oid.min() >= 0):
+                raise TrajectoryError(path, "'object_id' must hold integers >= 0 (an object index per vertex)")
+            oid = oid.astype(np.int64)
             n_obj = int(oid.max()) + 1 if oid.size else 0
             if n_obj != scene.n_objects:
                 raise TrajectoryError(path, f"'object_id' describes {n_obj} object(s) but the scene "
@@ -254,7 +261,10 @@ def _validate(path, raw, scene, dt):
 
     noise = raw["noise"]
     if noise is not None:
-        noise = float(np.asarray(noise).reshape(()))
+        try:
+            noise = float(np.asarray(noise, np.float64).reshape(()))
+        except (TypeError, ValueError):
+            raise TrajectoryError(path, f"attribute 'noise' must be a number (m), got {noise!r}") from None
         if not (np.isfinite(noise) and noise >= 0):
             raise TrajectoryError(path, f"attribute 'noise' must be a finite number >= 0, got {noise!r}")
     params = {k: v for k, v in raw["params"].items() if v.shape == (scene.n_objects,)}
@@ -265,6 +275,9 @@ def _validate(path, raw, scene, dt):
 def _grid_steps(path, times, dt, stored_dtype):
     """(T,) int64 step of every frame time on the dt grid; TrajectoryError when off the grid."""
     ratio = np.asarray(times, np.float64) / dt
+    if ratio[-1] > 2 ** 31:
+        raise TrajectoryError(path, f"the last frame at t = {times[-1]:.9g} s is {ratio[-1]:.3g} steps of dt = "
+                                    f"{dt:g} s: too many steps to simulate (times in seconds?)")
     steps = np.rint(ratio)
     eps = np.finfo(stored_dtype if np.dtype(stored_dtype).kind == "f" else np.float64).eps
     off = np.abs(ratio - steps) > GRID_TOLERANCE + 8 * eps * np.abs(ratio)

@@ -155,9 +155,13 @@ def check_terms(terms):
     extra = [f.name for f in dataclasses.fields(terms)
              if f.name not in SUPPORTED_TERMS and getattr(terms, f.name)]
     if extra:
+        hint = ""
+        if "contact" in extra:
+            hint = (" (soft-soft contact is on for every multi-object scene, and with 'self_collision on'; "
+                    "if the objects never touch, add the line 'contact off' to the scene)")
         raise NotImplementedError(
             f"the batched simulator does not implement the term(s) {', '.join(extra)} that this scene "
-            f"needs; simulate such scenes one at a time with jaxplush.simulate")
+            f"needs{hint}; simulate such scenes one at a time with jaxplush.simulate")
 
 
 def terms_for(scene, params=None):

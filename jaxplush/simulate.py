@@ -86,7 +86,7 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
     Raises:
       SimulationError: the run blew up (which step, which object, why).
     """
-    sim = sim or make_simulator(scene, dt, integrator, substeps=substeps)
+    sim = sim or make_simulator(scene, dt, integrator, terms=_terms(scene, params), substeps=substeps)
     notes = ()
     for attempt in range(MAX_CAPACITY_RETRIES + 1):
         try:
@@ -105,6 +105,15 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
             notes += (msg,)
             sim = make_simulator(scene, sim.dt, sim.integrator, terms=contact.with_capacity(sim.terms, need),
                                  substeps=sim.substeps)
+
+
+def _terms(scene, params):
+    """The terms to compile: the scene's, plus the dashpot, drag and Verlet damping where
+    ``params`` switches them on (a scene with damping 0 compiles no damping term)."""
+    if params is None:
+        return None
+    from jaxplush.batched import terms_for
+    return terms_for(scene, params)
 
 
 #: How often :func:`simulate` raises the contact capacity and reruns before giving up.
@@ -127,7 +136,7 @@ def contact_capacity_needed(scene, steps, dt, params=None, sim=None):
       sim: the :class:`jaxplush.step.Simulator` whose capacity is in question (default: built
         from the scene and dt).
     """
-    sim = sim or make_simulator(scene, dt)
+    sim = sim or make_simulator(scene, dt, terms=_terms(scene, params))
     if getattr(sim.terms, "contact", None) is None:
         return None
     from jaxplush import contact

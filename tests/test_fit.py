@@ -263,3 +263,72 @@ def test_ctrl_c_saves_and_resume_reaches_the_same_answer(small, tmp_path):
         F.fit(start, target, ("k_structural",), iterations=2, noise_free=True, checkpoint_path=out, resume=True)
     with pytest.raises(JaxplushError, match="no checkpoint to resume"):
         F.fit(start, target, NAMES, checkpoint_path=tmp_path / "none.h5", resume=True)
+
+
+def test_resume_refuses_a_different_setting(small, tmp_path):
+    """A checkpoint resumes only the same fit: float64 vs float32, Adam with another iteration count
+    (its learning-rate schedule spans them), other start or fixed values are all refused before
+    anything is traced."""
+    _, start, target = small
+    out = tmp_path / "FIT.h5"
+    kw = dict(noise_free=True, identifiability=False, check_dt=False, checkpoint_path=out)
+    res = F.fit(start, target, NAMES, optimizer="adam", iterations=2, **kw)
+    assert "undetermined" not in res.table()      # no report computed: no standard errors, not "undetermined"
+    with pytest.raises(JaxplushError, match="different fit \\(iterations: checkpoint 2, now 5; Adam"):
+        F.fit(start, target, NAMES, optimizer="adam", iterations=5, resume=True, **kw)
+    with pytest.raises(JaxplushError, match="different fit \\(params_hash"):
+        F.fit(start, target, NAMES, optimizer="adam", iterations=2, resume=True, start={"k": 60.0}, **kw)
+    with pytest.raises(JaxplushError, match="different fit \\(gtol"):
+        F.fit(start, target, NAMES, optimizer="adam", iterations=2, resume=True, gtol=1e-3, **kw)
+    with jax.enable_x64(True):
+        with pytest.raises(JaxplushError, match="different fit \\(dtype: checkpoint 'float32', now 'float64'"):
+            F.fit(start, target, NAMES, optimizer="adam", iterations=2, resume=True, **kw)
+    assert load_fit(out)["attrs"]["status"] == "done"
+    import h5py
+    with h5py.File(out, "a") as f:       # a damaged checkpoint (or one of another version)
+        del f["checkpoint"].attrs["stall"]
+    with pytest.raises(JaxplushError, match="cannot read the checkpoint"):
+        F.fit(start, target, NAMES, optimizer="adam", iterations=2, resume=True, **kw)
+
+
+def test_ctrl_c_during_the_report_saves_the_finished_loop(small, tmp_path, monkeypatch):
+    """Ctrl-C after the last iteration (health check, identifiability report) saves the finished
+    loop; --resume then only redoes the report."""
+    _, start, target = small
+    out = tmp_path / "FIT.h5"
+    kw = dict(optimizer="adam", iterations=3, noise_free=True, check_dt=False, checkpoint_path=out,
+              checkpoint_every=100)
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(F._ident, "frames_and_jacobian", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        F.fit(start, target, NAMES, **kw)
+    saved = load_fit(out)
+    assert saved["attrs"]["status"] == "interrupted" and saved["attrs"]["iterations"] == 3
+    assert len(saved["history"]["loss"]) == 3
+    monkeypatch.undo()
+    calls = []
+    res = F.fit(start, target, NAMES, resume=True, callback=calls.append, **kw)
+    assert calls == [] and res.iterations == 3 and res.identifiability is not None
+    np.testing.assert_array_equal(res.history["loss"], saved["history"]["loss"])
+
+
+def test_parameter_list_and_method_are_checked_before_tracing():
+    assert F.canonical_names("k,damping,") == ("k_structural", "damping")
+    assert F.canonical_names(" k , nmol") == ("k_structural", "nmol")
+    with pytest.raises(JaxplushError, match="no parameters to fit"):
+        F.canonical_names(",")
+    scene = jaxplush.parse_scene(icosphere_text(floor=-1.0, nmol=1e-4).replace(
+        "floor -1.0", "floor -1.0\nfloor_friction 0.5"), "<rough floor>")
+    target = Target(positions=scene.vertices[None] + 0.01, points=None, steps=np.array([10]), times=np.array([0.01]),
+                    dt=1e-3, path="<memory>")
+    with pytest.raises(JaxplushError, match="unknown gradient method 'fast'"):
+        F.build_problem(scene, target, "k", method="fast")
+    with pytest.raises(JaxplushError, match="gradient method 'adjoint' does not support this scene"):
+        F.build_problem(scene, target, "k", method="adjoint")
+    assert F.build_problem(scene, target, "k", method="checkpoint").method == "checkpoint"
+    with pytest.raises(JaxplushError, match="start value of k_structural for unknown object 'bear'"):
+        F.build_problem(scene, target, "k", start={"k": {"bear": 50.0}})
+    with pytest.raises(JaxplushError, match="unknown object 3"):
+        F.build_problem(scene, target, "k", start={"k": {3: 50.0}})

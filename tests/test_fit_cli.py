@@ -90,12 +90,15 @@ def _bad_cli_cases(files, d):
         "dt off grid": (good + ["--dt", "3e-4"], "not on the dt = 0.0003 s grid"),
         "out overwrites input": ([files["scene"], files["target"], "--out", files["target"]],
                                  "must not overwrite an input"),
+        "unknown method": (good + ["--method", "fast"], "unknown gradient method 'fast'"),
+        "no parameters": (good + ["--params", ","], "no parameters to fit"),
     }
 
 
 @pytest.mark.parametrize("case", ["unknown parameter", "mass jointly", "unknown object", "iterations", "optimizer",
                                   "out extension", "out directory", "resume without file", "scene missing",
-                                  "target missing", "dt off grid", "out overwrites input"])
+                                  "target missing", "dt off grid", "out overwrites input", "unknown method",
+                                  "no parameters"])
 def test_bad_input_exits_2_and_writes_nothing(files, tmp_path, capsys, case):
     argv, message = _bad_cli_cases(files, tmp_path)[case]
     if "--out" not in argv:
@@ -188,6 +191,28 @@ def test_ctrl_c_exits_130_with_a_message(files, tmp_path, capsys, monkeypatch):
     assert cli.main([files["scene"], files["target"], "--out", str(out), "--quiet"]) == 130
     err = capsys.readouterr().err
     assert "interrupted" in err and "Traceback" not in err
+
+
+def test_ctrl_c_before_the_first_checkpoint_does_not_claim_a_stale_file(files, tmp_path, capsys, monkeypatch):
+    """An older FIT.h5 at --out is not "state saved" by a fit interrupted before it wrote anything."""
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(F, "fit", interrupted)
+    out = tmp_path / "FIT.h5"
+    out.write_bytes(b"an older fit")
+    args = [files["scene"], files["target"], "--out", str(out), "--quiet"]
+    assert cli.main(args) == 130
+    err = capsys.readouterr().err
+    assert "nothing written" in err and "state saved" not in err and "Traceback" not in err
+    assert cli.main(args + ["--resume"]) == 130      # resuming: the checkpoint it resumes is still there
+    assert "state saved to" in capsys.readouterr().err
+
+
+def test_an_output_through_a_symlink_must_not_overwrite_an_input(files, tmp_path, capsys):
+    link = tmp_path / "link.h5"
+    os.symlink(files["target"], link)
+    assert cli.main([files["scene"], files["target"], "--out", str(link), "--quiet"]) == 2
+    assert "must not overwrite an input" in capsys.readouterr().err
 
 
 def test_sweep_is_dispatched(monkeypatch):

@@ -9,6 +9,7 @@ import pytest
 
 import jaxplush
 from jaxplush.rollouts import _core_jit
+from jaxplush.types import Params
 from conftest import icosphere_scene
 
 
@@ -38,6 +39,21 @@ def test_terms_are_compiled_only_when_the_scene_needs_them(term, kw):
 def test_gravity_free_scene_has_no_gravity_term():
     text, sim = _hlo(icosphere_scene(subdivisions=0, gravity=(0, 0, 0)))
     assert "gravity" not in sim.terms.names() and "/gravity/" not in text
+
+
+@pytest.mark.parametrize("name, value", [("damping", 5.0), ("drag", 50.0), ("dashpot", 0.05)])
+def test_simulate_params_switch_on_terms_the_scene_lacks(name, value):
+    """simulate(..., params=p) with a damping, drag or dashpot the scene has at 0 compiles that term
+    in (it used to be left out, silently simulating the undamped body); damping and drag slow the fall."""
+    scene = icosphere_scene(subdivisions=1, k=200.0, mass=0.05, nmol=1e-3)
+    p = scene.params._replace(**{name: np.full(1, value)})
+    free = jaxplush.simulate(scene, 200, 2e-4, save_every=200)
+    damped = jaxplush.simulate(scene, 200, 2e-4, save_every=200, params=p)
+    assert damped.params[Params._fields.index(name)][0] == value
+    assert np.abs(damped.positions[-1] - free.positions[-1]).max() > 1e-6
+    if name != "dashpot":               # the dashpot resists stretching only, not the fall itself
+        fall = lambda t: t.positions[0, :, 1].mean() - t.positions[-1, :, 1].mean()       # noqa: E731
+        assert fall(damped) < 0.9 * fall(free)
 
 
 def test_second_call_with_new_parameters_does_not_recompile():

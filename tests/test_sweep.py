@@ -161,10 +161,21 @@ def test_grid_is_a_cartesian_product_and_points_are_zipped():
     (dict(grid={"k": [1.0], "k_structural@b2": [2.0]}), "both set k_structural"),
     (dict(grid={"k": [1.0]}, points={"k": [1.0]}), "exactly one"),
     (dict(points={"k": [1.0, 2.0], "drag": [1.0]}), "same number"),
+    (dict(grid={"k": [100.0, 200.0, 100.0]}), "distinct"),
+    (dict(grid={"k@": [1.0]}), "no object after '@'"),
+    (dict(grid={"k": ["stiff"]}), "must be numbers"),
+    (dict(points=[{"k": 1.0, "drag": 2.0}, {"k": 3.0}]), "same parameters"),
 ])
 def test_bad_sweep_specs_are_clear_errors(spec, match):
     with pytest.raises(SweepError, match=match):
         sweep(_two_object_scene(), steps=10, dt=DT, progress=False, **spec)
+
+
+def test_points_may_list_their_parameters_in_any_order():
+    two = _two_object_scene()
+    pts = sweep_mod._normalise_points([{"k@0": 1.0, "drag": 2.0}, {"drag": 4.0, "k@0": 3.0}])
+    np.testing.assert_array_equal(sweep_mod._point_values(sweep_mod._axes(two, pts, "points"), "points"),
+                                  [[1.0, 2.0], [3.0, 4.0]])
 
 
 def test_nmol_cannot_be_swept_on_an_object_without_gas():
@@ -376,3 +387,102 @@ def test_cli_writes_sweep_and_rejects_bad_input(tmp_path, truth_target, capsys):
         assert not bad.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ball.obj", "out.h5", "out.png", "target.h5",
                                                            "wrong.h5"]
+
+
+def test_failed_points_frames_hold_no_nan():
+    # a point that blows up at step ~11: its saved frames after its last healthy step repeat its
+    # final (last healthy) positions instead of the blown-up NaN state; the others are untouched
+    scene = _ball()
+    with pytest.warns(UserWarning, match="1 of 2 sweep point"):
+        res = sweep(scene, {"k": [200.0, 1e5]}, steps=100, dt=DT, save_every=20, progress=False)
+    assert list(res.failed) == [False, True] and list(res.frame_steps) == [0, 20, 40, 60, 80, 100]
+    assert np.all(np.isfinite(res.frames))
+    np.testing.assert_array_equal(res.frames[-1], res.final_positions)
+    after = res.frame_steps > res.final_step[1]
+    assert after.sum() >= 4
+    np.testing.assert_array_equal(res.frames[after, 1],
+                                  np.broadcast_to(res.final_positions[1], res.frames[after, 1].shape))
+    traj = jaxplush.simulate(scene, 100, DT, 20, params=_point_params(scene, k_structural=[200.0]), check_dt=False)
+    np.testing.assert_allclose(res.frames[:, 0], traj.positions, rtol=0, atol=1e-6)
+
+
+def test_heat_map_sorts_axes_given_in_any_order():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    scene = _ball(subdivisions=0)
+    res = sweep(scene, {"k": [300.0, 100.0, 200.0], "total_weight": [0.08, 0.04]}, steps=20, dt=DT, progress=False)
+    fig, ax = plt.subplots()
+    try:
+        res.plot(ax, quantity="centroid_height")
+        mesh = ax.collections[0]
+        z = np.asarray(mesh.get_array()).reshape(2, 3)                    # rows: total_weight, cols: k
+    finally:
+        plt.close(fig)
+    edges = mesh.get_coordinates()                                        # (3, 4, 2) cell corners
+    assert np.all(np.diff(edges[0, :, 0]) > 0) and np.all(np.diff(edges[:, 0, 1]) > 0)
+    q = res.quantity("centroid_height")
+    for i, w in enumerate([0.04, 0.08]):
+        for j, k in enumerate([100.0, 200.0, 300.0]):
+            p = int(np.nonzero((res.values[:, 0] == k) & (res.values[:, 1] == w))[0][0])
+            assert z[i, j] == pytest.approx(q[p], rel=1e-6)
+
+
+def test_large_sweeps_pad_less_than_one_chunk_per_batch(monkeypatch):
+    # 49 points with batch 48 ran as two batches of 48 (47 copies of the last point); now two
+    # equal batches of 32 (two 16-point chunks each), the same results as one 49-point batch
+    assert sweep_mod._outer_batch(65, 64) == 48 and sweep_mod._outer_batch(49, 48) == 32
+    assert sweep_mod._outer_batch(64, 64) == 64 and sweep_mod._outer_batch(17, 64) == 17
+    for n, b in ((65, 64), (100, 64), (130, 64), (49, 48), (20, 16), (1000, 64)):
+        ob = sweep_mod._outer_batch(n, b)
+        n_outer = -(-n // b)
+        assert ob <= b and -(-n // ob) == n_outer                       # no more batches than before
+        assert n_outer * ob - n < n_outer * batched.default_chunk(ob)  # less than a chunk of padding each
+    scene = _ball(subdivisions=0)
+    built = []
+    make = batched.make_batched_simulator
+    monkeypatch.setattr(batched, "make_batched_simulator", lambda *a, **kw: built.append(a[2]) or make(*a, **kw))
+    grid = {"k": np.linspace(100.0, 400.0, 7), "total_weight": np.linspace(0.04, 0.1, 7)}
+    split = sweep(scene, grid, steps=30, dt=DT, batch=48, progress=False)
+    whole = sweep(scene, grid, steps=30, dt=DT, batch=64, progress=False)
+    assert built == [32, 49]
+    np.testing.assert_allclose(split.final_positions, whole.final_positions, rtol=0, atol=1e-6)
+    p = _point_params(scene, k_structural=[400.0], total_weight=[0.1])
+    traj = jaxplush.simulate(scene, 30, DT, 30, params=p, check_dt=False)
+    np.testing.assert_allclose(split.final_positions[48], traj.positions[-1], rtol=0, atol=1e-6)
+
+
+def test_cli_rejects_unplottable_grids_contact_scenes_and_empty_ranges(tmp_path, capsys):
+    obj = tmp_path / "ball.obj"
+    obj.write_text(icosphere_text(subdivisions=0, nmol=1e-3))
+    two = tmp_path / "two.obj"
+    two.write_text(icosphere_text(subdivisions=0) + icosphere_text(subdivisions=0, name="b", translate=(0.5, 0, 0),
+                                                                    offset=12, header=False))
+    out = tmp_path / "out.h5"
+    common = ["--steps", "10", "--dt", "1e-4", "--out", str(out), "--quiet"]
+    cases = [
+        ([str(obj), "--grid", "k=1,2", "--grid", "nmol=1e-3,2e-3", "--grid", "drag=0,1",
+          "--plot", str(tmp_path / "p.png")], "one or two swept parameters"),
+        ([str(obj), "--grid", "k=100:200:1"], "one value cannot run from 100 to 200"),
+        ([str(obj), "--grid", "k=100:100:3"], "all be 100"),
+        ([str(obj), "--grid", "k=100,200,100"], "distinct"),
+    ]
+    if getattr(batched.terms_for(jaxplush.load_scene(two)), "contact", None):
+        cases.append(([str(two), "--grid", "k=1,2"], f"{two}: the batched simulator does not implement"))
+        cases.append(([str(two), "--grid", "k=1,2"], "add the line 'contact off'"))
+    for argv, msg in cases:
+        rc = sweep_main(argv + common)
+        err = capsys.readouterr().err
+        assert rc == 2 and msg in err and "Traceback" not in err, (argv, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ball.obj", "two.obj"]
+
+
+def test_target_frames_must_be_strictly_increasing(truth_target):
+    # two frames at one step would share one slot of the per-frame loss table (one frame's loss
+    # lost, yet counted in the mean): refused before anything runs
+    from fitting.targets import Target
+    scene, target = truth_target
+    dup = Target(positions=target.positions[[1, 1, 2]], points=None, steps=target.steps[[1, 1, 2]],
+                 times=target.times[[1, 1, 2]], dt=DT, path="<memory>")
+    with pytest.raises(SweepError, match="strictly increasing"):
+        sweep(scene, {"k": [200.0]}, steps=400, dt=DT, target=dup, progress=False)

@@ -143,6 +143,12 @@ def _bad_cases():
         "no dt": (attr("dt", None), "no 'dt' attribute"),
         "bad dt": (attr("dt", -1.0), "must be a positive number"),
         "group": (lambda f: (f.__delitem__("times"), f.create_group("times")), "'times' is a group"),
+        "object names": (replace("object_names", lambda n: np.array([b"bear"], dtype=object)),
+                         "'object_names' ['bear'] differ from the scene"),
+        "object ids not integers": (replace("object_id", lambda o: o + 0.5), "'object_id' must hold integers"),
+        "noise not a number": (attr("noise", "1 mm"), "attribute 'noise' must be a number"),
+        "noise array": (attr("noise", np.array([1e-3, 2e-3])), "attribute 'noise' must be a number"),
+        "absurd times": (replace("times", lambda t: t * 1e30), "too many steps to simulate"),
     }
 
 
