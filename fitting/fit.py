@@ -417,11 +417,11 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
     Raises:
       JaxplushError / TrajectoryError: bad input (before anything is traced).
       FitError: the fit cannot proceed (the rollout blows up at the start or for every step).
+      KeyboardInterrupt: after saving the checkpoint (when ``checkpoint_path`` is given).
 
     Soft-soft contact: an evaluation whose contact candidates overflow the capacity is not a
     blow-up; the fit raises the capacity to what the run needs, warns, and evaluates that point
     again (see ``contact_capacity`` in the scene format).
-      KeyboardInterrupt: after saving the checkpoint (when ``checkpoint_path`` is given).
     """
     t_start = time.perf_counter()
     if int(iterations) < 1:

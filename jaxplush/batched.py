@@ -165,15 +165,10 @@ def check_terms(terms):
 
 
 def terms_for(scene, params=None):
-    """The :class:`jaxplush.model.Terms` a batch of parameters needs: the scene's selection, plus
-    the dashpot, drag and Verlet damping wherever any point of ``params`` (a Params of arrays,
-    numpy) switches them on. A term compiled in with a zero coefficient changes nothing."""
-    terms = model.Terms.for_scene(scene)
-    if params is None:
-        return terms
-    on = {name: bool(np.any(np.asarray(getattr(params, key)) > 0))
-          for name, key in (("dashpot", "dashpot"), ("drag", "drag"), ("verlet_damping", "damping"))}
-    return dataclasses.replace(terms, **{k: getattr(terms, k) or v for k, v in on.items()})
+    """The :class:`jaxplush.model.Terms` a batch of parameters needs (``Terms.for_scene(scene,
+    params)``): the scene's selection, plus the dashpot, drag and Verlet damping wherever any
+    point of ``params`` (a Params of (O, B) arrays) switches them on."""
+    return model.Terms.for_scene(scene, params)
 
 
 def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, substeps=1, chunk=None):

@@ -106,18 +106,24 @@ class Terms:
     floor_restitution: float = 0.0
 
     @classmethod
-    def for_scene(cls, scene):
+    def for_scene(cls, scene, params=None):
+        """The terms ``scene`` needs; with ``params`` (a Params of arrays, e.g. a run's override or
+        a sweep's (O, B) batch) also the dashpot, drag and Verlet damping wherever any of its
+        values switches them on (a term compiled in with a zero coefficient changes nothing)."""
         from jaxplush import contact as _contact
-        p = scene.params
+
+        def on(key):
+            return bool(np.any(np.asarray(getattr(scene.params, key)) > 0)) or (
+                params is not None and bool(np.any(np.asarray(getattr(params, key)) > 0)))
         has_floor = scene.floor is not None
         return cls(spring=True,
-                   dashpot=bool(np.any(p.dashpot > 0)),
-                   drag=bool(np.any(p.drag > 0)),
+                   dashpot=on("dashpot"),
+                   drag=on("drag"),
                    gas=scene.has_gas,
                    gravity=bool(np.any(scene.gravity != 0)),
                    floor=scene.floor is not None,
                    fixed=len(scene.fixed) > 0,
-                   verlet_damping=bool(np.any(p.damping > 0)),
+                   verlet_damping=on("damping"),
                    contact=_contact.config_for_scene(scene),
                    floor_friction=float(getattr(scene, "floor_friction", 0.0)) if has_floor else 0.0,
                    floor_restitution=float(getattr(scene, "floor_restitution", 0.0)) if has_floor else 0.0)

@@ -11,6 +11,7 @@ import numpy as np
 
 from jaxplush import diagnostics, rollouts as _rollout, stability
 from jaxplush.errors import SimulationError
+from jaxplush.model import Terms
 from jaxplush.progress import Progress
 from jaxplush.step import make_simulator
 
@@ -86,13 +87,24 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
     Raises:
       SimulationError: the run blew up (which step, which object, why).
     """
-    sim = sim or make_simulator(scene, dt, integrator, terms=_terms(scene, params), substeps=substeps)
+    sim = sim or make_simulator(scene, dt, integrator, terms=Terms.for_scene(scene, params), substeps=substeps)
+    traj, _, notes = _growing_capacity(scene, sim, lambda s, retry: _simulate(
+        scene, steps, save_every, params, x0, v0, progress, check_dt, s, retry=retry), warn=True)
+    return dataclasses.replace(traj, warnings=notes + traj.warnings) if notes else traj
+
+
+#: How often :func:`simulate` raises the contact capacity and reruns before giving up.
+MAX_CAPACITY_RETRIES = 4
+
+
+def _growing_capacity(scene, sim, run, warn):
+    """``run(sim, retry)``, rerun with a simulator of larger soft-soft contact capacity after each
+    overflow (up to MAX_CAPACITY_RETRIES times; the last try reports an overflow as a failure).
+    Returns (run's result, the simulator it succeeded with, the messages about the reruns)."""
     notes = ()
     for attempt in range(MAX_CAPACITY_RETRIES + 1):
         try:
-            traj = _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
-                             retry=attempt < MAX_CAPACITY_RETRIES)
-            return dataclasses.replace(traj, warnings=notes + traj.warnings) if notes else traj
+            return run(sim, attempt < MAX_CAPACITY_RETRIES), sim, notes
         except _CapacityOverflow as e:
             # The candidate lists of soft-soft contact were too short: the step cannot be exact.
             # The result does not depend on the capacity, so rerun with a larger one.
@@ -101,30 +113,18 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
             msg = (f"contact candidates overflowed at step {e.step} ({e.need} needed, capacity "
                    f"{max(sim.terms.contact.capacity)}); reran with contact_capacity {need} "
                    f"(set it in the scene to skip the rerun)")
-            warnings.warn(msg, stacklevel=2)
+            if warn:
+                warnings.warn(msg, stacklevel=3)   # the caller of simulate
             notes += (msg,)
             sim = make_simulator(scene, sim.dt, sim.integrator, terms=contact.with_capacity(sim.terms, need),
                                  substeps=sim.substeps)
 
 
-def _terms(scene, params):
-    """The terms to compile: the scene's, plus the dashpot, drag and Verlet damping where
-    ``params`` switches them on (a scene with damping 0 compiles no damping term)."""
-    if params is None:
-        return None
-    from jaxplush.batched import terms_for
-    return terms_for(scene, params)
-
-
-#: How often :func:`simulate` raises the contact capacity and reruns before giving up.
-MAX_CAPACITY_RETRIES = 4
-
-
 def contact_capacity_needed(scene, steps, dt, params=None, sim=None):
     """The soft-soft contact capacity a run of ``steps`` steps needs, if ``sim``'s is too small.
 
-    Runs the simulation as :func:`simulate` does (from the scene's rest state, with ``params``),
-    raising the capacity after each overflow, and returns the capacity it finished with, or None
+    Runs the simulation as :func:`simulate` does (from the scene's rest state, with ``params``,
+    raising the capacity after each overflow) and returns the capacity it finished with, or None
     when the scene has no soft-soft contact or the simulator's capacity never overflowed. A run
     that blows up for another reason ends the search (it returns what it has). For callers that
     build their own rollouts, such as :func:`fitting.fit`, which must rebuild with the capacity
@@ -136,21 +136,21 @@ def contact_capacity_needed(scene, steps, dt, params=None, sim=None):
       sim: the :class:`jaxplush.step.Simulator` whose capacity is in question (default: built
         from the scene and dt).
     """
-    sim = sim or make_simulator(scene, dt, terms=_terms(scene, params))
+    sim = sim or make_simulator(scene, dt, terms=Terms.for_scene(scene, params))
     if getattr(sim.terms, "contact", None) is None:
         return None
-    from jaxplush import contact
-    start = cap = max(sim.terms.contact.capacity)
-    for _ in range(MAX_CAPACITY_RETRIES + 1):
-        try:
-            _simulate(scene, steps, int(steps), params, None, None, False, False, sim, retry=True)
-            break
-        except _CapacityOverflow as e:
-            cap = contact.grown_capacity(e.need)
-            sim = make_simulator(scene, sim.dt, sim.integrator, terms=contact.with_capacity(sim.terms, cap),
-                                 substeps=sim.substeps)
-        except SimulationError:
-            break
+    start = max(sim.terms.contact.capacity)
+    last = [sim]
+
+    def run(s, retry):
+        last[0] = s
+        _simulate(scene, steps, int(steps), params, None, None, False, False, s, retry=retry)
+
+    try:
+        _growing_capacity(scene, sim, run, warn=False)
+    except SimulationError:
+        pass                            # a blow-up of another kind (or still too short): as far as it got
+    cap = max(last[0].terms.contact.capacity)
     return None if cap == start else cap
 
 
