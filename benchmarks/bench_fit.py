@@ -183,7 +183,7 @@ def main(argv=None):
                   flush=True)
 
     if not args.skip_fit:
-        from fitting.fit import synthetic_recovery
+        from fitting.fitter import synthetic_recovery
         print("\n## Time to fit: synthetic recovery at 642 vertices (k, damping, nmol from x2 / x0.5 starts, "
               "L-BFGS)\n")
         print("| target | k error | damping error | nmol error | iterations | fit wall time (s) |")

@@ -17,6 +17,7 @@ import signal
 import sys
 import warnings
 
+from jaxplush.cliargs import attach_negative_values
 from jaxplush.io import check_output_path
 
 EXIT_USAGE = 2
@@ -36,6 +37,9 @@ def _parser():
                    help="comma-separated parameters to fit (k = k_structural; also dashpot, drag; total_weight "
                         "only with a warning). Default: k_structural,damping,nmol")
     p.add_argument("--objects", default=None, help="comma-separated object names to fit (default: all)")
+    p.add_argument("--start", default=None, metavar="NAME=VALUE,...",
+                   help="start values overriding the scene's, e.g. k=800,nmol=0.002 (applied to every fitted "
+                        "object)")
     p.add_argument("--iterations", type=int, default=200, help="maximum iterations (default 200)")
     p.add_argument("--optimizer", default="adam", help="adam (default) or lbfgs")
     p.add_argument("--lr", type=float, default=None, help="learning rate in log space (adam default 0.05)")
@@ -61,7 +65,7 @@ def main(argv=None):
         from fitting.sweep_cli import main as sweep_main
         return sweep_main(argv[1:])
     try:
-        args = _parser().parse_args(argv)
+        args = _parser().parse_args(attach_negative_values(argv))
     except SystemExit as e:  # argparse has printed its usage message
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
     from jaxplush.errors import JaxplushError
@@ -103,10 +107,11 @@ def _fit(args):
         import jax
         jax.config.update("jax_enable_x64", True)
     import jaxplush
-    from fitting import fit as _fit_mod
+    from fitting import fitter as _fit_mod
     from fitting.targets import load_target
 
     names = _fit_mod.canonical_names(args.params)
+    start = parse_start(args.start) if args.start is not None else None
     scene = jaxplush.load_scene(args.scene)
     target = load_target(args.target, scene, args.dt)
 
@@ -129,7 +134,8 @@ def _fit(args):
             warnings.simplefilter("always")
             try:
                 result = _fit_mod.fit(
-                    scene, target, names, args.objects, iterations=args.iterations, optimizer=args.optimizer,
+                    scene, target, names, args.objects, start=start, iterations=args.iterations,
+                    optimizer=args.optimizer,
                     lr=args.lr, noise=args.noise, noise_free=args.noise_free, method=args.method,
                     force=args.force, progress=not args.quiet, checkpoint_path=args.out,
                     checkpoint_every=args.checkpoint_every, resume=args.resume)
@@ -154,6 +160,32 @@ def _fit(args):
         print(result.identifiability.summary())
     print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))
     return 0
+
+
+def parse_start(spec):
+    """``"k=800,nmol=0.002"`` -> {canonical name: float}; JaxplushError naming the bad part."""
+    from jaxplush.errors import JaxplushError
+    from fitting.fitter import canonical_names
+    out = {}
+    for part in (p.strip() for p in spec.split(",")):
+        if not part:
+            continue
+        name, eq, val = part.partition("=")
+        if not eq or not name.strip():
+            raise JaxplushError(f"--start: expected NAME=VALUE, got {part!r}")
+        try:
+            v = float(val)
+        except ValueError:
+            raise JaxplushError(f"--start: {name.strip()}={val!r} is not a number") from None
+        if not (v == v and 0 < v < float("inf")):
+            raise JaxplushError(f"--start: {name.strip()} must be a positive number, got {val}")
+        n = canonical_names([name.strip()])[0]
+        if n in out:
+            raise JaxplushError(f"--start: {n} given twice")
+        out[n] = v
+    if not out:
+        raise JaxplushError("--start: no values given")
+    return out
 
 
 def _stamp(path):

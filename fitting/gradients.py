@@ -294,7 +294,7 @@ def _make_step_dens_vjp(sim):
     """``step_vjp(params, x, u, x_next, x_bar, u_bar) -> (x_bar, u_bar, dens)``: the VJP of
     ``sim.internal_step`` at the state (x, u) (internal (3, V) layout), given the positions
     ``x_next`` it produced, with the parameter cotangents as per-vertex densities
-    (:class:`_Dens`, reduced by :func:`_reduce_dens`). The step (jaxplush.step, verlet)::
+    (:class:`_Dens`, reduced by :func:`_reduce_dens`). The step (jaxplush.step, verlet):
 
         a  = F(x, u)/m - drag u + g;   u' = (1 - f) u + a dt;   x' = x + u' dt;
         floor (y >= H): below = x'_y < H  ->  u'_y = (H - x_y)/dt, x'_y = H;  pins: x' = x0, u' = 0.

@@ -149,7 +149,7 @@ def save_checkpoint(path, prob, loop, settings, status="running"):
 
 
 def save_fit(result, path):
-    """Write a :class:`fitting.fit.FitResult` as FIT.h5 (status "done"), atomically."""
+    """Write a :class:`fitting.fitter.FitResult` as FIT.h5 (status "done"), atomically."""
     loop = result.loop
     prob = result.problem
     with atomic_path(path, ".h5") as tmp:
@@ -194,7 +194,7 @@ def save_fit(result, path):
 
 
 def load_checkpoint(path, prob, opt, settings):
-    """The :class:`fitting.fit.LoopState` saved in ``path``, checked to belong to this fit."""
+    """The :class:`fitting.fitter.LoopState` saved in ``path``, checked to belong to this fit."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise JaxplushError(f"{path}: no checkpoint to resume (the file does not exist); run without --resume")
@@ -210,7 +210,7 @@ def load_checkpoint(path, prob, opt, settings):
 
 
 def _read_checkpoint(path, f, prob, opt, settings):
-    from fitting.fit import LoopState
+    from fitting.fitter import LoopState
     if "checkpoint" not in f:
         raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
     g = f["checkpoint"]

@@ -22,6 +22,7 @@ import warnings
 
 import numpy as np
 
+from jaxplush.cliargs import attach_negative_values
 from jaxplush.io import check_output_path
 
 EXIT_USAGE = 2
@@ -95,7 +96,7 @@ def parse_grid_spec(spec, log=False):
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
-        args = _parser().parse_args(argv)
+        args = _parser().parse_args(attach_negative_values(argv))
     except SystemExit as e:  # argparse has printed its message
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
     from jaxplush.errors import JaxplushError

@@ -1,14 +1,22 @@
 """jaxplush: differentiable pressurised mass-spring soft bodies ("plushies") in JAX.
 
-Quick use::
+Quick use (run from the repository root; the test suite executes this example):
 
-    scene = jaxplush.load_scene("scenes/ball_drop.obj")
-    traj = jaxplush.simulate(scene, steps=4000, dt=2.5e-4, save_every=40)
-    traj.positions  # (T, V, 3)
+>>> import jaxplush
+>>> scene = jaxplush.load_scene("scenes/hanging.obj")
+>>> traj = jaxplush.simulate(scene, steps=400, dt=5e-4, save_every=40)
+>>> traj.positions.shape                      # (T, V, 3): frame 0 and one every 40 steps
+(11, 162, 3)
 
 Lower level: ``sim = make_simulator(scene, dt)``; ``params = sim.params()``;
 ``state = sim.init_fn(params)``; ``state = sim.step_fn(params, state)``;
 ``final, frames, health = rollout(sim, params, state, n_frames, save_every)``.
+
+>>> sim = jaxplush.make_simulator(scene, 5e-4)
+>>> params = sim.params()
+>>> final, frames, health = jaxplush.rollout(sim, params, sim.init_fn(params), 10, 40)
+>>> frames.shape, health.failed
+((10, 162, 3), False)
 """
 
 __version__ = "0.1.0"

@@ -13,6 +13,7 @@ import warnings
 
 import numpy as np
 
+from jaxplush.cliargs import attach_negative_values
 from jaxplush.io import check_output_path
 
 EXIT_USAGE = 2
@@ -40,17 +41,24 @@ def _parser():
     r.add_argument("trajectory", help="trajectory .h5 from 'jaxplush simulate'")
     r.add_argument("--out", required=True, help="output .gif/.mp4 (animation) or .png/.jpg/.pdf/.svg with --frame")
     r.add_argument("--frame", type=int, default=None, help="render only this frame (negative counts from the end)")
-    r.add_argument("--fps", type=float, default=None)
-    r.add_argument("--max-frames", type=int, default=200)
+    r.add_argument("--fps", type=float, default=None,
+                   help="playback frames per second (default: real time: each drawn frame is shown for the "
+                        "simulated time it spans; a GIF shows at most 50 frames per simulated second)")
+    r.add_argument("--max-frames", type=int, default=200,
+                   help="most frames drawn (default 200); a longer trajectory is subsampled evenly, keeping the "
+                        "first and last frame, and the command says how many it drew")
 
     i = sub.add_parser("info", help="describe a scene: counts, parameters, volume, pressure, stable dt")
-    i.add_argument("scene")
-    i.add_argument("--dt", type=float, default=None, help="check this dt against the stability estimate")
+    i.add_argument("scene", help="extended-OBJ scene file")
+    i.add_argument("--dt", type=float, default=None, help="check this dt against the stability limit")
+    i.add_argument("--exact", action="store_true",
+                   help="also estimate the exact explicit limit by power iteration (compiles; a few seconds) "
+                        "instead of only the closed-form safe bound")
     return p
 
 
 def main(argv=None):
-    args = _parser().parse_args(argv)
+    args = _parser().parse_args(attach_negative_values(sys.argv[1:] if argv is None else argv))
     from jaxplush.errors import JaxplushError
     try:
         if args.cmd == "simulate":
@@ -105,15 +113,19 @@ def _simulate(args):
 def _render(args):
     from jaxplush.render import render
     t = time.perf_counter()
-    out = render(args.trajectory, args.out, frame=args.frame, fps=args.fps, max_frames=args.max_frames)
+    out = render(args.trajectory, args.out, frame=args.frame, fps=args.fps, max_frames=args.max_frames,
+                 report=print)
     print(f"wrote {out} ({time.perf_counter() - t:.1f} s)")
     return 0
 
 
 def _info(args):
     import jaxplush
+    from jaxplush.errors import JaxplushError
     from jaxplush import stability
     scene = jaxplush.load_scene(args.scene)
+    if args.dt is not None and not (np.isfinite(args.dt) and args.dt > 0):
+        raise JaxplushError(f"--dt must be a positive number, got {args.dt}")
     sim = jaxplush.make_simulator(scene, args.dt or 1e-4)
     p = sim.params()
     topo = sim.topology
@@ -135,14 +147,23 @@ def _info(args):
         print(f"    volume {vols[i] * 1e6:.6g} cm³, rest pressure {press[i]:.6g} Pa, "
               f"edge length {topo.rest_length[topo.edge_object == i].min():.4g}–"
               f"{topo.rest_length[topo.edge_object == i].max():.4g} m")
-    est = stability.estimate(sim, p)
-    print(f"  stability (Verlet, at rest): omega_max {est.omega_max:.5g} rad/s, damping rate {est.gamma_max:.4g} 1/s")
-    print(f"  largest stable dt {est.dt_max:.4g} s (use <= {0.9 * est.dt_max:.4g} s); "
-          f"Gershgorin safe bound {est.dt_gershgorin:.4g} s")
+    b = stability.bound(sim, p)
+    print(f"  stability (Verlet): closed-form bounds omega_max <= {b.omega_max:.5g} rad/s, damping rate "
+          f"<= {b.gamma_max:.4g} 1/s; every dt <= {b.dt_max:.4g} s is stable")
+    limit = b.dt_max
+    if args.exact:
+        est = stability.estimate(sim, p)
+        limit = est.dt_max
+        print(f"  exact (power iteration, at rest and inflated): omega_max {est.omega_max:.5g} rad/s, damping rate "
+              f"{est.gamma_max:.4g} 1/s; largest stable dt {est.dt_max:.4g} s (use <= {0.9 * est.dt_max:.4g} s)")
+    else:
+        print("  (the exact limit is larger, typically 1.3-1.5x the bound: --exact estimates it)")
     if args.dt:
-        ok = args.dt <= est.dt_max
-        print(f"  dt {args.dt:g} s is {'within' if ok else 'ABOVE'} the limit; real time needs "
-              f">= {1 / args.dt:,.0f} steps/s")
+        if args.dt <= limit:
+            verdict = "within the " + ("estimated limit" if args.exact else "safe bound")
+        else:
+            verdict = "ABOVE the estimated limit" if args.exact else "above the safe bound (use --exact to decide)"
+        print(f"  dt {args.dt:g} s is {verdict}; real time needs >= {1 / args.dt:,.0f} steps/s")
     return 0
 
 

@@ -75,7 +75,9 @@ _FLOOR_RGBA = (0.55, 0.55, 0.55, 0.35)
 _EDGE_RGBA = (0.0, 0.0, 0.0, 0.12)
 _AMBIENT = 0.45  # shading: intensity = ambient + (1 - ambient) * max(n.l, 0)
 _FIGSIZE = (6.4, 6.0)  # inches
-_MIN_FPS, _MAX_FPS, _FALLBACK_FPS = 5.0, 30.0, 10.0
+_FALLBACK_FPS = 10.0  # frames per second when the file has no usable times
+_MIN_GIF_DELAY = 0.02  # s: browsers show shorter GIF frame delays as 100 ms
+_MAX_VIDEO_FPS = 60.0
 _CHUNK_VALUES = 4_000_000  # floats read per chunk while scanning positions
 
 
@@ -95,7 +97,7 @@ class _Trajectory:
     floor: float  # NaN when there is no floor
 
 
-def render(path, out, frame=None, fps=None, max_frames=200, elev=20.0, azim=-60.0, dpi=100) -> str:
+def render(path, out, frame=None, fps=None, max_frames=200, elev=20.0, azim=-60.0, dpi=100, report=None) -> str:
     """Render a trajectory file to a still image or an animation.
 
     Args:
@@ -105,14 +107,20 @@ def render(path, out, frame=None, fps=None, max_frames=200, elev=20.0, azim=-60.
             (needs ffmpeg). Its directory must exist.
         frame: Index of the single frame to draw (negative counts from the end,
             as in Python), or None to animate the trajectory.
-        fps: Animation frame rate. Default: real time where possible, i.e. the
-            number of drawn frames per simulated second, clipped to [5, 30]
-            (equals ``1 / (times[1] - times[0])`` when no frames are skipped).
-        max_frames: Most frames an animation holds. Longer trajectories are
-            subsampled evenly, always keeping the first and the last frame.
+        fps: Playback frame rate. Default (None): real time, i.e. each drawn
+            frame is shown for the simulated time until the next one (a GIF
+            frame lasts at least 20 ms, so at most 50 frames per simulated
+            second are drawn; an ``.mp4`` plays at the real-time rate of the
+            drawn frames, at most 60 fps). With ``fps`` the drawn frames play at
+            that fixed rate instead (slow or fast motion).
+        max_frames: Most frames an animation holds (default 200). Longer
+            trajectories are subsampled evenly, always keeping the first and
+            the last frame; ``report`` says how many were drawn.
         elev: Camera elevation in degrees (above the floor plane).
         azim: Camera azimuth in degrees (matplotlib convention, about world y).
         dpi: Resolution in dots per inch (the figure is 6.4 x 6 inches).
+        report: Optional callable taking one line of text: what is drawn (frames
+            kept of the total, playback speed). The command line prints it.
 
     Returns:
         ``out`` as a string.
@@ -130,18 +138,16 @@ def render(path, out, frame=None, fps=None, max_frames=200, elev=20.0, azim=-60.
     still = frame is not None
     _check_arguments(out, ext, still, frame, fps, max_frames, dpi)
 
-    traj = _read_trajectory(path, frame, max_frames)
+    min_gap = _MIN_GIF_DELAY if ext == ".gif" else 1.0 / _MAX_VIDEO_FPS
+    traj = _read_trajectory(path, frame, max_frames, None if (still or fps is not None) else min_gap)
 
-    if fps is None:
-        fps = _default_fps(traj.times[traj.frames])
-
-    def write(tmp):
-        if still:
-            _render_still(traj, tmp, ext, elev, azim, dpi)
-        else:
-            _render_animation(traj, tmp, ext, float(fps), elev, azim, dpi)
-
-    _atomic_write(out, ext, write)
+    if still:
+        _atomic_write(out, ext, lambda tmp: _render_still(traj, tmp, ext, elev, azim, dpi))
+        return out
+    durations = _durations(traj.times[traj.frames], fps, ext)
+    if report is not None:
+        report(_plan_text(traj, durations, fps))
+    _atomic_write(out, ext, lambda tmp: _render_animation(traj, tmp, ext, durations, elev, azim, dpi))
     return out
 
 
@@ -202,21 +208,47 @@ def _atomic_write(out, ext, write):
         raise
 
 
-def _default_fps(times):
-    """Frames per simulated second of the drawn frames, clipped to [5, 30]."""
-    if len(times) < 2:
-        return _FALLBACK_FPS
-    duration = float(times[-1] - times[0])
-    if not math.isfinite(duration) or duration <= 0:
-        return _FALLBACK_FPS
-    return float(np.clip((len(times) - 1) / duration, _MIN_FPS, _MAX_FPS))
+def _select_frames(times, max_frames, min_gap=None):
+    """Evenly spaced, increasing frame indices; first and last always kept.
 
-
-def _select_frames(n_frames, max_frames):
-    """Evenly spaced, increasing frame indices; first and last always kept."""
-    if n_frames <= max_frames:
+    At most ``max_frames``; with ``min_gap`` (s) also no more than one frame per ``min_gap`` of
+    simulated time (what a real-time GIF can show)."""
+    n_frames = len(times)
+    keep = min(n_frames, max_frames)
+    if min_gap is not None and n_frames > 1:
+        duration = float(times[-1] - times[0])
+        if math.isfinite(duration) and duration > 0:
+            keep = min(keep, max(2, int(duration / min_gap) + 1))
+    if n_frames <= keep:
         return np.arange(n_frames)
-    return np.unique(np.round(np.linspace(0, n_frames - 1, max_frames)).astype(np.int64))
+    return np.unique(np.round(np.linspace(0, n_frames - 1, keep)).astype(np.int64))
+
+
+def _durations(times, fps, ext):
+    """Seconds each drawn frame is shown: real time (the simulated time to the next drawn frame;
+    the last frame as long as the mean gap), or 1/fps each. GIF delays are whole hundredths of a
+    second and at least 20 ms; a video needs one constant rate."""
+    k = len(times)
+    gaps = np.diff(np.asarray(times, np.float64))
+    real = fps is None and k > 1 and np.all(np.isfinite(gaps)) and np.all(gaps > 0)
+    if not real:
+        rate = float(fps) if fps is not None else _FALLBACK_FPS
+        return np.full(k, 1.0 / rate)
+    if ext != ".gif":
+        return np.full(k, float(np.mean(gaps)))        # constant rate, the same total duration
+    return np.append(gaps, np.mean(gaps))
+
+
+def _plan_text(traj, durations, fps):
+    k, n = len(traj.frames), traj.n_frames
+    which = f"all {n} frames" if k == n else f"{k} of {n} frames (evenly spaced, first and last kept)"
+    times = traj.times[traj.frames]
+    sim_time = float(times[-1] - times[0]) if k > 1 else 0.0
+    play = float(np.sum(durations[:-1])) if k > 1 else float(durations[0])
+    if fps is None and k > 1 and sim_time > 0:
+        speed = "real time" if abs(play / sim_time - 1) < 0.05 else f"{sim_time / play:.2g}x real time"
+        return f"drawing {which}: {sim_time:.3g} s of simulation played in {play:.3g} s ({speed})"
+    return f"drawing {which} at {float(fps or _FALLBACK_FPS):g} fps: {float(np.sum(durations)):.3g} s of playback"
 
 
 # ----------------------------------------------------------------------------
@@ -224,13 +256,13 @@ def _select_frames(n_frames, max_frames):
 # ----------------------------------------------------------------------------
 
 
-def _read_trajectory(path, frame, max_frames):
+def _read_trajectory(path, frame, max_frames, min_gap=None):
     """Open, validate and read what is needed to draw; raise TrajectoryError on bad input."""
     path = os.fspath(path)
     f = open_hdf5(path)
     try:
         with f:
-            return _read_open_file(path, f, frame, max_frames)
+            return _read_open_file(path, f, frame, max_frames, min_gap)
     except TrajectoryError:
         raise
     except (OSError, KeyError, ValueError, TypeError, IndexError, RuntimeError) as exc:
@@ -249,7 +281,7 @@ def _dataset(path, f, name, required):
     return ds
 
 
-def _read_open_file(path, f, frame, max_frames):
+def _read_open_file(path, f, frame, max_frames, min_gap):
     pos_ds = _dataset(path, f, "positions", required=True)
     faces_ds = _dataset(path, f, "faces", required=True)
 
@@ -273,14 +305,8 @@ def _read_open_file(path, f, frame, max_frames):
             path, f"face vertex indices must lie in [0, {n_verts - 1}], found [{faces.min()}, {faces.max()}]"
         )
 
-    # --- frame selection --------------------------------------------------------
-    if frame is not None:
-        k = int(frame)
-        if not -n_frames <= k < n_frames:
-            raise TrajectoryError(path, f"frame {k} out of range: the trajectory has {n_frames} frames")
-        frames = np.array([k % n_frames])
-    else:
-        frames = _select_frames(n_frames, max_frames)
+    if frame is not None and not -n_frames <= int(frame) < n_frames:
+        raise TrajectoryError(path, f"frame {int(frame)} out of range: the trajectory has {n_frames} frames")
 
     # --- times ----------------------------------------------------------------
     times_ds = _dataset(path, f, "times", required=False)
@@ -295,6 +321,12 @@ def _read_open_file(path, f, frame, max_frames):
         every = _float_attr(f, "save_every")
         step = dt * (every if math.isfinite(every) else 1.0)
         times = np.arange(n_frames, dtype=np.float64) * (step if math.isfinite(step) and step > 0 else 1.0)
+
+    # --- frame selection --------------------------------------------------------
+    if frame is not None:
+        frames = np.array([int(frame) % n_frames])
+    else:
+        frames = _select_frames(times, max_frames, min_gap)
 
     # --- objects ------------------------------------------------------------------
     oid_ds = _dataset(path, f, "object_id", required=False)
@@ -493,16 +525,46 @@ def _render_still(traj, tmp, ext, elev, azim, dpi):
     scene.fig.savefig(tmp, format=fmt, dpi=dpi)
 
 
-def _render_animation(traj, tmp, ext, fps, elev, azim, dpi):
+def _render_animation(traj, tmp, ext, durations, elev, azim, dpi):
     scene = _Scene(traj, elev, azim, dpi)
     if ext == ".gif":
-        writer = animation.PillowWriter(fps=fps)
-    else:
-        # libx264 needs even frame sizes; the scale filter rounds them down.
-        writer = animation.FFMpegWriter(
-            fps=fps, codec="h264", extra_args=["-vf", "scale=trunc(iw/2)*2:trunc(ih/2)*2"]
-        )
+        _write_gif(scene, tmp, durations)
+        return
+    # libx264 needs even frame sizes; the scale filter rounds them down.
+    writer = animation.FFMpegWriter(
+        fps=1.0 / float(durations[0]), codec="h264", extra_args=["-vf", "scale=trunc(iw/2)*2:trunc(ih/2)*2"]
+    )
     with writer.saving(scene.fig, tmp, dpi):
         for k in range(len(traj.frames)):
             scene.show(k)
             writer.grab_frame()
+
+
+def _write_gif(scene, tmp, durations):
+    """Draw the axes, floor and legend once, then only the mesh and the title per frame
+    (blitting), and quantise each frame with Pillow's fast octree: about 30 ms a frame at 642
+    vertices, where a full redraw and Pillow's default quantiser took about 130 ms."""
+    from PIL import Image
+
+    fig, canvas = scene.fig, scene.fig.canvas
+    scene.mesh.set_visible(False)
+    scene.title.set_visible(False)
+    canvas.draw()
+    background = canvas.copy_from_bbox(fig.bbox)
+    scene.mesh.set_visible(True)
+    scene.title.set_visible(True)
+    images = []
+    for k in range(len(scene.traj.frames)):
+        scene.show(k)
+        canvas.restore_region(background)
+        scene.mesh.do_3d_projection()
+        scene.ax.draw_artist(scene.mesh)
+        fig.draw_artist(scene.title)
+        rgb = np.asarray(canvas.buffer_rgba())[..., :3]
+        images.append(Image.fromarray(np.ascontiguousarray(rgb)).quantize(256, method=Image.Quantize.FASTOCTREE))
+    # GIF delays are whole hundredths of a second (at least 2): round the running total, so that
+    # the whole animation keeps its duration when the frame gaps are not multiples of 10 ms
+    ends = np.round(100 * np.cumsum(durations)).astype(np.int64)
+    ms = [10 * int(max(2, c)) for c in np.diff(np.concatenate([[0], ends]))]
+    images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=ms, loop=0,
+                   disposal=1)

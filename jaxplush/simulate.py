@@ -172,8 +172,8 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     t0 = time.perf_counter()
     p = sim.params(params)
     notes = []
-    if check_dt and sim.integrator not in stability.UNCONDITIONAL:
-        msg = stability.dt_warning(stability.estimate(sim, p), sim.integrator, sim.dt, sim.substeps)
+    if check_dt:
+        msg = stability.check_dt(sim, p)
         if msg:
             warnings.warn(msg, stacklevel=2)
             notes.append(msg)

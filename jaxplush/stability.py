@@ -126,18 +126,130 @@ def estimate(sim, params, x=None, iters=100, seed=0):
     omega = float(np.sqrt(max(lam, 0.0)))
     gamma = max(gam, 0.0)
     if sim.terms.verlet_damping:
-        d = np.asarray(params.damping)
-        f = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0).max()
-        h = sim.dt / getattr(sim, "substeps", 1)
-        gamma += float(-np.log1p(-min(f, 1 - 1e-12)) / h)
+        gamma += _verlet_damping_rate(params, sim.dt / getattr(sim, "substeps", 1))
     dt_max = float((np.sqrt(gamma ** 2 + 4 * omega ** 2) - gamma) / omega ** 2) if omega > 0 else float("inf")
-    k = np.asarray(params.k_structural)[topo.vertex_object]
-    m = np.asarray(params.total_weight)[topo.vertex_object] / topo.count[topo.vertex_object]
+    return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gamma, dt_gershgorin=_gershgorin(topo, params))
+
+
+def _ring_neighbours(topo):
+    """(V, K) index of the next and previous real ring entry of each slot (wrapping within the
+    vertex's valence), and the valence (V,)."""
     val = topo.ring_mask.sum(axis=1)
-    kn = k * val
+    k = np.arange(topo.ring.shape[1])[None, :]
+    safe = np.maximum(val, 1)[:, None]
+    return (k + 1) % safe, (k - 1) % safe, val
+
+
+def _bound_at(topo, terms, params, temperature, x):
+    """(omega² bound, gamma bound) at positions x (V, 3) float64: block Gershgorin on M^-1/2 K M^-1/2
+    and on M^-1/2 C M^-1/2 (see :func:`bound`)."""
+    obj = topo.vertex_object
+    k = np.asarray(params.k_structural, np.float64)[obj]
+    m = np.asarray(params.total_weight, np.float64)[obj] / topo.count[obj]
+    ring, mask = topo.ring, topo.ring_mask
+    nxt, prv, val = _ring_neighbours(topo)
+    rows = np.arange(topo.n_vertices)[:, None]
+    d = x[ring] - x[:, None, :]                                      # (V, K, 3)
+    length = np.sqrt(np.sum(d * d, axis=-1) + topo.length_eps ** 2)
+    dh = d / length[..., None]
+    tau = np.where(mask, 1.0 - topo.ring_rest / length, 0.0)        # transverse stiffness factor 1 - L/l
+    kk = k[:, None] * mask
+    # spring blocks K_e = k [d d^T + tau (I - d d^T)]: ||K_e|| = k max(1, |tau|)
+    outer = dh[..., :, None] * dh[..., None, :]
+    k_e = kk[..., None, None] * (outer + tau[..., None, None] * (np.eye(3) - outer))
+    diag = np.linalg.eigvalsh(k_e.sum(axis=1))[:, -1]                # lambda_max of K_ii
+    off = kk * np.maximum(1.0, np.abs(tau))                          # ||K_ij||
+    m_j = m[ring]
+    w2 = diag / m + np.sum(off / np.sqrt(m[:, None] * m_j), axis=1)
+    if terms.gas:
+        nrt = np.asarray(params.nmol, np.float64) * GAS_CONSTANT * temperature
+        vol = np.array([scene_volume(topo, x, o) for o in range(topo.n_objects)])
+        pressure = nrt / np.maximum(vol, 0.05 * topo.rest_volume)
+        p = pressure[obj]
+        # P d²V/dx_a dx_b for a neighbour b: (P/6) [x_c - x_c'] (c, c' the vertices opposite edge ab)
+        opp = x[ring[rows, nxt]] - x[ring[rows, prv]]
+        curv = np.where(mask, np.sqrt(np.sum(opp * opp, axis=-1)) / 6.0, 0.0)
+        w2 = w2 + p * np.sum(curv / np.sqrt(m[:, None] * m_j), axis=1)
+        # the rank-one part (P/V) g g^T, dense within an object: (P/V) |g_a| sum_b |g_b| / sqrt(m_a m_b)
+        dn = d[rows, nxt]
+        g = 0.5 * np.sum(np.where(mask[..., None], np.cross(d, dn), 0.0), axis=1) / 3.0
+        gm = np.sqrt(np.sum(g * g, axis=-1)) / np.sqrt(m)
+        tot = np.array([gm[a:b].sum() for a, b in topo.vertex_slices])
+        w2 = w2 + (pressure / np.maximum(vol, 1e-300))[obj] * gm * tot[obj]
+    contact = getattr(terms, "contact", None)
+    if contact:
+        kc = contact.stiffness if contact.stiffness is not None else 0.1 * 2 * int(val.max()) * k
+        w2 = w2 + 3.0 * kc / m      # a vertex against a face (the vertex and the face's corners)
+    free = np.ones(topo.n_vertices, bool)
+    free[topo.fixed] = False
+    omega2 = float(np.max(w2[free])) if free.any() else 0.0
+    gamma = 0.0
+    if terms.dashpot:
+        c = np.asarray(params.dashpot, np.float64)[obj][:, None] * mask
+        c_ii = np.linalg.eigvalsh((c[..., None, None] * outer).sum(axis=1))[:, -1]
+        gamma = max(gamma, float(np.max((c_ii / m + np.sum(c / np.sqrt(m[:, None] * m_j), axis=1))[free],
+                                        initial=0.0)))
+    if terms.drag:
+        gamma += float(np.max(np.asarray(params.drag, np.float64)))
+    return omega2, gamma
+
+
+def scene_volume(topo, x, o):
+    """Signed volume of object ``o`` at positions x (V, 3) (numpy, float64)."""
+    a, b = topo.face_slices[o]
+    f = topo.faces[a:b]
+    c = x[topo.vertex_slices[o][0]:topo.vertex_slices[o][1]].mean(axis=0)
+    p, q, r = x[f[:, 0]] - c, x[f[:, 1]] - c, x[f[:, 2]] - c
+    return float(np.sum(p * np.cross(q, r)) / 6.0)
+
+
+def bound(sim, params, x=None):
+    """A closed-form, always-safe stability limit (numpy; nothing is compiled or traced).
+
+    Block Gershgorin bounds on omega_max² = lambda_max(M^-1 K) and on the damping rate
+    gamma_max = lambda_max(M^-1 C), for the springs (with their pre-tension), the gas (its
+    curvature term P d²V and its rank-one term (P/V) g g^T), soft-soft contact and the velocity
+    damping (dashpot, drag, the report's Verlet damping per (sub)step), evaluated at the rest
+    geometry (or ``x``) and, with gas, at the uniform inflation s* as :func:`estimate` does. Each
+    bound is at least the true value, so ``dt_max`` is at most the true limit (on icospheres,
+    0.7-0.85 of it): a dt below it is stable; a dt above it needs :func:`estimate` to decide.
+
+    Args:
+      sim: :class:`jaxplush.step.Simulator` (its topology, terms, step and temperature).
+      params: :class:`jaxplush.types.Params`; x: (V, 3) positions (default: rest).
+
+    Returns:
+      :class:`StabilityEstimate` with the bound's omega_max, gamma_max and dt_max.
+    """
+    topo = sim.topology
+    x0 = np.asarray(topo.x0 if x is None else x, np.float64)
+    cfgs = [x0]
+    if sim.terms.gas:
+        cfgs.append(np.asarray(inflated(sim, params, x0), np.float64))
+    w2, gam = 0.0, 0.0
+    for xc in cfgs:
+        a, b = _bound_at(topo, sim.terms, params, sim.scene.temperature, xc)
+        w2, gam = max(w2, a), max(gam, b)
+    if sim.terms.verlet_damping:
+        gam += _verlet_damping_rate(params, sim.dt / getattr(sim, "substeps", 1))
+    omega = float(np.sqrt(max(w2, 0.0)))
+    dt_max = float((np.sqrt(gam ** 2 + 4 * omega ** 2) - gam) / omega ** 2) if omega > 0 else float("inf")
+    return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gam, dt_gershgorin=_gershgorin(topo, params))
+
+
+def _verlet_damping_rate(params, h):
+    d = np.asarray(params.damping, np.float64)
+    f = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0).max()
+    return float(-np.log1p(-min(f, 1 - 1e-12)) / h)
+
+
+def _gershgorin(topo, params):
+    """The springs-only bound sqrt(2 m / (k n_max)) of the lightest, stiffest vertex."""
+    k = np.asarray(params.k_structural, np.float64)[topo.vertex_object]
+    m = np.asarray(params.total_weight, np.float64)[topo.vertex_object] / topo.count[topo.vertex_object]
+    kn = k * topo.ring_mask.sum(axis=1)
     with np.errstate(divide="ignore"):
-        dt_g = float(np.min(np.where(kn > 0, np.sqrt(2 * m / np.where(kn > 0, kn, 1)), np.inf)))
-    return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gamma, dt_gershgorin=dt_g)
+        return float(np.min(np.where(kn > 0, np.sqrt(2 * m / np.where(kn > 0, kn, 1)), np.inf)))
 
 
 #: Integrators with no step-size limit (unconditionally stable on the linearised system).
@@ -208,3 +320,17 @@ def dt_warning(est, integrator, dt, substeps=1):
                 f"step; estimated limit {limit:.3g} s); expect a blow-up, use verlet or implicit_euler")
     return (f"{per} exceeds the estimated explicit stability limit {limit:.3g} s of {integrator} "
             f"(omega_max = {est.omega_max:.4g} rad/s); expect a blow-up, use dt <= {0.9 * limit * substeps:.3g} s")
+
+
+def check_dt(sim, params):
+    """The dt warning of :func:`dt_warning` for ``sim``'s step, or None when the step is stable.
+
+    Decided by the closed-form :func:`bound` where it suffices (nothing compiled); only a step
+    above the bound is checked with :func:`estimate` (a power iteration, compiled once per
+    simulator)."""
+    if sim.integrator in UNCONDITIONAL:
+        return None
+    substeps = getattr(sim, "substeps", 1)
+    if dt_warning(bound(sim, params), sim.integrator, sim.dt, substeps) is None:
+        return None
+    return dt_warning(estimate(sim, params), sim.integrator, sim.dt, substeps)

@@ -9,10 +9,6 @@ import trimesh
 
 import jaxplush
 
-#: Per-dtype tolerances (JAX-MD style), looked up by the active float dtype.
-TOL = {np.dtype("float32"): 1e-5, np.dtype("float64"): 1e-11}
-
-
 def icosphere_text(subdivisions=1, radius=0.1, *, k=100.0, mass=0.05, nmol=None, dashpot=None, drag=None,
                    damping=None, gravity=(0.0, -9.81, 0.0), floor=None, translate=(0, 0, 0), fixed=(),
                    extra="", name="ball", offset=0, header=True):
@@ -44,3 +40,15 @@ def icosphere_scene(**kw):
 def x64():
     with jax.enable_x64(True):
         yield
+
+
+def assert_gradient_matches_fd(f, x, grad, h=1e-5, ratio=10.0, rtol=1e-6, fd_rtol=None, directions=None):
+    """Whole-vector gradient check (:func:`jaxplush.gradcheck.check_gradient`): the central
+    differences at steps h and h/ratio must first agree with each other (else the function is
+    rough at that scale: reported as such), then ``grad`` must match them to ``rtol`` of their
+    norm. Returns the :class:`jaxplush.gradcheck.GradCheck`."""
+    from jaxplush.gradcheck import check_gradient
+    res = check_gradient(f, x, grad, h=h, ratio=ratio, rtol=rtol, fd_rtol=fd_rtol, directions=directions)
+    assert res.converged, res.message()
+    assert res.ok, res.message()
+    return res

@@ -63,7 +63,7 @@ def work(tmp_path_factory):
     d = tmp_path_factory.mktemp("cli")
     scene = d / "ball.obj"
     scene.write_text(ball_text())
-    rc, out, err = run_cli("info", scene)
+    rc, out, err = run_cli("info", scene, "--exact")
     assert rc == 0, err
     m = re.search(r"largest stable dt ([0-9.eE+-]+) s", out)
     assert m, out
@@ -97,16 +97,30 @@ def test_info_counts_and_stable_dt(work):
     assert "k_structural 100 N/m" in out and "nmol 0.0015" in out
     dt_max = work["dt_max"]
     assert math.isfinite(dt_max) and 0 < dt_max < 0.1
-    # The printed power-iteration limit agrees in order of magnitude with the Gershgorin bound.
-    g = float(re.search(r"Gershgorin safe bound ([0-9.eE+-]+) s", out).group(1))
-    assert 0.3 * g < dt_max < 10 * g
+    # The closed-form bound is safe (below the power-iteration limit) and not far below it.
+    b = float(re.search(r"every dt <= ([0-9.eE+-]+) s is stable", out).group(1))
+    assert 0.5 * dt_max < b <= dt_max
 
 
 def test_info_checks_a_given_dt(work):
-    rc, out, _ = run_cli("info", work["scene"], "--dt", repr(work["dt"]))
-    assert rc == 0 and "is within the limit" in out
+    rc, out, _ = run_cli("info", work["scene"], "--dt", repr(work["dt"]), "--exact")
+    assert rc == 0 and "is within the estimated limit" in out
+    rc, out, _ = run_cli("info", work["scene"], "--dt", repr(3 * work["dt_max"]), "--exact")
+    assert rc == 0 and "is ABOVE the estimated limit" in out
     rc, out, _ = run_cli("info", work["scene"], "--dt", repr(3 * work["dt_max"]))
-    assert rc == 0 and "is ABOVE the limit" in out
+    assert rc == 0 and "above the safe bound (use --exact to decide)" in out
+
+
+def test_info_compiles_nothing_without_exact(work, monkeypatch):
+    """Plain ``info`` prints the closed-form bound: no power iteration (which compiles) is run."""
+    from jaxplush import stability
+
+    def refuse(*a, **k):
+        raise AssertionError("info ran the power iteration")
+    monkeypatch.setattr(stability, "estimate", refuse)
+    rc, out, err = run_cli("info", work["scene"], "--dt", repr(work["dt"]))
+    assert rc == 0, err
+    assert "is within the safe bound" in out and "--exact estimates it" in out
 
 
 def test_info_bad_scene(tmp_path):
@@ -214,6 +228,8 @@ def test_simulate_binary_scene(tmp_path):
     (("--dt", "0", "--steps", "10"), "--dt must be a positive number"),
     (("--dt=-1e-4", "--steps", "10"), "--dt must be a positive number"),
     (("--dt", "-1", "--steps", "10"), "--dt must be a positive number"),
+    (("--dt", "-5e-4", "--steps", "10"), "--dt must be a positive number"),   # exponent form, not an option
+    (("--dt", "-.5", "--steps", "10"), "--dt must be a positive number"),
     (("--dt", "nan", "--steps", "10"), "--dt must be a positive number"),
     (("--dt", "inf", "--steps", "10"), "--dt must be a positive number"),
     (("--dt", "1e-4", "--steps", "0"), "--steps must be >= 1"),
@@ -310,3 +326,31 @@ def test_render_frame_out_of_range(work, tmp_path):
     rc, _, err = run_cli("render", work["traj"], "--out", tmp_path / "x.png", "--frame", "999")
     assert_clean_error(rc, err, cli.EXIT_USAGE)
     assert listing(tmp_path) == []
+
+
+# ------------------------------------------------------------------------------- progress, arguments
+
+def test_attach_negative_values():
+    from jaxplush.cliargs import attach_negative_values
+    assert attach_negative_values(["--dt", "-5e-4", "--steps", "10"]) == ["--dt=-5e-4", "--steps", "10"]
+    assert attach_negative_values(["--lr", "-1E+2", "-x"]) == ["--lr=-1E+2", "-x"]
+    # not a number, or already joined, or a short option: left to argparse
+    assert attach_negative_values(["--out", "-o.h5", "--dt=-1"]) == ["--out", "-o.h5", "--dt=-1"]
+    assert attach_negative_values(["-n", "-5"]) == ["-n", "-5"]
+
+
+def test_progress_final_line_says_where_and_why_it_stopped():
+    """A fit that converges at iteration 11 of 200 must not leave the bar at 5.5% with an ETA."""
+    from jaxplush.progress import Progress
+    buf = io.StringIO()
+    with Progress(200, "fit", stream=buf, unit="it") as bar:
+        for _ in range(11):
+            bar.update(1, extra="loss 0.1")
+        bar.finish("converged")
+    final = buf.getvalue().rsplit("\r", 1)[-1]
+    assert "stopped at 11/200 it after" in final and ": converged" in final and "eta" not in final
+    buf = io.StringIO()
+    with Progress(40, "simulate", stream=buf) as bar:
+        bar.update(40)
+    final = buf.getvalue().rsplit("\r", 1)[-1]
+    assert final.startswith("simulate [" + "#" * 30 + "] 40 steps in") and "eta" not in final

@@ -19,7 +19,7 @@ import trimesh
 
 import jaxplush
 from jaxplush import contact, diagnostics, model
-from conftest import icosphere_scene, icosphere_text
+from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -371,15 +371,18 @@ def test_gradients_through_a_collision_match_finite_differences(x64):
     # they collide: without contact they would pass through each other
     ghost = jaxplush.make_simulator(scene, 2e-4, terms=dataclasses.replace(sim.terms, contact=None))
     assert float(loss(k0, n0, ghost)) > float(loss(k0, n0)) + 0.05
-    gk, gn = jax.grad(loss, argnums=(0, 1))(k0, n0)
-    assert np.isfinite(gk).all() and np.isfinite(gn).all()
-    for arr, g, rel in ((k0, gk, 1e-4), (n0, gn, 1e-4)):
-        for i in range(2):
-            h = rel * float(arr[i])
-            e = jnp.zeros_like(arr).at[i].set(h)
-            fd = (loss(arr + e, n0) - loss(arr - e, n0)) / (2 * h) if arr is k0 else \
-                (loss(k0, arr + e) - loss(k0, arr - e)) / (2 * h)
-            np.testing.assert_allclose(g[i], fd, rtol=1e-3, atol=1e-12)
+
+    @jax.jit
+    def log_loss(theta):                       # theta = log(k_A, k_B, nmol_A, nmol_B)
+        return loss(jnp.exp(theta[:2]), jnp.exp(theta[2:]))
+
+    theta = jnp.log(jnp.concatenate([k0, n0]))
+    g = np.asarray(jax.grad(log_loss)(theta))
+    assert np.isfinite(g).all()
+    # Whole-vector comparison, relative to the gradient's norm, once the differences have converged.
+    # Steps of 1e-3 and 1e-4 in log space: at 1e-5 a vertex's closest face switches within the
+    # step, the loss has a kink there and the differences scatter by a few percent (rough, not wrong).
+    assert_gradient_matches_fd(log_loss, np.asarray(theta), g, h=1e-3, rtol=1e-3)
 
 
 # --------------------------------------------------------------------------- capacity, self-collision

@@ -16,7 +16,7 @@ import pytest
 
 import jaxplush
 from fitting import cli
-from fitting import fit as F
+from fitting import fitter as F
 from fitting.targets import make_target
 from test_targets import BAD, _copy_with
 
@@ -92,13 +92,19 @@ def _bad_cli_cases(files, d):
                                  "must not overwrite an input"),
         "unknown method": (good + ["--method", "fast"], "unknown gradient method 'fast'"),
         "no parameters": (good + ["--params", ","], "no parameters to fit"),
+        "negative dt": (good + ["--dt", "-5e-4"], "--dt must be a positive number"),
+        "negative lr": (good + ["--lr", "-1e-2"], "--lr must be a positive number"),
+        "bad start": (good + ["--start", "k=abc"], "--start: k='abc' is not a number"),
+        "negative start": (good + ["--start", "k=-5e2"], "--start: k must be a positive number"),
+        "start name": (good + ["--start", "stiffness2=3"], "unknown parameter 'stiffness2'"),
     }
 
 
 @pytest.mark.parametrize("case", ["unknown parameter", "mass jointly", "unknown object", "iterations", "optimizer",
                                   "out extension", "out directory", "resume without file", "scene missing",
                                   "target missing", "dt off grid", "out overwrites input", "unknown method",
-                                  "no parameters"])
+                                  "no parameters", "negative dt", "negative lr", "bad start", "negative start",
+                                  "start name"])
 def test_bad_input_exits_2_and_writes_nothing(files, tmp_path, capsys, case):
     argv, message = _bad_cli_cases(files, tmp_path)[case]
     if "--out" not in argv:

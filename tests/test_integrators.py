@@ -12,7 +12,7 @@ import pytest
 
 import jaxplush
 from jaxplush import integrators, model, stability
-from conftest import icosphere_scene
+from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 
 ALL = jaxplush.INTEGRATORS
 #: Global error order of each scheme (physics.md §4); Mesit's update is explicit Euler with a
@@ -244,11 +244,9 @@ def test_gradients_match_central_differences(x64, name):
 
     theta = jnp.log(jnp.array([100.0, 1e-3, 0.05, 0.5]))
     g = np.asarray(jax.grad(loss)(theta))
-    eps = 1e-5
-    fd = np.array([(loss(theta.at[i].add(eps)) - loss(theta.at[i].add(-eps))) / (2 * eps) for i in range(4)])
-    assert np.all(np.abs(fd) > 1e-12)   # every parameter matters (FD noise ~1e-15)
-    # rtol: the CG tolerance (1e-10) limits the finite differences of the small dashpot term.
-    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-7 * np.abs(fd).max())
+    res = assert_gradient_matches_fd(lambda t: float(loss(jnp.asarray(t))), np.asarray(theta), g, h=1e-4,
+                                     rtol=1e-5)   # the CG tolerance (1e-10) limits the differences
+    assert np.all(np.abs(res.fd) > 1e-12)   # every parameter matters (FD noise ~1e-15)
 
 
 # 6. Substeps and per-integrator stability limits -------------------------------------------------
@@ -291,6 +289,49 @@ def test_simulate_warns_with_the_integrators_limit(x64):
     with pytest.warns(UserWarning, match="exceeds the estimated explicit stability limit .* of verlet"):
         traj = jaxplush.simulate(scene, steps=2, dt=2.4 * hc, integrator="verlet", substeps=2)
     assert traj.substeps == 2 and traj.integrator == "verlet"
+
+
+def _exact_rates(sim, params, x):
+    """(omega_max², gamma_max) of the linearised force at x from dense Jacobians (float64)."""
+    topo = sim.topology
+    m = np.asarray(jaxplush.model.vertex_mass(topo, params))
+    free = np.ones(topo.n_vertices, bool)
+    free[topo.fixed] = False
+    s = np.repeat(free / np.sqrt(m), 3)
+    n = 3 * topo.n_vertices
+    zero = jnp.zeros((topo.n_vertices, 3))
+    k = -np.asarray(jax.jacfwd(lambda y: sim.force_fn(params, y.reshape(-1, 3), zero)[0].ravel())(
+        jnp.asarray(x).ravel())).reshape(n, n)
+    c = -np.asarray(jax.jacfwd(lambda w: sim.force_fn(params, jnp.asarray(x), w.reshape(-1, 3))[0].ravel())(
+        jnp.zeros(n))).reshape(n, n)
+    sym = lambda a: 0.5 * (a + a.T)  # noqa: E731
+    return (np.linalg.eigvalsh(sym(s[:, None] * k * s[None]))[-1],
+            np.linalg.eigvalsh(sym(s[:, None] * c * s[None]))[-1])
+
+
+@pytest.mark.parametrize("case", ["gas_dashpot", "pinned_drag", "stretched", "two_objects"])
+def test_closed_form_bound_is_safe(x64, case):
+    """stability.bound (numpy, nothing compiled) bounds omega_max and gamma_max from above, checked
+    against the exact eigenvalues of dense Jacobians, at rest and inflated; so its dt is safe. It is
+    also not far below the power-iteration estimate (at least 0.6 of it)."""
+    if case == "gas_dashpot":
+        scene = icosphere_scene(subdivisions=1, k=200.0, nmol=3e-3, dashpot=0.05)
+    elif case == "pinned_drag":
+        scene = icosphere_scene(subdivisions=1, k=80.0, nmol=1e-3, drag=2.0, fixed=(0,))
+    elif case == "stretched":              # strongly inflated: springs pre-tensioned 30% past rest
+        scene = icosphere_scene(subdivisions=1, k=20.0, nmol=5e-4, damping=300.0)   # s* = 1.3
+    else:
+        text = icosphere_text(subdivisions=1, k=150.0, nmol=1e-3, name="a") + icosphere_text(
+            subdivisions=1, k=300.0, mass=0.02, nmol=5e-4, name="b", offset=42, header=False, translate=(0.25, 0, 0))
+        scene = jaxplush.parse_scene(text, "<two>")
+    sim = jaxplush.make_simulator(scene, 1e-4)
+    p = sim.params()
+    b = stability.bound(sim, p)
+    for x in (scene.vertices, np.asarray(stability.inflated(sim, p, scene.vertices))):
+        w2, gam = _exact_rates(sim, p, x)
+        assert b.omega_max ** 2 >= w2 * (1 - 1e-9) and b.gamma_max >= gam * (1 - 1e-9) - 1e-12
+    est = stability.estimate(sim, p)
+    assert 0.6 * est.dt_max <= b.dt_max <= est.dt_max * (1 + 1e-9)
 
 
 @pytest.mark.parametrize("factor, stable", [(0.9, True), (1.1, False)])

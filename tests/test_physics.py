@@ -10,7 +10,7 @@ import pytest
 import jaxplush
 from jaxplush import diagnostics, model, stability
 from jaxplush.types import GAS_CONSTANT
-from conftest import icosphere_scene, icosphere_text
+from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 
 
 def _perturbed(scene, scale=0.05, seed=0):
@@ -205,10 +205,9 @@ def test_rollout_gradients_match_finite_differences(x64):
 
     theta = jnp.log(jnp.array([100.0, 50.0, 1e-3]))
     g = jax.grad(loss)(theta)
-    h = 1e-5
-    fd = np.array([(loss(theta.at[i].add(h)) - loss(theta.at[i].add(-h))) / (2 * h) for i in range(3)])
-    assert np.all(np.abs(fd) > 0)
-    np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-4)
+    res = assert_gradient_matches_fd(lambda t: float(loss(jnp.asarray(t))), np.asarray(theta), g, h=1e-4,
+                                     rtol=1e-6)
+    assert np.all(np.abs(res.fd) > 0)
 
 
 # Numerics ------------------------------------------------------------------------------------

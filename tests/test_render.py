@@ -90,6 +90,52 @@ def test_gif_subsamples_keeping_first_and_last(traj, tmp_path):
         assert im.n_frames == 3
 
 
+def _gif_delays(path):
+    with Image.open(path) as im:
+        out = []
+        for i in range(im.n_frames):
+            im.seek(i)
+            out.append(im.info["duration"])
+        return out
+
+
+def test_gif_plays_in_real_time_and_says_what_it_drew(traj, tmp_path):
+    """Frames 50 ms apart in simulated time are shown 50 ms each; the report names the frames kept."""
+    lines = []
+    render(traj, tmp_path / "rt.gif", dpi=30, report=lines.append)
+    assert _gif_delays(tmp_path / "rt.gif") == [50] * N_FRAMES
+    assert lines == [f"drawing all {N_FRAMES} frames: 0.25 s of simulation played in 0.25 s (real time)"]
+
+
+def test_gif_frame_cap_is_reported_and_keeps_real_time(tmp_path):
+    """201 frames 10 ms apart: a GIF shows at most 50 frames per simulated second, so 101 are
+    drawn, 20 ms each (real time), and the report says 101 of 201."""
+    p, f, oid = _synthetic_positions()
+    pos = np.repeat(p, [41, 40, 40, 40, 40, 0], axis=0)       # 201 frames
+    path = write_trajectory(tmp_path / "long.h5", positions=pos, times=np.arange(201) * 0.01)
+    lines = []
+    render(path, tmp_path / "long.gif", dpi=20, report=lines.append)
+    delays = _gif_delays(tmp_path / "long.gif")
+    assert len(delays) == 101 and set(delays) == {20}
+    assert "101 of 201 frames" in lines[0] and "(real time)" in lines[0]
+    lines.clear()
+    render(path, tmp_path / "capped.gif", dpi=20, max_frames=11, report=lines.append)
+    assert _gif_delays(tmp_path / "capped.gif") == [200] * 11      # fewer frames, still real time
+    assert "11 of 201 frames" in lines[0]
+    lines.clear()
+    render(path, tmp_path / "fixed.gif", dpi=20, max_frames=250, fps=25, report=lines.append)
+    assert _gif_delays(tmp_path / "fixed.gif") == [40] * 201
+    assert lines == ["drawing all 201 frames at 25 fps: 8.04 s of playback"]
+
+
+def test_gif_delays_keep_the_total_when_gaps_are_not_whole_hundredths(tmp_path):
+    p, f, oid = _synthetic_positions()
+    path = write_trajectory(tmp_path / "odd.h5", times=np.arange(N_FRAMES) * 0.025)
+    render(path, tmp_path / "odd.gif", dpi=20)
+    delays = _gif_delays(tmp_path / "odd.gif")
+    assert set(delays) <= {20, 30} and abs(sum(delays[:-1]) - 125) <= 5    # 5 gaps of 25 ms, rounded as a whole
+
+
 def test_png_still_last_frame(traj, tmp_path):
     out = tmp_path / "still.png"
     assert render(traj, out, frame=-1) == str(out)

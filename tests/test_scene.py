@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import glob
 import os
+import re
 import warnings
 
 import numpy as np
@@ -760,3 +761,39 @@ def test_round_trip_shipped_scenes(path):
     if scene.floor is not None:
         assert scene.vertices[:, 1].min() >= scene.floor
     _round_trip(scene)
+
+
+def test_scenes_readme_describes_every_shipped_scene():
+    """scenes/README.md has a row for every bundled scene with its vertex counts, and the number of
+    scenes it says the script writes is the number of files (the README had drifted)."""
+    root = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes")
+    text = open(os.path.join(root, "README.md")).read()
+    rows = {m.group(1): m.group(2) for m in re.finditer(r"^\| `([\w.]+\.obj)` \|[^|]*\| ([^|]+) \|", text, re.M)}
+    files = sorted(os.path.basename(p) for p in SCENES)
+    assert sorted(rows) == files
+    words = {3: "three", 4: "four", 5: "five", 6: "six", 7: "seven", 8: "eight"}
+    assert f"writes the {words[len(files)]} scenes" in text
+    for name, cell in rows.items():
+        counts = [o.n_vertices for o in jaxplush.load_scene(os.path.join(root, name)).objects]
+        m = re.fullmatch(r"\s*(\d+) × (\d+)\s*", cell)
+        expect = [int(m.group(2))] * int(m.group(1)) if m else [int(c) for c in cell.split("+")]
+        assert counts == expect, (name, cell)
+
+
+@pytest.mark.slow
+def test_make_scenes_is_deterministic(tmp_path):
+    """scenes/make_scenes.py (run on a copy of scenes/) rewrites every bundled scene byte for byte."""
+    import shutil
+    import subprocess
+    import sys
+    root = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes")
+    copy = tmp_path / "scenes"
+    shutil.copytree(root, copy)
+    for p in copy.glob("*.obj"):
+        p.unlink()
+    proc = subprocess.run([sys.executable, str(copy / "make_scenes.py")], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for name in sorted(os.listdir(root)):
+        if name.endswith(".obj"):
+            assert (copy / name).read_bytes() == open(os.path.join(root, name), "rb").read(), name

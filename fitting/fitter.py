@@ -524,6 +524,7 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
                 if checkpoint_every and loop.iteration - last_saved >= int(checkpoint_every) and not loop.done:
                     save(loop)
                     last_saved = loop.iteration
+            bar.finish(loop.reason if loop.done else "iteration limit")
     except KeyboardInterrupt:
         # Ctrl-C may land anywhere, also inside an iteration: save the last consistent state
         consistent.wall = time.perf_counter() - t_loop

@@ -1,0 +1,166 @@
+"""The documentation runs: every fenced Python block and every shell command of the README, and
+every docstring example (``>>>``) of the packages, is executed here, so the docs cannot drift
+from the code.
+
+* README ```python blocks run in document order, each in a fresh namespace, in one scratch
+  directory that holds a link to ``scenes/`` (so paths read as from the repository root), and
+  must finish without an exception.
+* README ```bash blocks run in the same directory, one command at a time (``\\`` continues a
+  line), and must exit 0. The installation steps (``python -m pip install ...``) and the test
+  suite itself (``python -m pytest``) are what CI runs around this test, so they are skipped.
+* A block whose fence is preceded by the line ``<!-- test: slow -->`` runs only with
+  ``pytest -m slow``; ``<!-- test: skip REASON -->`` never runs (the reason must be given).
+  ```text blocks are not code (command syntax, file layouts).
+* Docstring examples: :mod:`doctest` on every module of ``jaxplush`` and ``fitting``; a
+  docstring must not hide an example in a reST literal block (``::``), which doctest would skip.
+"""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+import os
+import pkgutil
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+BIN = Path(sys.executable).parent
+
+_FENCE = re.compile(r"^```(\w*)\s*$")
+_MARK = re.compile(r"^<!--\s*test:\s*(slow|skip)\b(.*?)-->\s*$")
+
+
+def blocks(path=README):
+    """(line, language, code, mark) of every fenced block; mark is None, "slow" or "skip"."""
+    lines = Path(path).read_text().splitlines()
+    out = []
+    i = 0
+    while i < len(lines):
+        m = _FENCE.match(lines[i])
+        if m and m.group(1):
+            lang, start = m.group(1), i + 1
+            j = start
+            while j < len(lines) and lines[j].strip() != "```":
+                j += 1
+            mark = None
+            prev = lines[i - 1].strip() if i > 0 else ""
+            mm = _MARK.match(prev)
+            if mm:
+                mark = mm.group(1)
+                assert mark != "skip" or mm.group(2).strip(), f"README.md:{i}: a skip mark needs a reason"
+            out.append((start, lang, "\n".join(lines[start:j]), mark))
+            i = j + 1
+        else:
+            i += 1
+    return out
+
+
+def shell_commands(code):
+    """The commands of a bash block: continuation lines joined, comments and blank lines dropped,
+    installation and test-suite steps of ``&&`` chains removed."""
+    joined = re.sub(r"\\\n\s*", " ", code)
+    out = []
+    for line in joined.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = [p.strip() for p in line.split("&&")]
+        parts = [p for p in parts if not re.match(r"python3? -m (pip install|pytest)\b", p)]
+        if parts:
+            out.append(" && ".join(parts))
+    return out
+
+
+def _strip_comment(cmd):
+    """Drop a trailing shell comment (outside quotes)."""
+    lexer = shlex.shlex(cmd, posix=True, punctuation_chars=False)
+    lexer.commenters = "#"
+    lexer.whitespace_split = True
+    return " ".join(shlex.quote(t) if t != "&&" else t for t in lexer)
+
+
+README_BLOCKS = [b for b in blocks() if b[1] in ("python", "bash", "sh")]
+#: Other READMEs whose blocks run too (the same rules; paths relative to the repository root).
+OTHER_READMES = ("scenes/README.md",)
+
+
+def _param(b, doc="README.md"):
+    line, lang, _, mark = b
+    marks = [pytest.mark.slow] if mark == "slow" else []
+    if mark == "skip":
+        marks.append(pytest.mark.skip(reason=f"marked skip in {doc}"))
+    return pytest.param(b, id=f"{doc}:{line}-{lang}", marks=marks)
+
+
+ALL_BLOCKS = [_param(b) for b in README_BLOCKS] + [
+    _param(b, doc) for doc in OTHER_READMES for b in blocks(ROOT / doc) if b[1] in ("python", "bash", "sh")]
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("readme")
+    (d / "scenes").symlink_to(ROOT / "scenes")
+    return d
+
+
+def test_readme_has_runnable_blocks():
+    langs = [b[1] for b in README_BLOCKS]
+    assert langs.count("python") >= 3 and langs.count("bash") >= 3
+    # every command-looking line is in a runnable block, not a text block
+    for line, lang, code, _ in blocks():
+        if lang == "text":
+            assert not re.search(r"^\s*(jaxplush|jaxplush-fit|python) ", code, re.M) or "SCENE" in code or "[" in code, \
+                f"README.md:{line}: a text block holds a command; make it a bash block or a syntax line"
+
+
+@pytest.mark.parametrize("block", ALL_BLOCKS)
+def test_readme_block_runs(block, workdir, monkeypatch):
+    line, lang, code, _ = block
+    monkeypatch.chdir(workdir)
+    if lang == "python":
+        import matplotlib
+        matplotlib.use("Agg")
+        namespace = {"__name__": "__readme__"}
+        exec(compile(code, f"README.md:{line}", "exec"), namespace)   # noqa: S102
+        return
+    env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", JAXPLUSH_TEST="1")
+    for cmd in shell_commands(code):
+        run = _strip_comment(cmd).replace("python ", f"{shlex.quote(sys.executable)} ", 1) \
+            if cmd.startswith("python ") else _strip_comment(cmd)
+        proc = subprocess.run(["bash", "-c", run], cwd=workdir, env=env, capture_output=True, text=True,
+                              timeout=900)
+        assert proc.returncode == 0, (f"README.md:{line}: `{cmd}` exited {proc.returncode}\n"
+                                      f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}")
+
+
+def _modules():
+    out = []
+    for pkg in ("jaxplush", "fitting"):
+        mod = importlib.import_module(pkg)
+        out.append(pkg)
+        out += [f"{pkg}.{m.name}" for m in pkgutil.iter_modules(mod.__path__) if m.name != "__main__"]
+    return out
+
+
+@pytest.mark.parametrize("name", _modules())
+def test_docstring_examples_run(name, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    module = importlib.import_module(name)
+    tests = doctest.DocTestFinder(exclude_empty=False).find(module, name)
+    for t in tests:
+        # an example must be a doctest, not a reST literal block that doctest would skip
+        assert not re.search(r"::\s*$", t.docstring or "", re.M), \
+            f"{name}: the docstring of {t.name} holds a '::' literal block; write examples as doctests (>>>)"
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    for t in tests:
+        if t.examples:
+            runner.run(t)
+    res = runner.summarize(verbose=False)
+    assert res.failed == 0, f"{name}: {res.failed} docstring example(s) failed (output above)"
