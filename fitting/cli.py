@@ -1,12 +1,14 @@
 """Command line ``jaxplush-fit``: fit parameters to a target, or (``jaxplush-fit sweep ...``) sweep them.
 
-    jaxplush-fit SCENE.obj TARGET.h5 --params k_structural,damping,nmol [--objects NAMES]
-        [--iterations N] [--optimizer adam|lbfgs] [--lr LR] [--dt DT] [--noise SIGMA | --noise-free]
-        --out FIT.h5 [--out-scene FITTED.obj] [--resume] [--checkpoint-every N]
+    jaxplush-fit SCENE.obj TARGET.h5 [--params k_structural,damping,nmol] [--objects NAMES]
+        [--optimizer lm|adam|lbfgs] [--bounds NAME=LO:HI,...] [--iterations N] [--lr LR] [--dt DT]
+        [--noise SIGMA | --noise-free] --out FIT.h5 [--out-scene FITTED.obj] [--resume]
 
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
-exits 3. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130; ``--resume`` continues it.
+exits 3; a fit that finished without converging to the data (fitting.outcome) writes FIT.h5 with
+its status and exits 4. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130;
+``--resume`` continues it.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from jaxplush.io import check_output_path
 
 EXIT_USAGE = 2
 EXIT_FAILED = 3
+EXIT_NOT_CONVERGED = 4     # the fit finished but did not converge to the data (fitting.outcome)
 EXIT_INTERRUPTED = 130
 
 
@@ -33,15 +36,26 @@ def _parser():
     p.add_argument("scene", help="extended-OBJ scene; its values of the fitted parameters are the start")
     p.add_argument("target", help="target HDF5: 'positions' [T, V, 3] or 'points' [T, M, 3], and 'times' [T] "
                                   "(any 'jaxplush simulate' output)")
-    p.add_argument("--params", default="k_structural,damping,nmol",
-                   help="comma-separated parameters to fit (k = k_structural; also dashpot, drag; total_weight "
-                        "only with a warning). Default: k_structural,damping,nmol")
+    p.add_argument("--params", default=None,
+                   help="comma-separated parameters to fit (k = k_structural; damping, dashpot, drag, nmol; "
+                        "total_weight only with a warning). Default: the material parameters the scene switches "
+                        "on: k_structural, its damping (damping, dashpot and/or drag, whichever is above 0) and "
+                        "nmol where there is gas")
     p.add_argument("--objects", default=None, help="comma-separated object names to fit (default: all)")
     p.add_argument("--start", default=None, metavar="NAME=VALUE,...",
                    help="start values overriding the scene's, e.g. k=800,nmol=0.002 (applied to every fitted "
                         "object)")
-    p.add_argument("--iterations", type=int, default=200, help="maximum iterations (default 200)")
-    p.add_argument("--optimizer", default="adam", help="adam (default) or lbfgs")
+    p.add_argument("--optimizer", default="lm",
+                   help="lm (default: a global stage over the search box, then Levenberg-Marquardt from the best "
+                        "candidates), adam or lbfgs (gradient descent from the start values)")
+    p.add_argument("--bounds", default=None, metavar="NAME=LO:HI,...",
+                   help="search box of the default fit, e.g. k=100:2000,nmol=1e-3:1e-2 (every fitted object); "
+                        "default: each fitted parameter from start/4 to start*4")
+    p.add_argument("--samples", type=int, default=None, help="global-stage Sobol points (default 64)")
+    p.add_argument("--starts", type=int, default=None, help="local starts from the global stage (default 5)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="maximum iterations (default: 40 Levenberg-Marquardt iterations per start; 200 for adam "
+                        "and lbfgs)")
     p.add_argument("--lr", type=float, default=None, help="learning rate in log space (adam default 0.05)")
     p.add_argument("--dt", type=float, default=None, help="time step, s (default: the target's)")
     g = p.add_mutually_exclusive_group()
@@ -83,12 +97,20 @@ def main(argv=None):
 def _fit(args):
     from jaxplush.errors import JaxplushError
     # --- everything checked before anything is traced or written
-    if args.iterations < 1:
+    if args.iterations is not None and args.iterations < 1:
         raise JaxplushError(f"--iterations must be >= 1, got {args.iterations}")
     if args.checkpoint_every < 1:
         raise JaxplushError(f"--checkpoint-every must be >= 1, got {args.checkpoint_every}")
-    if args.optimizer not in ("adam", "lbfgs"):
-        raise JaxplushError(f"--optimizer must be adam or lbfgs, got {args.optimizer!r}")
+    if args.optimizer not in ("lm", "adam", "lbfgs"):
+        raise JaxplushError(f"--optimizer must be lm, adam or lbfgs, got {args.optimizer!r}")
+    if args.samples is not None and args.samples < 0:
+        raise JaxplushError(f"--samples must be >= 0, got {args.samples}")
+    if args.starts is not None and args.starts < 1:
+        raise JaxplushError(f"--starts must be >= 1, got {args.starts}")
+    if args.optimizer != "lm":
+        for name, val in (("--bounds", args.bounds), ("--samples", args.samples), ("--starts", args.starts)):
+            if val is not None:
+                raise JaxplushError(f"{name} belongs to the default fit (--optimizer lm), not {args.optimizer}")
     for name, val in (("--lr", args.lr), ("--dt", args.dt)):
         if val is not None and not (val == val and 0 < val < float("inf")):
             raise JaxplushError(f"{name} must be a positive number, got {val}")
@@ -110,8 +132,9 @@ def _fit(args):
     from fitting import fitter as _fit_mod
     from fitting.targets import load_target
 
-    names = _fit_mod.canonical_names(args.params)
+    names = _fit_mod.canonical_names(args.params) if args.params is not None else None
     start = parse_start(args.start) if args.start is not None else None
+    bounds = _fit_mod.parse_bounds(args.bounds, names or _fit_mod.PARAM_NAMES) if args.bounds is not None else None
     scene = jaxplush.load_scene(args.scene)
     target = load_target(args.target, scene, args.dt)
 
@@ -135,7 +158,7 @@ def _fit(args):
             try:
                 result = _fit_mod.fit(
                     scene, target, names, args.objects, start=start, iterations=args.iterations,
-                    optimizer=args.optimizer,
+                    optimizer=args.optimizer, bounds=bounds, samples=args.samples, starts=args.starts,
                     lr=args.lr, noise=args.noise, noise_free=args.noise_free, method=args.method,
                     force=args.force, progress=not args.quiet, checkpoint_path=args.out,
                     checkpoint_every=args.checkpoint_every, resume=args.resume)
@@ -157,8 +180,13 @@ def _fit(args):
         result.write_scene(args.out_scene)
     print(result.table())
     if result.identifiability is not None:
-        print(result.identifiability.summary())
+        print(result.identifiability.summary() if result.converged else
+              result.identifiability.summary(standard_errors=False))
     print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))
+    if not result.converged:
+        print(f"jaxplush-fit: the fit did not converge to the data ({result.status}); see FIT.h5 and the "
+              f"message above (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
     return 0
 
 

@@ -50,9 +50,9 @@ from fitting.targets import Target, load_target
 ALIASES = {"k": "k_structural", "stiffness": "k_structural", "mass": "total_weight", "weight": "total_weight"}
 #: Parameters that scale with the mass under the exact symmetry of physics.md §9.1.
 _MASS_CONFOUNDED = ("k_structural", "dashpot", "nmol")
-OPTIMIZERS = ("adam", "lbfgs")
+OPTIMIZERS = ("lm", "adam", "lbfgs")
 #: Default learning rates (log space) per optimiser (L-BFGS: none, the line search sets the step).
-DEFAULT_LR = {"adam": 0.05, "lbfgs": None}
+DEFAULT_LR = {"adam": 0.05, "lbfgs": None, "lm": None}
 MAX_REJECTIONS = 30
 
 
@@ -163,15 +163,56 @@ class Problem:
             return False
         return True
 
+    def truncated(self, n_frames):
+        """This problem on the target's first ``n_frames`` frames only (its own loss normalisation;
+        the same noise setting), for the default fit's continuation in time."""
+        if n_frames >= self.target.n_frames:
+            return self
+        target = self.target.select(np.arange(int(n_frames)))
+        loss = _losses.make_loss(target, self.sim.topology, self.sim.dtype, noise=self.noise,
+                                 noise_free=self.noise is None or self.noise == 0, check_volume=self.sim.terms.gas)
+        return dataclasses.replace(self, target=target, loss=loss)
+
     def frames(self, theta):
         """(T, V, 3) simulated positions at the target's steps and (T, O) health codes (jax)."""
         p = self.to_params(theta)
         return _ident.frames_at_steps(self.sim, p, self.sim.init_fn(p), self.loss.frame_steps)
 
 
-def build_problem(scene, target, params=("k_structural", "damping", "nmol"), objects=None, *, dt=None,
+def default_params(scene, objects=None):
+    """The material parameters a scene switches on, to fit by default: ``k_structural``; the
+    damping it uses (``damping``, ``dashpot`` and/or ``drag``, whichever is above 0 on a fitted
+    object); ``nmol`` where every fitted object has gas. Returns (names, note)."""
+    objs = range(scene.n_objects) if objects is None else objects
+    names = ["k_structural"]
+    p = scene.params
+    for n in ("damping", "dashpot", "drag"):
+        if any(float(getattr(p, n)[o]) > 0 for o in objs):
+            names.append(n)
+    gas = [scene.objects[o].has_gas for o in objs]
+    if all(gas):
+        names.append("nmol")
+    note = f"fitting {', '.join(names)} (the material parameters the scene switches on"
+    if any(gas) and not all(gas):
+        note += "; nmol left out: not every fitted object has gas"
+    return tuple(names), note + ")"
+
+
+def build_problem(scene, target, params=None, objects=None, *, dt=None,
                   start=None, noise=None, noise_free=False, method="auto", force=False):
-    """Validate a fit's inputs and build its :class:`Problem` (see :func:`fit` for the arguments)."""
+    """Validate a fit's inputs and build its :class:`Problem` (see :func:`fit` for the arguments).
+
+    ``params`` None fits :func:`default_params` (the note saying which is warned)."""
+    if params is None:
+        objs_for_default = None
+        if objects is not None:
+            objs_for_default = [scene.object_names.index(o) if isinstance(o, str) and o in scene.object_names else o
+                                for o in ([x.strip() for x in objects.split(",")] if isinstance(objects, str)
+                                          else objects)
+                                if (isinstance(o, str) and o in scene.object_names) or
+                                (isinstance(o, (int, np.integer)) and 0 <= o < scene.n_objects)]
+        params, note = default_params(scene, objs_for_default or None)
+        warnings.warn(note, stacklevel=3)
     names = canonical_names(params)
     check_mass_fit(names, force)
     if objects is None:
@@ -316,8 +357,10 @@ class FitResult:
       history: dict of arrays over accepted iterations: "iteration", "loss", "grad_norm",
         "time" (s), each fitted name (n, O_f); and "rejected" (iterations whose step was rejected).
       iterations: evaluations done; rejected: steps rejected (blow-ups).
-      converged: bool; reason: why the loop stopped.
-      identifiability: :class:`fitting.identifiability.IdentifiabilityReport` (or None).
+      converged: the fit reached the data at an optimum (``status == "converged"``).
+      reason: how it ended, in words (:attr:`outcome`'s message).
+      identifiability: :class:`fitting.identifiability.IdentifiabilityReport` (or None); its
+        standard errors mean something only for a converged fit (:meth:`table` hides them otherwise).
       frames: (T, V, 3) simulated positions at the target frames with the fitted values.
       steps: (T,) their steps; dt.
       optimizer, lr, normalisation ("noise"/"motion"), scale2 (m²), noise.
@@ -350,22 +393,39 @@ class FitResult:
     target_path: str
     wall_time: float
     warnings: tuple = ()
-    loop: object = None     # the final LoopState (for saving a resumable file)
+    loop: object = None     # the final LoopState / LMRun (for saving a resumable file)
     problem: object = None  # the Problem that was solved
     settings: dict = dataclasses.field(default_factory=dict)
+    outcome: object = None  # fitting.outcome.Outcome
+    search: dict = dataclasses.field(default_factory=dict)   # the default fit's samples and paths
+
+    @property
+    def status(self):
+        """"converged", "poor_fit", "stalled", "iteration_limit" or "at_bound" (fitting.outcome)."""
+        return self.outcome.status if self.outcome is not None else ("converged" if self.converged else "stalled")
 
     def table(self):
-        """The fitted values as a text table (with start values and standard errors)."""
+        """The fitted values as a text table: start, fitted value and, for a converged fit only,
+        the approximate standard error; then the outcome."""
         rep = self.identifiability
         se = {} if rep is None else dict(zip(rep.labels, rep.stderr))
         rows = [f"{'parameter':<14} {'object':<14} {'start':>12} {'fitted':>12} {'std. error':>11}"]
         for n in self.names:
             for j, o in enumerate(self.objects):
                 e = se.get(f"{n}[{o}]", np.nan)
-                es = "-" if rep is None else (f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined")
+                if rep is None:
+                    es = "-"
+                elif not self.converged:
+                    es = "n/a"
+                else:
+                    es = f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined"
                 rows.append(f"{n:<14} {o:<14} {self.start[n][j]:>12.6g} {self.values[n][j]:>12.6g} {es:>11}")
         rows.append(f"loss {self.loss_start:.4g} -> {self.loss:.4g} ({self.normalisation}-normalised) after "
-                    f"{self.iterations} iterations ({self.rejected} rejected), {self.wall_time:.1f} s; {self.reason}")
+                    f"{self.iterations} {'evaluations' if self.optimizer == 'lm' else 'iterations'} "
+                    f"({self.rejected} rejected), {self.wall_time:.1f} s")
+        rows.append(f"outcome: {self.reason}")
+        if rep is not None and not self.converged:
+            rows.append("standard errors: not meaningful, the fit did not converge to the data")
         return "\n".join(rows)
 
     def save(self, path):
@@ -379,20 +439,31 @@ class FitResult:
         return _io.write_fitted_scene(self, path)
 
 
-def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None, *, iterations=200,
-        optimizer="adam", lr=None, dt=None, start=None, noise=None, noise_free=False, gtol=1e-9, rtol=1e-7,
+def fit(scene, target, params=None, objects=None, *, iterations=None,
+        optimizer="lm", lr=None, dt=None, start=None, noise=None, noise_free=False, gtol=1e-9, rtol=1e-7,
         xtol=1e-7, ftol=0.0, patience=5, method="auto", force=False, callback=None, progress=False,
-        checkpoint_path=None, checkpoint_every=10, resume=False, identifiability=True, check_dt=True):
+        checkpoint_path=None, checkpoint_every=10, resume=False, identifiability=True, check_dt=True,
+        bounds=None, samples=None, starts=None, seed=0):
     """Fit parameters of ``scene`` to ``target``.
+
+    The default (``optimizer="lm"``) is global, then local (:mod:`fitting.search`): a Sobol
+    design over a box around the start (each parameter from start/4 to start*4 in log space,
+    or ``bounds``), run in compiled batches with every point stable (substeps where a point's
+    explicit limit is below dt), then Levenberg-Marquardt with finite-difference Jacobians from
+    the best candidates, keeping the best. The outcome is judged honestly
+    (:mod:`fitting.outcome`): ``converged`` only when the residual is at the noise level (or
+    small against the target's motion) and the gradient is small against the start's.
 
     Args:
       scene: :class:`jaxplush.scene.Scene`; its values of the fitted parameters are the start.
       target: :class:`fitting.targets.Target` or a path (loaded with :func:`load_target`).
       params: names to fit (``k`` = ``k_structural``; also ``dashpot``, ``drag``; ``total_weight``
-        only alone, with a warning, unless ``force``).
+        only alone, with a warning, unless ``force``); default :func:`default_params`, the
+        material parameters the scene switches on (with a warning naming them).
       objects: object names or indices to fit (default all); the others keep their values.
-      iterations: maximum number of iterations (evaluations of loss and gradient).
-      optimizer: "adam" (default) or "lbfgs".
+      iterations: maximum iterations (default 40 Levenberg-Marquardt iterations per start, 200
+        for Adam and L-BFGS, each an evaluation of loss and gradient).
+      optimizer: "lm" (default: global stage and Levenberg-Marquardt), "adam" or "lbfgs".
       lr: learning rate in log space (Adam default 0.05; L-BFGS: line search unless given).
       dt: time step (default: the target's).
       start: optional start values {name: value, (O,) array or {object: value}} overriding the scene's.
@@ -409,7 +480,12 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
         iterations, on Ctrl-C, and at the end.
       resume: continue from the checkpoint in ``checkpoint_path`` (it must be the same fit).
       identifiability: compute the identifiability report at the optimum.
-      check_dt: warn when dt exceeds the estimated stability limit at the start values.
+      check_dt: warn when dt exceeds the estimated stability limit at the start values (Adam
+        and L-BFGS; the default fit substeps such points instead).
+      bounds: the default fit's search box {name: (lo, hi)} in parameter units (every fitted
+        object); default start/4 to start*4.
+      samples, starts, seed: the default fit's global Sobol points (64), local starts (5) and
+        the Sobol scrambling seed.
 
     Returns:
       :class:`FitResult`.
@@ -424,8 +500,16 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
     again (see ``contact_capacity`` in the scene format).
     """
     t_start = time.perf_counter()
+    if optimizer not in OPTIMIZERS:
+        raise JaxplushError(f"unknown optimizer {optimizer!r}; expected one of {', '.join(OPTIMIZERS)}")
+    if iterations is None:
+        from fitting.lmfit import MAX_ITER
+        iterations = MAX_ITER if optimizer == "lm" else 200
     if int(iterations) < 1:
         raise JaxplushError(f"iterations must be >= 1, got {iterations}")
+    for name, val in (("samples", samples), ("starts", starts)):
+        if val is not None and (isinstance(val, bool) or int(val) != val or int(val) < (0 if name == "samples" else 1)):
+            raise JaxplushError(f"{name} must be an integer >= {0 if name == 'samples' else 1}, got {val!r}")
     if checkpoint_every is not None and int(checkpoint_every) < 1:
         raise JaxplushError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
     if resume and checkpoint_path is None:
@@ -437,6 +521,20 @@ def fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None,
     notes = [str(w.message) for w in caught]
     for msg in notes:
         warnings.warn(msg, stacklevel=2)
+    if optimizer == "lm":
+        box = _lm_box(prob, bounds)
+        from fitting import lmfit
+        settings = dict(optimizer=optimizer, lr=None, iterations=int(iterations), names=list(prob.names),
+                        objects=[prob.scene.object_names[o] for o in prob.objects], dt=prob.target.dt,
+                        noise_free=bool(noise_free), noise=-1.0 if prob.noise is None else float(prob.noise),
+                        method=method, frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind,
+                        box_lo=box.lo.ravel().tolist(), box_hi=box.hi.ravel().tolist(),
+                        samples=int(lmfit.GLOBAL_SAMPLES if samples is None else samples),
+                        starts=int(lmfit.STARTS if starts is None else starts), seed=int(seed))
+        return _fit_lm(prob, box, settings, notes, t_start, progress=progress, callback=callback,
+                       checkpoint_path=checkpoint_path, resume=resume, want_ident=identifiability)
+    if bounds is not None:
+        raise JaxplushError("bounds apply to the default fit (optimizer 'lm'), not to adam or lbfgs")
     opt = make_optimizer(optimizer, lr, iterations)
     settings = dict(optimizer=optimizer, lr=lr, iterations=int(iterations), names=list(prob.names),
                     objects=[prob.scene.object_names[o] for o in prob.objects], dt=prob.target.dt,
@@ -671,18 +769,199 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
     th = np.asarray(loop.h_theta, np.float64).reshape(-1, len(prob.names), len(prob.objects))
     for i, n in enumerate(prob.names):
         hist[n] = np.exp(th[:, i])
-    converged = loop.reason.startswith("converged")
+    out = _judge_loop(prob, loop)
+    if not out.converged:
+        warnings.warn(out.text, stacklevel=3)
+        notes.append(out.text)
     return FitResult(
         params=Params(**full), names=prob.names, objects=tuple(prob.scene.object_names[o] for o in prob.objects),
         values=vals, start=prob.start, loss=float(loop.best_loss if loop.h_loss else np.nan),
         loss_start=float(loop.h_loss[0]) if loop.h_loss else float("nan"), history=hist,
-        iterations=loop.iteration, rejected=loop.rejected, converged=converged, reason=loop.reason,
+        iterations=loop.iteration, rejected=loop.rejected, converged=out.converged,
+        reason=f"{out.text} (the optimiser stopped: {loop.reason})", outcome=out,
         identifiability=report, frames=frames, steps=np.asarray(prob.loss.frame_steps, np.int64),
         dt=prob.target.dt, optimizer=settings["optimizer"], lr=settings["lr"],
         normalisation=prob.loss.normalisation, scale2=prob.loss.scale2, noise=prob.noise,
         scene_text=prob.scene.text, scene_path=prob.scene.path, target_path=prob.target.path,
         wall_time=float(wall), warnings=tuple(notes), loop=loop, problem=prob,
         settings=settings)
+
+
+def _motion(prob):
+    """The target's RMS motion from the rest shape, m (the measure of the residual RMS)."""
+    kind, scale2 = prob.target.kind, prob.loss.scale2
+    if prob.loss.normalisation == "motion":
+        return _losses.rms_metres(1.0, scale2, kind)
+    rest = _losses.rest_distance(prob.target, prob.sim.topology.x0, prob.sim.topology.faces)
+    return float(np.sqrt(rest / _losses.COMPONENTS[kind]))
+
+
+def _judge_loop(prob, loop):
+    """The outcome of an Adam or L-BFGS loop: residual at the best point, exact gradients."""
+    from fitting import outcome as _outcome
+    if not loop.h_loss:
+        return _outcome.judge(rms=np.inf, noise=prob.noise, motion=_motion(prob), grad=np.inf, grad0=1.0,
+                              stopped="iterations")
+    best = int(np.argmin(loop.h_loss))
+    if loop.reason.startswith("reached the iteration limit"):
+        stopped = "iterations"
+    elif loop.reason.startswith("stopped by"):
+        stopped = "callback"
+    else:
+        stopped = "step"
+    return _outcome.judge(rms=_losses.rms_metres(loop.h_loss[best], prob.loss.scale2, prob.target.kind),
+                          noise=prob.noise, motion=_motion(prob), grad=loop.h_gnorm[best], grad0=loop.h_gnorm[0],
+                          stopped=stopped)
+
+
+def parse_bounds(bounds, names):
+    """Validated bounds {canonical name: (lo, hi)} from {name: (lo, hi)} or "name=lo:hi,..." text."""
+    if bounds is None:
+        return None
+    if isinstance(bounds, str):
+        items = {}
+        for part in (p.strip() for p in bounds.split(",")):
+            if not part:
+                continue
+            name, eq, rng = part.partition("=")
+            lo, colon, hi = rng.partition(":")
+            if not eq or not colon:
+                raise JaxplushError(f"bounds: expected NAME=LO:HI, got {part!r}")
+            try:
+                items[name.strip()] = (float(lo), float(hi))
+            except ValueError:
+                raise JaxplushError(f"bounds: {part!r}: LO and HI must be numbers") from None
+        bounds = items
+    out = {}
+    for key, val in bounds.items():
+        n = canonical_names([key])[0]
+        if n not in names:
+            raise JaxplushError(f"bounds given for {n}, which is not fitted (fitted: {', '.join(names)})")
+        try:
+            lo, hi = (float(v) for v in val)
+        except (TypeError, ValueError):
+            raise JaxplushError(f"bounds of {n} must be two numbers (lo, hi), got {val!r}") from None
+        if not (0 < lo < hi < math.inf):
+            raise JaxplushError(f"bounds of {n} must satisfy 0 < lo < hi, got {lo:g}:{hi:g}")
+        if n == "damping" and lo < 1:
+            raise JaxplushError(f"bounds of damping must be >= 1 (the per-step factor 1/D <= 1), got {lo:g}")
+        out[n] = (lo, hi)
+    return out
+
+
+def _lm_box(prob, bounds):
+    from fitting import lmfit
+    box = lmfit.default_box(prob, parse_bounds(bounds, prob.names))
+    th0 = np.asarray(prob.theta0, np.float64)
+    if not box.contains(th0):
+        i = np.argwhere((th0 < box.lo - 1e-12) | (th0 > box.hi + 1e-12))[0]
+        raise JaxplushError(f"the start value of {prob.labels[i[0] * len(prob.objects) + i[1]]} "
+                            f"({math.exp(th0[tuple(i)]):g}) lies outside its bounds "
+                            f"{math.exp(box.lo[tuple(i)]):g}:{math.exp(box.hi[tuple(i)]):g}")
+    return box
+
+
+def _fit_lm(prob, box, settings, notes, t_start, *, progress, callback, checkpoint_path, resume, want_ident):
+    """The default fit (fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome."""
+    from fitting import io as _io, lmfit
+    prior = _io.load_lm_checkpoint(checkpoint_path, prob, settings) if resume else None
+    last = [prior]
+
+    def save(run, status="running"):
+        last[0] = _io.light_copy(run)
+        if checkpoint_path is not None:
+            _io.save_lm_checkpoint(checkpoint_path, prob, last[0], settings, status)
+
+    user_cb = None
+    if callback is not None:
+        def user_cb(run):
+            b = min(run.states, key=lambda st: st.loss)
+            return callback(dict(iteration=run.rounds, loss=b.loss, values=prob.values(b.theta), grad_norm=np.nan))
+    try:
+        run, ev = lmfit.run(prob, box, samples=settings["samples"], starts=settings["starts"],
+                            max_iter=settings["iterations"], seed=settings["seed"], progress=progress,
+                            resume=prior, save=save, callback=user_cb)
+    except KeyboardInterrupt:
+        if last[0] is not None and checkpoint_path is not None:
+            _io.save_lm_checkpoint(checkpoint_path, prob, last[0], settings, "interrupted")
+        raise
+    try:
+        wall = time.perf_counter() - t_start + (prior.wall if prior is not None else 0.0)
+        result = _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall)
+    except KeyboardInterrupt:
+        if checkpoint_path is not None:
+            _io.save_lm_checkpoint(checkpoint_path, prob, _io.light_copy(run), settings, "interrupted")
+        raise
+    if checkpoint_path is not None:
+        _io.save_fit(result, checkpoint_path)
+    return result
+
+
+def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
+    """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability."""
+    from fitting import outcome as _outcome
+    notes = list(notes)
+    best = run.best
+    e = ev(best.theta[None], keep_frames=True)
+    frames = e.frames[0]
+    if e.clamped[0]:
+        msg = f"{diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} in the fitted rollout"
+        warnings.warn(msg, stacklevel=3)
+        notes.append(msg)
+    if int(e.substeps[0]) > 1:
+        msg = (f"the fitted values run stably only with {int(e.substeps[0])} substeps at dt = {prob.target.dt:g} s "
+               "(their explicit limit is below dt); simulate them with --substeps")
+        warnings.warn(msg, stacklevel=3)
+        notes.append(msg)
+    kind = prob.target.kind
+    scale2 = prob.loss.scale2
+    rms = _losses.rms_metres(best.loss, scale2, kind)
+    motion = _motion(prob)
+    labels = prob.labels
+    edge = box.at_bound(best.theta).ravel()
+    lo_edge = (best.theta <= box.lo + 1e-6).ravel()
+    at_bound = tuple(f"{labels[i]} at its {'lower' if lo_edge[i] else 'upper'} bound "
+                     f"{math.exp((box.lo if lo_edge[i] else box.hi).ravel()[i]):.4g}" for i in np.nonzero(edge)[0])
+    out = _outcome.judge(rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
+                         stopped=best.stopped, at_bound=at_bound)
+    if not out.converged:
+        warnings.warn(out.text, stacklevel=3)
+        notes.append(out.text)
+    report = None
+    if want_ident:
+        factor = math.sqrt(prob.target.n_frames * prob.target.data.shape[1] * scale2)
+        report = _ident.analyse(run.jac * factor, np.nan_to_num(run.residual) * factor, labels, noise=prob.noise)
+        if out.converged:
+            for w in report.warnings:
+                warnings.warn(w, stacklevel=3)
+    vals = prob.values(best.theta)
+    full = {n: np.array(getattr(prob.base, n), np.float64) for n in PARAM_NAMES}
+    for n in prob.names:
+        full[n][list(prob.objects)] = vals[n]
+    path = best.history
+    th = np.asarray([t for _, t in path], np.float64).reshape(-1, len(prob.names), len(prob.objects))
+    hist = dict(iteration=np.arange(len(path), dtype=np.int64), loss=np.asarray([l for l, _ in path], np.float64),
+                grad_norm=np.full(len(path), np.nan), time=np.full(len(path), np.nan),
+                rejected=np.zeros(0, np.int64))
+    for i, n in enumerate(prob.names):
+        hist[n] = np.exp(th[:, i])
+    g = run.global_result
+    paths = [(stage, hist, reason) for stage, stage_paths in enumerate(run.paths) for hist, reason in stage_paths]
+    search = dict(global_thetas=g.thetas, global_loss=g.loss, global_ok=g.ok, global_substeps=g.substeps,
+                  local_paths=[np.asarray([t for _, t in h]) for _, h, _ in paths],
+                  local_losses=[np.asarray([l for l, _ in h]) for _, h, _ in paths],
+                  local_reasons=[r for _, _, r in paths], local_stages=[s for s, _, _ in paths],
+                  horizons=run.horizons, box_lo=box.lo, box_hi=box.hi, grad=run.grad, grad0=run.grad0)
+    loss_start = float(run.loss0)
+    return FitResult(
+        params=Params(**full), names=prob.names, objects=tuple(prob.scene.object_names[o] for o in prob.objects),
+        values=vals, start=prob.start, loss=float(best.loss), loss_start=loss_start, history=hist,
+        iterations=int(run.evaluations), rejected=int((~g.ok).sum()), converged=out.converged, reason=out.text,
+        identifiability=report, frames=frames, steps=np.asarray(prob.loss.frame_steps, np.int64),
+        dt=prob.target.dt, optimizer="lm", lr=None, normalisation=prob.loss.normalisation, scale2=scale2,
+        noise=prob.noise, scene_text=prob.scene.text, scene_path=prob.scene.path, target_path=prob.target.path,
+        wall_time=float(wall), warnings=tuple(notes), loop=run, problem=prob,
+        settings=settings, outcome=out, search=search)
 
 
 def identifiability_at(prob, theta):

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import model
+from jaxplush import integrators, model
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
 
 METHODS = ("auto", "plain", "checkpoint", "adjoint")
@@ -371,10 +371,7 @@ def _make_step_vjp(sim):
     return f
 
 
-def _damping_factor(damping):
-    """f = 1/D for D > 0, else 0 (as jaxplush.step)."""
-    safe = jnp.where(damping > 0, damping, 1.0)
-    return jnp.where(damping > 0, 1.0 / safe, 0.0)
+_damping_factor = integrators.damping_factor
 
 
 class _Plan(NamedTuple):

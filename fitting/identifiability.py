@@ -124,12 +124,16 @@ class IdentifiabilityReport:
     weakest: str
     warnings: list
 
-    def summary(self):
-        """Several lines of text: standard errors, condition number, warnings."""
+    def summary(self, standard_errors=True):
+        """Several lines of text: standard errors (or "n/a" when ``standard_errors`` is False: for a
+        fit that did not reach the data they mean nothing), condition number, warnings."""
         lines = [f"identifiability (Gauss-Newton J^T J in log-parameters, {self.n_data} residuals, "
                  f"residual RMS {self.sigma:.3g} m): condition number {self.condition:.3g}"]
         for lab, s, e, d in zip(self.labels, self.sensitivity, self.stderr, self.determined):
-            err = f"+-{100 * e:.3g}%" if np.isfinite(e) else "undetermined"
+            if not standard_errors:
+                err = "n/a (not converged)"
+            else:
+                err = f"+-{100 * e:.3g}%" if np.isfinite(e) else "undetermined"
             lines.append(f"  {lab:<28} sensitivity {s:.3g} m per e-fold   std. error {err}"
                          + ("" if d else "   NOT DETERMINED"))
         if self.weakest:

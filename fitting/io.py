@@ -24,6 +24,7 @@ Layout:
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -44,6 +45,8 @@ _RESUME_KEYS = ("optimizer", "lr", "names", "objects", "dt", "noise_free", "nois
                 "patience")
 #: ... and for Adam, whose cosine learning-rate schedule spans the iterations, also these.
 _RESUME_KEYS_ADAM = ("iterations",)
+#: ... and for the default fit, its search box and global design.
+_RESUME_KEYS_LM = ("box_lo", "box_hi", "samples", "starts", "seed")
 _RESUME_HINTS = {"iterations": "; Adam's learning-rate schedule spans all the iterations",
                  "dtype": "; give --x64 as the checkpointed fit did, or leave it out likewise"}
 
@@ -149,7 +152,8 @@ def save_checkpoint(path, prob, loop, settings, status="running"):
 
 
 def save_fit(result, path):
-    """Write a :class:`fitting.fitter.FitResult` as FIT.h5 (status "done"), atomically."""
+    """Write a :class:`fitting.fitter.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
+    fit's outcome (fitting.outcome: "converged", "poor_fit", "stalled", ...)."""
     loop = result.loop
     prob = result.problem
     with atomic_path(path, ".h5") as tmp:
@@ -188,9 +192,174 @@ def save_fit(result, path):
             fg.create_dataset("positions", data=np.asarray(result.frames), compression="gzip", compression_opts=1)
             fg.create_dataset("steps", data=np.asarray(result.steps, np.int64))
             fg.create_dataset("times", data=np.asarray(result.steps, np.float64) * result.dt)
+            if result.outcome is not None:
+                for k, v in result.outcome.as_dict().items():
+                    if k not in ("status", "message"):
+                        a[f"outcome_{k}"] = json.dumps(list(v)) if isinstance(v, tuple) else v
+            a["status"] = result.status
+            if result.search:
+                sg = f.create_group("search")
+                srch = result.search
+                n_p = len(prob.names)
+                for i, n in enumerate(prob.names):
+                    sg.create_dataset(f"global/{n}", data=np.exp(np.asarray(srch["global_thetas"])[:, i]))
+                sg.create_dataset("global/loss", data=np.asarray(srch["global_loss"], np.float64))
+                sg.create_dataset("global/ok", data=np.asarray(srch["global_ok"], bool))
+                sg.create_dataset("global/substeps", data=np.asarray(srch["global_substeps"], np.int64))
+                for j, (path_j, loss_j) in enumerate(zip(srch["local_paths"], srch["local_losses"])):
+                    lg = sg.create_group(f"local/{j:03d}")
+                    lg.create_dataset("loss", data=np.asarray(loss_j, np.float64))
+                    for i, n in enumerate(prob.names):
+                        lg.create_dataset(n, data=np.exp(np.asarray(path_j).reshape(len(loss_j), n_p, -1)[:, i]))
+                    lg.attrs["reason"] = srch["local_reasons"][j]
+                    lg.attrs["stage"] = int(srch["local_stages"][j])
+                sg.attrs["horizons"] = np.asarray(srch["horizons"], np.int64)
+                for i, n in enumerate(prob.names):
+                    sg.attrs[f"bounds_{n}"] = np.exp(np.stack([np.asarray(srch["box_lo"])[i],
+                                                               np.asarray(srch["box_hi"])[i]]))
+                sg.attrs["grad"] = np.asarray(srch["grad"], np.float64)
+                sg.attrs["grad_start"] = np.asarray(srch["grad0"], np.float64)
             if loop is not None:
-                _write_loop(f, prob, loop, result.settings)
+                if result.optimizer == "lm":
+                    _write_lm(f, prob, light_copy(loop), result.settings)
+                    f["checkpoint"].attrs["done"] = True
+                else:
+                    _write_loop(f, prob, loop, result.settings)
     return os.fspath(path)
+
+
+# --------------------------------------------------------------------------- the default fit (lm)
+
+def light_copy(run):
+    """A copy of a :class:`fitting.lmfit.LMRun` without the residuals and Jacobians (which a
+    resumed fit recomputes, identically): what a checkpoint holds."""
+    import copy
+    states = [dataclasses.replace(st, history=list(st.history), residual=None, jac=None) for st in run.states]
+    run = dataclasses.replace(run, paths=[list(p) for p in run.paths])
+    out = dataclasses.replace(run, states=states, best=None, jac=None, residual=None)
+    out.global_result = copy.copy(run.global_result)
+    return out
+
+
+def _write_lm(f, prob, run, settings):
+    g = f.create_group("checkpoint")
+    g.attrs["kind"] = "lm"
+    g.attrs["settings"] = json.dumps(_settings(prob, settings))
+    g.attrs["phase"] = run.phase if run.phase in ("global", "local") else "final"
+    g.attrs["stage"] = int(run.stage)
+    g.attrs["horizons"] = np.asarray(run.horizons, np.int64)
+    g.attrs["rounds"] = int(run.rounds)
+    pg = g.create_group("paths")
+    k = 0
+    for stage, stage_paths in enumerate(run.paths):
+        for hist, reason in stage_paths:
+            one = pg.create_group(f"{k:04d}")
+            one.attrs["stage"] = stage
+            one.attrs["reason"] = reason
+            one.create_dataset("loss", data=np.asarray([l for l, _ in hist], np.float64))
+            one.create_dataset("theta", data=np.asarray([t for _, t in hist], np.float64).reshape(
+                (len(hist),) + np.shape(prob.theta0)))
+            k += 1
+    g.attrs["wall"] = float(run.wall)
+    g.attrs["evaluations"] = int(run.evaluations)
+    gr = run.global_result
+    if gr is not None:
+        gg = g.create_group("global")
+        for k in ("thetas", "loss", "ok", "substeps"):
+            gg.create_dataset(k, data=np.asarray(getattr(gr, k)))
+    for i, st in enumerate(run.states):
+        sg = g.create_group(f"state_{i:03d}")
+        sg.create_dataset("theta", data=np.asarray(st.theta, np.float64))
+        for k in ("loss", "mu", "radius", "jac_h"):
+            sg.attrs[k] = float(getattr(st, k))
+        for k in ("iteration", "substeps", "evaluations"):
+            sg.attrs[k] = int(getattr(st, k))
+        sg.attrs["done"] = bool(st.done)
+        sg.attrs["reason"] = st.reason
+        sg.attrs["stopped"] = st.stopped
+        sg.create_dataset("history_loss", data=np.asarray([l for l, _ in st.history], np.float64))
+        sg.create_dataset("history_theta", data=np.asarray([t for _, t in st.history], np.float64).reshape(
+            (len(st.history),) + np.shape(st.theta)))
+    g.attrs["n_states"] = len(run.states)
+
+
+def save_lm_checkpoint(path, prob, run, settings, status="running"):
+    """Write a default fit's state (:class:`fitting.lmfit.LMRun`) to ``path`` atomically."""
+    with atomic_path(path, ".h5") as tmp:
+        with h5py.File(tmp, "w") as f:
+            _common_attrs(f, prob, settings, status)
+            states = run.states
+            if states:
+                best = min(states, key=lambda st: st.loss)
+                f.attrs["loss"] = float(best.loss)
+                _write_values(f.create_group("params"), prob, prob.values(best.theta))
+            f.attrs["iterations"] = int(run.evaluations)
+            _write_values(f.create_group("start"), prob, prob.start)
+            _write_lm(f, prob, run, settings)
+    return os.fspath(path)
+
+
+def load_lm_checkpoint(path, prob, settings):
+    """The :class:`fitting.lmfit.LMRun` saved in ``path``, checked to belong to this fit."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise JaxplushError(f"{path}: no checkpoint to resume (the file does not exist); run without --resume")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise TrajectoryError(path, "not an HDF5 file: cannot resume from it") from None
+    try:
+        with f:
+            return _read_lm(path, f, prob, settings)
+    except (KeyError, ValueError, TypeError, OSError) as e:
+        raise TrajectoryError(path, f"cannot read the checkpoint ({e}); run without --resume to start over") from None
+
+
+def _read_lm(path, f, prob, settings):
+    from fitting.lmfit import LMRun
+    from fitting.search import GlobalResult, LMState
+    if "checkpoint" not in f:
+        raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
+    g = f["checkpoint"]
+    if g.attrs.get("kind", "loop") != "lm":
+        raise JaxplushError(f"{path}: the checkpoint is of a different fit (optimizer: checkpoint "
+                            f"{json.loads(g.attrs['settings']).get('optimizer')!r}, now 'lm'); run without "
+                            "--resume to start over")
+    _check_settings(path, g, prob, settings)
+    run = LMRun(phase=str(g.attrs["phase"]), stage=int(g.attrs["stage"]),
+                horizons=tuple(int(h) for h in g.attrs["horizons"]), rounds=int(g.attrs["rounds"]),
+                wall=float(g.attrs["wall"]), evaluations=int(g.attrs["evaluations"]))
+    paths = {}
+    for key in sorted(g["paths"].keys()):
+        one = g["paths"][key]
+        hist = [(float(a), np.asarray(b)) for a, b in zip(one["loss"][()], one["theta"][()])]
+        paths.setdefault(int(one.attrs["stage"]), []).append((hist, str(one.attrs["reason"])))
+    run.paths = [paths[k] for k in sorted(paths)]
+    if "global" in g:
+        gg = g["global"]
+        run.global_result = GlobalResult(*(np.asarray(gg[k][()]) for k in ("thetas", "loss", "ok", "substeps")))
+    for i in range(int(g.attrs["n_states"])):
+        sg = g[f"state_{i:03d}"]
+        hl, ht = sg["history_loss"][()], sg["history_theta"][()]
+        run.states.append(LMState(
+            theta=np.asarray(sg["theta"][()]), loss=float(sg.attrs["loss"]), mu=float(sg.attrs["mu"]),
+            radius=float(sg.attrs["radius"]), iteration=int(sg.attrs["iteration"]), done=bool(sg.attrs["done"]),
+            reason=str(sg.attrs["reason"]), stopped=str(sg.attrs["stopped"]),
+            history=[(float(a), np.asarray(b)) for a, b in zip(hl, ht)], jac_h=float(sg.attrs["jac_h"]),
+            substeps=int(sg.attrs["substeps"]), evaluations=int(sg.attrs["evaluations"])))
+    return run
+
+
+def _check_settings(path, g, prob, settings):
+    saved = json.loads(g.attrs["settings"])
+    mine = _settings(prob, settings)
+    keys = _RESUME_KEYS + (_RESUME_KEYS_ADAM if mine.get("optimizer") == "adam" else ()) + (
+        _RESUME_KEYS_LM if mine.get("optimizer") == "lm" else ())
+    for k in keys:
+        if _norm(saved.get(k)) != _norm(mine.get(k)):
+            raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "
+                                f"{saved.get(k)!r}, now {mine.get(k)!r}{_RESUME_HINTS.get(k, '')}); "
+                                "run without --resume to start over")
 
 
 def load_checkpoint(path, prob, opt, settings):
@@ -214,14 +383,10 @@ def _read_checkpoint(path, f, prob, opt, settings):
     if "checkpoint" not in f:
         raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
     g = f["checkpoint"]
-    saved = json.loads(g.attrs["settings"])
-    mine = _settings(prob, settings)
-    keys = _RESUME_KEYS + (_RESUME_KEYS_ADAM if mine.get("optimizer") == "adam" else ())
-    for k in keys:
-        if _norm(saved.get(k)) != _norm(mine.get(k)):
-            raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "
-                                f"{saved.get(k)!r}, now {mine.get(k)!r}{_RESUME_HINTS.get(k, '')}); "
-                                "run without --resume to start over")
+    if g.attrs.get("kind", "loop") == "lm":
+        raise JaxplushError(f"{path}: the checkpoint is of a different fit (optimizer: checkpoint 'lm', now "
+                            f"{settings.get('optimizer')!r}); run without --resume to start over")
+    _check_settings(path, g, prob, settings)
     template = opt.init(jnp.asarray(np.asarray(g["theta"])))
     leaves, treedef = jax.tree_util.tree_flatten(template)
     og = g["opt_state"]
@@ -306,7 +471,9 @@ def fitted_scene_text(result):
     settings = dict(floor_friction=scene.floor_friction or None, floor_restitution=scene.floor_restitution or None,
                     contact=False if not scene.contact else None, self_collision=True if scene.self_collision else None,
                     contact_stiffness=scene.contact_stiffness, contact_thickness=scene.contact_thickness,
-                    contact_friction=scene.contact_friction or None, contact_capacity=scene.contact_capacity)
+                    contact_friction=scene.contact_friction or None, contact_capacity=scene.contact_capacity,
+                    floor_model=scene.floor_model if scene.floor_model != "projection" else None,
+                    floor_stiffness=scene.floor_stiffness)
     cfg = getattr(result.problem.sim.terms, "contact", None)
     grown = any(w.startswith("contact candidates overflowed") for w in result.warnings)
     if cfg is not None and (scene.contact_capacity is not None or grown):

@@ -1,20 +1,25 @@
-"""Per-frame losses between simulated positions and a target (pure jax; no IO).
+"""Per-frame losses and residuals between simulated positions and a target (pure jax; no IO).
 
 * :func:`squared_distance`: mean squared vertex distance, for ``positions`` targets (the
   vertices correspond one to one).
-* :func:`chamfer`: symmetric Chamfer distance, for ``points`` targets (a scan: M points with no
-  correspondence to the V vertices).
+* :func:`point_surface_distance2`: squared distance of every target point to the simulated
+  surface, for ``points`` targets (a scan: M points with no correspondence to the V vertices).
+* :func:`chamfer`: the symmetric vertex-to-point Chamfer distance (used by sweeps).
 
 :func:`make_loss` builds the frame loss that :func:`fitting.gradients.rollout_loss` sums over
-the target frames, with a noise-aware normalisation: the summed loss is
+the target frames, and :func:`make_residual` the same loss as a vector of residuals r with
+sum(r²) = L (for Gauss-Newton and Levenberg-Marquardt). The loss is noise-aware:
 
     L = (1 / T) sum_j d_j / s²,
 
-d_j the frame's squared distance (m²). With a known measurement noise sigma per coordinate,
-s² = 3 sigma² (so L ~ 1 when the model fits to the noise level, and L - 1 reads as the misfit
-in units of the noise); otherwise (noise-free or unknown) s² is the mean of d_j between the
-scene's rest shape and the target, so L is the squared error relative to how far the target
-moves (L = 1 for "no better than standing still").
+d_j the frame's mean squared distance (m²): per vertex |x_i - y_i|² for positions, per point its
+squared distance to the surface for points. With a known measurement noise sigma per
+coordinate, s² = 3 sigma² for positions and sigma² for points (a point's distance to the true
+surface is its noise's normal component), so L ~ 1 when the model fits to the noise level;
+otherwise (noise-free or unknown) s² is the same mean between the scene's rest shape and the
+target, so L is the squared error relative to how far the target moves (L = 1 for "no better
+than standing still"). :func:`rms_metres` turns a loss back into the RMS residual per
+coordinate (positions) or per point distance (points), in metres, to compare with the noise.
 
 Frames whose objects are inverted (a gas object's volume <= 0, a blown-up rollout) get a NaN
 loss, so the optimiser sees the failure instead of a finite but meaningless number.
@@ -58,6 +63,47 @@ def chamfer(x, p):
     return jnp.mean(jnp.min(d2, axis=1)) + jnp.mean(jnp.min(d2, axis=0))
 
 
+def vertex_faces(faces, n_vertices):
+    """(V, W) int32 faces around each vertex, padded by repeating the vertex's first face."""
+    faces = np.asarray(faces, np.int64)
+    around = [[] for _ in range(n_vertices)]
+    for fi, f in enumerate(faces):
+        for v in f:
+            around[v].append(fi)
+    w = max(len(a) for a in around)
+    return np.array([a + [a[0]] * (w - len(a)) for a in around], np.int32)
+
+
+def point_surface_distance2(x, p, faces, vfaces):
+    """(M,) squared distance of every target point to the simulated surface (m²).
+
+    The distance of p_k is to the closest of the faces around p_k's nearest vertex (exact for a
+    point closer to the surface than about half an edge, which measured surface points are). At
+    the true shape a noisy surface sample lies at its noise's normal component from the
+    surface, so, unlike the distance to the nearest vertex (which cannot fall below the mesh's
+    sampling spacing), this residual reaches the noise level.
+
+    Args:
+      x: (V, 3) simulated vertex positions; p: (M, 3) target points.
+      faces: (F, 3) int faces; vfaces: (V, W) faces around each vertex (:func:`vertex_faces`).
+    """
+    from jaxplush.contact import closest_point_distance2
+    d2v = sum((x[:, None, c] - p[None, :, c]) ** 2 for c in range(3))   # (V, M), elementwise (a K=3 dot is slower)
+    near = jnp.argmin(d2v, axis=0)                                      # (M,) nearest vertex
+    tri = jnp.asarray(faces)[jnp.asarray(vfaces)[near]]                 # (M, W, 3)
+    corner = [x[tri[..., i]] for i in range(3)]                         # 3 x (M, W, 3)
+    split = lambda a: tuple(a[..., c] for c in range(3))  # noqa: E731
+    d2 = closest_point_distance2(split(p[:, None, :]), *(split(c) for c in corner))
+    return jnp.min(d2, axis=1)
+
+
+def point_surface(faces, n_vertices):
+    """``(x (V, 3), p (M, 3)) -> mean squared point-to-surface distance`` (m²) for a mesh's faces."""
+    vf = vertex_faces(faces, n_vertices)
+    faces = np.asarray(faces, np.int32)
+    return lambda x, p: jnp.mean(point_surface_distance2(x, p, faces, vf))
+
+
 def frame_distance(kind):
     """The per-frame distance for a target kind: "positions" or "points"."""
     if kind == "positions":
@@ -87,23 +133,42 @@ class Loss(NamedTuple):
     kind: str
 
 
-def rest_distance(target, x_rest):
+def _frame_mean_sq(kind, faces=None, n_vertices=None):
+    """``(x (V, 3), y) -> d_j``: the frame's mean squared distance (m²) for a target kind."""
+    if kind == "positions":
+        return squared_distance
+    if kind == "points":
+        return point_surface(faces, n_vertices)
+    raise ValueError(f"unknown target kind {kind!r}; expected 'positions' or 'points'")
+
+
+#: Residual components per residual: positions give (x, y, z) per vertex, points one distance.
+COMPONENTS = {"positions": 3, "points": 1}
+
+
+def rest_distance(target, x_rest, faces=None):
     """Mean over the target's frames of the frame distance (m²) between the rest shape and the
-    target (numpy, float64; nothing is compiled)."""
-    x = np.asarray(x_rest, np.float64)
-    out = []
-    for y in np.asarray(target.data, np.float64):
-        if target.kind == "positions":
-            out.append(np.mean(np.sum((x - y) ** 2, axis=1)))
-        else:
-            a = np.full(len(x), np.inf)
-            b = np.full(len(y), np.inf)
-            for i in range(0, len(x), 256):
-                d2 = np.sum((x[i:i + 256, None, :] - y[None, :, :]) ** 2, axis=2)
-                a[i:i + 256] = d2.min(axis=1)
-                b = np.minimum(b, d2.min(axis=0))
-            out.append(a.mean() + b.mean())
-    return float(np.mean(out))
+    target (float64)."""
+    with jax.enable_x64(True):
+        f = jax.jit(jax.vmap(_frame_mean_sq(target.kind, faces, len(x_rest)), in_axes=(None, 0)))
+        return float(jnp.mean(f(jnp.asarray(x_rest, jnp.float64), jnp.asarray(target.data, jnp.float64))))
+
+
+def loss_scale(target, topology, noise=None, noise_free=False):
+    """(s², "noise" or "motion", sigma or None): the normaliser of the loss (module docstring)."""
+    sigma = None if noise_free else (target.noise if noise is None else float(noise))
+    if sigma is not None and sigma > 0:
+        return COMPONENTS[target.kind] * sigma * sigma, "noise", sigma
+    scale2 = rest_distance(target, topology.x0, topology.faces)
+    if not scale2 > 0:  # the target is the rest shape itself: any positive scale will do
+        scale2 = float(np.mean(np.var(topology.x0, axis=0)))
+    return scale2, "motion", None
+
+
+def rms_metres(loss, scale2, kind):
+    """RMS residual in metres of a (normalised) loss: per coordinate for positions, per point
+    distance for points (each comparable with the noise sigma)."""
+    return float(np.sqrt(max(loss, 0.0) * scale2 / COMPONENTS[kind]))
 
 
 def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_volume=True):
@@ -121,17 +186,9 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     Returns:
       :class:`Loss`.
     """
-    sigma = None if noise_free else (target.noise if noise is None else float(noise))
+    scale2, how, _ = loss_scale(target, topology, noise, noise_free)
     n = target.n_frames
-    if sigma is not None and sigma > 0:
-        scale2 = 3.0 * sigma * sigma
-        how = "noise"
-    else:
-        scale2 = rest_distance(target, topology.x0)
-        if not scale2 > 0:  # the target is the rest shape itself: any positive scale will do
-            scale2 = float(np.mean(np.var(topology.x0, axis=0)))
-        how = "motion"
-    dist = frame_distance(target.kind)
+    dist = _frame_mean_sq(target.kind, topology.faces, topology.n_vertices)
     inv = 1.0 / (n * scale2)
     volumes = None
     if check_volume:
@@ -146,3 +203,42 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
 
     aux = jnp.asarray(target.data, dtype)
     return Loss(loss_fn, aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind)
+
+
+class Residual(NamedTuple):
+    """The loss of :func:`make_loss` as a residual vector (for least-squares methods).
+
+    Attributes:
+      fn: ``frames (T, V, 3) -> (n,)`` normalised residuals with sum(r²) = the loss (jax).
+      n: number of residuals; kind, scale2, normalisation: as in :class:`Loss`.
+      per_frame: residuals per frame (3 V for positions, M for points).
+    """
+
+    fn: Callable
+    n: int
+    kind: str
+    scale2: float
+    normalisation: str
+    per_frame: int
+
+
+def make_residual(target, topology, loss):
+    """The :class:`Residual` of a :class:`Loss` built by :func:`make_loss` for the same target."""
+    data = np.asarray(target.data, np.float64)
+    t, m = data.shape[:2]
+    norm = 1.0 / np.sqrt(t * m * loss.scale2)
+    if target.kind == "positions":
+        def fn(frames):
+            y = jnp.asarray(data, frames.dtype)
+            return ((frames - y) * jnp.asarray(norm, frames.dtype)).reshape(-1)
+        per_frame = 3 * m
+    else:
+        faces = np.asarray(topology.faces, np.int32)
+        vf = vertex_faces(faces, topology.n_vertices)
+
+        def fn(frames):
+            y = jnp.asarray(data, frames.dtype)
+            d2 = jax.lax.map(lambda xy: point_surface_distance2(xy[0], xy[1], faces, vf), (frames, y))
+            return (jnp.sqrt(d2) * jnp.asarray(norm, frames.dtype)).reshape(-1)
+        per_frame = m
+    return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame)

@@ -50,14 +50,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import constraints, diagnostics, model
+from jaxplush import constraints, diagnostics, integrators, model
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
 
 #: Terms fields this module implements. Any other field of :class:`jaxplush.model.Terms` that is
 #: switched on raises ``NotImplementedError`` (a term added to the single-scene step later must
 #: not be silently dropped here).
 SUPPORTED_TERMS = frozenset({"spring", "dashpot", "drag", "gas", "gravity", "floor", "fixed",
-                             "verlet_damping", "floor_friction", "floor_restitution"})
+                             "verlet_damping", "floor_friction", "floor_restitution", "floor_smooth"})
 
 #: Points per compiled rollout call of a larger batch (:func:`default_chunk`).
 MAX_CHUNK = 16
@@ -241,7 +241,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
         a, _ = accel(params, x, u)
         if terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
-                keep = 1.0 - _per_vertex(topo, _damping_factor(params.damping))
+                keep = _per_vertex(topo, integrators.damping_keep(params.damping, substeps))
                 u_new = tuple(keep * uc + ac * h for uc, ac in zip(u, a))
         else:
             u_new = tuple(uc + ac * h for uc, ac in zip(u, a))
@@ -343,12 +343,6 @@ def _folded(fn, *arrays):
     return fn(*(a.reshape(v // r, r * b) for a in arrays)).reshape(v, b)
 
 
-def _damping_factor(damping):
-    """f = 1/D for D > 0, else 0, with a finite gradient everywhere (as the single-scene step)."""
-    safe = jnp.where(damping > 0, damping, 1.0)
-    return jnp.where(damping > 0, 1.0 / safe, 0.0)
-
-
 def _per_vertex(topo, values):
     """(O, B) per-object values -> (V, B), or (1, B) for a single object (broadcasts)."""
     if topo.n_objects == 1:
@@ -378,13 +372,13 @@ def _make_force_fn(topo, terms, temperature):
     rt = GAS_CONSTANT * temperature
 
     def neighbours(a):
-        """K x 3 x (V, B): component c of a at every vertex's k-th ring neighbour. One row
-        gather over the flattened (K V,) table from the three components side by side (rows of
-        3 B contiguous floats): one XLA op instead of 3 K (each op costs ~1 us of dispatch in
+        """K x C x (V, B): component c of a (C (V, B) arrays) at every vertex's k-th ring neighbour.
+        One row gather over the flattened (K V,) table from the components side by side (rows of
+        C B contiguous floats): one XLA op instead of C K (each op costs ~1 us of dispatch in
         XLA:CPU's while loop, as much as a gather's own work at small B)."""
-        b = a[0].shape[1]
-        g = jnp.concatenate(a, axis=1).at[flat].get(mode="promise_in_bounds").reshape(n_ring, -1, 3 * b)
-        return [[g[k, :, c * b:(c + 1) * b] for c in range(3)] for k in range(n_ring)]
+        b, n_c = a[0].shape[1], len(a)
+        g = jnp.concatenate(a, axis=1).at[flat].get(mode="promise_in_bounds").reshape(n_ring, -1, n_c * b)
+        return [[g[k, :, c * b:(c + 1) * b] for c in range(n_c)] for k in range(n_ring)]
 
     def force_fn(params, x, v):
         dtype = x[0].dtype
@@ -411,6 +405,12 @@ def _make_force_fn(topo, terms, temperature):
             with jax.named_scope("drag"):
                 dm = _per_vertex(topo, params.drag) * _vertex_mass(topo, params)
                 f = [fc - dm * vc for fc, vc in zip(f, v)]
+        if terms.floor_smooth:
+            with jax.named_scope("floor_smooth"):
+                cfg = terms.floor_smooth
+                k_f = _per_vertex(topo, model.smooth_floor_stiffness(cfg, params.k_structural))
+                beta = _per_vertex(topo, jnp.asarray(cfg.beta, dtype)[:, None])
+                f[1] = f[1] + model.smooth_floor_push(x[1], jnp.asarray(cfg.height, dtype), k_f, beta)
         volume = None
         if terms.gas:
             with jax.named_scope("gas"):

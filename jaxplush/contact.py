@@ -286,6 +286,12 @@ def _closest(p, a, b, c, tiny):
     return _Closest(d2, inside, plane, best[1], best[2], v, w, n, best[3])
 
 
+def closest_point_distance2(p, a, b, c):
+    """Squared distance of points p to triangles (a, b, c), each a tuple of (x, y, z) arrays that
+    broadcast against each other (the interior projection, else the nearest edge point)."""
+    return _closest(p, a, b, c, jnp.finfo(p[0].dtype).tiny).d2
+
+
 def _angle(y, x):
     """atan2(y, x) for y >= 0 (an angle in [0, pi]) by a minimax polynomial of atan on [0, 1]
     (error about 2e-6 rad in float32): plain arithmetic that XLA:CPU vectorises, where its atan2 runs

@@ -41,7 +41,8 @@ def object_status(topo, terms, x):
 
 
 def energies(sim, params, state):
-    """Energies (J) of a state: dict of kinetic, spring, gas, gravity and total (floats).
+    """Energies (J) of a state: dict of kinetic, spring, gas, gravity, floor (the smooth floor's
+    penalty) and total (floats).
 
     The velocity at the state's time comes from ``sim.velocity_fn`` (for Verlet's half-step
     velocity u_n it is estimated to second order as v_n = u_n + a_n dt / 2).
@@ -55,8 +56,11 @@ def energies(sim, params, state):
     spring = jnp.sum(0.5 * params.k_structural[topo.edge_object] * (l - topo.rest_length) ** 2)
     gas = jnp.sum(model.gas_energy(topo, params, x, sim.scene.temperature)) if sim.terms.gas else 0.0
     grav = -jnp.sum(model.vertex_mass(topo, params) * (x @ jnp.asarray(sim.scene.gravity, x.dtype)))
-    out = dict(kinetic=kin, spring=spring, gas=gas, gravity=grav)
-    out["total"] = kin + spring + gas + grav
+    floor = 0.0
+    if getattr(sim.terms, "floor_smooth", None):
+        floor = model.smooth_floor_energy(topo, sim.terms.floor_smooth, params, x[:, 1])
+    out = dict(kinetic=kin, spring=spring, gas=gas, gravity=grav, floor=floor)
+    out["total"] = kin + spring + gas + grav + floor
     return {k: float(v) for k, v in out.items()}
 
 

@@ -29,9 +29,10 @@ implicit_euler     1      State(x, v)          any h (linearised, one        add
 =================  =====  ===================  ============================  ===================
 
 The report's per-step Verlet damping D (``Params.damping``) multiplies Verlet's velocity by
-1 - 1/D every step. The other schemes apply it as the equivalent drag rate
-gamma_D = -ln(1 - 1/D) / h (physics.md §5), which decays a velocity by the same factor per
-step: like Verlet's, its physical strength depends on h. Pinned vertices get zero acceleration
+1 - 1/D every time step dt (with substeps, by (1 - 1/D)^(1/substeps) every substep, so D keeps
+its meaning per dt). The other schemes apply it as the equivalent drag rate
+gamma_D = -ln(1 - 1/D) / dt (physics.md §5), which decays a velocity by the same factor per
+time step: like Verlet's, its physical strength depends on dt (not on the substeps). Pinned vertices get zero acceleration
 inside the non-Verlet schemes (so RK4's stages see them fixed) and are reset by ``constrain``.
 """
 
@@ -84,6 +85,7 @@ class System:
       constrain: ``(x_old, x_new, v_new) -> (x, v)``, the floor/pin hook for steps of length ``h``.
       h: (sub)step length, s.
       temperature: gas temperature, K.
+      substeps: (sub)steps per time step dt = h * substeps; the report's damping D is per dt.
     """
 
     topo: model.Topology
@@ -93,6 +95,12 @@ class System:
     constrain: Callable
     h: float
     temperature: float
+    substeps: int = 1
+
+    @property
+    def dt(self):
+        """The time step dt = h * substeps, s (the report's damping D acts per dt)."""
+        return self.h * self.substeps
 
     def accel(self, params, x, v):
         """(a (3, V), volume): internal force / mass + gravity; exactly Verlet's computation."""
@@ -109,7 +117,7 @@ class System:
         a, _ = self.accel(params, x, v)
         if self.terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
-                a = a - model.per_vertex(self.topo, damping_rate(params.damping, self.h)) * v
+                a = a - model.per_vertex(self.topo, damping_rate(params.damping, self.dt)) * v
         if self.terms.fixed:
             a = a.at[:, self.topo.fixed].set(0.0)
         return a
@@ -126,11 +134,21 @@ def damping_factor(damping):
     return jnp.where(damping > 0, 1.0 / safe, 0.0)
 
 
-def damping_rate(damping, h):
-    """gamma_D = -ln(1 - 1/D) / h (1/s): the drag rate that decays a velocity by Verlet's
-    per-step factor 1 - 1/D (physics.md §5); 0 for D = 0."""
+def damping_rate(damping, dt):
+    """gamma_D = -ln(1 - 1/D) / dt (1/s): the drag rate that decays a velocity by Verlet's
+    per-step factor 1 - 1/D over one time step dt (physics.md §5); 0 for D = 0."""
     f = damping_factor(damping)
-    return -jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / h
+    return -jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / dt
+
+
+def damping_keep(damping, substeps=1):
+    """Verlet's velocity factor per (sub)step for the report's damping D, which is defined per time
+    step dt: 1 - 1/D with one step per dt, (1 - 1/D)^(1/substeps) with substeps, so the decay per
+    dt (and the physical damping) does not change when a run is substepped."""
+    f = damping_factor(damping)
+    if substeps == 1:
+        return 1.0 - f
+    return jnp.exp(jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / substeps)
 
 
 def build(name, system, cg_tol=None, cg_maxiter=CG_MAXITER):
@@ -197,7 +215,7 @@ def verlet(system):
         keep = None
         if terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
-                keep = 1.0 - model.per_vertex(topo, damping_factor(params.damping))
+                keep = model.per_vertex(topo, damping_keep(params.damping, system.substeps))
         xs, us = [], []
         for c in range(3):
             a = f[c] * inv_m
@@ -379,9 +397,9 @@ def implicit_euler(system, cg_tol=None, cg_maxiter=CG_MAXITER):
         if terms.gravity:
             f = f + m * jnp.asarray(system.gravity, dtype)
         if terms.verlet_damping:
-            f = f - (model.per_vertex(topo, damping_rate(params.damping, h)) * m) * v
+            f = f - (model.per_vertex(topo, damping_rate(params.damping, system.dt)) * m) * v
         jac = _jacobians(topo, terms, params, x, volume, system.temperature, gather, ring_rest, mask,
-                         all_real, h)
+                         all_real, h, system.dt)
         fr = jnp.asarray(free, dtype)
 
         def system_matrix(u):
@@ -409,7 +427,7 @@ class _Jacobians(NamedTuple):
     diag: object     # (3, V) diagonal of M - h df/dv - h² df/dx (the Jacobi preconditioner)
 
 
-def _jacobians(topo, terms, params, x, volume, temperature, gather, ring_rest, mask, all_real, h):
+def _jacobians(topo, terms, params, x, volume, temperature, gather, ring_rest, mask, all_real, h, dt):
     """Jacobian-vector products of the force at x, on the one-ring tables (see implicit_euler)."""
     dtype = x.dtype
     m = model.vertex_mass(topo, params)
@@ -432,7 +450,7 @@ def _jacobians(topo, terms, params, x, volume, temperature, gather, ring_rest, m
     if terms.drag:
         drag = drag + model.per_vertex(topo, params.drag) * m
     if terms.verlet_damping:
-        drag = drag + model.per_vertex(topo, damping_rate(params.damping, h)) * m
+        drag = drag + model.per_vertex(topo, damping_rate(params.damping, dt)) * m
 
     gas = None
     if terms.gas:

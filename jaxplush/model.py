@@ -87,6 +87,89 @@ def build_topology(scene):
         length_eps=float(LENGTH_EPS * rest.min()))
 
 
+#: Default smooth-floor stiffness: k_f = FLOOR_KAPPA * 2 n_max k_structural per vertex (the same rule
+#: as the soft-soft contact's default, jaxplush.contact): it raises omega_max² by about 10% at most.
+FLOOR_KAPPA = 0.1
+#: The smooth floor's softplus sharpness: beta = FLOOR_SHARPNESS / delta, delta half the object's mean
+#: rest edge length (as soft-soft contact's beta = 10 / thickness).
+FLOOR_SHARPNESS = 10.0
+
+
+@dataclasses.dataclass(frozen=True)
+class SmoothFloor:
+    """Static settings of the smooth (penalty) floor, ``floor_model smooth`` (hashable; in Terms).
+
+    Every vertex carries the energy U(s) = k_f / 2 * (softplus(-beta s) / beta)², s = y - height,
+    so the floor pushes up with f_y = k_f phi(s) sigmoid(-beta s), phi = softplus(-beta s) / beta:
+    C-infinity in y, zero well above the floor, k_f |s| well below it. Its trajectories are smooth
+    functions of the parameters, unlike the projection's (a loss through the projection has a
+    kink wherever a vertex's contact starts or ends at another step).
+
+    Attributes:
+      height: floor height y, m.
+      beta: (O,) softplus sharpness per object, 1/m (10 / half the mean rest edge length).
+      stiffness: fixed k_f (N/m), or None for FLOOR_KAPPA * 2 n_max * k_structural of the object.
+      n_max: (O,) largest valence per object (for the default stiffness).
+    """
+
+    height: float
+    beta: tuple
+    stiffness: float | None
+    n_max: tuple
+
+
+def smooth_floor_for_scene(scene, topo=None):
+    """:class:`SmoothFloor` of a scene with ``floor_model smooth``, else None."""
+    if scene.floor is None or getattr(scene, "floor_model", "projection") != "smooth":
+        return None
+    beta, n_max = [], []
+    edges = _mesh.unique_edges(scene.faces)
+    length = np.linalg.norm(scene.vertices[edges[:, 0]] - scene.vertices[edges[:, 1]], axis=1)
+    eobj = scene.object_id[edges[:, 0]]
+    rings = _mesh.one_rings(scene.faces, scene.n_vertices) if topo is None else None
+    for o in range(scene.n_objects):
+        beta.append(FLOOR_SHARPNESS / (0.5 * float(length[eobj == o].mean())))
+        a, b = scene.objects[o].vertex_slice
+        val = (topo.ring_mask[a:b].sum(axis=1).max() if topo is not None
+               else max(len(r) for r in rings[a:b]))
+        n_max.append(int(val))
+    return SmoothFloor(height=float(scene.floor), beta=tuple(beta), stiffness=scene.floor_stiffness,
+                       n_max=tuple(n_max))
+
+
+def smooth_floor_stiffness(cfg, k_structural):
+    """k_f of every object (N/m per vertex): the fixed ``floor_stiffness`` or FLOOR_KAPPA 2 n_max k.
+
+    ``k_structural`` is (O,) or (O, B) (a batch of parameter points); the result has its shape."""
+    k = jnp.asarray(k_structural)
+    if cfg.stiffness is not None:
+        return jnp.full_like(k, cfg.stiffness)
+    factor = jnp.asarray([FLOOR_KAPPA * 2.0 * n for n in cfg.n_max], k.dtype).reshape((-1,) + (1,) * (k.ndim - 1))
+    return factor * k
+
+
+def smooth_floor_push(y, height, k_f, beta):
+    """Upward force (N) of the smooth floor on vertices at heights y: k_f phi sigmoid(-beta s),
+    phi = softplus(-beta s) / beta, s = y - height (elementwise; any matching shapes)."""
+    z = -beta * (y - height)
+    return k_f * (jax.nn.softplus(z) / beta) * jax.nn.sigmoid(z)
+
+
+def smooth_floor_force(topo, cfg, params, y):
+    """(V,) upward force of the smooth floor on every vertex at heights y (V,), N."""
+    beta = per_vertex(topo, jnp.asarray(cfg.beta, y.dtype))
+    k_f = per_vertex(topo, smooth_floor_stiffness(cfg, params.k_structural))
+    return smooth_floor_push(y, jnp.asarray(cfg.height, y.dtype), k_f, beta)
+
+
+def smooth_floor_energy(topo, cfg, params, y):
+    """Total energy (J) of the smooth floor at heights y (V,): sum of k_f/2 (softplus(-beta s)/beta)²."""
+    beta = per_vertex(topo, jnp.asarray(cfg.beta, y.dtype))
+    phi = jax.nn.softplus(-beta * (y - jnp.asarray(cfg.height, y.dtype))) / beta
+    k_f = per_vertex(topo, smooth_floor_stiffness(cfg, params.k_structural))
+    return jnp.sum(0.5 * k_f * phi * phi)
+
+
 @dataclasses.dataclass(frozen=True)
 class Terms:
     """Which force terms a scene compiles in (static; decided from the scene, not values)."""
@@ -96,6 +179,7 @@ class Terms:
     drag: bool = False
     gas: bool = False
     gravity: bool = False
+    #: the floor projection (``floor_model projection``, the default); see also floor_smooth
     floor: bool = False
     fixed: bool = False
     verlet_damping: bool = False
@@ -104,6 +188,8 @@ class Terms:
     #: floor Coulomb friction coefficient mu and restitution e (0: not compiled in)
     floor_friction: float = 0.0
     floor_restitution: float = 0.0
+    #: the smooth penalty floor (:class:`SmoothFloor`, ``floor_model smooth``), None: not compiled in
+    floor_smooth: object = None
 
     @classmethod
     def for_scene(cls, scene, params=None):
@@ -115,13 +201,15 @@ class Terms:
         def on(key):
             return bool(np.any(np.asarray(getattr(scene.params, key)) > 0)) or (
                 params is not None and bool(np.any(np.asarray(getattr(params, key)) > 0)))
-        has_floor = scene.floor is not None
+        smooth = smooth_floor_for_scene(scene)
+        has_floor = scene.floor is not None and smooth is None
         return cls(spring=True,
                    dashpot=on("dashpot"),
                    drag=on("drag"),
                    gas=scene.has_gas,
                    gravity=bool(np.any(scene.gravity != 0)),
-                   floor=scene.floor is not None,
+                   floor=has_floor,
+                   floor_smooth=smooth,
                    fixed=len(scene.fixed) > 0,
                    verlet_damping=on("damping"),
                    contact=_contact.config_for_scene(scene),
@@ -272,6 +360,9 @@ def _ring_force_fn(topo, terms, temperature):
         if terms.drag:
             with jax.named_scope("drag"):
                 f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params)) * v
+        if terms.floor_smooth:
+            with jax.named_scope("floor_smooth"):
+                f = f.at[1].add(smooth_floor_force(topo, terms.floor_smooth, params, x[1]))
         volume = None
         if terms.gas:
             with jax.named_scope("gas"):
@@ -314,6 +405,9 @@ def _segment_force_fn(topo, terms, temperature):
         if terms.drag:
             with jax.named_scope("drag"):
                 f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params)) * v
+        if terms.floor_smooth:
+            with jax.named_scope("floor_smooth"):
+                f = f.at[1].add(smooth_floor_force(topo, terms.floor_smooth, params, x[1]))
         volume = None
         if terms.gas:
             with jax.named_scope("gas"):
@@ -336,8 +430,9 @@ def _segment_force_fn(topo, terms, temperature):
     return force_fn
 
 
-def potential_energy(topo, params, x, temperature, gravity=None, gas=True):
-    """Total potential energy (J): springs + gas (-nRT ln V, clamped as the force) + gravity.
+def potential_energy(topo, params, x, temperature, gravity=None, gas=True, floor=None):
+    """Total potential energy (J): springs + gas (-nRT ln V, clamped as the force) + gravity
+    (+ the smooth floor's energy, with ``floor`` a :class:`SmoothFloor`).
 
     Written independently of the force functions (per edge, per face) so tests can check
     f = -dU/dx with ``jax.grad``.
@@ -350,6 +445,8 @@ def potential_energy(topo, params, x, temperature, gravity=None, gas=True):
         u = u + jnp.sum(gas_energy(topo, params, x, temperature))
     if gravity is not None:
         u = u - jnp.sum(vertex_mass(topo, params) * (x @ jnp.asarray(gravity, x.dtype)))
+    if floor is not None:
+        u = u + smooth_floor_energy(topo, floor, params, x[:, 1])
     return u
 
 

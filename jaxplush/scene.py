@@ -22,6 +22,11 @@ Scene level (anywhere, at most once each):
   ``temperature T``    K (> 0; default 293.15)
   ``floor_friction MU``     Coulomb friction coefficient of the floor (>= 0; default 0: none)
   ``floor_restitution E``   floor restitution (0 <= E <= 1; default 0: vertices stop on impact)
+  ``floor_model M``         ``projection`` (default: vertices are put back on the floor, an exact
+                            non-penetration constraint with kinks) or ``smooth`` (a smooth
+                            penalty energy, see jaxplush.model; the floor for fitting)
+  ``floor_stiffness K``     smooth floor's penalty stiffness per vertex, N/m (> 0; default
+                            0.1 x 2 n_max k_structural of the object, scaling with k and mass)
   ``contact on|off``        soft-soft contact between objects (default on when there are several)
   ``self_collision on|off`` each object against its own faces (default off; O(N²), small meshes)
   ``contact_friction MU``   Coulomb friction between objects in contact (>= 0; default 0: none)
@@ -75,8 +80,12 @@ _SCENE_KEYS = {
     "contact_stiffness": (1, lambda v: v > 0, "must be > 0 (N/m)"),
     "contact_thickness": (1, lambda v: v > 0, "must be > 0 (m)"),
     "contact_capacity": (1, lambda v: v >= 1 and v == int(v) and v < 2 ** 31, "must be an integer >= 1"),
+    "floor_stiffness": (1, lambda v: v > 0, "must be > 0 (N/m)"),
 }
 _SWITCH_KEYS = ("contact", "self_collision")
+#: Scene keywords that take one word from a fixed set.
+_CHOICE_KEYS = {"floor_model": ("projection", "smooth")}
+FLOOR_MODELS = _CHOICE_KEYS["floor_model"]
 _IGNORED = {"vt", "vn", "vp", "s", "usemtl", "mtllib"}
 _MAX_COORD = 1e30  # larger coordinates overflow the mesh checks (and float32 simulation)
 
@@ -128,6 +137,8 @@ class Scene:
       contact, self_collision: soft-soft contact between objects / of each object with itself.
       contact_stiffness (N/m), contact_thickness (m), contact_capacity: None for the defaults
         of :mod:`jaxplush.contact`; contact_friction: Coulomb coefficient between objects (0: none).
+      floor_model: "projection" (default) or "smooth" (a penalty force, :mod:`jaxplush.model`);
+      floor_stiffness: the smooth floor's stiffness per vertex (N/m), None for the default.
     """
 
     path: str
@@ -147,6 +158,8 @@ class Scene:
     contact_thickness: float | None = None
     contact_capacity: int | None = None
     contact_friction: float = 0.0
+    floor_model: str = "projection"
+    floor_stiffness: float | None = None
 
     @property
     def n_objects(self):
@@ -363,6 +376,14 @@ class _Parser:
                 if key in self.scene_keys:
                     raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
                 self.scene_keys[key] = ([args[0].lower() == "on"], lineno)
+            elif key in _CHOICE_KEYS:
+                choices = _CHOICE_KEYS[key]
+                if len(args) != 1 or args[0].lower() not in choices:
+                    raise self.err(lineno, f"'{key}' expects {' or '.join(repr(c) for c in choices)}, "
+                                           f"got {' '.join(args)!r}")
+                if key in self.scene_keys:
+                    raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+                self.scene_keys[key] = ([args[0].lower()], lineno)
             elif key in _IGNORED:
                 continue
             else:
@@ -464,12 +485,21 @@ class _Parser:
         temperature = self.scene_keys.get("temperature", ((DEFAULT_TEMPERATURE,), 0))[0][0]
         vertices = np.concatenate(all_x)
         if floor is None:
-            for key in ("floor_friction", "floor_restitution"):
+            for key in ("floor_friction", "floor_restitution", "floor_model", "floor_stiffness"):
                 if key in self.scene_keys:
                     raise self.err(self.scene_keys[key][1], f"'{key}' needs a 'floor'")
+        smooth = self.scene_keys.get("floor_model", (["projection"], 0))[0][0] == "smooth"
+        if smooth:
+            for key in ("floor_friction", "floor_restitution"):
+                if key in self.scene_keys and self.scene_keys[key][0][0] != 0:
+                    raise self.err(self.scene_keys[key][1], f"'{key}' acts in the floor projection: it needs "
+                                                            "'floor_model projection' (the smooth floor has neither)")
+        elif "floor_stiffness" in self.scene_keys:
+            raise self.err(self.scene_keys["floor_stiffness"][1], "'floor_stiffness' needs 'floor_model smooth'")
         extra = {k: self.scene_keys[k][0][0] for k in ("floor_friction", "floor_restitution", "contact",
                                                         "self_collision", "contact_stiffness",
-                                                        "contact_thickness", "contact_friction")
+                                                        "contact_thickness", "contact_friction", "floor_model",
+                                                        "floor_stiffness")
                  if k in self.scene_keys}
         if "contact_capacity" in self.scene_keys:
             extra["contact_capacity"] = int(self.scene_keys["contact_capacity"][0][0])

@@ -9,7 +9,8 @@ The format (read by :func:`jaxplush.load_scene`):
   ``nmol N``, ``scale S``, ``translate X Y Z``, ``fixed I`` (1-based global index, may
   repeat). ``END_OBJECT`` closes the object.
 * Scene keywords, written at the top: ``gravity GX GY GZ``, ``floor H``, ``temperature T``,
-  and the contact keywords ``floor_friction MU``, ``floor_restitution E``, ``contact on|off``,
+  and the floor and contact keywords ``floor_model projection|smooth``, ``floor_stiffness K``,
+  ``floor_friction MU``, ``floor_restitution E``, ``contact on|off``,
   ``self_collision on|off``, ``contact_stiffness K``, ``contact_thickness D``,
   ``contact_capacity N``, ``contact_friction MU`` (see :mod:`jaxplush.scene`).
 
@@ -154,6 +155,8 @@ def format_scene(
     contact_thickness: float | None = None,
     contact_capacity: int | None = None,
     contact_friction: float | None = None,
+    floor_model: str | None = None,
+    floor_stiffness: float | None = None,
 ) -> str:
     """Return the text of a scene file.
 
@@ -174,6 +177,8 @@ def format_scene(
       contact_stiffness (N/m, > 0), contact_thickness (m, > 0), contact_capacity (int >= 1):
         override the contact defaults. None leaves any of these out (the parser's default).
       contact_friction: Coulomb coefficient between objects (>= 0).
+      floor_model: "projection" or "smooth" (needs a ``floor``); floor_stiffness: the smooth
+        floor's stiffness per vertex (N/m, > 0).
 
     Returns:
       The file contents (ends with a newline).
@@ -211,7 +216,8 @@ def format_scene(
             ("floor_restitution", floor_restitution, lambda v: 0 <= v <= 1, "in [0, 1]"),
             ("contact_stiffness", contact_stiffness, lambda v: v > 0, "> 0"),
             ("contact_thickness", contact_thickness, lambda v: v > 0, "> 0"),
-            ("contact_friction", contact_friction, lambda v: v >= 0, ">= 0")):
+            ("contact_friction", contact_friction, lambda v: v >= 0, ">= 0"),
+            ("floor_stiffness", floor_stiffness, lambda v: v > 0, "> 0")):
         if val is None:
             continue
         v = float(val)
@@ -220,6 +226,12 @@ def format_scene(
         if key.startswith("floor_") and floor is None:
             raise ValueError(f"{key} needs a floor")
         scene_lines.append(f"{key} {_num(v)}")
+    if floor_model is not None:
+        if floor_model not in ("projection", "smooth"):
+            raise ValueError(f"floor_model must be 'projection' or 'smooth', got {floor_model!r}")
+        if floor is None:
+            raise ValueError("floor_model needs a floor")
+        scene_lines.append(f"floor_model {floor_model}")
     if contact_capacity is not None:
         if isinstance(contact_capacity, bool) or int(contact_capacity) != contact_capacity or contact_capacity < 1:
             raise ValueError(f"contact_capacity must be an integer >= 1, got {contact_capacity!r}")

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush import model
-from jaxplush.types import GAS_CONSTANT
+from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 
 class StabilityEstimate(NamedTuple):
@@ -126,7 +126,7 @@ def estimate(sim, params, x=None, iters=100, seed=0):
     omega = float(np.sqrt(max(lam, 0.0)))
     gamma = max(gam, 0.0)
     if sim.terms.verlet_damping:
-        gamma += _verlet_damping_rate(params, sim.dt / getattr(sim, "substeps", 1))
+        gamma += _verlet_damping_rate(params, sim.dt)   # D is per time step dt, at any substeps
     dt_max = float((np.sqrt(gamma ** 2 + 4 * omega ** 2) - gamma) / omega ** 2) if omega > 0 else float("inf")
     return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gamma, dt_gershgorin=_gershgorin(topo, params))
 
@@ -140,58 +140,107 @@ def _ring_neighbours(topo):
     return (k + 1) % safe, (k - 1) % safe, val
 
 
-def _bound_at(topo, terms, params, temperature, x):
-    """(omega² bound, gamma bound) at positions x (V, 3) float64: block Gershgorin on M^-1/2 K M^-1/2
-    and on M^-1/2 C M^-1/2 (see :func:`bound`)."""
-    obj = topo.vertex_object
-    k = np.asarray(params.k_structural, np.float64)[obj]
-    m = np.asarray(params.total_weight, np.float64)[obj] / topo.count[obj]
+class _Geometry(NamedTuple):
+    """Per-vertex geometric factors of the bound at a configuration x (numpy, float64).
+
+    lam_s: lambda_max(sum_j d d^T) over the ring; off: sum_j ||K_ij|| / k (max(1, |1 - L/l|) each);
+    diag: lambda_max(K_ii) / k; curv: sum_j |x_c - x_c'| / 6 (the gas curvature blocks / P);
+    g: |dV/dx_i|; g_sum: (O,) sum of |g| over each object; volume: (O,) signed volumes."""
+
+    lam_s: np.ndarray
+    off: np.ndarray
+    diag: np.ndarray
+    curv: np.ndarray
+    g: np.ndarray
+    g_sum: np.ndarray
+    volume: np.ndarray
+
+
+def _geometry(topo, x):
     ring, mask = topo.ring, topo.ring_mask
-    nxt, prv, val = _ring_neighbours(topo)
+    nxt, prv, _ = _ring_neighbours(topo)
     rows = np.arange(topo.n_vertices)[:, None]
     d = x[ring] - x[:, None, :]                                      # (V, K, 3)
     length = np.sqrt(np.sum(d * d, axis=-1) + topo.length_eps ** 2)
     dh = d / length[..., None]
     tau = np.where(mask, 1.0 - topo.ring_rest / length, 0.0)        # transverse stiffness factor 1 - L/l
-    kk = k[:, None] * mask
+    outer = np.where(mask[..., None, None], dh[..., :, None] * dh[..., None, :], 0.0)
     # spring blocks K_e = k [d d^T + tau (I - d d^T)]: ||K_e|| = k max(1, |tau|)
-    outer = dh[..., :, None] * dh[..., None, :]
-    k_e = kk[..., None, None] * (outer + tau[..., None, None] * (np.eye(3) - outer))
-    diag = np.linalg.eigvalsh(k_e.sum(axis=1))[:, -1]                # lambda_max of K_ii
-    off = kk * np.maximum(1.0, np.abs(tau))                          # ||K_ij||
-    m_j = m[ring]
-    w2 = diag / m + np.sum(off / np.sqrt(m[:, None] * m_j), axis=1)
+    k_e = outer + tau[..., None, None] * (np.eye(3) - outer) * mask[..., None, None]
+    diag = np.linalg.eigvalsh(k_e.sum(axis=1))[:, -1]
+    lam_s = np.linalg.eigvalsh(outer.sum(axis=1))[:, -1]
+    off = np.sum(np.where(mask, np.maximum(1.0, np.abs(tau)), 0.0), axis=1)
+    # P d²V/dx_a dx_b for a neighbour b: (P/6) [x_c - x_c'] (c, c' the vertices opposite edge ab)
+    opp = x[ring[rows, nxt]] - x[ring[rows, prv]]
+    curv = np.sum(np.where(mask, np.sqrt(np.sum(opp * opp, axis=-1)) / 6.0, 0.0), axis=1)
+    g = np.sum(np.where(mask[..., None], np.cross(d, d[rows, nxt]), 0.0), axis=1) / 6.0
+    gn = np.sqrt(np.sum(g * g, axis=-1))
+    g_sum = np.array([gn[a:b].sum() for a, b in topo.vertex_slices])
+    volume = np.array([scene_volume(topo, x, o) for o in range(topo.n_objects)])
+    return _Geometry(lam_s, off, diag, curv, gn, g_sum, volume)
+
+
+#: Rest-shape geometry of the bound per topology (computed once; the bound is then O(V) numpy).
+_GEOMETRY = weakref.WeakKeyDictionary()
+
+
+def _rest_geometry(topo):
+    if topo not in _GEOMETRY:
+        _GEOMETRY[topo] = _geometry(topo, np.asarray(topo.x0, np.float64))
+    return _GEOMETRY[topo]
+
+
+def _rates(topo, terms, params, temperature, geo, scale=None):
+    """(omega² bound, gamma bound): block Gershgorin on M^-1/2 K M^-1/2 and M^-1/2 C M^-1/2 at the
+    configuration of ``geo``, or at the rest shape scaled uniformly by ``scale`` (O,) about each
+    object's centroid (then every factor follows by its power of the scale)."""
+    obj = topo.vertex_object
+    k = np.asarray(params.k_structural, np.float64)
+    m = (np.asarray(params.total_weight, np.float64) / topo.count)[obj]
+    val = topo.ring_mask.sum(axis=1)
+    s = np.ones(topo.n_objects) if scale is None else np.asarray(scale, np.float64)
+    if scale is None:
+        spring = geo.diag + geo.off
+    else:                                  # tau = 1 - 1/s on every edge: K_ii = (1 - tau) S + tau n I
+        tau = (1.0 - 1.0 / s)[obj]
+        spring = (1.0 - tau) * geo.lam_s + tau * val + np.maximum(1.0, np.abs(tau)) * val
+    w2 = k[obj] * spring / m
     if terms.gas:
         nrt = np.asarray(params.nmol, np.float64) * GAS_CONSTANT * temperature
-        vol = np.array([scene_volume(topo, x, o) for o in range(topo.n_objects)])
-        pressure = nrt / np.maximum(vol, 0.05 * topo.rest_volume)
-        p = pressure[obj]
-        # P d²V/dx_a dx_b for a neighbour b: (P/6) [x_c - x_c'] (c, c' the vertices opposite edge ab)
-        opp = x[ring[rows, nxt]] - x[ring[rows, prv]]
-        curv = np.where(mask, np.sqrt(np.sum(opp * opp, axis=-1)) / 6.0, 0.0)
-        w2 = w2 + p * np.sum(curv / np.sqrt(m[:, None] * m_j), axis=1)
-        # the rank-one part (P/V) g g^T, dense within an object: (P/V) |g_a| sum_b |g_b| / sqrt(m_a m_b)
-        dn = d[rows, nxt]
-        g = 0.5 * np.sum(np.where(mask[..., None], np.cross(d, dn), 0.0), axis=1) / 3.0
-        gm = np.sqrt(np.sum(g * g, axis=-1)) / np.sqrt(m)
-        tot = np.array([gm[a:b].sum() for a, b in topo.vertex_slices])
-        w2 = w2 + (pressure / np.maximum(vol, 1e-300))[obj] * gm * tot[obj]
+        vol = geo.volume * s ** 3
+        pressure = nrt / np.maximum(vol, VOLUME_EPS * topo.rest_volume)
+        w2 = w2 + pressure[obj] * s[obj] * geo.curv / m                       # curvature scales with s
+        # the rank-one part (P/V) g g^T, dense within an object: |g| scales with s²
+        rank1 = (pressure / np.maximum(vol, 1e-300) * s ** 4)[obj] * geo.g * geo.g_sum[obj]
+        w2 = w2 + rank1 / m
+    floor = getattr(terms, "floor_smooth", None)
+    if floor:
+        # U'' of the softplus penalty is at most 1.05 k_f (max over the contact depth)
+        w2 = w2 + 1.05 * np.asarray(model.smooth_floor_stiffness(floor, k))[obj] / m
     contact = getattr(terms, "contact", None)
     if contact:
-        kc = contact.stiffness if contact.stiffness is not None else 0.1 * 2 * int(val.max()) * k
+        kc = contact.stiffness if contact.stiffness is not None else 0.1 * 2 * int(val.max()) * k[obj]
         w2 = w2 + 3.0 * kc / m      # a vertex against a face (the vertex and the face's corners)
     free = np.ones(topo.n_vertices, bool)
     free[topo.fixed] = False
     omega2 = float(np.max(w2[free])) if free.any() else 0.0
     gamma = 0.0
     if terms.dashpot:
-        c = np.asarray(params.dashpot, np.float64)[obj][:, None] * mask
-        c_ii = np.linalg.eigvalsh((c[..., None, None] * outer).sum(axis=1))[:, -1]
-        gamma = max(gamma, float(np.max((c_ii / m + np.sum(c / np.sqrt(m[:, None] * m_j), axis=1))[free],
-                                        initial=0.0)))
+        c = np.asarray(params.dashpot, np.float64)[obj]
+        gamma = max(gamma, float(np.max((c * (geo.lam_s + val) / m)[free], initial=0.0)))
     if terms.drag:
         gamma += float(np.max(np.asarray(params.drag, np.float64)))
     return omega2, gamma
+
+
+def _inflation(topo, params, temperature):
+    """(O,) the uniform inflation s* = (1 + sqrt(1 + 12 nRT/(k sum L²))) / 2 of each object (1 without gas)."""
+    nrt = np.asarray(params.nmol, np.float64) * GAS_CONSTANT * temperature
+    k = np.asarray(params.k_structural, np.float64)
+    l2 = np.array([np.sum(topo.rest_length[topo.edge_object == o] ** 2) for o in range(topo.n_objects)])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = 0.5 * (1 + np.sqrt(1 + 12 * nrt / (k * l2)))
+    return np.where((nrt > 0) & (k > 0) & np.isfinite(s), s, 1.0)
 
 
 def scene_volume(topo, x, o):
@@ -208,11 +257,12 @@ def bound(sim, params, x=None):
 
     Block Gershgorin bounds on omega_max² = lambda_max(M^-1 K) and on the damping rate
     gamma_max = lambda_max(M^-1 C), for the springs (with their pre-tension), the gas (its
-    curvature term P d²V and its rank-one term (P/V) g g^T), soft-soft contact and the velocity
-    damping (dashpot, drag, the report's Verlet damping per (sub)step), evaluated at the rest
+    curvature term P d²V and its rank-one term (P/V) g g^T), soft-soft contact, the smooth floor
+    and the velocity damping (dashpot, drag, the report's Verlet damping), evaluated at the rest
     geometry (or ``x``) and, with gas, at the uniform inflation s* as :func:`estimate` does. Each
     bound is at least the true value, so ``dt_max`` is at most the true limit (on icospheres,
     0.7-0.85 of it): a dt below it is stable; a dt above it needs :func:`estimate` to decide.
+    The rest-shape geometry is computed once per topology; each call is then O(V) numpy.
 
     Args:
       sim: :class:`jaxplush.step.Simulator` (its topology, terms, step and temperature).
@@ -221,26 +271,32 @@ def bound(sim, params, x=None):
     Returns:
       :class:`StabilityEstimate` with the bound's omega_max, gamma_max and dt_max.
     """
-    topo = sim.topology
-    x0 = np.asarray(topo.x0 if x is None else x, np.float64)
-    cfgs = [x0]
-    if sim.terms.gas:
-        cfgs.append(np.asarray(inflated(sim, params, x0), np.float64))
-    w2, gam = 0.0, 0.0
-    for xc in cfgs:
-        a, b = _bound_at(topo, sim.terms, params, sim.scene.temperature, xc)
-        w2, gam = max(w2, a), max(gam, b)
-    if sim.terms.verlet_damping:
-        gam += _verlet_damping_rate(params, sim.dt / getattr(sim, "substeps", 1))
+    topo, terms, temp = sim.topology, sim.terms, sim.scene.temperature
+    if x is None:
+        geo = _rest_geometry(topo)
+        w2, gam = _rates(topo, terms, params, temp, geo)
+        if terms.gas:
+            a, b = _rates(topo, terms, params, temp, geo, scale=_inflation(topo, params, temp))
+            w2, gam = max(w2, a), max(gam, b)
+    else:
+        x0 = np.asarray(x, np.float64)
+        w2, gam = _rates(topo, terms, params, temp, _geometry(topo, x0))
+        if terms.gas:
+            xi = np.asarray(inflated(sim, params, x0), np.float64)
+            a, b = _rates(topo, terms, params, temp, _geometry(topo, xi))
+            w2, gam = max(w2, a), max(gam, b)
+    if terms.verlet_damping:
+        gam += _verlet_damping_rate(params, sim.dt)
     omega = float(np.sqrt(max(w2, 0.0)))
     dt_max = float((np.sqrt(gam ** 2 + 4 * omega ** 2) - gam) / omega ** 2) if omega > 0 else float("inf")
     return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gam, dt_gershgorin=_gershgorin(topo, params))
 
 
-def _verlet_damping_rate(params, h):
+def _verlet_damping_rate(params, dt):
+    """The drag rate -ln(1 - 1/D) / dt of the report's damping D (per time step dt), 1/s."""
     d = np.asarray(params.damping, np.float64)
     f = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0).max()
-    return float(-np.log1p(-min(f, 1 - 1e-12)) / h)
+    return float(-np.log1p(-min(f, 1 - 1e-12)) / dt)
 
 
 def _gershgorin(topo, params):

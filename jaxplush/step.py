@@ -101,8 +101,8 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
       terms: override the automatic :class:`jaxplush.model.Terms` selection (e.g. to keep a
         term compiled in while sweeping its parameter through zero).
       substeps: integrator steps per ``step_fn`` call, each of length h = dt / substeps (static).
-        The floor and pins are applied after every substep; the report's per-step damping D
-        acts per substep.
+        The floor and pins are applied after every substep; the report's damping D keeps its
+        meaning per time step dt (each substep multiplies the velocity by (1 - 1/D)^(1/substeps)).
       cg_tol, cg_maxiter: ``implicit_euler`` only: relative CG residual (default 1e-5 in
         float32, 1e-10 in float64) and the static cap on CG iterations per step.
       coherent_contact: with soft-soft contact, let rollouts carry the contact candidate lists
@@ -127,7 +127,8 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     kernel, cache_ops = model.make_force_fn(topo, terms, scene.temperature, assembly, h=h, with_cache=True)
     system = integrators.System(
         topo=topo, terms=terms, kernel=kernel, gravity=np.asarray(scene.gravity, np.float64)[:, None],
-        constrain=constraints.make_constrain(topo, terms, scene, h), h=h, temperature=scene.temperature)
+        constrain=constraints.make_constrain(topo, terms, scene, h), h=h, temperature=scene.temperature,
+        substeps=substeps)
     scheme = integrators.build(integrator, system, cg_tol=cg_tol, cg_maxiter=cg_maxiter)
     coherent = None
     if cache_ops is not None and coherent_contact:

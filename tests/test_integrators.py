@@ -157,7 +157,7 @@ def _jacobians(sim, p, x):
     _, vol = kernel(p, x, jnp.zeros_like(x))
     jac = integrators._jacobians(topo, sim.terms, p, x, vol, sim.scene.temperature,
                                  lambda a: a.at[ring].get(), np.ascontiguousarray(topo.ring_rest.T),
-                                 np.ascontiguousarray(topo.ring_mask.T), bool(topo.ring_mask.all()), 1e-4)
+                                 np.ascontiguousarray(topo.ring_mask.T), bool(topo.ring_mask.all()), 1e-4, 1e-4)
     return kernel, vol, jac
 
 
@@ -354,3 +354,21 @@ def test_rk4_limit_is_right(x64, factor, stable):
         assert not health.failed and amp < 0.05
     else:
         assert health.failed or amp > 1.0
+
+
+def test_report_damping_keeps_its_meaning_per_dt_under_substeps(x64):
+    """D is per time step dt: a free-falling drop with only the report's damping reaches the same
+    velocity after 1 s with 1 or 4 substeps (terminal velocity g dt / f per dt either way), and the
+    per-substep factor compounds to 1 - 1/D over one dt."""
+    assert float(integrators.damping_keep(jnp.asarray(50.0), 4) ** 4) == pytest.approx(1 - 1 / 50, rel=1e-12)
+    assert float(integrators.damping_keep(jnp.asarray(50.0), 1)) == 1 - 1 / 50
+    scene = icosphere_scene(subdivisions=1, k=100.0, damping=50.0)
+    speeds = []
+    for n in (1, 4):
+        sim = jaxplush.make_simulator(scene, 1e-3, substeps=n)
+        p = sim.params()
+        final, _, _ = jaxplush.rollout(sim, p, sim.init_fn(p), 1, 1000)
+        speeds.append(float(jnp.mean(sim.velocity_fn(p, final)[:, 1])))
+    gamma = -np.log(1 - 1 / 50) / 1e-3                  # the drag rate of D per dt
+    assert speeds[1] == pytest.approx(-9.81 / gamma, rel=2e-2)
+    assert speeds[0] == pytest.approx(speeds[1], rel=2e-2)

@@ -1,0 +1,279 @@
+"""Residuals of a fit at many parameter points at once, every point simulated stably.
+
+:class:`Evaluator` runs a :class:`fitting.fitter.Problem` at N points theta (log-parameters)
+and returns each point's residual vector (:func:`fitting.losses.make_residual`: sum(r²) is the
+fit's loss), its loss and whether it ran. Points run in compiled batches of the batched
+simulator (:mod:`jaxplush.batched`, one compile per batch width and substep count) where the
+scene allows it (Verlet, no soft-soft contact), otherwise one at a time.
+
+Stability: before a point runs, its explicit stability limit is predicted from the closed-form
+bound (:func:`jaxplush.stability.bound`, O(V) numpy), calibrated once against the power-iteration
+estimate at the start values; a point whose limit is below the target's dt runs with substeps
+(h = dt / n, n a power of two; the target grid does not change, and the report's per-step
+``damping`` keeps its meaning per dt, :func:`jaxplush.integrators.damping_keep`). A point that
+blows up anyway is run again with twice the substeps, up to :data:`MAX_SUBSTEPS`; only a point
+that fails even then is reported as failed (``ok`` False, loss inf), never as NaN residuals
+that an optimiser would read as data.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxplush import batched, diagnostics, stability
+from jaxplush.types import Params
+
+from fitting import losses as _losses
+
+#: Largest substep count a point may be run with.
+MAX_SUBSTEPS = 16
+#: Points simulated together by the batched simulator, in two chunks run on two cores: a call
+#: of 32 points at 642 vertices costs about what 16 do (benchmarks/RESULTS.md); above
+#: LARGE_MESH vertices the chunks outgrow the caches and 16 points a call are cheaper.
+DEFAULT_BATCH = 32
+LARGE_MESH = 1500
+
+
+class Evaluation(NamedTuple):
+    """Results at N points.
+
+    Attributes:
+      residuals: (N, n) float64 normalised residuals (rows of failed points are NaN).
+      loss: (N,) float64 sum of squared residuals (inf where the point failed).
+      ok: (N,) bool, the point ran without blowing up.
+      substeps: (N,) int, the substeps it ran with.
+      clamped: (N,) bool, the volume clamp was active at a target frame.
+      frames: (N, T, V, 3) float64 simulated positions at the target frames, if asked for.
+    """
+
+    residuals: np.ndarray
+    loss: np.ndarray
+    ok: np.ndarray
+    substeps: np.ndarray
+    clamped: np.ndarray
+    frames: np.ndarray | None = None
+
+
+def _runs(steps):
+    """[(gap, count), ...]: the target steps as runs of equal gaps from step 0."""
+    out = []
+    prev = 0
+    for s in steps:
+        g = int(s) - prev
+        prev = int(s)
+        if out and out[-1][0] == g:
+            out[-1][1] += 1
+        else:
+            out.append([g, 1])
+    return [tuple(r) for r in out]
+
+
+def _pow2_at_least(n):
+    return 1 << max(int(math.ceil(n)) - 1, 0).bit_length()
+
+
+class Evaluator:
+    """Evaluate a problem's residuals at many points (see the module docstring).
+
+    Args:
+      prob: :class:`fitting.fitter.Problem`.
+      batch: points per batched call (static; default :data:`DEFAULT_BATCH`, half that above
+        :data:`LARGE_MESH` vertices).
+      calibrate: calibrate the closed-form stability bound against the power-iteration estimate
+        at the start values (one compile); False uses the bound alone (more substeps than needed).
+      calibration: a calibration to reuse (:meth:`calibration` of an evaluator of the same scene).
+    """
+
+    def __init__(self, prob, batch=None, calibrate=True, calibration=None):
+        self.prob = prob
+        if batch is None:
+            batch = DEFAULT_BATCH if prob.scene.n_vertices <= LARGE_MESH else DEFAULT_BATCH // 2
+        self.batch = int(batch)
+        self.residual = _losses.make_residual(prob.target, prob.sim.topology, prob.loss)
+        self.steps = np.asarray(prob.loss.frame_steps, np.int64)
+        self.runs = _runs(self.steps)
+        sim = prob.sim
+        self.batched = sim.integrator == "verlet" and len(self.runs) <= 8 and _batchable(sim.terms)
+        self._bsims = {}
+        self._single = {}
+        self._res_fn = jax.jit(jax.vmap(self.residual.fn))
+        self._calibration = calibration
+        self._calibrate = calibrate
+        self.evaluations = 0          # points run (each substep retry counted)
+
+    # ------------------------------------------------------------------ stability
+
+    def calibration(self):
+        """(c_omega, c_gamma) of this evaluator (computed if needed), to share with another."""
+        return self._calibrated()
+
+    def _calibrated(self):
+        """(c_omega, c_gamma): exact / bound at the start values (<= 1), computed once."""
+        if self._calibration is None:
+            if not self._calibrate or self.prob.sim.integrator != "verlet":
+                self._calibration = (1.0, 1.0)
+            else:
+                p0 = self.prob.params_at(self.prob.theta0)
+                b = stability.bound(self.prob.sim, p0)
+                e = stability.estimate(self.prob.sim, self.prob.sim.params(p0))
+                cw = min(1.0, e.omega_max / b.omega_max) if b.omega_max > 0 else 1.0
+                cg = min(1.0, e.gamma_max / b.gamma_max) if b.gamma_max > 0 else 1.0
+                self._calibration = (cw, cg)
+        return self._calibration
+
+    def limit(self, theta):
+        """Predicted largest stable (sub)step at log values theta, s."""
+        b = stability.bound(self.prob.sim, self.prob.params_at(theta))
+        cw, cg = self._calibrated()
+        w, g = cw * b.omega_max, cg * b.gamma_max
+        if not (np.isfinite(w) and np.isfinite(g)):
+            return 0.0
+        return float((np.sqrt(g * g + 4 * w * w) - g) / (w * w)) if w > 0 else math.inf
+
+    def substeps_for(self, thetas):
+        """(N,) substeps (powers of two, at least 1) that keep each point below its limit."""
+        dt = self.prob.target.dt
+        out = []
+        for th in thetas:
+            lim = self.limit(th)
+            n = MAX_SUBSTEPS if lim <= 0 else _pow2_at_least(dt / lim)
+            out.append(int(min(max(n, 1), MAX_SUBSTEPS)))
+        return np.asarray(out, np.int64)
+
+    # ------------------------------------------------------------------ running
+
+    def __call__(self, thetas, substeps=None, keep_frames=False):
+        """Evaluate N points.
+
+        Args:
+          thetas: (N, P_n, O_f) log-parameters (any leading count).
+          substeps: (N,) substeps to start from (default: predicted, :meth:`substeps_for`);
+            a point that blows up is retried with twice as many, up to :data:`MAX_SUBSTEPS`.
+          keep_frames: also return the simulated frames.
+
+        Returns:
+          :class:`Evaluation`.
+        """
+        thetas = np.asarray(thetas, np.float64)
+        n_pts = len(thetas)
+        subs = self.substeps_for(thetas) if substeps is None else np.asarray(substeps, np.int64).copy()
+        res = np.full((n_pts, self.residual.n), np.nan)
+        ok = np.zeros(n_pts, bool)
+        clamped = np.zeros(n_pts, bool)
+        frames = None
+        todo = np.arange(n_pts)
+        while todo.size:
+            retry = []
+            for n in np.unique(subs[todo]):
+                idx = todo[subs[todo] == n]
+                fr, good, clamp = self._frames(thetas[idx], int(n))
+                if good.any():
+                    r = self._residuals(fr[good])
+                    res[idx[good]] = r
+                    ok[idx[good]] = np.isfinite(r).all(axis=1)
+                    clamped[idx[good]] = clamp[good]
+                    if keep_frames:
+                        if frames is None:
+                            frames = np.full((n_pts,) + fr.shape[1:], np.nan)
+                        frames[idx[good]] = fr[good]
+                for i in idx[~good]:
+                    if subs[i] < MAX_SUBSTEPS:
+                        subs[i] *= 2
+                        retry.append(i)
+            todo = np.asarray(retry, np.int64)
+        loss = np.where(ok, np.sum(np.where(np.isfinite(res), res, 0.0) ** 2, axis=1), np.inf)
+        res[~ok] = np.nan
+        return Evaluation(res, loss, ok, subs, clamped, frames)
+
+    def _residuals(self, frames):
+        """(N, n) float64 residuals of (N, T, V, 3) frames, jitted over pieces of one batch (one
+        compile; XLA spreads each piece over the cores)."""
+        piece = self.batch
+        n_pts = len(frames)
+        pad = -n_pts % piece
+        x = np.concatenate([frames, np.repeat(frames[-1:], pad, axis=0)]) if pad else frames
+        out = [np.asarray(self._res_fn(jnp.asarray(x[i:i + piece], self.prob.sim.dtype)), np.float64)
+               for i in range(0, len(x), piece)]
+        return np.concatenate(out)[:n_pts]
+
+    def _frames(self, thetas, n):
+        """(frames (N, T, V, 3) float64, ok (N,), clamped (N,)) at ``n`` substeps."""
+        self.evaluations += len(thetas)
+        if self.batched:
+            return self._frames_batched(thetas, n)
+        return self._frames_single(thetas, n)
+
+    def _bsim(self, n):
+        """(batched simulator, its jitted init) for ``n`` substeps (built once)."""
+        if n not in self._bsims:
+            b = self.batch
+            # the dashpot gathers velocities too, and a chunk of 16 points then outgrows the caches:
+            # chunks of a quarter of the batch run it about 20% faster (benchmarks/RESULTS.md)
+            chunk = max(1, b // (4 if self.prob.sim.terms.dashpot else 2))
+            bsim = batched.make_batched_simulator(self.prob.scene, self.prob.target.dt, b,
+                                                  terms=self.prob.sim.terms, substeps=n, chunk=chunk)
+            self._bsims[n] = (bsim, jax.jit(bsim.init_fn))
+        return self._bsims[n]
+
+    def _frames_batched(self, thetas, n):
+        bsim, init = self._bsim(n)
+        b = bsim.batch
+        out, good, clamp = [], [], []
+        for start in range(0, len(thetas), b):
+            part = thetas[start:start + b]
+            live = len(part)
+            pad = np.concatenate([part, np.repeat(part[-1:], b - live, axis=0)]) if live < b else part
+            vals = [self.prob.params_at(th) for th in pad]
+            p = bsim.params(Params(*(np.stack([np.asarray(getattr(v, f), np.float64) for v in vals], axis=1)
+                                     for f in Params._fields)))
+            state = init(p)
+            health = batched.initial_health(bsim, state)
+            chunks = []
+            done = 0
+            for gap, count in self.runs:
+                state, obs, health = batched.rollout(bsim, p, state, count, gap, health=health, step0=done,
+                                                     observe=batched.positions_observer)
+                chunks.append(np.asarray(obs, np.float64))            # (count, B, V, 3)
+                done += gap * count
+            fr = np.concatenate(chunks, axis=0).transpose(1, 0, 2, 3)[:live]
+            failed = np.asarray(health.failed)[:live]
+            warn = (np.asarray(health.warn_step) >= 0).any(axis=0)[:live]
+            out.append(fr)
+            good.append(~failed & np.isfinite(fr).all(axis=(1, 2, 3)))
+            clamp.append(warn)
+        return np.concatenate(out), np.concatenate(good), np.concatenate(clamp)
+
+    def _single_fn(self, n):
+        if n not in self._single:
+            import jaxplush
+            from fitting.identifiability import frames_at_steps
+            prob = self.prob
+            sim = prob.sim if n == 1 else jaxplush.make_simulator(prob.scene, prob.target.dt, prob.sim.integrator,
+                                                                   terms=prob.sim.terms, substeps=n)
+            steps = tuple(int(s) for s in self.steps)
+            self._single[n] = (sim, jax.jit(lambda p: frames_at_steps(sim, p, sim.init_fn(p), steps)))
+        return self._single[n]
+
+    def _frames_single(self, thetas, n):
+        sim, fn = self._single_fn(n)
+        out, good, clamp = [], [], []
+        for th in thetas:
+            fr, codes = fn(sim.params(self.prob.params_at(th)))
+            fr, codes = np.asarray(fr, np.float64), np.asarray(codes)
+            out.append(fr)
+            good.append(diagnostics.first_failure(codes) is None and np.isfinite(fr).all())
+            clamp.append(bool((codes == diagnostics.VOLUME_CLAMPED).any()))
+        return np.stack(out), np.asarray(good), np.asarray(clamp)
+
+
+def _batchable(terms):
+    try:
+        batched.check_terms(terms)
+    except NotImplementedError:
+        return False
+    return True

@@ -1,0 +1,245 @@
+"""The default fit's driver: continuation in time, a global stage, local Levenberg-Marquardt.
+
+:func:`run` takes a built :class:`fitting.fitter.Problem` and its search box and returns a
+:class:`LMRun`: the global samples, every local search, the best point, its residuals and
+finite-difference Jacobian, and the gradients the outcome is judged by.
+
+Continuation in time. A lightly damped body oscillates, and the phase of a mode of frequency
+omega after time t moves by about omega t / 2 per e-fold of k: over a long target the loss
+along log k has a minimum every few percent to few tens of percent, each a local optimum of
+its own (a torus ringing for 0.6 s has one every 0.25 in log k). Over the first quarter of the
+target it has one, wide minimum. So the fit runs in stages over the target's first
+:data:`HORIZONS` of its frames (a quarter, a half, all): the global stage and the screening of
+local starts on the shortest, then each stage's best points start the next, longer one, whose
+minimum lies close by (for an exact model, at the same parameters).
+
+Progress is shown per stage; the run's state is checkpointed after the global stage and after
+every local iteration (:func:`fitting.io.save_lm_checkpoint`), so ``resume`` continues an
+interrupted fit to the same answer (every evaluation is deterministic).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from jaxplush.progress import Progress
+
+from fitting import search as _search
+from fitting.evaluate import Evaluator
+
+#: Defaults: Sobol points of the global stage, local starts screened, and kept after screening.
+GLOBAL_SAMPLES = 64
+STARTS = 5
+KEEP = 2
+SCREEN_ROUNDS = 3
+MAX_ITER = 40
+#: A kept start whose loss exceeds this many times the best one's is set aside (it cannot win).
+DROP_FACTOR = 30.0
+#: The stages' horizons, as fractions of the target's frames (the last is always all of them).
+HORIZONS = (0.25, 0.5, 1.0)
+#: Targets with fewer frames than this are fitted in one stage.
+MIN_FRAMES_FOR_STAGES = 8
+
+
+@dataclasses.dataclass
+class LMRun:
+    """The state and result of a default fit (everything its checkpoint holds, and more).
+
+    Attributes:
+      phase: "global", "local", "final" or "done".
+      stage: index into ``horizons`` (frame counts) of the stage running.
+      global_result: :class:`fitting.search.GlobalResult` (None before the global stage).
+      states: list of :class:`fitting.search.LMState`, the local searches of this stage.
+      rounds: local iterations done in this stage.
+      best: the best state once done; jac (n, P) its Jacobian at H_MIN; residual (n,);
+      grad, grad0: loss gradients (log space) at the best point and at the start values;
+      paths: per finished stage, the (loss, theta) paths of its searches and why each ended;
+      loss0: the loss of the start values on the whole target;
+      wall: seconds spent; evaluations: points simulated.
+    """
+
+    phase: str = "global"
+    stage: int = 0
+    horizons: tuple = ()
+    global_result: object = None
+    states: list = dataclasses.field(default_factory=list)
+    rounds: int = 0
+    best: object = None
+    jac: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    grad: np.ndarray | None = None
+    grad0: np.ndarray | None = None
+    paths: list = dataclasses.field(default_factory=list)
+    loss0: float = math.nan
+    wall: float = 0.0
+    evaluations: int = 0
+
+
+def horizons(n_frames):
+    """Frame counts of the stages (increasing, the last ``n_frames``)."""
+    if n_frames < MIN_FRAMES_FOR_STAGES:
+        return (int(n_frames),)
+    out = sorted({max(2, int(math.ceil(f * n_frames))) for f in HORIZONS})
+    return tuple(out[:-1]) + (int(n_frames),) if out[-1] != n_frames else tuple(out)
+
+
+def default_box(prob, bounds=None, factor=4.0):
+    """The search box in log space: each fitted parameter from start/factor to start*factor, or
+    ``bounds`` {name: (lo, hi)} (absolute values, every fitted object); damping stays >= 1."""
+    th0 = np.asarray(prob.theta0, np.float64)
+    lo, hi = th0 - math.log(factor), th0 + math.log(factor)
+    for i, n in enumerate(prob.names):
+        if bounds and n in bounds:
+            a, b = bounds[n]
+            lo[i], hi[i] = math.log(a), math.log(b)
+        if n == "damping":
+            lo[i] = np.maximum(lo[i], 0.0)
+    return _search.Box(lo, hi)
+
+
+def _order(states):
+    return sorted(range(len(states)), key=lambda i: states[i].loss)
+
+
+def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter=MAX_ITER, seed=0, progress=False,
+        resume=None, save=None, callback=None):
+    """Global stage, then Levenberg-Marquardt from the best ``starts`` candidates (successive
+    halving to ``keep``), over horizons of growing length; then the Jacobian and gradients at
+    the best point of the full problem.
+
+    Args:
+      prob: :class:`fitting.fitter.Problem`; box: :class:`fitting.search.Box`.
+      samples: Sobol points of the global stage (plus the start itself).
+      starts, keep: local starts screened for SCREEN_ROUNDS iterations, and kept afterwards.
+      max_iter: Levenberg-Marquardt iterations per start and stage.
+      seed: the Sobol scrambling seed.
+      progress: draw progress bars on stderr.
+      resume: an :class:`LMRun` from a checkpoint to continue.
+      save: ``save(run)`` called after the global stage and every local iteration.
+      callback: ``callback(run)`` after every local iteration; returning True stops the search.
+
+    Returns:
+      (:class:`LMRun` (phase "done"), the :class:`fitting.evaluate.Evaluator` of the full problem).
+    """
+    t0 = time.perf_counter()
+    st = resume or LMRun(horizons=horizons(prob.target.n_frames))
+    wall0, evals0 = st.wall, st.evaluations
+    th0 = np.asarray(prob.theta0, np.float64)
+    evaluators = {}
+
+    def evaluator(stage):
+        if stage not in evaluators:
+            sub = prob.truncated(st.horizons[stage])
+            calibration = next((e.calibration() for e in evaluators.values()), None)
+            evaluators[stage] = Evaluator(sub, calibration=calibration)
+        return evaluators[stage]
+
+    def tick():
+        st.wall = wall0 + time.perf_counter() - t0
+        st.evaluations = evals0 + sum(e.evaluations for e in evaluators.values())
+
+    n_stages = len(st.horizons)
+    while st.phase in ("global", "local"):
+        ev = evaluator(st.stage)
+        label = f"stage {st.stage + 1}/{n_stages} ({st.horizons[st.stage]} of {st.horizons[-1]} frames)"
+        if st.phase == "global":
+            with Progress(samples + 1, f"global search, {label}", enabled=progress, unit="points") as bar:
+                st.global_result = _search.global_stage(ev, box, th0, samples, seed, progress=bar.update)
+                g = st.global_result
+                bar.extra = f"best loss {np.min(np.where(g.ok, g.loss, np.inf)):.4g}"
+                bar.finish(f"{int((~g.ok).sum())} failed" if (~g.ok).any() else "")
+            width = float(np.max(box.hi - box.lo))
+            chosen = st.global_result.best(starts, 0.1 * width)
+            st.states = [_search.LMState(theta=st.global_result.thetas[i].copy(),
+                                         loss=float(st.global_result.loss[i])) for i in chosen]
+            st.phase = "local"
+            tick()
+            if save is not None:
+                save(st)
+        _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, label)
+        st.paths.append([(list(s.history), s.reason) for s in st.states])
+        if st.stage + 1 < n_stages and not any(s.stopped == "callback" for s in st.states):
+            # the stage's best points start the next, longer stage
+            kept = [st.states[i] for i in _order(st.states)[:keep] if math.isfinite(st.states[i].loss)]
+            st.states = [_search.LMState(theta=s.theta.copy(), loss=math.inf) for s in kept]
+            st.stage += 1
+            st.rounds = 0
+            st.phase = "local"
+            tick()
+            if save is not None:
+                save(st)
+        else:
+            st.phase = "final"
+    ev = evaluator(n_stages - 1)
+    if st.phase == "final":
+        _final(prob, ev, box, st)
+        st.phase = "done"
+        tick()
+    return st, ev
+
+
+def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, label):
+    states = st.states
+    # residuals of the states (a fresh start, or a resumed one: deterministic, so the same values)
+    need = [s for s in states if s.residual is None and not s.done]
+    if need:
+        fresh = _search.start_states(ev, np.asarray([s.theta for s in need]))
+        for s, f in zip(need, fresh):
+            s.residual, s.substeps, s.loss = f.residual, f.substeps, f.loss
+            if f.done:
+                s.done, s.stopped, s.reason = f.done, f.stopped, f.reason
+            if not s.history:
+                s.history.append((f.loss, s.theta.copy()))
+    screen = st.stage == 0 and len(states) > keep
+    with Progress(max_iter, f"local search, {label}", enabled=progress, unit="it") as bar:
+        bar.done = min(st.rounds, max_iter)
+        while any(not s.done for s in states):
+            _search.lm_round(ev, box, states, max_iter)
+            st.rounds += 1
+            if screen and st.rounds == SCREEN_ROUNDS:
+                for i in _order(states)[keep:]:
+                    if not states[i].done:
+                        states[i].done, states[i].stopped = True, "screened"
+                        states[i].reason = f"set aside after {SCREEN_ROUNDS} iterations (loss {states[i].loss:.4g})"
+            if st.rounds >= SCREEN_ROUNDS or not screen:
+                best = min(s.loss for s in states)
+                for s in states:
+                    if not s.done and s.loss > DROP_FACTOR * best:
+                        s.done, s.stopped = True, "screened"
+                        s.reason = f"set aside: its loss {s.loss:.4g} is {s.loss / best:.3g}x the best search's"
+            b = states[_order(states)[0]]
+            vals = prob.values(b.theta)
+            bar.update(1, extra=f"loss {b.loss:.4g} " + " ".join(
+                ("k" if n == "k_structural" else n) + " " + ",".join(f"{x:.4g}" for x in np.atleast_1d(v))
+                for n, v in vals.items()))
+            tick()
+            stop = callback(st) if callback is not None else None
+            if stop is True:
+                for s in states:
+                    if not s.done:
+                        s.done, s.stopped, s.reason = True, "callback", "stopped by the callback"
+            if save is not None and any(not s.done for s in states):
+                save(st)
+        bar.finish(states[_order(states)[0]].reason)
+
+
+def _final(prob, ev, box, st):
+    """Jacobian at the best point (at H_MIN) and the gradients at it and at the start."""
+    states = st.states
+    st.best = states[_order(states)[0]]
+    b = st.best
+    th0 = np.asarray(prob.theta0, np.float64)
+    centre = ev(np.asarray([b.theta, th0]))
+    st.residual = centre.residuals[0]
+    st.loss0 = float(centre.loss[1])
+    st.jac = _search.jacobian(ev, box, b.theta, _search.H_MIN, max(int(centre.substeps[0]), b.substeps))
+    st.grad = 2.0 * st.jac.T @ np.nan_to_num(st.residual)
+    if centre.ok[1]:
+        jac0 = _search.jacobian(ev, box, th0, _search.H_MAX, int(centre.substeps[1]))
+        st.grad0 = 2.0 * jac0.T @ centre.residuals[1]
+    else:
+        st.grad0 = np.full(th0.size, np.inf)

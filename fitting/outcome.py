@@ -1,0 +1,120 @@
+"""Honest outcomes: judge whether a fit reached the data and stopped at an optimum.
+
+A fit is *converged* only when both hold:
+
+* **it reached the data**: the residual RMS (per coordinate for positions, per point distance
+  for point clouds, in metres; :func:`fitting.losses.rms_metres`) is at the noise level, at most
+  :data:`NOISE_FACTOR` times the stated noise sigma, or, for a noise-free target (no sigma), at
+  most :data:`MOTION_FRACTION` of the target's RMS motion from the rest shape;
+* **first-order optimality**: the gradient of the loss in log space, taken at the scale of the
+  fit's final steps, is at most :data:`GRAD_RATIO` of the gradient at the start values (or
+  negligible outright).
+
+Otherwise the status says what happened, in this order: ``at_bound`` (a parameter ended on the
+edge of the search box), ``iteration_limit``, ``stalled`` (no step lowers the loss, yet the
+gradient is not small), ``poor_fit`` (an optimum that does not reach the data: residual RMS X
+against noise Y). The CLI exits with :data:`EXIT_NOT_CONVERGED` for any of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+#: Residual RMS allowed above the stated noise sigma (a fit at the truth sits at 1.0-1.1).
+NOISE_FACTOR = 1.25
+#: Residual RMS allowed, as a fraction of the target's RMS motion, for a noise-free target.
+MOTION_FRACTION = 0.01
+#: Final gradient allowed, as a fraction of the start's (max-norm, log space).
+GRAD_RATIO = 1e-3
+STATUSES = ("converged", "poor_fit", "stalled", "iteration_limit", "at_bound")
+#: jaxplush-fit's exit code for a fit that did not reach the data or did not converge.
+EXIT_NOT_CONVERGED = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """How a fit ended.
+
+    Attributes:
+      status: one of :data:`STATUSES`.
+      message: one line for a person.
+      rms: residual RMS, m (per coordinate for positions, per point distance for points).
+      reference: the noise sigma (m) or, noise-free, the target's RMS motion (m).
+      reference_kind: "noise" or "motion".
+      reached: the residual is at the noise level (or small against the motion).
+      optimal: the gradient is small against the start's.
+      grad_ratio: |gradient|_max / |start gradient|_max (log space).
+      at_bound: labels of parameters that ended on the search box's edge.
+    """
+
+    status: str
+    message: str
+    rms: float
+    reference: float
+    reference_kind: str
+    reached: bool
+    optimal: bool
+    grad_ratio: float
+    at_bound: tuple = ()
+
+    @property
+    def converged(self):
+        return self.status == "converged"
+
+    @property
+    def text(self):
+        """"status: message", e.g. "poor fit: the fit stopped at an optimum ..."."""
+        return f"{self.status.replace('_', ' ')}: {self.message}"
+
+    def as_dict(self):
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+def _mm(x):
+    return f"{1e3 * x:.3g} mm"
+
+
+def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=()):
+    """The :class:`Outcome` of a fit.
+
+    Args:
+      rms: residual RMS at the result, m; noise: stated noise sigma (m) or None (noise-free);
+      motion: the target's RMS motion from the rest shape, m (same measure as ``rms``);
+      grad, grad0: loss gradients (log space) at the result and at the start values;
+      stopped: why the optimiser stopped: "step", "loss", "exact", "stalled", "iterations",
+        "screened" or other text;
+      at_bound: labels of parameters on the search box's edge.
+    """
+    g = float(np.max(np.abs(grad))) if np.size(grad) else 0.0
+    g0 = float(np.max(np.abs(grad0))) if np.size(grad0) else 0.0
+    ratio = g / g0 if g0 > 0 else (0.0 if g == 0 else np.inf)
+    optimal = bool(g <= GRAD_RATIO * g0 or g <= 1e-12 or stopped == "exact")
+    if noise is not None and noise > 0:
+        reached = bool(rms <= NOISE_FACTOR * noise)
+        ref, kind = float(noise), "noise"
+        versus = f"residual RMS {_mm(rms)} against noise {_mm(noise)}"
+    else:
+        reached = bool(rms <= MOTION_FRACTION * motion)
+        ref, kind = float(motion), "motion"
+        versus = f"residual RMS {_mm(rms)} against the target's motion {_mm(motion)} (noise-free)"
+    grad_text = f"gradient {ratio:.2g} of the start's"
+    if at_bound:
+        status = "at_bound"
+        msg = (f"stopped at the edge of the search box ({', '.join(at_bound)}); widen it (--bounds) and fit "
+               f"again; {versus}")
+    elif reached and optimal:
+        status = "converged"
+        msg = f"{versus}, {grad_text}"
+    elif stopped == "iterations":
+        status = "iteration_limit"
+        msg = f"the iteration limit came before convergence: {versus}, {grad_text}"
+    elif not optimal:
+        status = "stalled"
+        msg = f"no step lowers the loss, yet the {grad_text}; {versus}"
+    else:
+        status = "poor_fit"
+        msg = f"the fit stopped at an optimum that does not reach the data: {versus}"
+    return Outcome(status=status, message=msg, rms=float(rms), reference=ref, reference_kind=kind,
+                   reached=reached, optimal=optimal, grad_ratio=float(ratio), at_bound=tuple(at_bound))

@@ -1,0 +1,282 @@
+"""The default fit: a global stage over a box, then Levenberg-Marquardt from the best candidates.
+
+Both stages work in theta = log(parameters) and only ever *simulate* (batched forward runs,
+:class:`fitting.evaluate.Evaluator`); neither differentiates through the rollout.
+
+Why no autodiff here: a dropped plush excites vertex-level modes that ring for the whole target
+(hundreds to thousands of radians of phase), so the loss carries a ripple whose wavelength in
+log k is about 1e-3 on top of a smooth bowl (benchmarks/RESULTS.md, "roughness"). The exact
+gradient and the JVP Jacobian are the derivatives of that ripple, which is why L-BFGS's line
+search stalled 2x away from the truth and reported convergence. Central differences taken at
+the scale of the step (the trust radius, between :data:`H_MIN` and :data:`H_MAX`) see the bowl;
+as the steps shrink near the optimum, so does the difference step, where the loss is smooth.
+
+Global stage (:func:`global_stage`): a scrambled Sobol design (scipy.stats.qmc) of ``n``
+points in the box, plus the start itself, all run in compiled batches; failed points (which
+even :data:`fitting.evaluate.MAX_SUBSTEPS` substeps cannot run) are kept with an infinite loss.
+
+Local stage (:func:`levenberg_marquardt`): a box-constrained Levenberg-Marquardt on the residual
+vector r (sum(r²) = loss) with a trust radius in log space:
+
+* J by central differences at step h = clip(radius / 4, H_MIN, H_MAX) (2 P runs, one batch);
+* three trial steps (JᵀJ + mu diag(JᵀJ)) delta = -Jᵀ r for mu/10, mu and 10 mu, each cut to the
+  trust radius and projected into the box, run together; the best one is accepted if it
+  lowers the loss (mu and the radius follow the ratio of actual to predicted decrease), else
+  mu grows tenfold and the radius shrinks fourfold;
+* it stops when an accepted step changes theta by less than ``xtol`` or the loss by less than
+  ``ftol`` (relative), when the radius falls below ``xtol`` without an accepted step (stalled),
+  or at ``max_iter`` iterations. The outcome is judged afterwards (fitting.fitter), not here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+#: Smallest and largest central-difference step of the Jacobian, in log space.
+H_MIN = 1e-3
+H_MAX = 0.05
+#: Trust radius at the start (log space: x1.65 per parameter).
+RADIUS0 = 0.5
+MU0 = 1e-3
+
+
+@dataclasses.dataclass
+class Box:
+    """Bounds of the search in log space: ``lo`` and ``hi`` shaped like theta."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def clip(self, theta):
+        return np.clip(theta, self.lo, self.hi)
+
+    def contains(self, theta):
+        return bool(np.all(theta >= self.lo - 1e-12) and np.all(theta <= self.hi + 1e-12))
+
+    def at_bound(self, theta, tol=1e-6):
+        """Bool mask (theta's shape): on the box's edge."""
+        return (theta <= self.lo + tol) | (theta >= self.hi - tol)
+
+
+@dataclasses.dataclass
+class GlobalResult:
+    """The global stage: ``thetas`` (N, P_n, O_f), ``loss`` (N,), ``ok`` (N,), ``substeps`` (N,)."""
+
+    thetas: np.ndarray
+    loss: np.ndarray
+    ok: np.ndarray
+    substeps: np.ndarray
+
+    def best(self, k, min_distance):
+        """Indices of up to k lowest-loss points that ran, each at least ``min_distance`` (max-norm,
+        log space) from those chosen before it."""
+        order = [i for i in np.argsort(self.loss) if self.ok[i] and np.isfinite(self.loss[i])]
+        chosen = []
+        for i in order:
+            if all(np.max(np.abs(self.thetas[i] - self.thetas[j])) >= min_distance for j in chosen):
+                chosen.append(int(i))
+            if len(chosen) == k:
+                break
+        return chosen
+
+
+def sobol_design(box, n, seed=0):
+    """(n, *theta.shape) points of a scrambled Sobol sequence in the box (n rounded up to a power
+    of two inside scipy, the first n kept)."""
+    from scipy.stats import qmc
+    shape = box.lo.shape
+    d = int(np.prod(shape))
+    m = max(int(math.ceil(math.log2(max(n, 2)))), 1)
+    u = qmc.Sobol(d, scramble=True, seed=seed).random_base2(m)[:n]
+    lo, hi = box.lo.ravel(), box.hi.ravel()
+    return (lo + u * (hi - lo)).reshape((n,) + shape)
+
+
+def global_stage(evaluator, box, start, n=64, seed=0, progress=None):
+    """Evaluate the start and ``n`` Sobol points of the box. Returns :class:`GlobalResult`."""
+    thetas = np.concatenate([np.asarray(start, np.float64)[None], sobol_design(box, n, seed)])
+    ev = evaluator(thetas)
+    if progress is not None:
+        progress(len(thetas))
+    return GlobalResult(thetas, ev.loss, ev.ok, ev.substeps)
+
+
+@dataclasses.dataclass
+class LMState:
+    """One Levenberg-Marquardt run (everything a checkpoint needs to continue it).
+
+    theta: current point (shape of theta); loss: its loss; mu: damping; radius: trust radius;
+    iteration: iterations done; done, reason: whether and why it stopped; history: list of
+    (loss, theta) of accepted points (the first is the start); evaluations: simulated points.
+    """
+
+    theta: np.ndarray
+    loss: float
+    mu: float = MU0
+    radius: float = RADIUS0
+    iteration: int = 0
+    done: bool = False
+    reason: str = ""
+    stopped: str = ""             # "step", "loss", "stalled", "iterations", "exact"
+    history: list = dataclasses.field(default_factory=list)
+    jac: np.ndarray | None = None     # (n, P) at theta, if computed there
+    jac_h: float = H_MAX
+    residual: np.ndarray | None = None
+    substeps: int = 1
+    evaluations: int = 0
+
+
+def fd_step(radius):
+    return float(min(max(radius / 4.0, H_MIN), H_MAX))
+
+
+def _stencil(box, theta, h):
+    """The 2 P central-difference points around theta (clipped into the box) and their spans."""
+    flat = theta.ravel()
+    pts, spans = [], []
+    for j in range(flat.size):
+        lo_t, hi_t = flat.copy(), flat.copy()
+        lo_t[j] = max(flat[j] - h, box.lo.ravel()[j])
+        hi_t[j] = min(flat[j] + h, box.hi.ravel()[j])
+        pts += [lo_t.reshape(theta.shape), hi_t.reshape(theta.shape)]
+        spans.append(hi_t[j] - lo_t[j])
+    return pts, spans
+
+
+def _jacobians(evaluator, box, states):
+    """Central-difference Jacobians (n, P) of every state at its own step h, all stencils run in
+    one evaluation; a stencil runs at the substeps its points need (at least its centre's).
+    Columns whose stencil fails are zero."""
+    pts, owner, spans, subs = [], [], [], []
+    for i, st in enumerate(states):
+        h = fd_step(st.radius)
+        p, sp = _stencil(box, st.theta, h)
+        n = max(int(evaluator.substeps_for(np.asarray(p)).max()), st.substeps)
+        pts += p
+        owner += [i] * len(p)
+        spans.append(sp)
+        subs += [n] * len(p)
+        st.jac_h = h
+    ev = evaluator(np.asarray(pts), substeps=np.asarray(subs))
+    k = 0
+    for i, st in enumerate(states):
+        p = len(spans[i])
+        jac = np.zeros((evaluator.residual.n, p))
+        for j in range(p):
+            a, b = k + 2 * j, k + 2 * j + 1
+            if ev.ok[a] and ev.ok[b] and spans[i][j] > 0:
+                jac[:, j] = (ev.residuals[b] - ev.residuals[a]) / spans[i][j]
+        st.jac = jac
+        st.evaluations += 2 * p
+        k += 2 * p
+
+
+def jacobian(evaluator, box, theta, h, substeps=1):
+    """(n, P) central-difference Jacobian of the residuals at theta with step h (log space)."""
+    st = LMState(theta=np.asarray(theta, np.float64), loss=np.nan, radius=4.0 * h, substeps=substeps)
+    _jacobians(evaluator, box, [st])
+    return st.jac
+
+
+def _steps(jac, r, mus, radius, box, theta):
+    """Trial points for each mu: the LM step cut to the trust radius, projected into the box."""
+    jtj = jac.T @ jac
+    g = jac.T @ r
+    scale = np.maximum(np.diag(jtj), 1e-12 * max(float(np.max(np.diag(jtj))), 1e-300))
+    out = []
+    for mu in mus:
+        a = jtj + mu * np.diag(scale)
+        try:
+            delta = -np.linalg.solve(a, g)
+        except np.linalg.LinAlgError:
+            delta = -np.linalg.lstsq(a, g, rcond=None)[0]
+        big = float(np.max(np.abs(delta)))
+        if big > radius:
+            delta = delta * (radius / big)
+        trial = box.clip((theta.ravel() + delta).reshape(theta.shape))
+        step = trial.ravel() - theta.ravel()
+        pred = float(r @ r - np.sum((r + jac @ step) ** 2))
+        out.append((trial, step, pred, mu))
+    return out
+
+
+def start_states(evaluator, thetas, losses=None):
+    """:class:`LMState` s at the given points, their residuals evaluated (one evaluation)."""
+    thetas = np.asarray(thetas, np.float64)
+    ev = evaluator(thetas)
+    out = []
+    for i, th in enumerate(thetas):
+        st = LMState(theta=th.copy(), loss=float(ev.loss[i]), residual=ev.residuals[i],
+                     substeps=int(ev.substeps[i]), evaluations=1)
+        if not ev.ok[i]:
+            st.done, st.stopped = True, "failed"
+            st.reason = "the start of the local search does not run (blows up at every substep count)"
+        else:
+            st.history.append((st.loss, st.theta.copy()))
+        out.append(st)
+    return out
+
+
+def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7):
+    """One Levenberg-Marquardt iteration of every unfinished state (two evaluations in all: the
+    Jacobians that are missing, then three trial steps per state)."""
+    active = []
+    for st in states:
+        if st.done:
+            continue
+        if st.iteration >= max_iter:
+            st.done, st.stopped = True, "iterations"
+            st.reason = f"reached the iteration limit ({max_iter})"
+        elif st.loss == 0.0:
+            st.done, st.stopped = True, "exact"
+            st.reason = "the residuals are exactly zero"
+        else:
+            active.append(st)
+    if not active:
+        return
+    need = [st for st in active if st.jac is None or st.jac_h != fd_step(st.radius)]
+    if need:
+        _jacobians(evaluator, box, need)
+    trials, owner = [], []
+    for i, st in enumerate(active):
+        t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
+        trials += t
+        owner += [i] * len(t)
+    ev = evaluator(np.asarray([t[0] for t in trials]))
+    owner = np.asarray(owner)
+    for i, st in enumerate(active):
+        idx = np.nonzero(owner == i)[0]
+        st.evaluations += len(idx)
+        st.iteration += 1
+        best = int(idx[np.argmin(np.where(ev.ok[idx], ev.loss[idx], np.inf))])
+        trial, step, pred, mu = trials[best]
+        new = float(ev.loss[best])
+        size = float(np.max(np.abs(step))) if step.size else 0.0
+        if ev.ok[best] and new < st.loss:
+            rho = (st.loss - new) / pred if pred > 0 else 0.0
+            rel = (st.loss - new) / max(st.loss, 1e-300)
+            st.theta, st.loss = trial, new
+            st.residual, st.substeps = ev.residuals[best], int(ev.substeps[best])
+            st.jac = None
+            st.mu = mu * (1 / 3 if rho > 0.75 else (1.0 if rho > 0.25 else 2.0))
+            if rho > 0.75:
+                st.radius = max(st.radius, 2.0 * size)
+            elif rho < 0.25:
+                st.radius = max(size / 2.0, xtol / 2)
+            st.history.append((st.loss, st.theta.copy()))
+            if size <= xtol:
+                st.done, st.stopped = True, "step"
+                st.reason = f"step {size:.2g} <= xtol {xtol:g} (log space)"
+            elif rel <= ftol:
+                st.done, st.stopped = True, "loss"
+                st.reason = f"relative loss change {rel:.2g} <= ftol {ftol:g}"
+        else:
+            st.mu = max(mu, st.mu) * 10.0
+            st.radius = (size if size > 0 else st.radius) / 4.0
+            if st.radius < xtol:
+                st.done, st.stopped = True, "stalled"
+                st.reason = (f"stalled: no step down to {st.radius:.2g} (log space) lowers the loss "
+                             f"{st.loss:.4g}")
