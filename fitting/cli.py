@@ -162,6 +162,10 @@ def _fit(args):
                     lr=args.lr, noise=args.noise, noise_free=args.noise_free, method=args.method,
                     force=args.force, progress=not args.quiet, checkpoint_path=args.out,
                     checkpoint_every=args.checkpoint_every, resume=args.resume)
+            except JaxplushError as e:
+                if type(e).__name__ in ("FitError", "SimulationError"):
+                    show(caught)              # e.g. the dt warning that explains a blow-up
+                raise                         # bad input: its one message alone
             except BaseException:
                 show(caught)
                 raise

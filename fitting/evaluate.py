@@ -101,9 +101,14 @@ class Evaluator:
         self.batched = sim.integrator == "verlet" and len(self.runs) <= 8 and _batchable(sim.terms)
         self._bsims = {}
         self._single = {}
-        self._res_fn = jax.jit(jax.vmap(self.residual.fn))
+        if self.residual.kind == "points":
+            self._res_fn = jax.jit(jax.vmap(self.residual.fn))                 # (frames, near)
+            self._points = np.asarray(prob.target.points, np.float64)
+        else:
+            self._res_fn = jax.jit(jax.vmap(self.residual.fn))
         self._calibration = calibration
         self._calibrate = calibrate
+        self.notes = []               # messages about the run (a grown contact capacity)
         self.evaluations = 0          # points run (each substep retry counted)
 
     # ------------------------------------------------------------------ stability
@@ -197,8 +202,13 @@ class Evaluator:
         n_pts = len(frames)
         pad = -n_pts % piece
         x = np.concatenate([frames, np.repeat(frames[-1:], pad, axis=0)]) if pad else frames
-        out = [np.asarray(self._res_fn(jnp.asarray(x[i:i + piece], self.prob.sim.dtype)), np.float64)
-               for i in range(0, len(x), piece)]
+        out = []
+        for i in range(0, len(x), piece):
+            part = x[i:i + piece]
+            args = (jnp.asarray(part, self.prob.sim.dtype),)
+            if self.residual.kind == "points":
+                args += (jnp.asarray(_losses.nearest_vertices(part, self._points)),)
+            out.append(np.asarray(self._res_fn(*args), np.float64))
         return np.concatenate(out)[:n_pts]
 
     def _frames(self, thetas, n):
@@ -208,24 +218,28 @@ class Evaluator:
             return self._frames_batched(thetas, n)
         return self._frames_single(thetas, n)
 
-    def _bsim(self, n):
-        """(batched simulator, its jitted init) for ``n`` substeps (built once)."""
-        if n not in self._bsims:
-            b = self.batch
-            # the dashpot gathers velocities too, and a chunk of 16 points then outgrows the caches:
-            # chunks of a quarter of the batch run it about 20% faster (benchmarks/RESULTS.md)
-            chunk = max(1, b // (4 if self.prob.sim.terms.dashpot else 2))
+    def _bsim(self, n, b):
+        """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b`` (built once)."""
+        if (n, b) not in self._bsims:
+            # two chunks, one per core; the dashpot gathers velocities too, and a chunk of 16 points
+            # then outgrows the caches: chunks of 8 run it about 20% faster (benchmarks/RESULTS.md)
+            chunk = max(1, min(b // 2, 8 if self.prob.sim.terms.dashpot else 16))
             bsim = batched.make_batched_simulator(self.prob.scene, self.prob.target.dt, b,
                                                   terms=self.prob.sim.terms, substeps=n, chunk=chunk)
-            self._bsims[n] = (bsim, jax.jit(bsim.init_fn))
-        return self._bsims[n]
+            self._bsims[(n, b)] = (bsim, jax.jit(bsim.init_fn))
+        return self._bsims[(n, b)]
 
     def _frames_batched(self, thetas, n):
-        bsim, init = self._bsim(n)
-        b = bsim.batch
         out, good, clamp = [], [], []
-        for start in range(0, len(thetas), b):
+        start = 0
+        while start < len(thetas):
+            left = len(thetas) - start
+            # full batches, and a narrow one (a quarter) for a remainder that fits in it: a local
+            # search's calls hold a few points, and a padded wide batch would simulate copies
+            b = self.batch if left > self.batch // 4 else max(1, self.batch // 4)
+            bsim, init = self._bsim(n, b)
             part = thetas[start:start + b]
+            start += len(part)
             live = len(part)
             pad = np.concatenate([part, np.repeat(part[-1:], b - live, axis=0)]) if live < b else part
             vals = [self.prob.params_at(th) for th in pad]
@@ -260,15 +274,50 @@ class Evaluator:
         return self._single[n]
 
     def _frames_single(self, thetas, n):
-        sim, fn = self._single_fn(n)
         out, good, clamp = [], [], []
         for th in thetas:
-            fr, codes = fn(sim.params(self.prob.params_at(th)))
-            fr, codes = np.asarray(fr, np.float64), np.asarray(codes)
+            for _ in range(2):
+                sim, fn = self._single_fn(n)
+                fr, codes = fn(sim.params(self.prob.params_at(th)))
+                fr, codes = np.asarray(fr, np.float64), np.asarray(codes)
+                ok = diagnostics.first_failure(codes) is None and np.isfinite(fr).all()
+                if ok or not self._grow_contact(th, sim):
+                    break
             out.append(fr)
-            good.append(diagnostics.first_failure(codes) is None and np.isfinite(fr).all())
+            good.append(ok)
             clamp.append(bool((codes == diagnostics.VOLUME_CLAMPED).any()))
         return np.stack(out), np.asarray(good), np.asarray(clamp)
+
+    def _grow_contact(self, theta, sim):
+        """After a failed run at theta: if soft-soft contact candidates overflowed there, rebuild
+        with the capacity the run needs (a warning names it) and return True (run it again)."""
+        import dataclasses
+        import warnings
+        import jaxplush
+        from jaxplush import contact
+        from jaxplush.simulate import contact_capacity_needed
+        prob = self.prob
+        if getattr(prob.sim.terms, "contact", None) is None:
+            return False
+        need = contact_capacity_needed(prob.scene, int(self.steps[-1]), prob.target.dt, params=prob.params_at(theta),
+                                       sim=sim)
+        if need is None:
+            return False
+        old = max(prob.sim.terms.contact.capacity)
+        new_sim = jaxplush.make_simulator(prob.scene, prob.target.dt, prob.sim.integrator,
+                                          terms=contact.with_capacity(prob.sim.terms, need))
+        self.prob = dataclasses.replace(prob, sim=new_sim)
+        self._single.clear()
+        msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "
+               f"refitting with contact_capacity {need} (set it in the scene to skip this)")
+        warnings.warn(msg, stacklevel=4)
+        self.notes.append(msg)
+        return True
+
+
+def _values_text(vals):
+    return " ".join(("k" if n == "k_structural" else n) + " " + ",".join(f"{x:.4g}" for x in np.atleast_1d(v))
+                    for n, v in vals.items())
 
 
 def _batchable(terms):

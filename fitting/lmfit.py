@@ -41,6 +41,10 @@ MAX_ITER = 40
 DROP_FACTOR = 30.0
 #: The stages' horizons, as fractions of the target's frames (the last is always all of them).
 HORIZONS = (0.25, 0.5, 1.0)
+#: Searches that ended within this distance (max-norm, log space) continue as one in the next stage.
+SAME_POINT = 0.02
+#: Trust radius (log space) with which a later stage starts from the previous stage's result.
+NEXT_RADIUS = 0.05
 #: Targets with fewer frames than this are fitted in one stage.
 MIN_FRAMES_FOR_STAGES = 8
 
@@ -135,6 +139,8 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
         if stage not in evaluators:
             sub = prob.truncated(st.horizons[stage])
             calibration = next((e.calibration() for e in evaluators.values()), None)
+            if evaluators:              # a contact capacity grown in an earlier stage carries over
+                sub = dataclasses.replace(sub, sim=evaluators[max(evaluators)].prob.sim)
             evaluators[stage] = Evaluator(sub, calibration=calibration)
         return evaluators[stage]
 
@@ -164,8 +170,16 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
         st.paths.append([(list(s.history), s.reason) for s in st.states])
         if st.stage + 1 < n_stages and not any(s.stopped == "callback" for s in st.states):
             # the stage's best points start the next, longer stage
-            kept = [st.states[i] for i in _order(st.states)[:keep] if math.isfinite(st.states[i].loss)]
-            st.states = [_search.LMState(theta=s.theta.copy(), loss=math.inf) for s in kept]
+            kept = []
+            for i in _order(st.states)[:keep]:
+                s = st.states[i]
+                # searches that ended at the same point continue as one
+                if math.isfinite(s.loss) and all(np.max(np.abs(s.theta - o.theta)) > SAME_POINT for o in kept):
+                    kept.append(s)
+            # a longer horizon moves the optimum little: start with a small trust radius (and so
+            # an accurate difference step), from the damping the previous stage ended with
+            st.states = [_search.LMState(theta=s.theta.copy(), loss=math.inf, radius=NEXT_RADIUS,
+                                         mu=min(s.mu, 1.0)) for s in kept]
             st.stage += 1
             st.rounds = 0
             st.phase = "local"
@@ -175,6 +189,7 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
         else:
             st.phase = "final"
     ev = evaluator(n_stages - 1)
+    ev.notes[:0] = [m for k, e in sorted(evaluators.items()) if k != n_stages - 1 for m in e.notes]
     if st.phase == "final":
         _final(prob, ev, box, st)
         st.phase = "done"

@@ -74,7 +74,7 @@ def vertex_faces(faces, n_vertices):
     return np.array([a + [a[0]] * (w - len(a)) for a in around], np.int32)
 
 
-def point_surface_distance2(x, p, faces, vfaces):
+def point_surface_distance2(x, p, faces, vfaces, near=None):
     """(M,) squared distance of every target point to the simulated surface (m²).
 
     The distance of p_k is to the closest of the faces around p_k's nearest vertex (exact for a
@@ -86,10 +86,13 @@ def point_surface_distance2(x, p, faces, vfaces):
     Args:
       x: (V, 3) simulated vertex positions; p: (M, 3) target points.
       faces: (F, 3) int faces; vfaces: (V, W) faces around each vertex (:func:`vertex_faces`).
+      near: (M,) index of each point's nearest vertex, if known (:func:`nearest_vertices`);
+        default: found here by brute force (an (M, V) table).
     """
     from jaxplush.contact import closest_point_distance2
-    d2v = sum((x[:, None, c] - p[None, :, c]) ** 2 for c in range(3))   # (V, M), elementwise (a K=3 dot is slower)
-    near = jnp.argmin(d2v, axis=0)                                      # (M,) nearest vertex
+    if near is None:
+        d2v = sum((x[:, None, c] - p[None, :, c]) ** 2 for c in range(3))   # (V, M); a K=3 dot is slower
+        near = jnp.argmin(d2v, axis=0)                                      # (M,) nearest vertex
     tri = jnp.asarray(faces)[jnp.asarray(vfaces)[near]]                 # (M, W, 3)
     corner = [x[tri[..., i]] for i in range(3)]                         # 3 x (M, W, 3)
     split = lambda a: tuple(a[..., c] for c in range(3))  # noqa: E731
@@ -205,11 +208,39 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     return Loss(loss_fn, aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind)
 
 
+def nearest_vertices(frames, points, threads=None):
+    """(..., T, M) int32 index of each target point's nearest vertex, per frame (numpy, exact):
+    k-d trees (scipy), frames split over the CPU's cores. ``frames`` (..., T, V, 3), ``points``
+    (T, M, 3). Cheaper than the brute-force (M, V) table from about 500 vertices on."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+    from scipy.spatial import cKDTree
+    x = np.asarray(frames)
+    lead = x.shape[:-3]
+    t = x.shape[-3]
+    flat = x.reshape((-1,) + x.shape[-3:])
+    out = np.empty(flat.shape[:2] + (points.shape[1],), np.int32)
+
+    def work(i):
+        for j in range(t):
+            out[i, j] = cKDTree(flat[i, j]).query(points[j], k=1)[1]
+
+    n = threads or os.cpu_count() or 1
+    if n > 1 and len(flat) > 1:
+        with ThreadPoolExecutor(n) as ex:
+            list(ex.map(work, range(len(flat))))
+    else:
+        for i in range(len(flat)):
+            work(i)
+    return out.reshape(lead + (t, points.shape[1]))
+
+
 class Residual(NamedTuple):
     """The loss of :func:`make_loss` as a residual vector (for least-squares methods).
 
     Attributes:
-      fn: ``frames (T, V, 3) -> (n,)`` normalised residuals with sum(r²) = the loss (jax).
+      fn: ``frames (T, V, 3) -> (n,)`` normalised residuals with sum(r²) = the loss (jax); for
+        points also ``fn(frames, near)`` with the nearest vertices (T, M) already found.
       n: number of residuals; kind, scale2, normalisation: as in :class:`Loss`.
       per_frame: residuals per frame (3 V for positions, M for points).
     """
@@ -236,9 +267,12 @@ def make_residual(target, topology, loss):
         faces = np.asarray(topology.faces, np.int32)
         vf = vertex_faces(faces, topology.n_vertices)
 
-        def fn(frames):
+        def fn(frames, near=None):
             y = jnp.asarray(data, frames.dtype)
-            d2 = jax.lax.map(lambda xy: point_surface_distance2(xy[0], xy[1], faces, vf), (frames, y))
+            if near is None:
+                d2 = jax.lax.map(lambda xy: point_surface_distance2(xy[0], xy[1], faces, vf), (frames, y))
+            else:
+                d2 = jax.vmap(lambda x, p, n: point_surface_distance2(x, p, faces, vf, n))(frames, y, near)
             return (jnp.sqrt(d2) * jnp.asarray(norm, frames.dtype)).reshape(-1)
         per_frame = m
     return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame)

@@ -8,7 +8,9 @@ A fit is *converged* only when both hold:
   most :data:`MOTION_FRACTION` of the target's RMS motion from the rest shape;
 * **first-order optimality**: the gradient of the loss in log space, taken at the scale of the
   fit's final steps, is at most :data:`GRAD_RATIO` of the gradient at the start values (or
-  negligible outright).
+  negligible outright), or, for a loss normalised by the noise, where the gradient never gets
+  small against the start's, the Gauss-Newton step that gradient implies, (JᵀJ)⁻¹ Jᵀ r, is
+  below every parameter's standard error: the optimum is resolved to the noise.
 
 Otherwise the status says what happened, in this order: ``at_bound`` (a parameter ended on the
 edge of the search box), ``iteration_limit``, ``stalled`` (no step lowers the loss, yet the
@@ -27,7 +29,7 @@ NOISE_FACTOR = 1.25
 #: Residual RMS allowed, as a fraction of the target's RMS motion, for a noise-free target.
 MOTION_FRACTION = 0.01
 #: Final gradient allowed, as a fraction of the start's (max-norm, log space).
-GRAD_RATIO = 1e-3
+GRAD_RATIO = 1e-2
 STATUSES = ("converged", "poor_fit", "stalled", "iteration_limit", "at_bound")
 #: jaxplush-fit's exit code for a fit that did not reach the data or did not converge.
 EXIT_NOT_CONVERGED = 4
@@ -76,7 +78,7 @@ def _mm(x):
     return f"{1e3 * x:.3g} mm"
 
 
-def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=()):
+def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None, stderr=None):
     """The :class:`Outcome` of a fit.
 
     Args:
@@ -86,11 +88,14 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=()):
       stopped: why the optimiser stopped: "step", "loss", "exact", "stalled", "iterations",
         "screened" or other text;
       at_bound: labels of parameters on the search box's edge.
+      gn_step, stderr: the Gauss-Newton step at the result and the standard errors (log space).
     """
     g = float(np.max(np.abs(grad))) if np.size(grad) else 0.0
     g0 = float(np.max(np.abs(grad0))) if np.size(grad0) else 0.0
     ratio = g / g0 if g0 > 0 else (0.0 if g == 0 else np.inf)
-    optimal = bool(g <= GRAD_RATIO * g0 or g <= 1e-12 or stopped == "exact")
+    within_noise = (gn_step is not None and stderr is not None and np.size(gn_step) > 0
+                    and bool(np.all(np.abs(np.asarray(gn_step)) <= np.asarray(stderr))))
+    optimal = bool(g <= GRAD_RATIO * g0 or g <= 1e-12 or stopped == "exact" or within_noise)
     if noise is not None and noise > 0:
         reached = bool(rms <= NOISE_FACTOR * noise)
         ref, kind = float(noise), "noise"
@@ -99,7 +104,8 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=()):
         reached = bool(rms <= MOTION_FRACTION * motion)
         ref, kind = float(motion), "motion"
         versus = f"residual RMS {_mm(rms)} against the target's motion {_mm(motion)} (noise-free)"
-    grad_text = f"gradient {ratio:.2g} of the start's"
+    grad_text = f"gradient {ratio:.2g} of the start's" + (
+        " (the step it implies is within the standard errors)" if within_noise and ratio > GRAD_RATIO else "")
     if at_bound:
         status = "at_bound"
         msg = (f"stopped at the edge of the search box ({', '.join(at_bound)}); widen it (--bounds) and fit "

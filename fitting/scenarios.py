@@ -56,7 +56,8 @@ def drop_scene_text(shape="ball", subdivisions=3, *, k_structural=420.0, damping
       shape: "ball", "torus" or "bean"; subdivisions: resolution (3: about 642 vertices).
       k_structural, damping, dashpot, drag, total_weight: the object's parameters (damping,
         dashpot or drag None: left out).
-      pressure: rest gas pressure (Pa) that sets nmol = P V0 / (R T), unless ``nmol`` is given.
+      pressure: rest gas pressure (Pa) that sets nmol = P V0 / (R T), unless ``nmol`` is given
+        (both None: no gas).
       height: the lowest vertex's height above the floor at the start, m.
       tilt_deg: rotation about the z axis before the drop (a bean lands on one end first).
       floor_model: None (the scene default, projection) or a ``floor_model`` keyword value.
@@ -69,10 +70,10 @@ def drop_scene_text(shape="ball", subdivisions=3, *, k_structural=420.0, damping
         rot = np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
         v = v @ rot.T
     v = v - [0.0, v[:, 1].min() - height, 0.0]
-    if nmol is None:
+    if nmol is None and pressure is not None:
         nmol = pressure * _volume(v, f) / (GAS_CONSTANT * TEMPERATURE)
     obj = dict(name=name or shape, vertices=v, faces=f, k_structural=float(k_structural),
-               total_weight=float(total_weight), nmol=float(nmol))
+               total_weight=float(total_weight), nmol=None if nmol is None else float(nmol))
     for key, val in (("damping", damping), ("dashpot", dashpot), ("drag", drag)):
         if val is not None:
             obj[key] = float(val)

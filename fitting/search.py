@@ -220,7 +220,12 @@ def start_states(evaluator, thetas, losses=None):
     return out
 
 
-def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7):
+#: Stop when the Gauss-Newton model promises less than this fraction of the loss (at a noisy
+#: target's optimum the loss sits at the noise level and no step can lower it further).
+PRED_TOL = 1e-4
+
+
+def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol=PRED_TOL):
     """One Levenberg-Marquardt iteration of every unfinished state (two evaluations in all: the
     Jacobians that are missing, then three trial steps per state)."""
     active = []
@@ -243,12 +248,22 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7):
     trials, owner = [], []
     for i, st in enumerate(active):
         t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
+        best_pred = max(x[2] for x in t)
+        if best_pred <= pred_tol * st.loss and st.jac_h <= H_MIN * (1 + 1e-9):
+            st.done, st.stopped = True, "predicted"
+            st.reason = (f"the Gauss-Newton model predicts a decrease of at most {best_pred / st.loss:.2g} of the "
+                         f"loss {st.loss:.4g} (<= {pred_tol:g})")
+            continue
         trials += t
         owner += [i] * len(t)
+    if not trials:
+        return
     ev = evaluator(np.asarray([t[0] for t in trials]))
     owner = np.asarray(owner)
     for i, st in enumerate(active):
         idx = np.nonzero(owner == i)[0]
+        if not idx.size:
+            continue
         st.evaluations += len(idx)
         st.iteration += 1
         best = int(idx[np.argmin(np.where(ev.ok[idx], ev.loss[idx], np.inf))])

@@ -1,0 +1,175 @@
+"""The default fit (fitting.search, fitting.lmfit, fitting.evaluate, fitting.outcome): recovery from
+far starts on floor-contact scenes, honest outcomes, every evaluated point stable, defaults that
+follow the scene, resume. Small versions of benchmarks/bench_recovery.py (162-vertex drops)."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+import jaxplush
+from fitting import fitter as F
+from fitting import outcome
+from fitting.evaluate import Evaluator
+from fitting.io import load_fit
+from fitting.scenarios import drop_scene_text
+from fitting.targets import make_target
+from jaxplush.errors import JaxplushError
+
+DT, STEPS, EVERY = 4e-4, 1000, 25          # 0.4 s, 40 frames; a 162-vertex ball is stable at dt 4e-4
+
+
+def _drop(**kw):
+    return jaxplush.parse_scene(drop_scene_text("ball", 2, **kw), "<drop>")
+
+
+def _start(truth, names, factors):
+    p = truth.params
+    return truth.replace(params=p._replace(**{n: getattr(p, n) * f for n, f in zip(names, factors)}))
+
+
+@pytest.fixture(scope="module")
+def drop():
+    truth = _drop()
+    return truth, make_target(truth, STEPS, DT, EVERY)
+
+
+@pytest.mark.parametrize("kind", ["positions", "points"])
+def test_default_fit_recovers_a_dropped_ball_from_a_far_start(drop, kind):
+    """k, damping and nmol of a ball dropped on a floor, from k x2, damping x0.5, nmol x2 (a start the
+    gradient fits could not leave), with no options: within 1% of the truth from positions, 3% from
+    point clouds of 150 points with 2 mm noise, and the fit says converged."""
+    truth, target = drop
+    if kind == "points":
+        target = make_target(truth, STEPS, DT, EVERY, point_cloud=True, n_points=150, noise=0.002, seed=3)
+    names = ("k_structural", "damping", "nmol")
+    with pytest.warns(UserWarning, match="fitting k_structural, damping, nmol"):
+        res = F.fit(_start(truth, names, (2.0, 0.5, 2.0)), target)
+    errors = {n: res.values[n][0] / getattr(truth.params, n)[0] - 1 for n in names}
+    assert max(abs(e) for e in errors.values()) < (0.01 if kind == "positions" else 0.03), errors
+    assert res.converged and res.status == "converged" and res.optimizer == "lm"
+    assert res.outcome.reached and res.outcome.optimal
+    if kind == "points":                  # a point's distance to the true surface is its noise's normal part
+        assert res.outcome.reference_kind == "noise" and 0.9 < res.outcome.rms / 0.002 < outcome.NOISE_FACTOR
+    else:
+        assert res.outcome.reference_kind == "motion" and res.outcome.rms < 1e-4 * res.outcome.reference
+    # the search ran over horizons of growing length and sampled the default box (start/4 .. start x4)
+    s = res.search
+    assert s["horizons"][-1] == target.n_frames and len(s["horizons"]) == 3
+    assert np.allclose(np.exp(s["box_hi"] - s["box_lo"]), 16.0)
+    assert s["global_ok"].all() and len(s["global_loss"]) == 65
+    assert "%" in res.table() and "n/a" not in res.table()
+
+
+def test_a_fit_that_cannot_reach_the_data_is_not_called_converged(drop):
+    """The target fell under 12 m/s² where the scene has 9.81: no k, damping or nmol reproduces it
+    (a heavier ball could be matched exactly: k, c, nRT and mass scale together). The fit says so
+    (poor fit or stalled, with the residual against the motion), warns, hides the standard errors
+    and records the status."""
+    truth, _ = drop
+    other = jaxplush.parse_scene(truth.text.replace("gravity 0.0 -9.81 0.0", "gravity 0.0 -12.0 0.0"), "<g 12>")
+    assert other.gravity[1] == -12.0
+    target = make_target(other, STEPS, DT, EVERY)
+    with pytest.warns(UserWarning) as caught:
+        res = F.fit(truth, target, samples=16, starts=2)
+    assert not res.converged and res.status in ("poor_fit", "stalled", "at_bound")
+    assert any(str(w.message).startswith(res.status.replace("_", " ")) for w in caught)
+    assert "against the target's motion" in res.reason and "n/a" in res.table()
+    assert "standard errors: not meaningful" in res.table()
+
+
+def test_every_evaluated_point_runs_stably_with_substeps():
+    """Points whose explicit stability limit is below the target's dt run with substeps (h = dt/n)
+    instead of blowing up; the report's damping keeps its meaning per dt, so a substepped run of the
+    true values stays close to the target."""
+    truth = _drop()
+    target = make_target(truth, 400, DT, 20)
+    with pytest.warns(UserWarning):
+        prob = F.build_problem(truth, target)
+    ev = Evaluator(prob)
+    th0 = np.asarray(prob.theta0)
+    stiff = th0.copy()
+    stiff[0] += np.log(16.0)                                  # k x16: limit x1/4
+    assert ev.limit(stiff) < DT < ev.limit(th0)
+    assert ev.substeps_for([th0, stiff]).tolist()[0] == 1 and ev.substeps_for([stiff])[0] >= 2
+    e = ev(np.stack([th0, stiff]))
+    assert e.ok.all() and e.substeps.tolist()[0] == 1 and e.substeps[1] >= 2 and np.isfinite(e.loss).all()
+    # forced substeps at the true values: the same motion to integration accuracy, not 4x the damping
+    forced = ev(th0[None], substeps=[4])
+    assert forced.substeps[0] == 4 and forced.loss[0] < 1e-3
+    # Adam started there blows up instead (FitError; the CLI's exit 3)
+    with pytest.raises(F.FitError):
+        F.fit(_start(truth, ("k_structural",), (16.0,)), target, ("k_structural",), optimizer="adam", iterations=2,
+              check_dt=False)
+
+
+def test_default_params_follow_the_scene():
+    hanging = jaxplush.load_scene(os.path.join(os.path.dirname(os.path.dirname(__file__)), "scenes", "hanging.obj"))
+    names, note = F.default_params(hanging)
+    assert names == ("k_structural", "dashpot", "drag", "nmol") and "switches on" in note
+    assert F.default_params(_drop(pressure=None))[0] == ("k_structural", "damping")
+    assert F.default_params(_drop(damping=None, dashpot=0.1))[0] == ("k_structural", "dashpot", "nmol")
+
+
+def test_bounds_are_checked_and_a_search_box_edge_is_reported(drop):
+    truth, target = drop
+    with pytest.raises(JaxplushError, match="bounds of damping must be >= 1"):
+        F.fit(truth, target, bounds={"damping": (0.5, 10.0)})
+    with pytest.raises(JaxplushError, match="lies outside its bounds"):
+        F.fit(truth, target, bounds={"k": (1.0, 2.0)})
+    with pytest.raises(JaxplushError, match="bounds apply to the default fit"):
+        F.fit(truth, target, optimizer="adam", bounds={"k": (1.0, 2.0)})
+    assert F.parse_bounds("k=100:900, nmol=1e-3:1e-2", ("k_structural", "nmol")) == {
+        "k_structural": (100.0, 900.0), "nmol": (1e-3, 1e-2)}
+    # the truth (k = 420) lies above a box that ends at 400: the fit ends on its edge and says so
+    start = _start(truth, ("k_structural",), (0.5,))
+    with pytest.warns(UserWarning, match="at_bound|edge of the search box"):
+        res = F.fit(start, target, ("k_structural",), bounds={"k": (100.0, 400.0)}, samples=8, starts=1)
+    assert res.status == "at_bound" and "k_structural[ball] at its upper bound 400" in res.reason
+
+
+def test_outcome_judgement():
+    ok = outcome.judge(rms=1.05e-3, noise=1e-3, motion=0.1, grad=[1e-4], grad0=[1.0], stopped="predicted")
+    assert ok.converged and ok.reached and ok.optimal
+    poor = outcome.judge(rms=5e-3, noise=1e-3, motion=0.1, grad=[1e-4], grad0=[1.0], stopped="predicted")
+    assert poor.status == "poor_fit" and "residual RMS 5 mm against noise 1 mm" in poor.text
+    stalled = outcome.judge(rms=5e-3, noise=None, motion=0.1, grad=[0.5], grad0=[1.0], stopped="stalled")
+    assert stalled.status == "stalled" and "against the target's motion 100 mm (noise-free)" in stalled.text
+    limit = outcome.judge(rms=1e-4, noise=None, motion=0.1, grad=[0.5], grad0=[1.0], stopped="iterations")
+    assert limit.status == "iteration_limit" and not limit.converged
+    edge = outcome.judge(rms=1e-6, noise=None, motion=0.1, grad=[0.0], grad0=[1.0], stopped="step",
+                         at_bound=("k[a] at its upper bound 10",))
+    assert edge.status == "at_bound" and "--bounds" in edge.text
+
+
+def test_interrupted_default_fit_resumes_to_the_same_answer(tmp_path):
+    """Ctrl-C during the local search saves the state; --resume continues to exactly the values of an
+    uninterrupted fit (every evaluation is deterministic)."""
+    truth = jaxplush.parse_scene(F.recovery_scene_text(1), "<truth>")
+    p = truth.params
+    start = jaxplush.parse_scene(F.recovery_scene_text(1, k_structural=2 * p.k_structural[0],
+                                                       damping=0.5 * p.damping[0], nmol=2 * p.nmol[0]), "<start>")
+    target = make_target(truth, 200, 1e-3, 20)
+    kw = dict(params=("k_structural", "damping", "nmol"), identifiability=False, samples=16, starts=2)
+    ref = F.fit(start, target, **kw)
+    out = tmp_path / "FIT.h5"
+    rounds = []
+
+    def interrupt(info):
+        rounds.append(info["iteration"])
+        if len(rounds) == 2:
+            os.kill(os.getpid(), signal.SIGINT)          # a real Ctrl-C, between iterations
+
+    with pytest.raises(KeyboardInterrupt):
+        F.fit(start, target, checkpoint_path=out, callback=interrupt, **kw)
+    saved = load_fit(out)
+    assert saved["attrs"]["status"] == "interrupted"
+    res = F.fit(start, target, checkpoint_path=out, resume=True, **kw)
+    for n in ref.names:
+        np.testing.assert_array_equal(res.values[n], ref.values[n])
+    assert res.status == ref.status == load_fit(out)["attrs"]["status"]
+    with pytest.raises(JaxplushError, match="different fit \\(samples"):
+        F.fit(start, target, checkpoint_path=out, resume=True, **dict(kw, samples=8))
