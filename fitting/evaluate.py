@@ -101,11 +101,7 @@ class Evaluator:
         self.batched = sim.integrator == "verlet" and len(self.runs) <= 8 and _batchable(sim.terms)
         self._bsims = {}
         self._single = {}
-        if self.residual.kind == "points":
-            self._res_fn = jax.jit(jax.vmap(self.residual.fn))                 # (frames, near)
-            self._points = np.asarray(prob.target.points, np.float64)
-        else:
-            self._res_fn = jax.jit(jax.vmap(self.residual.fn))
+        self._res_fn = jax.jit(jax.vmap(self.residual.fn))
         self._calibration = calibration
         self._calibrate = calibrate
         self.notes = []               # messages about the run (a grown contact capacity)
@@ -127,18 +123,15 @@ class Evaluator:
                 b = stability.bound(self.prob.sim, p0)
                 e = stability.estimate(self.prob.sim, self.prob.sim.params(p0))
                 cw = min(1.0, e.omega_max / b.omega_max) if b.omega_max > 0 else 1.0
-                cg = min(1.0, e.gamma_max / b.gamma_max) if b.gamma_max > 0 else 1.0
-                self._calibration = (cw, cg)
+                cg = min(1.0, e.gamma_forces / b.gamma_forces) if b.gamma_forces > 0 else 1.0
+                self._calibration = (cw if np.isfinite(cw) else 1.0, cg if np.isfinite(cg) else 1.0)
         return self._calibration
 
     def limit(self, theta):
         """Predicted largest stable (sub)step at log values theta, s."""
-        b = stability.bound(self.prob.sim, self.prob.params_at(theta))
         cw, cg = self._calibrated()
-        w, g = cw * b.omega_max, cg * b.gamma_max
-        if not (np.isfinite(w) and np.isfinite(g)):
-            return 0.0
-        return float((np.sqrt(g * g + 4 * w * w) - g) / (w * w)) if w > 0 else math.inf
+        lim = stability.calibrated_limit(self.prob.sim, self.prob.params_at(theta), cw, cg)
+        return lim if np.isfinite(lim) or lim == math.inf else 0.0
 
     def substeps_for(self, thetas):
         """(N,) substeps (powers of two, at least 1) that keep each point below its limit."""
@@ -204,11 +197,7 @@ class Evaluator:
         x = np.concatenate([frames, np.repeat(frames[-1:], pad, axis=0)]) if pad else frames
         out = []
         for i in range(0, len(x), piece):
-            part = x[i:i + piece]
-            args = (jnp.asarray(part, self.prob.sim.dtype),)
-            if self.residual.kind == "points":
-                args += (jnp.asarray(_losses.nearest_vertices(part, self._points)),)
-            out.append(np.asarray(self._res_fn(*args), np.float64))
+            out.append(np.asarray(self._res_fn(jnp.asarray(x[i:i + piece], self.prob.sim.dtype)), np.float64))
         return np.concatenate(out)[:n_pts]
 
     def _frames(self, thetas, n):

@@ -1,27 +1,30 @@
-"""Fit material parameters of a scene to a target by gradients through the rollout.
+"""Fit material parameters of a scene to a target.
 
-``fit(scene, target, params=("k_structural", "damping", "nmol"), objects=None, ...)``:
+``fit(scene, target, params=None, objects=None, ...)``:
 
 * the fitted variables are theta = log(p) for the chosen parameters of the chosen objects
-  (positivity for free); every other parameter stays at the scene's value;
-* the loss is :func:`fitting.losses.make_loss` summed over the target's frames by
-  :func:`fitting.gradients.rollout_loss` (bounded-memory gradients through the rollout);
-* optimisers: optax Adam (default; learning rate ``lr`` in log space, cosine-decayed to 1% over
-  ``iterations``) or optax L-BFGS with its zoom line search; one jitted update per iteration;
-* a step whose rollout blows up (non-finite loss or gradient, an inverted object, damping < 1)
-  is rejected: the fit goes back to the last accepted point and halves the step, so parameters
-  never become NaN; a start that blows up, or too many rejections in a row, raise
-  :class:`FitError`;
-* stops at ``iterations`` or when converged: gradient max-norm below ``gtol``, relative loss
-  change below ``rtol`` for ``patience`` accepted iterations in a row, a step below ``xtol``
-  in log space, or the loss below ``ftol``;
-* checkpoints (``checkpoint_path``, every ``checkpoint_every`` iterations, atomically) hold the
-  complete loop state, so ``resume=True`` continues an interrupted (Ctrl-C or killed) fit to
-  the same answer; Ctrl-C saves before it exits;
+  (positivity for free); every other parameter stays at the scene's value. ``params=None``
+  fits what the scene switches on (:func:`default_params`);
+* the loss is :func:`fitting.losses.make_loss` over the target's frames (noise- or
+  motion-normalised; positions or point-to-surface distances);
+* the default optimiser, ``"lm"``, is global then local (:mod:`fitting.lmfit`,
+  :mod:`fitting.search`): a Sobol design over a box around the start run through the batched
+  simulator, then Levenberg-Marquardt with central-difference Jacobians from the best
+  candidates, over horizons of growing length, every evaluated point stable (substeps where
+  needed, :mod:`fitting.evaluate`);
+* ``"adam"`` and ``"lbfgs"`` descend the gradient through the rollout
+  (:func:`fitting.gradients.rollout_loss`): a step whose rollout blows up (non-finite loss or
+  gradient, an inverted object, damping < 1) is rejected and the step halved; a start that
+  blows up, or too many rejections in a row, raise :class:`FitError`; they stop at
+  ``iterations`` or at ``gtol``/``rtol``/``xtol``/``ftol``;
+* every fit's outcome is judged by :mod:`fitting.outcome` ("converged" only at the noise level
+  and an optimum), recorded in the result and FIT.h5 and warned about otherwise;
+* checkpoints (``checkpoint_path``) hold the complete state, so ``resume=True`` continues an
+  interrupted (Ctrl-C or killed) fit to the same answer; Ctrl-C saves before it exits;
 * afterwards: the identifiability report (:mod:`fitting.identifiability`) and a health check of
   the fitted rollout.
 
-The result is the best (lowest-loss) accepted point, a :class:`FitResult`.
+The result is a :class:`FitResult`.
 """
 
 from __future__ import annotations

@@ -41,6 +41,8 @@ MAX_ITER = 40
 DROP_FACTOR = 30.0
 #: The stages' horizons, as fractions of the target's frames (the last is always all of them).
 HORIZONS = (0.25, 0.5, 1.0)
+#: A search whose loss ended above this many times the best one's does not go on to the next stage.
+CARRY_FACTOR = 3.0
 #: Searches that ended within this distance (max-norm, log space) continue as one in the next stage.
 SAME_POINT = 0.02
 #: Trust radius (log space) with which a later stage starts from the previous stage's result.
@@ -171,10 +173,13 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
         if st.stage + 1 < n_stages and not any(s.stopped == "callback" for s in st.states):
             # the stage's best points start the next, longer stage
             kept = []
+            best_loss = st.states[_order(st.states)[0]].loss
             for i in _order(st.states)[:keep]:
                 s = st.states[i]
-                # searches that ended at the same point continue as one
-                if math.isfinite(s.loss) and all(np.max(np.abs(s.theta - o.theta)) > SAME_POINT for o in kept):
+                # searches that ended at the same point continue as one, and one that ended far
+                # above the best (in another basin) stops here: a longer horizon does not rescue it
+                if (math.isfinite(s.loss) and s.loss <= CARRY_FACTOR * best_loss
+                        and all(np.max(np.abs(s.theta - o.theta)) > SAME_POINT for o in kept)):
                     kept.append(s)
             # a longer horizon moves the optimum little: start with a small trust radius (and so
             # an accurate difference step), from the damping the previous stage ended with

@@ -208,39 +208,50 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     return Loss(loss_fn, aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind)
 
 
-def nearest_vertices(frames, points, threads=None):
-    """(..., T, M) int32 index of each target point's nearest vertex, per frame (numpy, exact):
-    k-d trees (scipy), frames split over the CPU's cores. ``frames`` (..., T, V, 3), ``points``
-    (T, M, 3). Cheaper than the brute-force (M, V) table from about 500 vertices on."""
-    import os
-    from concurrent.futures import ThreadPoolExecutor
-    from scipy.spatial import cKDTree
-    x = np.asarray(frames)
-    lead = x.shape[:-3]
-    t = x.shape[-3]
-    flat = x.reshape((-1,) + x.shape[-3:])
-    out = np.empty(flat.shape[:2] + (points.shape[1],), np.int32)
+def coarse_vertices(x0, n):
+    """Indices of ``n`` vertices spread over a mesh (farthest-point sampling of the rest shape
+    x0 (V, 3), from vertex 0; numpy): the starts of :func:`nearest_vertices_walk`."""
+    x0 = np.asarray(x0, np.float64)
+    n = int(min(max(n, 1), len(x0)))
+    chosen = [0]
+    d2 = np.sum((x0 - x0[0]) ** 2, axis=1)
+    for _ in range(n - 1):
+        i = int(np.argmax(d2))
+        chosen.append(i)
+        d2 = np.minimum(d2, np.sum((x0 - x0[i]) ** 2, axis=1))
+    return np.asarray(chosen, np.int32)
 
-    def work(i):
-        for j in range(t):
-            out[i, j] = cKDTree(flat[i, j]).query(points[j], k=1)[1]
 
-    n = threads or os.cpu_count() or 1
-    if n > 1 and len(flat) > 1:
-        with ThreadPoolExecutor(n) as ex:
-            list(ex.map(work, range(len(flat))))
-    else:
-        for i in range(len(flat)):
-            work(i)
-    return out.reshape(lead + (t, points.shape[1]))
+#: Steps of the walk from the nearest coarse vertex to the nearest vertex.
+WALK_STEPS = 4
+
+
+def nearest_vertices_walk(x, p, coarse, ring, steps=WALK_STEPS):
+    """(M,) index of each point's nearest vertex: the nearest of the ``coarse`` vertices (an (M, S)
+    table, S ~ V/8), then ``steps`` moves to the nearest of the current vertex and its one-ring
+    (``ring`` (V, K)). Exact where the distance to the point has no other local minimum over the
+    mesh's vertices nearby, as for points within an edge or so of the surface; about six times
+    fewer distances than the (M, V) table.
+
+    Args:
+      x: (V, 3) vertex positions; p: (M, 3) points; coarse: (S,) vertex indices; ring: (V, K).
+    """
+    xc = x[jnp.asarray(coarse)]
+    d2c = sum((xc[:, None, c] - p[None, :, c]) ** 2 for c in range(3))          # (S, M)
+    cur = jnp.asarray(coarse)[jnp.argmin(d2c, axis=0)]                          # (M,)
+    ring = jnp.asarray(ring)
+    for _ in range(steps):
+        cand = jnp.concatenate([cur[:, None], ring[cur]], axis=1)               # (M, K + 1)
+        d2 = jnp.sum((x[cand] - p[:, None, :]) ** 2, axis=-1)
+        cur = jnp.take_along_axis(cand, jnp.argmin(d2, axis=1)[:, None], axis=1)[:, 0]
+    return cur
 
 
 class Residual(NamedTuple):
     """The loss of :func:`make_loss` as a residual vector (for least-squares methods).
 
     Attributes:
-      fn: ``frames (T, V, 3) -> (n,)`` normalised residuals with sum(r²) = the loss (jax); for
-        points also ``fn(frames, near)`` with the nearest vertices (T, M) already found.
+      fn: ``frames (T, V, 3) -> (n,)`` normalised residuals with sum(r²) = the loss (jax).
       n: number of residuals; kind, scale2, normalisation: as in :class:`Loss`.
       per_frame: residuals per frame (3 V for positions, M for points).
     """
@@ -266,13 +277,16 @@ def make_residual(target, topology, loss):
     else:
         faces = np.asarray(topology.faces, np.int32)
         vf = vertex_faces(faces, topology.n_vertices)
+        coarse = coarse_vertices(topology.x0, -(-topology.n_vertices // 8))
+        ring = np.asarray(topology.ring, np.int32)
 
-        def fn(frames, near=None):
+        def one(x, p):
+            near = nearest_vertices_walk(x, p, coarse, ring)
+            return point_surface_distance2(x, p, faces, vf, near)
+
+        def fn(frames):
             y = jnp.asarray(data, frames.dtype)
-            if near is None:
-                d2 = jax.lax.map(lambda xy: point_surface_distance2(xy[0], xy[1], faces, vf), (frames, y))
-            else:
-                d2 = jax.vmap(lambda x, p, n: point_surface_distance2(x, p, faces, vf, n))(frames, y, near)
+            d2 = jax.vmap(one)(frames, y)
             return (jnp.sqrt(d2) * jnp.asarray(norm, frames.dtype)).reshape(-1)
         per_frame = m
     return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame)

@@ -223,6 +223,27 @@ def start_states(evaluator, thetas, losses=None):
 #: Stop when the Gauss-Newton model promises less than this fraction of the loss (at a noisy
 #: target's optimum the loss sits at the noise level and no step can lower it further).
 PRED_TOL = 1e-4
+#: Stop when the full Gauss-Newton step is at most this fraction of every parameter's standard
+#: error (residual variance x (JᵀJ)⁻¹): further steps move the result by less than its noise.
+NOISE_STOP = 0.1
+#: ... judged only with a difference step at most this small (a local Jacobian).
+NOISE_STOP_H = 0.02
+
+
+def _gn_within_noise(jac, r):
+    """max_i |GN step_i| / standard error_i at a point (None when JᵀJ is singular)."""
+    jtj = jac.T @ jac
+    try:
+        inv = np.linalg.inv(jtj)
+    except np.linalg.LinAlgError:
+        return None
+    diag = np.diag(inv)
+    if not (np.all(np.isfinite(inv)) and np.all(diag > 0)):
+        return None
+    s2 = float(r @ r) / max(len(r) - jac.shape[1], 1)
+    if s2 <= 0:
+        return None
+    return float(np.max(np.abs(inv @ (jac.T @ r)) / np.sqrt(s2 * diag)))
 
 
 def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol=PRED_TOL):
@@ -247,6 +268,12 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol
         _jacobians(evaluator, box, need)
     trials, owner = [], []
     for i, st in enumerate(active):
+        within = _gn_within_noise(st.jac, st.residual) if st.jac_h <= NOISE_STOP_H else None
+        if within is not None and within <= NOISE_STOP:
+            st.done, st.stopped = True, "noise"
+            st.reason = (f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors (<= {NOISE_STOP:g}): "
+                         "the optimum is resolved to the noise")
+            continue
         t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
         best_pred = max(x[2] for x in t)
         if best_pred <= pred_tol * st.loss and st.jac_h <= H_MIN * (1 + 1e-9):

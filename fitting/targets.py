@@ -137,7 +137,7 @@ def load_target(path, scene, dt=None, kind=None):
             raw = _read(path, fh, kind)
     except JaxplushError:
         raise
-    except (OSError, KeyError, ValueError, TypeError) as e:  # a damaged file part-way through
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:  # a damaged file part-way through
         raise TrajectoryError(path, f"cannot read: {e}") from None
     return _validate(path, raw, scene, dt)
 

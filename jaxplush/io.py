@@ -65,8 +65,8 @@ def open_hdf5(path):
         raise TrajectoryError(path, "is a directory, not an HDF5 file")
     try:
         return h5py.File(path, "r")
-    except OSError:
-        raise TrajectoryError(path, "not an HDF5 file") from None
+    except (OSError, RuntimeError):          # RuntimeError: a damaged header (h5py "addr overflow")
+        raise TrajectoryError(path, "not an HDF5 file (or a damaged one)") from None
 
 
 def save_trajectory(traj, path):

@@ -47,6 +47,7 @@ import dataclasses
 import math
 import os
 import re
+import stat
 import warnings
 
 import numpy as np
@@ -88,6 +89,10 @@ _CHOICE_KEYS = {"floor_model": ("projection", "smooth")}
 FLOOR_MODELS = _CHOICE_KEYS["floor_model"]
 _IGNORED = {"vt", "vn", "vp", "s", "usemtl", "mtllib"}
 _MAX_COORD = 1e30  # larger coordinates overflow the mesh checks (and float32 simulation)
+#: Largest vertex index a scene may use (int32 index tables).
+MAX_INDEX = 2 ** 31 - 1
+#: Largest scene file read (bytes); a bigger one is refused before it is read.
+MAX_FILE_BYTES = 2 ** 30
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,8 +236,17 @@ def load_scene(path):
     """
     path = os.fspath(path)
     try:
+        st = os.stat(path)
+        if stat.S_ISDIR(st.st_mode):
+            raise IsADirectoryError
+        if not stat.S_ISREG(st.st_mode):
+            # a device (/dev/zero, /dev/urandom), a FIFO or a socket: reading it may never end
+            raise SceneError(path, None, "not a regular file (a device, pipe or socket); give a scene file")
+        if st.st_size > MAX_FILE_BYTES:
+            raise SceneError(path, None, f"too large ({st.st_size / 2 ** 20:.0f} MiB; at most "
+                                         f"{MAX_FILE_BYTES / 2 ** 20:.0f} MiB)")
         with open(path, "rb") as fh:
-            data = fh.read()
+            data = fh.read(MAX_FILE_BYTES + 1)
     except FileNotFoundError:
         raise SceneError(path, None, "no such file") from None
     except IsADirectoryError:
@@ -306,6 +320,9 @@ class _Parser:
             raise self.err(lineno, f"'{key}' expects a vertex index, got {tok!r}") from None
         if i == 0:
             raise self.err(lineno, f"'{key}': vertex index 0 is invalid (OBJ indices start at 1)")
+        if abs(i) > MAX_INDEX:
+            raise self.err(lineno, f"'{key}': vertex index {i} out of range (a scene holds at most {MAX_INDEX} "
+                                   "vertices)")
         if i < 0:
             j = len(self.vertices) + i
             if j < 0:

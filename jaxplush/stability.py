@@ -6,6 +6,7 @@ products of the force (no matrix is formed). Velocity damping (dashpot, drag, th
 Verlet damping) tightens the limit: for the Verlet/symplectic update of a mode with frequency
 omega and damping rate gamma the iteration matrix is stable iff dt² omega² + 2 dt gamma < 4,
 so dt_max = (sqrt(gamma² + 4 omega²) - gamma) / omega², with gamma_max = lambda_max(M^-1 C)
+(the report's per-step damping D enters as 4 - 2/D in place of 4, see _estimate_from)
 found the same way from C = -df/dv.
 
 Other integrators (:func:`integrator_limit`): the same worst mode (omega_max, gamma_max) is put
@@ -29,13 +30,16 @@ from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 
 class StabilityEstimate(NamedTuple):
-    """dt_max: largest stable explicit dt (s); omega_max (rad/s); gamma_max (1/s);
-    dt_gershgorin: the always-safe bound sqrt(2 m / (k n_max)) (undamped, springs only)."""
+    """dt_max: largest stable explicit dt (s); omega_max (rad/s); gamma_max (1/s, all velocity
+    damping, the report's D as its drag rate); dt_gershgorin: the always-safe bound
+    sqrt(2 m / (k n_max)) (undamped, springs only); gamma_forces: the damping rate of the dashpot
+    and drag alone (1/s)."""
 
     dt_max: float
     omega_max: float
     gamma_max: float
     dt_gershgorin: float
+    gamma_forces: float = float("nan")
 
 
 def _power(op, n, dtype, iters, key):
@@ -123,12 +127,37 @@ def estimate(sim, params, x=None, iters=100, seed=0):
         # The gas inflates the body, pre-tensioning its springs and raising omega_max: also
         # linearise at the uniform inflation s* that balances springs and gas (physics.md §8.5).
         lam = max(lam, float(run(params, inflated(sim, params, x))[0]))
-    omega = float(np.sqrt(max(lam, 0.0)))
-    gamma = max(gam, 0.0)
-    if sim.terms.verlet_damping:
-        gamma += _verlet_damping_rate(params, sim.dt)   # D is per time step dt, at any substeps
-    dt_max = float((np.sqrt(gamma ** 2 + 4 * omega ** 2) - gamma) / omega ** 2) if omega > 0 else float("inf")
-    return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gamma, dt_gershgorin=_gershgorin(topo, params))
+    if not (np.isfinite(lam) and np.isfinite(gam)):
+        # absurd values (k 1e30, a mass of 1e-30 kg, ...) overflow the float32 power iteration:
+        # the closed-form bound (float64 numpy) still gives a finite, safe answer
+        return bound(sim, params, None if x is None else np.asarray(x, np.float64))
+    return _estimate_from(sim, params, float(np.sqrt(max(lam, 0.0))), max(gam, 0.0))
+
+
+def _estimate_from(sim, params, omega, gamma):
+    """The :class:`StabilityEstimate` of a worst mode (omega, gamma from dashpot and drag), with
+    the report's damping D: Verlet's velocity factor 1 - f per step (f = 1/D) makes the update
+    stable iff h² omega² + 2 h gamma < 4 - 2 f (its characteristic polynomial), so D = 1 (f = 1)
+    still has a finite limit; ``gamma_max`` adds D's drag rate -ln(1 - f) / dt (for the other
+    integrators, which apply D as that rate)."""
+    f = _verlet_damping_factor(params) if sim.terms.verlet_damping else 0.0
+    rate = float(-np.log1p(-min(f, 1 - 1e-12)) / sim.dt) if f > 0 else 0.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        if omega > 0 and np.isfinite(omega):
+            dt_max = float((np.sqrt(gamma ** 2 + omega ** 2 * (4.0 - 2.0 * f)) - gamma) / omega ** 2)
+        elif omega == 0:
+            dt_max = float("inf") if gamma == 0 else float(2.0 / gamma)
+        else:
+            dt_max = 0.0
+    return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gamma + rate,
+                             dt_gershgorin=_gershgorin(sim.topology, params), gamma_forces=gamma)
+
+
+def calibrated_limit(sim, params, c_omega=1.0, c_gamma=1.0):
+    """The closed-form :func:`bound` with its omega and damping rate scaled by calibration factors
+    (e.g. exact / bound at a reference point): a cheap estimate of the stable step, s."""
+    b = bound(sim, params)
+    return _estimate_from(sim, params, c_omega * b.omega_max, c_gamma * b.gamma_forces).dt_max
 
 
 def _ring_neighbours(topo):
@@ -285,18 +314,16 @@ def bound(sim, params, x=None):
             xi = np.asarray(inflated(sim, params, x0), np.float64)
             a, b = _rates(topo, terms, params, temp, _geometry(topo, xi))
             w2, gam = max(w2, a), max(gam, b)
-    if terms.verlet_damping:
-        gam += _verlet_damping_rate(params, sim.dt)
-    omega = float(np.sqrt(max(w2, 0.0)))
-    dt_max = float((np.sqrt(gam ** 2 + 4 * omega ** 2) - gam) / omega ** 2) if omega > 0 else float("inf")
-    return StabilityEstimate(dt_max=dt_max, omega_max=omega, gamma_max=gam, dt_gershgorin=_gershgorin(topo, params))
+    with np.errstate(over="ignore", invalid="ignore"):
+        omega = float(np.sqrt(max(w2, 0.0)))
+    return _estimate_from(sim, params, omega, gam)
 
 
-def _verlet_damping_rate(params, dt):
-    """The drag rate -ln(1 - 1/D) / dt of the report's damping D (per time step dt), 1/s."""
+def _verlet_damping_factor(params):
+    """The largest per-step factor f = 1/D of the report's damping over the objects (0: none)."""
     d = np.asarray(params.damping, np.float64)
-    f = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0).max()
-    return float(-np.log1p(-min(f, 1 - 1e-12)) / dt)
+    with np.errstate(divide="ignore"):
+        return float(np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0).max())
 
 
 def _gershgorin(topo, params):
