@@ -32,6 +32,8 @@ from jaxplush.io import atomic_path, open_hdf5
 
 #: Times must lie within this fraction of dt of a multiple of dt (float32-written times included).
 GRID_TOLERANCE = 1e-3
+#: A target farther than this many scene sizes from the scene's centre is refused (wrong units).
+TARGET_FAR = 1e3
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -167,7 +169,7 @@ def _read(path, fh, kind):
                            ("object_names", False)):
         ds = _dataset(path, fh, name, required)
         if ds is not None:
-            if ds.dtype.kind not in "fiub" and name != "object_names":
+            if ds.dtype.kind not in "fiu" and name != "object_names":
                 raise TrajectoryError(path, f"'{name}' must be numeric, got dtype {ds.dtype}")
             out[name] = ds[()]
     attrs = fh.attrs
@@ -259,6 +261,11 @@ def _validate(path, raw, scene, dt):
         what = "vertex" if kind == "positions" else "point"
         raise TrajectoryError(path, f"'{kind}' has non-finite values (first at frame {t}, {what} {i})")
 
+    extent = float(max(np.max(np.ptp(scene.vertices, axis=0)), 1e-6))
+    far = float(np.max(np.abs(data - scene.vertices.mean(axis=0))))
+    if far > TARGET_FAR * extent:
+        raise TrajectoryError(path, f"'{kind}' reaches {far:.3g} m from the scene's centre, {far / extent:.3g} times "
+                                    f"the scene's size ({extent:.3g} m): wrong units, or a target of another scene?")
     noise = raw["noise"]
     if noise is not None:
         try:

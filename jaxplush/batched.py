@@ -207,6 +207,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     check_terms(terms)
     dtype = jnp.result_type(float)
     topo = model.build_topology(scene)
+    model.check_precision(topo, dtype, scene.path)
     kernel = _make_force_fn(topo, terms, scene.temperature)
     gravity = tuple(float(g) for g in scene.gravity)
     fixed = topo.fixed

@@ -18,6 +18,10 @@ from jaxplush.io import check_output_path
 
 EXIT_USAGE = 2
 EXIT_FAILED = 3
+#: Most steps a run may take (the rollout's step counters are int32).
+MAX_STEPS = 2 ** 31 - 1
+#: Largest trajectory file ``simulate`` writes.
+MAX_OUTPUT_BYTES = 8 * 2 ** 30
 
 
 def _parser():
@@ -76,8 +80,9 @@ def main(argv=None):
 
 def _simulate(args):
     from jaxplush.errors import JaxplushError
-    if args.steps < 1:
-        raise JaxplushError(f"--steps must be >= 1, got {args.steps}")
+    if not 1 <= args.steps <= MAX_STEPS:
+        raise JaxplushError(f"--steps must be between 1 and {MAX_STEPS:,} (a step counter is 32-bit), "
+                            f"got {args.steps}")
     if not (np.isfinite(args.dt) and args.dt > 0):
         raise JaxplushError(f"--dt must be a positive number, got {args.dt}")
     if args.save_every is not None and args.save_every < 1:
@@ -92,6 +97,12 @@ def _simulate(args):
     if args.integrator not in jaxplush.INTEGRATORS:
         raise JaxplushError(f"unknown integrator {args.integrator!r}; available: {', '.join(jaxplush.INTEGRATORS)}")
     scene = jaxplush.load_scene(args.scene)
+    frames = args.steps // (args.save_every or max(1, args.steps // 100)) + 2
+    size = frames * scene.n_vertices * 3 * (8 if args.x64 else 4)
+    if size > MAX_OUTPUT_BYTES:
+        raise JaxplushError(f"--steps {args.steps} would write {frames:,} frames of {scene.n_vertices} vertices "
+                            f"({size / 2 ** 30:.3g} GiB, more than {MAX_OUTPUT_BYTES / 2 ** 30:.0f} GiB); "
+                            "raise --save-every")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:

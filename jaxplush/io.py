@@ -11,8 +11,10 @@ scene text) and ``scene_path``. Files are written atomically (temp file, then re
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import tempfile
+import time
 
 import h5py
 import numpy as np
@@ -28,7 +30,10 @@ def atomic_path(path, suffix=None):
     d = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(d):
         raise JaxplushError(f"{path}: output directory {d} does not exist")
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=suffix or os.path.splitext(path)[1])
+    suffix = suffix or os.path.splitext(path)[1]
+    prefix = f".tmp-{os.path.basename(path)}-"
+    started = time.time()
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=prefix, suffix=suffix)
     os.close(fd)
     try:
         yield tmp
@@ -40,6 +45,11 @@ def atomic_path(path, suffix=None):
         with contextlib.suppress(OSError):
             os.remove(tmp)
         raise
+    # a writer of this file killed outright (SIGKILL) left its temporary file: it is stale now
+    for old in glob.glob(os.path.join(glob.escape(d), glob.escape(prefix) + "*" + glob.escape(suffix))):
+        with contextlib.suppress(OSError):
+            if os.path.getmtime(old) < started:
+                os.remove(old)
 
 
 def check_output_path(path, exts, what="output"):
@@ -53,6 +63,9 @@ def check_output_path(path, exts, what="output"):
         raise JaxplushError(f"{path}: output directory {d} does not exist")
     if os.path.isdir(path):
         raise JaxplushError(f"{path}: is a directory")
+    if os.path.islink(path) and not os.path.exists(path):
+        raise JaxplushError(f"{path}: is a symbolic link to {os.readlink(path)}, which does not exist; "
+                            "the output would replace the link with a file: remove it or name another output")
 
 
 def open_hdf5(path):

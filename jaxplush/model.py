@@ -170,6 +170,30 @@ def smooth_floor_energy(topo, cfg, params, y):
     return jnp.sum(0.5 * k_f * phi * phi)
 
 
+#: The simulation's position resolution must be this fine against the shortest rest edge.
+PRECISION_FRACTION = 1e-3
+
+
+def check_precision(topo, dtype, path="<scene>"):
+    """Refuse a scene whose coordinates ``dtype`` cannot resolve: the spacing of floats at the
+    largest coordinate must be at most PRECISION_FRACTION of the shortest rest edge. (In float32
+    an object 1e7 m from the origin cannot move at all, and 1e10 m away its edges collapse.)
+
+    Raises:
+      JaxplushError: naming the file, the magnitudes and the remedies.
+    """
+    from jaxplush.errors import JaxplushError
+    scale = float(np.max(np.abs(topo.x0))) if topo.n_vertices else 0.0
+    edge = float(np.min(topo.rest_length)) if len(topo.rest_length) else 0.0
+    ulp = scale * float(np.finfo(np.dtype(dtype)).eps)
+    if edge > 0 and ulp > PRECISION_FRACTION * edge:
+        name = np.dtype(dtype).name
+        raise JaxplushError(
+            f"{path}: coordinates up to {scale:.3g} m with edges as short as {edge:.3g} m: {name} resolves only "
+            f"{ulp:.3g} m at that distance from the origin, too coarse to simulate; translate the scene near "
+            "the origin" + (", or run in float64 (--x64)" if name == "float32" else ""))
+
+
 @dataclasses.dataclass(frozen=True)
 class Terms:
     """Which force terms a scene compiles in (static; decided from the scene, not values)."""

@@ -162,8 +162,8 @@ class _CapacityOverflow(Exception):
 
 def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim, retry=True):
     steps = int(steps)
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
+    if not 1 <= steps < 2 ** 31:
+        raise ValueError(f"steps must be between 1 and 2**31 - 1 (the step counters are int32), got {steps}")
     if save_every is None:
         save_every = max(1, steps // 100)
     save_every = int(save_every)

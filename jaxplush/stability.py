@@ -127,10 +127,12 @@ def estimate(sim, params, x=None, iters=100, seed=0):
         # The gas inflates the body, pre-tensioning its springs and raising omega_max: also
         # linearise at the uniform inflation s* that balances springs and gas (physics.md §8.5).
         lam = max(lam, float(run(params, inflated(sim, params, x))[0]))
-    if not (np.isfinite(lam) and np.isfinite(gam)):
-        # absurd values (k 1e30, a mass of 1e-30 kg, ...) overflow the float32 power iteration:
-        # the closed-form bound (float64 numpy) still gives a finite, safe answer
-        return bound(sim, params, None if x is None else np.asarray(x, np.float64))
+    b = bound(sim, params, None if x is None else np.asarray(x, np.float64))
+    if not (np.isfinite(lam) and np.isfinite(gam)) or (b.omega_max > 0 and not lam > (1e-3 * b.omega_max) ** 2):
+        # absurd values (k 1e30, a mass of 1e-30 kg, ...) overflow the float32 power iteration
+        # (to inf, or to a vector that vanishes): the closed-form bound (float64 numpy) still
+        # gives a finite, safe answer
+        return b
     return _estimate_from(sim, params, float(np.sqrt(max(lam, 0.0))), max(gam, 0.0))
 
 

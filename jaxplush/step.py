@@ -123,6 +123,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     h = dt / substeps
     dtype = jnp.result_type(float)
     topo = model.build_topology(scene)
+    model.check_precision(topo, dtype, scene.path)
     terms = model.Terms.for_scene(scene) if terms is None else terms
     kernel, cache_ops = model.make_force_fn(topo, terms, scene.temperature, assembly, h=h, with_cache=True)
     system = integrators.System(

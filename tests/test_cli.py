@@ -232,8 +232,10 @@ def test_simulate_binary_scene(tmp_path):
     (("--dt", "-.5", "--steps", "10"), "--dt must be a positive number"),
     (("--dt", "nan", "--steps", "10"), "--dt must be a positive number"),
     (("--dt", "inf", "--steps", "10"), "--dt must be a positive number"),
-    (("--dt", "1e-4", "--steps", "0"), "--steps must be >= 1"),
-    (("--dt", "1e-4", "--steps", "-5"), "--steps must be >= 1"),
+    (("--dt", "1e-4", "--steps", "0"), "--steps must be between 1 and"),
+    (("--dt", "1e-4", "--steps", "-5"), "--steps must be between 1 and"),
+    (("--dt", "1e-4", "--steps", "3000000000"), "--steps must be between 1 and 2,147,483,647"),
+    (("--dt", "1e-4", "--steps", "2000000000", "--save-every", "1"), "would write 2,000,000,002 frames"),
     (("--dt", "1e-4", "--steps", "10", "--save-every", "0"), "--save-every must be >= 1"),
     (("--dt", "1e-4", "--steps", "10", "--integrator", "euler-ish"), "unknown integrator 'euler-ish'"),
 ])
