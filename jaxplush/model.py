@@ -72,7 +72,7 @@ def build_topology(scene):
     faces = scene.faces
     edges = _mesh.unique_edges(faces).astype(np.int32)
     rest = np.linalg.norm(x0[edges[:, 0]] - x0[edges[:, 1]], axis=1)
-    nbr, mask = _mesh.ring_table(_mesh.one_rings(faces, len(x0)))
+    nbr, mask, _ = _mesh.ring_tables(faces, len(x0))
     ring_rest = np.linalg.norm(x0[nbr] - x0[:, None, :], axis=2)
     ring_rest = np.where(mask, ring_rest, 1.0)
     vobj = scene.object_id
@@ -126,13 +126,11 @@ def smooth_floor_for_scene(scene, topo=None):
     edges = _mesh.unique_edges(scene.faces)
     length = np.linalg.norm(scene.vertices[edges[:, 0]] - scene.vertices[edges[:, 1]], axis=1)
     eobj = scene.object_id[edges[:, 0]]
-    rings = _mesh.one_rings(scene.faces, scene.n_vertices) if topo is None else None
+    mask = topo.ring_mask if topo is not None else _mesh.ring_tables(scene.faces, scene.n_vertices)[1]
     for o in range(scene.n_objects):
         beta.append(FLOOR_SHARPNESS / (0.5 * float(length[eobj == o].mean())))
         a, b = scene.objects[o].vertex_slice
-        val = (topo.ring_mask[a:b].sum(axis=1).max() if topo is not None
-               else max(len(r) for r in rings[a:b]))
-        n_max.append(int(val))
+        n_max.append(int(mask[a:b].sum(axis=1).max()))
     return SmoothFloor(height=float(scene.floor), beta=tuple(beta), stiffness=scene.floor_stiffness,
                        n_max=tuple(n_max))
 

@@ -313,7 +313,10 @@ class _Parser:
         self.objects.append(self.cur)
         self.cur = None
 
-    def resolve(self, tok, key, lineno):
+    def resolve(self, tok, key, lineno, n_defined=None):
+        """0-based index of an OBJ vertex index token (negative: relative to the ``n_defined``
+        vertices defined before its line, default all so far)."""
+        n_defined = len(self.vertices) if n_defined is None else n_defined
         try:
             i = int(tok)
         except ValueError:
@@ -324,36 +327,72 @@ class _Parser:
             raise self.err(lineno, f"'{key}': vertex index {i} out of range (a scene holds at most {MAX_INDEX} "
                                    "vertices)")
         if i < 0:
-            j = len(self.vertices) + i
+            j = n_defined + i
             if j < 0:
                 raise self.err(lineno, f"'{key}': relative index {i} points before the first vertex "
-                                       f"(only {len(self.vertices)} defined so far)")
+                                       f"(only {n_defined} defined so far)")
             return j
         return i - 1
+
+    def face_indices(self, o):
+        """(F, 3) int64 0-based global indices of an object's faces (polygons fan-triangulated) and
+        (F,) their lines. Plain triangles convert in bulk; anything else (v/vt/vn forms, polygons,
+        relative indices, bad tokens) line by line, with the exact error."""
+        toks = [a for a, _, _ in o.faces]
+        lines = np.asarray([ln for _, ln, _ in o.faces], np.int64)
+        if all(len(a) == 3 for a in toks):
+            try:
+                arr = np.array(toks, dtype=np.int64)
+            except (ValueError, OverflowError):
+                arr = None
+            if arr is not None and (arr > 0).all() and (arr <= MAX_INDEX).all():
+                return arr - 1, lines
+        out, out_lines = [], []
+        for args, ln, n_def in o.faces:
+            idx = [self.resolve(t.split("/")[0], "f", ln, n_def) for t in args]
+            for k in range(1, len(idx) - 1):  # fan-triangulate polygons
+                out.append((idx[0], idx[k], idx[k + 1]))
+                out_lines.append(ln)
+        return np.asarray(out, np.int64).reshape(-1, 3), np.asarray(out_lines, np.int64)
+
+    def vertex_array(self):
+        """(N, 3) float64 of every 'v' line, converted in bulk (a bad value: its line's error)."""
+        try:
+            raw = np.array(self.vertices, dtype=np.float64).reshape(-1, 3)
+        except ValueError:
+            raw = None
+        if raw is None or not np.isfinite(raw).all():
+            for toks, ln in zip(self.vertices, self.vertex_line):
+                for t in toks:
+                    _number(self.path, ln, "v", t)          # raises with the line
+        return raw
 
     def run(self):
         # Only \n, \r\n and \r end a line (str.splitlines would also split at form feeds, \x1c-\x1e,
         # U+0085, U+2028..., even inside comments, and so miscount lines).
         lines = re.split(r"\r\n|\r|\n", self.text)
+        vertices, vertex_line = self.vertices, self.vertex_line
         for lineno, raw in enumerate(lines, 1):
-            line = raw.split("#", 1)[0].strip()
-            if not line:
+            if "#" in raw:
+                raw = raw.split("#", 1)[0]
+            toks = raw.split()
+            if not toks:
                 continue
-            toks = line.split()
-            key, args = toks[0], toks[1:]
+            key = toks[0]
+            # 'v' and 'f' lines are most of a file: stored as text, converted in bulk in build()
             if key == "v":
-                if len(args) not in (3, 4, 6, 7):
-                    raise self.err(lineno, f"'v' expects 3 coordinates, got {len(args)} value(s)")
-                self.vertices.append(tuple(_number(self.path, lineno, "v", t) for t in args[:3]))
-                self.vertex_line.append(lineno)
-            elif key == "f":
-                if len(args) < 3:
-                    raise self.err(lineno, f"'f' needs at least 3 vertices, got {len(args)}")
-                idx = [self.resolve(t.split("/")[0], "f", lineno) for t in args]
-                o = self.obj(lineno)
-                for k in range(1, len(idx) - 1):  # fan-triangulate polygons
-                    o.faces.append(((idx[0], idx[k], idx[k + 1]), lineno))
-            elif key in ("o", "g"):
+                if len(toks) not in (4, 5, 7, 8):
+                    raise self.err(lineno, f"'v' expects 3 coordinates, got {len(toks) - 1} value(s)")
+                vertices.append(toks[1:4])
+                vertex_line.append(lineno)
+                continue
+            if key == "f":
+                if len(toks) < 4:
+                    raise self.err(lineno, f"'f' needs at least 3 vertices, got {len(toks) - 1}")
+                (self.cur or self.obj(lineno)).faces.append((toks[1:], lineno, len(vertices)))
+                continue
+            args = toks[1:]
+            if key in ("o", "g"):
                 name = " ".join(args) if args else None
                 if key == "o" and self.cur is not None:
                     if self.cur.faces:
@@ -418,6 +457,27 @@ class _Parser:
                            else "no faces: the scene defines vertices but no 'f' lines")
         return self.build()
 
+    def check_meshes(self, xs, faces, lines, objs):
+        """Every object closed, manifold, orientable, one piece, with volume: all objects at once
+        (:func:`jaxplush.mesh.orient_all`); an object with a defect is checked again on its own
+        (:func:`jaxplush.mesh.check_and_orient`) for the exact face, line and message. Returns
+        the (F, 3) global faces wound outward."""
+        x = np.concatenate(xs)
+        f = np.concatenate(faces)
+        fo = np.repeat(np.arange(len(faces)), [len(a) for a in faces])
+        out, bad = _mesh.orient_all(x, f, fo, len(faces))
+        for oi in np.nonzero(bad)[0]:
+            name, used, line = objs[oi]
+            start = int(sum(len(a) for a in xs[:oi]))
+            try:
+                _mesh.check_and_orient(xs[oi], faces[oi] - start, labels=used + 1)
+            except _mesh.MeshProblem as p:
+                raise self.err(int(lines[oi][p.face]) if p.face is not None else line,
+                                f"object {name!r}: {p.reason}") from None
+            raise self.err(line, f"object {name!r}: the mesh is not a closed, manifold, consistently oriented "
+                                 "surface enclosing a volume")
+        return out
+
     def values(self, key, args, spec, lineno):
         count, check, msg = spec
         if len(args) != count:
@@ -429,25 +489,24 @@ class _Parser:
 
     def build(self):
         nv = len(self.vertices)
-        raw = np.asarray(self.vertices, np.float64).reshape(-1, 3)
+        raw = self.vertex_array()
         owner = np.full(nv, -1)
-        all_x, all_f, objs = [], [], []
+        all_x, all_local, all_lines, pending, objs = [], [], [], [], []
         params = {k: [] for k in DEFAULTS}
         vstart = fstart = 0
         for oi, o in enumerate(self.objects):
             name = o.name or f"object{oi}"
-            idx = np.asarray([f for f, _ in o.faces], np.int64)
-            flines = [ln for _, ln in o.faces]
+            idx, flines = self.face_indices(o)
             bad = idx >= nv
             if bad.any():
                 r = int(np.argmax(bad.any(axis=1)))
-                raise self.err(flines[r], f"face index {int(idx[r][bad[r]][0]) + 1} out of range "
+                raise self.err(int(flines[r]), f"face index {int(idx[r][bad[r]][0]) + 1} out of range "
                                           f"(the file defines {nv} vertices)")
             used = np.unique(idx)
             shared = used[owner[used] >= 0]
             if len(shared):
                 r = int(np.argmax((idx == shared[0]).any(axis=1)))
-                raise self.err(flines[r], f"object {name!r} uses vertex {shared[0] + 1}, which already "
+                raise self.err(int(flines[r]), f"object {name!r} uses vertex {shared[0] + 1}, which already "
                                           f"belongs to object {objs[owner[shared[0]]].name!r}")
             owner[used] = oi
             local = np.searchsorted(used, idx)
@@ -466,11 +525,6 @@ class _Parser:
                 key = "scale" if "scale" in o.keys else "translate"
                 raise self.err(o.keys[key][1], f"object {name!r}: coordinates too large after scale/translate "
                                                f"(|value| must be < {_MAX_COORD:g} m)")
-            try:
-                faces, _ = _mesh.check_and_orient(x, local, labels=used + 1)
-            except _mesh.MeshProblem as p:
-                line = flines[p.face] if p.face is not None else o.line
-                raise self.err(line, f"object {name!r}: {p.reason}") from None
             fixed = []
             for g, ln in o.fixed:
                 j = np.searchsorted(used, g)
@@ -480,23 +534,26 @@ class _Parser:
             for k, d in DEFAULTS.items():
                 params[k].append(o.keys[k][0][0] if k in o.keys else d)
             objs.append(SceneObject(name=name, vertex_slice=(vstart, vstart + len(used)),
-                                    face_slice=(fstart, fstart + len(faces)),
+                                    face_slice=(fstart, fstart + len(local)),
                                     fixed=tuple(sorted(set(fixed))), has_gas="nmol" in o.keys, line=o.line))
+            pending.append((name, used, o.line))
             all_x.append(x)
-            all_f.append(faces + vstart)
+            all_local.append(local + vstart)
+            all_lines.append(flines)
             vstart += len(used)
-            fstart += len(faces)
+            fstart += len(local)
+        all_f = self.check_meshes(all_x, all_local, all_lines, pending)
         unused = int((owner < 0).sum())
         if unused:
             first = self.vertex_line[int(np.argmax(owner < 0))]
             warnings.warn(f"{self.path}:{first}: {unused} vertex/vertices not used by any face were ignored",
                           stacklevel=3)
-        names = [o.name for o in objs]
-        dup = {n for n in names if names.count(n) > 1}
-        if dup:
-            second = next(i for i, n in enumerate(names) if n in names[:i])
-            o = self.objects[second]
-            raise self.err(o.o_line or o.line, f"object name {names[second]!r} used by more than one object")
+        first_use = {}
+        for i, o in enumerate(objs):
+            if o.name in first_use:
+                src = self.objects[i]
+                raise self.err(src.o_line or src.line, f"object name {o.name!r} used by more than one object")
+            first_use[o.name] = i
         gravity = np.asarray(self.scene_keys.get("gravity", (DEFAULT_GRAVITY, 0))[0], np.float64)
         floor = self.scene_keys["floor"][0][0] if "floor" in self.scene_keys else None
         temperature = self.scene_keys.get("temperature", ((DEFAULT_TEMPERATURE,), 0))[0][0]
@@ -527,6 +584,6 @@ class _Parser:
                     raise self.err(self.scene_keys["floor"][1],
                                    f"object {o.name!r} starts below the floor (lowest y = {lo:.6g} < floor {floor:.6g})")
         return Scene(path=self.path, text=self.text, objects=tuple(objs), vertices=vertices,
-                     faces=np.concatenate(all_f).astype(np.int32),
+                     faces=all_f.astype(np.int32),
                      params=Params(**{k: np.asarray(v, np.float64) for k, v in params.items()}),
                      gravity=gravity, floor=floor, temperature=float(temperature), **extra)
