@@ -5,7 +5,7 @@ icosahedra of 12 vertices) and loaded with ``jaxplush.load_scene`` (read, parse,
 orientation), then ``jaxplush.make_simulator`` builds its topology (one-ring tables); median of
 ``--repeats``.
 
-Usage: python benchmarks/bench_parse.py [--repeats 3] [--sizes 4,5,6,7] [--objects 1000,5000,20000]
+Usage: python benchmarks/bench_parse.py [--repeats 3] [--sizes 4,5,6,7] [--objects 1000,5000,20000] [--no-mixed]
 """
 
 from __future__ import annotations
@@ -32,6 +32,19 @@ def sphere_text(subdivisions):
     lines += ["v %r %r %r" % tuple(map(float, v)) for v in m.vertices]
     lines += ["f %d %d %d" % tuple(f + 1) for f in m.faces]
     return "\n".join(lines + ["END_OBJECT"]) + "\n", len(m.vertices)
+
+
+def mixed_text():
+    """About 240k vertices in one scene: icospheres of levels 7, 6 and 6 (245,766 vertices)."""
+    out, off = [], 0
+    for i, sub in enumerate((7, 6, 6)):
+        m = trimesh.creation.icosphere(subdivisions=sub, radius=0.1)
+        out += [f"o sphere{i}", "k_structural 100", "total_weight 1", "nmol 0.001", f"translate {0.3 * i} 0 0"]
+        out += ["v %r %r %r" % tuple(map(float, v)) for v in m.vertices]
+        out += ["f %d %d %d" % tuple(f + 1 + off) for f in m.faces]
+        out.append("END_OBJECT")
+        off += len(m.vertices)
+    return "\n".join(out) + "\n", off
 
 
 def many_text(n):
@@ -70,6 +83,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--sizes", default="4,5,6,7")
     ap.add_argument("--objects", default="1000,5000,20000")
+    ap.add_argument("--no-mixed", dest="mixed", action="store_false",
+                    help="skip the 245,766-vertex scene of three icospheres")
     args = ap.parse_args(argv)
     print(f"# {platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}; "
           f"median of {args.repeats}")
@@ -79,6 +94,10 @@ def main(argv=None):
         text, nv = sphere_text(sub)
         load, topo, size = timed(text, args.repeats, True)
         print(f"| icosphere level {sub} | {nv:,} | 1 | {size / 1e6:.1f} | {load:.2f} | {topo:.2f} |", flush=True)
+    if args.mixed:
+        text, nv = mixed_text()
+        load, topo, size = timed(text, args.repeats, True)
+        print(f"| icospheres of levels 7, 6, 6 | {nv:,} | 3 | {size / 1e6:.1f} | {load:.2f} | {topo:.2f} |", flush=True)
     for n in (int(s) for s in args.objects.split(",") if s):
         text, nv = many_text(n)
         load, _, size = timed(text, args.repeats, False)

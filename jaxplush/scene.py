@@ -370,8 +370,11 @@ class _Parser:
     def run(self):
         # Only \n, \r\n and \r end a line (str.splitlines would also split at form feeds, \x1c-\x1e,
         # U+0085, U+2028..., even inside comments, and so miscount lines).
-        lines = re.split(r"\r\n|\r|\n", self.text)
+        text = self.text
+        lines = text.split("\n") if "\r" not in text else re.split(r"\r\n|\r|\n", text)
         vertices, vertex_line = self.vertices, self.vertex_line
+        add_vertex, add_vertex_line = vertices.append, vertex_line.append
+        faces = None
         for lineno, raw in enumerate(lines, 1):
             if "#" in raw:
                 raw = raw.split("#", 1)[0]
@@ -381,15 +384,23 @@ class _Parser:
             key = toks[0]
             # 'v' and 'f' lines are most of a file: stored as text, converted in bulk in build()
             if key == "v":
-                if len(toks) not in (4, 5, 7, 8):
-                    raise self.err(lineno, f"'v' expects 3 coordinates, got {len(toks) - 1} value(s)")
-                vertices.append(toks[1:4])
-                vertex_line.append(lineno)
+                n = len(toks)
+                if n == 4:
+                    del toks[0]
+                    add_vertex(toks)
+                elif n in (5, 7, 8):
+                    add_vertex(toks[1:4])
+                else:
+                    raise self.err(lineno, f"'v' expects 3 coordinates, got {n - 1} value(s)")
+                add_vertex_line(lineno)
                 continue
             if key == "f":
                 if len(toks) < 4:
                     raise self.err(lineno, f"'f' needs at least 3 vertices, got {len(toks) - 1}")
-                (self.cur or self.obj(lineno)).faces.append((toks[1:], lineno, len(vertices)))
+                if faces is None or self.cur is None or faces is not self.cur.faces:
+                    faces = (self.cur or self.obj(lineno)).faces
+                del toks[0]
+                faces.append((toks, lineno, len(vertices)))
                 continue
             args = toks[1:]
             if key in ("o", "g"):

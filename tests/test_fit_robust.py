@@ -173,3 +173,34 @@ def test_interrupted_default_fit_resumes_to_the_same_answer(tmp_path):
     assert res.status == ref.status == load_fit(out)["attrs"]["status"]
     with pytest.raises(JaxplushError, match="different fit \\(samples"):
         F.fit(start, target, checkpoint_path=out, resume=True, **dict(kw, samples=8))
+
+
+def test_point_residuals_are_signed_distances_to_the_surface():
+    """A point cloud's residual is the point's distance to the simulated surface, positive outside and
+    negative inside (smooth where a noisy sample crosses the surface), and the walk finds the
+    nearest vertex that brute force finds."""
+    import jax.numpy as jnp
+    import trimesh
+    from fitting import losses as L
+    m = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    x = jnp.asarray(m.vertices, jnp.float32)
+    faces = np.asarray(m.faces)
+    vf = L.vertex_faces(faces, len(x))
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(200, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    coarse = L.coarse_vertices(np.asarray(x), len(x) // 8)
+    from jaxplush import mesh
+    ring = mesh.ring_tables(faces, len(x))[0]
+    for radius, sign in ((0.103, 1.0), (0.097, -1.0)):
+        p = jnp.asarray(u * radius, jnp.float32)
+        brute = jnp.argmin(jnp.sum((x[:, None] - p[None]) ** 2, axis=-1), axis=0)
+        near = L.nearest_vertices_walk(x, p, coarse, ring)
+        np.testing.assert_array_equal(np.asarray(near), np.asarray(brute))
+        s = np.asarray(L.point_surface_signed_distance(x, p, faces, vf, near))
+        d2 = np.asarray(L.point_surface_distance2(x, p, faces, vf, near))
+        assert np.all(np.sign(s) == sign)
+        np.testing.assert_allclose(s ** 2, d2, rtol=1e-5, atol=1e-12)
+        # the icosphere's faces lie inside the sphere: outside points are 3-4.7 mm away, inside 1.4-3 mm
+        assert 0.001 < np.abs(s).min() and np.abs(s).max() < 0.005
+

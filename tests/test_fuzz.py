@@ -175,6 +175,13 @@ def test_corrupted_targets_are_loaded_or_trajectory_errors(target_bytes, tmp_pat
     _load(scene, path)
 
 
+@pytest.mark.fuzz
+@settings(max_examples=MANY, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.tuples(st.integers(0, 10 ** 6), st.integers(1, 255)), min_size=1, max_size=8))
+def test_many_corrupted_targets(target_bytes, tmp_path, flips):
+    test_corrupted_targets_are_loaded_or_trajectory_errors.hypothesis.inner_test(target_bytes, tmp_path, flips)
+
+
 arrays = st.one_of(
     st.just(None),
     st.sampled_from([np.zeros((2, 42, 3)), np.ones((1, 42, 3), bool), np.full((2, 42, 3), np.nan),
@@ -218,3 +225,10 @@ def test_cli_exit_codes_on_mutated_scenes(tmp_path, muts):
     assert "Traceback" not in err.getvalue()
     if rc == 2:
         assert err.getvalue().startswith("jaxplush info: error: ") and err.getvalue().count("\n") == 1
+
+
+@pytest.mark.fuzz
+@settings(max_examples=max(MANY // 10, 25), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(mutation, min_size=1, max_size=8))
+def test_many_cli_exit_codes(tmp_path, muts):
+    test_cli_exit_codes_on_mutated_scenes.hypothesis.inner_test(tmp_path, muts)
