@@ -217,7 +217,8 @@ class _Obj:
         self.line = line
         self.name = None
         self.o_line = None    # line of its 'o', if any
-        self.faces = []       # (tuple of 0-based global indices, line)
+        self.faces = []       # (tokens, line, vertices before it), or blocks ((m, 3) 0-based, lines, -)
+        self.blocks = False   # whether faces holds blocks read in bulk
         self.keys = {}        # keyword -> (values, line)
         self.fixed = []       # (0-based global index, line)
 
@@ -290,8 +291,10 @@ class _Parser:
     def __init__(self, path, text):
         self.path = path
         self.text = text
-        self.vertices = []     # (x, y, z)
-        self.vertex_line = []
+        # vertices in file order, as chunks: ("t", [token lists], [lines]) from the line-by-line
+        # path (converted in build()), ("a", (m, 3) float64, (m,) lines) from the bulk path
+        self.vchunks = []
+        self.nv = 0
         self.objects = []
         self.cur = None
         self.scene_keys = {}
@@ -316,7 +319,7 @@ class _Parser:
     def resolve(self, tok, key, lineno, n_defined=None):
         """0-based index of an OBJ vertex index token (negative: relative to the ``n_defined``
         vertices defined before its line, default all so far)."""
-        n_defined = len(self.vertices) if n_defined is None else n_defined
+        n_defined = self.nv if n_defined is None else n_defined
         try:
             i = int(tok)
         except ValueError:
@@ -336,10 +339,33 @@ class _Parser:
 
     def face_indices(self, o):
         """(F, 3) int64 0-based global indices of an object's faces (polygons fan-triangulated) and
-        (F,) their lines. Plain triangles convert in bulk; anything else (v/vt/vn forms, polygons,
-        relative indices, bad tokens) line by line, with the exact error."""
-        toks = [a for a, _, _ in o.faces]
-        lines = np.asarray([ln for _, ln, _ in o.faces], np.int64)
+        (F,) their lines, in file order. Blocks read by :meth:`bulk` are arrays already; the rest
+        go through :meth:`_face_entries`."""
+        if not o.blocks:
+            return self._face_entries(o.faces)
+        parts, part_lines, slow = [], [], []
+        for entry in o.faces + [None]:
+            if entry is None or isinstance(entry[0], np.ndarray):
+                if slow:
+                    a, ln = self._face_entries(slow)
+                    parts.append(a)
+                    part_lines.append(ln)
+                    slow = []
+                if entry is not None:
+                    parts.append(entry[0])
+                    part_lines.append(entry[1])
+            else:
+                slow.append(entry)
+        if len(parts) == 1:
+            return parts[0], part_lines[0]
+        return np.concatenate(parts), np.concatenate(part_lines)
+
+    def _face_entries(self, entries):
+        """face_indices of line-by-line entries (tokens, line, vertices defined before it). Plain
+        triangles convert in bulk; anything else (v/vt/vn forms, polygons, relative indices, bad
+        tokens) line by line, with the exact error."""
+        toks = [a for a, _, _ in entries]
+        lines = np.asarray([ln for _, ln, _ in entries], np.int64)
         if all(len(a) == 3 for a in toks):
             try:
                 arr = np.array(toks, dtype=np.int64)
@@ -348,7 +374,7 @@ class _Parser:
             if arr is not None and (arr > 0).all() and (arr <= MAX_INDEX).all():
                 return arr - 1, lines
         out, out_lines = [], []
-        for args, ln, n_def in o.faces:
+        for args, ln, n_def in entries:
             idx = [self.resolve(t.split("/")[0], "f", ln, n_def) for t in args]
             for k in range(1, len(idx) - 1):  # fan-triangulate polygons
                 out.append((idx[0], idx[k], idx[k + 1]))
@@ -357,104 +383,190 @@ class _Parser:
 
     def vertex_array(self):
         """(N, 3) float64 of every 'v' line, converted in bulk (a bad value: its line's error)."""
+        out = []
+        for kind, data, lines in self.vchunks:
+            if kind == "a":
+                out.append(data)
+                continue
+            try:
+                raw = np.array(data, dtype=np.float64).reshape(-1, 3)
+            except ValueError:
+                raw = None
+            if raw is None or not np.isfinite(raw).all():
+                for toks, ln in zip(data, lines):
+                    for t in toks:
+                        _number(self.path, ln, "v", t)          # raises with the line
+            out.append(raw)
+        return np.concatenate(out) if out else np.zeros((0, 3))
+
+    def vertex_lines(self):
+        """(N,) int64 line of every vertex."""
+        return np.concatenate([np.asarray(lines, np.int64) for _, _, lines in self.vchunks] or [np.zeros(0, np.int64)])
+
+    def bulk(self, lines, a, b, key):
+        """Read lines[a:b], every one starting with ``key`` ('v' or 'f') and a blank, as one block:
+        plain 'v x y z' or 'f i j k' (positive indices) lines only, converted with Python's own
+        float/int, so the values are those of the line-by-line path. Returns False, having stored
+        nothing, for anything else in the block (comments, other token counts, v/vt/vn forms,
+        relative or huge indices, bad or non-finite numbers): the block is then read line by
+        line, which reports the exact line and problem."""
+        m = b - a
+        joined = " ".join(lines[a:b])
+        if "#" in joined:
+            return False
+        toks = joined.split()
+        if len(toks) != 4 * m or toks[0::4].count(key) != m:
+            return False
         try:
-            raw = np.array(self.vertices, dtype=np.float64).reshape(-1, 3)
-        except ValueError:
-            raw = None
-        if raw is None or not np.isfinite(raw).all():
-            for toks, ln in zip(self.vertices, self.vertex_line):
-                for t in toks:
-                    _number(self.path, ln, "v", t)          # raises with the line
-        return raw
+            if key == "v":
+                cols = [np.fromiter(map(float, toks[c::4]), np.float64, m) for c in (1, 2, 3)]
+            else:
+                cols = [np.fromiter(map(int, toks[c::4]), np.int64, m) for c in (1, 2, 3)]
+        except (ValueError, OverflowError):
+            return False
+        arr = np.stack(cols, axis=1)
+        line_nos = np.arange(a + 1, b + 1, dtype=np.int64)
+        if key == "v":
+            if not np.isfinite(arr).all():
+                return False
+            self.vchunks.append(("a", arr, line_nos))
+            self.nv += m
+        else:
+            if not ((arr > 0).all() and (arr <= MAX_INDEX).all()):
+                return False
+            o = self.cur or self.obj(a + 1)
+            o.faces.append((arr - 1, line_nos, self.nv))
+            o.blocks = True
+        return True
+
+    #: Runs of at least this many 'v' (or 'f') lines are read as blocks (:meth:`bulk`).
+    BULK_MIN = 32
+
+    def segments(self, lines):
+        """(start, end, key) covering lines in order: runs of >= BULK_MIN lines starting "v " or
+        "f " (key 'v' or 'f', for :meth:`bulk`) and what lies between them (key None)."""
+        n = len(lines)
+        runs = []
+        if n >= self.BULK_MIN and "\r" not in self.text:
+            # the first two characters of every line, from the UTF-8 bytes (a newline byte never
+            # occurs inside a multi-byte character, so the lines are the same)
+            b = np.frombuffer(self.text.encode("utf-8", "surrogatepass") + b"\0\0", np.uint8)
+            starts = np.concatenate([[0], np.flatnonzero(b == 10) + 1])
+            c0, c1 = b[starts], b[starts + 1]
+            for key in ("v", "f"):
+                flag = (c0 == ord(key)) & (c1 == 32)
+                edges = np.diff(np.concatenate([[0], flag.astype(np.int8), [0]]))
+                runs += [(int(a), int(b), key) for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1))
+                         if b - a >= self.BULK_MIN]
+        out, pos = [], 0
+        for a, b, key in sorted(runs):
+            if a > pos:
+                out.append((pos, a, None))
+            out.append((a, b, key))
+            pos = b
+        if pos < n or not out:
+            out.append((pos, n, None))
+        return out
 
     def run(self):
         # Only \n, \r\n and \r end a line (str.splitlines would also split at form feeds, \x1c-\x1e,
         # U+0085, U+2028..., even inside comments, and so miscount lines).
         text = self.text
         lines = text.split("\n") if "\r" not in text else re.split(r"\r\n|\r|\n", text)
-        vertices, vertex_line = self.vertices, self.vertex_line
+        vertices, vertex_line = [], []
         add_vertex, add_vertex_line = vertices.append, vertex_line.append
         faces = None
-        for lineno, raw in enumerate(lines, 1):
-            if "#" in raw:
-                raw = raw.split("#", 1)[0]
-            toks = raw.split()
-            if not toks:
-                continue
-            key = toks[0]
-            # 'v' and 'f' lines are most of a file: stored as text, converted in bulk in build()
-            if key == "v":
-                n = len(toks)
-                if n == 4:
+        for seg_start, seg_end, run_key in self.segments(lines):
+            if run_key is not None:
+                if vertices and run_key == "v":         # keep file order: the line-by-line ones first
+                    self.vchunks.append(("t", vertices, vertex_line))
+                    vertices, vertex_line = [], []
+                    add_vertex, add_vertex_line = vertices.append, vertex_line.append
+                if self.bulk(lines, seg_start, seg_end, run_key):
+                    continue
+            for lineno, raw in enumerate(lines[seg_start:seg_end], seg_start + 1):
+                if "#" in raw:
+                    raw = raw.split("#", 1)[0]
+                toks = raw.split()
+                if not toks:
+                    continue
+                key = toks[0]
+                # 'v' and 'f' lines are most of a file: stored as text, converted in bulk in build()
+                if key == "v":
+                    n = len(toks)
+                    if n == 4:
+                        del toks[0]
+                        add_vertex(toks)
+                    elif n in (5, 7, 8):
+                        add_vertex(toks[1:4])
+                    else:
+                        raise self.err(lineno, f"'v' expects 3 coordinates, got {n - 1} value(s)")
+                    add_vertex_line(lineno)
+                    self.nv += 1
+                    continue
+                if key == "f":
+                    if len(toks) < 4:
+                        raise self.err(lineno, f"'f' needs at least 3 vertices, got {len(toks) - 1}")
+                    if faces is None or self.cur is None or faces is not self.cur.faces:
+                        faces = (self.cur or self.obj(lineno)).faces
                     del toks[0]
-                    add_vertex(toks)
-                elif n in (5, 7, 8):
-                    add_vertex(toks[1:4])
+                    faces.append((toks, lineno, self.nv))
+                    continue
+                args = toks[1:]
+                if key in ("o", "g"):
+                    name = " ".join(args) if args else None
+                    if key == "o" and self.cur is not None:
+                        if self.cur.faces:
+                            self.close(lineno)  # a new 'o' after faces starts the next object
+                        elif self.cur.o_line is not None:  # else its keywords would silently go to the next one
+                            raise self.err(self.cur.o_line, f"object has no faces ({self.cur.name!r}: the next 'o' "
+                                                            f"on line {lineno} comes before any 'f' line)")
+                    o = self.obj(lineno)
+                    if key == "o":
+                        o.o_line = lineno
+                    if name and (o.name is None or key == "o"):
+                        o.name = name
+                elif key == "END_OBJECT":
+                    if args:
+                        raise self.err(lineno, "'END_OBJECT' takes no values")
+                    if self.cur is None:
+                        raise self.err(lineno, "'END_OBJECT' without an open object (no faces since the last one)")
+                    self.close(lineno)
+                elif key in _OBJECT_KEYS:
+                    vals = self.values(key, args, _OBJECT_KEYS[key], lineno)
+                    o = self.obj(lineno)
+                    if key in o.keys:
+                        raise self.err(lineno, f"'{key}' given twice for one object (first on line {o.keys[key][1]})")
+                    o.keys[key] = (vals, lineno)
+                elif key == "fixed":
+                    if len(args) != 1:
+                        raise self.err(lineno, f"'fixed' expects 1 vertex index, got {len(args)} value(s)")
+                    self.obj(lineno).fixed.append((self.resolve(args[0], "fixed", lineno), lineno))
+                elif key in _SCENE_KEYS:
+                    vals = self.values(key, args, _SCENE_KEYS[key], lineno)
+                    if key in self.scene_keys:
+                        raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+                    self.scene_keys[key] = (vals, lineno)
+                elif key in _SWITCH_KEYS:
+                    if len(args) != 1 or args[0].lower() not in ("on", "off"):
+                        raise self.err(lineno, f"'{key}' expects 'on' or 'off', got {' '.join(args)!r}")
+                    if key in self.scene_keys:
+                        raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+                    self.scene_keys[key] = ([args[0].lower() == "on"], lineno)
+                elif key in _CHOICE_KEYS:
+                    choices = _CHOICE_KEYS[key]
+                    if len(args) != 1 or args[0].lower() not in choices:
+                        raise self.err(lineno, f"'{key}' expects {' or '.join(repr(c) for c in choices)}, "
+                                               f"got {' '.join(args)!r}")
+                    if key in self.scene_keys:
+                        raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+                    self.scene_keys[key] = ([args[0].lower()], lineno)
+                elif key in _IGNORED:
+                    continue
                 else:
-                    raise self.err(lineno, f"'v' expects 3 coordinates, got {n - 1} value(s)")
-                add_vertex_line(lineno)
-                continue
-            if key == "f":
-                if len(toks) < 4:
-                    raise self.err(lineno, f"'f' needs at least 3 vertices, got {len(toks) - 1}")
-                if faces is None or self.cur is None or faces is not self.cur.faces:
-                    faces = (self.cur or self.obj(lineno)).faces
-                del toks[0]
-                faces.append((toks, lineno, len(vertices)))
-                continue
-            args = toks[1:]
-            if key in ("o", "g"):
-                name = " ".join(args) if args else None
-                if key == "o" and self.cur is not None:
-                    if self.cur.faces:
-                        self.close(lineno)  # a new 'o' after faces starts the next object
-                    elif self.cur.o_line is not None:  # else its keywords would silently go to the next one
-                        raise self.err(self.cur.o_line, f"object has no faces ({self.cur.name!r}: the next 'o' "
-                                                        f"on line {lineno} comes before any 'f' line)")
-                o = self.obj(lineno)
-                if key == "o":
-                    o.o_line = lineno
-                if name and (o.name is None or key == "o"):
-                    o.name = name
-            elif key == "END_OBJECT":
-                if args:
-                    raise self.err(lineno, "'END_OBJECT' takes no values")
-                if self.cur is None:
-                    raise self.err(lineno, "'END_OBJECT' without an open object (no faces since the last one)")
-                self.close(lineno)
-            elif key in _OBJECT_KEYS:
-                vals = self.values(key, args, _OBJECT_KEYS[key], lineno)
-                o = self.obj(lineno)
-                if key in o.keys:
-                    raise self.err(lineno, f"'{key}' given twice for one object (first on line {o.keys[key][1]})")
-                o.keys[key] = (vals, lineno)
-            elif key == "fixed":
-                if len(args) != 1:
-                    raise self.err(lineno, f"'fixed' expects 1 vertex index, got {len(args)} value(s)")
-                self.obj(lineno).fixed.append((self.resolve(args[0], "fixed", lineno), lineno))
-            elif key in _SCENE_KEYS:
-                vals = self.values(key, args, _SCENE_KEYS[key], lineno)
-                if key in self.scene_keys:
-                    raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
-                self.scene_keys[key] = (vals, lineno)
-            elif key in _SWITCH_KEYS:
-                if len(args) != 1 or args[0].lower() not in ("on", "off"):
-                    raise self.err(lineno, f"'{key}' expects 'on' or 'off', got {' '.join(args)!r}")
-                if key in self.scene_keys:
-                    raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
-                self.scene_keys[key] = ([args[0].lower() == "on"], lineno)
-            elif key in _CHOICE_KEYS:
-                choices = _CHOICE_KEYS[key]
-                if len(args) != 1 or args[0].lower() not in choices:
-                    raise self.err(lineno, f"'{key}' expects {' or '.join(repr(c) for c in choices)}, "
-                                           f"got {' '.join(args)!r}")
-                if key in self.scene_keys:
-                    raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
-                self.scene_keys[key] = ([args[0].lower()], lineno)
-            elif key in _IGNORED:
-                continue
-            else:
-                raise self.err(lineno, f"unknown keyword {key!r}")
+                    raise self.err(lineno, f"unknown keyword {key!r}")
+        if vertices:
+            self.vchunks.append(("t", vertices, vertex_line))
         if self.cur is not None:
             if self.cur.faces:
                 self.close(None)
@@ -464,7 +576,7 @@ class _Parser:
             else:
                 self.close(None)
         if not self.objects:
-            raise self.err(None, "empty scene: no objects (no 'f' lines)" if not self.vertices
+            raise self.err(None, "empty scene: no objects (no 'f' lines)" if not self.nv
                            else "no faces: the scene defines vertices but no 'f' lines")
         return self.build()
 
@@ -499,8 +611,9 @@ class _Parser:
         return vals
 
     def build(self):
-        nv = len(self.vertices)
+        nv = self.nv
         raw = self.vertex_array()
+        vertex_line = self.vertex_lines()
         owner = np.full(nv, -1)
         all_x, all_local, all_lines, pending, objs = [], [], [], [], []
         params = {k: [] for k in DEFAULTS}
@@ -531,7 +644,7 @@ class _Parser:
             if huge.any():
                 i = int(np.argmax(huge.any(axis=1)))
                 if not (np.abs(raw[used[i]]) < _MAX_COORD).all():
-                    raise self.err(self.vertex_line[used[i]], f"vertex {used[i] + 1}: coordinate too large "
+                    raise self.err(int(vertex_line[used[i]]), f"vertex {used[i] + 1}: coordinate too large "
                                                               f"(|value| must be < {_MAX_COORD:g} m)")
                 key = "scale" if "scale" in o.keys else "translate"
                 raise self.err(o.keys[key][1], f"object {name!r}: coordinates too large after scale/translate "
@@ -556,7 +669,7 @@ class _Parser:
         all_f = self.check_meshes(all_x, all_local, all_lines, pending)
         unused = int((owner < 0).sum())
         if unused:
-            first = self.vertex_line[int(np.argmax(owner < 0))]
+            first = int(vertex_line[int(np.argmax(owner < 0))])
             warnings.warn(f"{self.path}:{first}: {unused} vertex/vertices not used by any face were ignored",
                           stacklevel=3)
         first_use = {}

@@ -797,3 +797,49 @@ def test_make_scenes_is_deterministic(tmp_path):
     for name in sorted(os.listdir(root)):
         if name.endswith(".obj"):
             assert (copy / name).read_bytes() == open(os.path.join(root, name), "rb").read(), name
+
+
+def _two_sphere_text():
+    out = []
+    for i, (sub, off) in enumerate(((2, 0), (1, 162))):
+        m = trimesh.creation.icosphere(subdivisions=sub, radius=0.1)
+        out += [f"o s{i}", "k_structural 100", "total_weight 1", "nmol 0.001", f"translate {0.5 * i} 0 0"]
+        out += ["v %r %r %r" % tuple(map(float, v)) for v in m.vertices]
+        out += ["f %d %d %d" % tuple(f + 1 + off) for f in m.faces]
+        out.append("END_OBJECT")
+    return out
+
+
+@pytest.mark.parametrize("edit", [None, (20, "v 0.1 0.2"), (30, "v 0.1 0.2 nan"), (40, "v 1 2 3 # comment"),
+                                  (50, "v 1_0 2 3"), (400, "f 1 2"), (420, "f 1 -2 3"), (440, "f 1/1 2/2 3/3"),
+                                  (460, "f 1 2 99999999999999999999"), (470, "f 1 2 3 4"), (480, "f 0 1 2")])
+def test_blocks_of_v_and_f_lines_read_as_line_by_line(monkeypatch, edit):
+    """Long runs of 'v'/'f' lines are read in bulk (jaxplush.scene._Parser.bulk); the scene, or the
+    error with its line, is exactly what the line-by-line reading gives, for good input and for any
+    odd or bad line inside a block."""
+    from jaxplush import scene as S
+    lines = _two_sphere_text()
+    if edit is not None:
+        i, text = edit
+        assert lines[i][0] == text[0]                       # the edit lands inside a block of its kind
+        lines[i] = text
+    text = "\n".join(lines) + "\n"
+
+    def parse():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                return jaxplush.parse_scene(text, "blocks.obj")
+            except SceneError as e:
+                return str(e)
+
+    fast = parse()
+    monkeypatch.setattr(S._Parser, "BULK_MIN", 10 ** 9)
+    slow = parse()
+    if isinstance(slow, str):
+        assert fast == slow
+    else:
+        assert not isinstance(fast, str)
+        np.testing.assert_array_equal(fast.vertices, slow.vertices)
+        np.testing.assert_array_equal(fast.faces, slow.faces)
+        assert fast.objects == slow.objects and fast.n_vertices == 162 + 42
