@@ -42,7 +42,7 @@ FACTORS = {
 }
 SMALL_FACTORS = {"euler": (0.05,), "symplectic_euler": (0.5,), "rk4": (0.5,), "verlet": (0.5,), "mesit": (0.05,),
                  "implicit_euler": (2.0,)}
-#: Never recommended: explicit Euler gains energy at any dt, Mesit's update is unsound (physics.md §2).
+#: Never recommended: explicit Euler gains energy at any dt, Mesit's update is unsound (docs/model.md §2).
 NOT_RECOMMENDED = ("euler", "mesit")
 TARGETS = (1e-3, 1e-4, 1e-5)   # m, RMS vertex error (the ball radius is 0.1 m)
 

@@ -51,7 +51,7 @@ from fitting.targets import Target, load_target
 
 #: Accepted spellings of parameter names.
 ALIASES = {"k": "k_structural", "stiffness": "k_structural", "mass": "total_weight", "weight": "total_weight"}
-#: Parameters that scale with the mass under the exact symmetry of physics.md §9.1.
+#: Parameters that scale with the mass under the exact symmetry of docs/model.md §9.1.
 _MASS_CONFOUNDED = ("k_structural", "dashpot", "nmol")
 OPTIMIZERS = ("lm", "adam", "lbfgs")
 #: Default learning rates (log space) per optimiser (L-BFGS: none, the line search sets the step).
@@ -82,12 +82,12 @@ def canonical_names(names):
 
 
 def check_mass_fit(names, force=False):
-    """physics.md §9.1: mass is set by the same symmetry as k, c and nRT. Warn; refuse jointly."""
+    """docs/model.md §9.1: mass is set by the same symmetry as k, c and nRT. Warn; refuse jointly."""
     if "total_weight" not in names:
         return
     others = [n for n in names if n in _MASS_CONFOUNDED]
     msg = ("fitting total_weight: with gravity, scaling (k_structural, dashpot, nmol, total_weight) together "
-           "leaves every trajectory unchanged (physics.md §9.1); mass must be measured, not fitted")
+           "leaves every trajectory unchanged (docs/model.md §9.1); mass must be measured, not fitted")
     if others and not force:
         raise JaxplushError(f"refusing to fit total_weight jointly with {', '.join(others)}: {msg}. "
                             "Fix the mass, or force it (force=True / --force)")
@@ -1010,7 +1010,7 @@ def _nearest_residual(x, p):
 
 # --------------------------------------------------------------------------- synthetic recovery
 
-#: The recovery scenario's true parameters (physics.md §9.4: dynamics determine k, damping and
+#: The recovery scenario's true parameters (docs/model.md §9.4: dynamics determine k, damping and
 #: nmol): a soft pressurised ball hanging from one pinned top vertex, released undeformed; it
 #: inflates, sags and rings on its pin, damped by the Verlet damping.
 RECOVERY_TRUTH = dict(k_structural=50.0, damping=1000.0, inflation=1.05, total_weight=0.1, radius=0.1)
@@ -1021,7 +1021,7 @@ def recovery_scene_text(subdivisions=2, k_structural=50.0, damping=1000.0, nmol=
     """Scene text of the recovery scenario: an icosphere ball (radius 0.1 m) pinned at its top.
 
     ``nmol`` defaults to the gas that inflates the free ball to ``inflation`` x its size
-    (physics.md §8.5: n = k s (s - 1) sum L² / (3 R T)).
+    (docs/model.md §8.5: n = k s (s - 1) sum L² / (3 R T)).
     """
     import trimesh
     from jaxplush.scene_writer import format_scene

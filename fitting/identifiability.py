@@ -1,4 +1,4 @@
-"""Identifiability at the optimum: the Gauss-Newton matrix in log-parameters (physics.md §9).
+"""Identifiability at the optimum: the Gauss-Newton matrix in log-parameters (docs/model.md §9).
 
 With theta = log(fitted parameters) and the residual features r(theta) = simulated positions at
 the target's frames minus the target, J = dr/dtheta is computed column by column with

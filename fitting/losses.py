@@ -89,15 +89,20 @@ def point_surface_distance2(x, p, faces, vfaces, near=None):
       near: (M,) index of each point's nearest vertex, if known (:func:`nearest_vertices`);
         default: found here by brute force (an (M, V) table).
     """
-    from jaxplush.contact import closest_point_distance2
     if near is None:
         d2v = sum((x[:, None, c] - p[None, :, c]) ** 2 for c in range(3))   # (V, M); a K=3 dot is slower
         near = jnp.argmin(d2v, axis=0)                                      # (M,) nearest vertex
+    return jnp.min(_candidate_faces(x, p, faces, vfaces, near)[1], axis=1)
+
+
+def _candidate_faces(x, p, faces, vfaces, near):
+    """(corners: 3 x (M, W, 3) positions of the faces around each point's nearest vertex,
+    d2 (M, W): each point's squared distance to each of them)."""
+    from jaxplush.contact import closest_point_distance2
     tri = jnp.asarray(faces)[jnp.asarray(vfaces)[near]]                 # (M, W, 3)
     corner = [x[tri[..., i]] for i in range(3)]                         # 3 x (M, W, 3)
     split = lambda a: tuple(a[..., c] for c in range(3))  # noqa: E731
-    d2 = closest_point_distance2(split(p[:, None, :]), *(split(c) for c in corner))
-    return jnp.min(d2, axis=1)
+    return corner, closest_point_distance2(split(p[:, None, :]), *(split(c) for c in corner))
 
 
 def point_surface_signed_distance(x, p, faces, vfaces, near):
@@ -111,11 +116,7 @@ def point_surface_signed_distance(x, p, faces, vfaces, near):
 
     Args: as :func:`point_surface_distance2` (``near`` required; faces wound outward).
     """
-    from jaxplush.contact import closest_point_distance2
-    tri = jnp.asarray(faces)[jnp.asarray(vfaces)[near]]                 # (M, W, 3)
-    corner = [x[tri[..., i]] for i in range(3)]                         # 3 x (M, W, 3)
-    split = lambda a: tuple(a[..., c] for c in range(3))  # noqa: E731
-    d2 = closest_point_distance2(split(p[:, None, :]), *(split(c) for c in corner))
+    corner, d2 = _candidate_faces(x, p, faces, vfaces, near)
     k = jnp.argmin(d2, axis=1)[:, None, None]                           # (M, 1, 1)
     a, b, c = (jnp.take_along_axis(v, k, axis=1)[:, 0] for v in corner)  # 3 x (M, 3)
     side = jnp.sum((p - a) * jnp.cross(b - a, c - a), axis=-1)

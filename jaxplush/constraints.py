@@ -6,7 +6,7 @@ component-major (3, V) arrays, where ``v_new`` is the velocity the integrator ca
 integrator calls it once per step, so floor response and pins live in one place.
 
 Floor (y >= H): a projection that sets the vertex's vertical velocity to the one that lands it
-on the floor; it only ever removes energy (physics.md §6). Pinned vertices keep their rest
+on the floor; it only ever removes energy (docs/model.md §6). Pinned vertices keep their rest
 position with zero velocity.
 
 Optional floor response (scene keywords; absent = the plain projection above, not traced):
@@ -14,7 +14,7 @@ Optional floor response (scene keywords; absent = the plain projection above, no
 * ``floor_restitution E``: a vertex that hits the floor faster than v_rest = 2 |g_y| dt (Jolt's
   threshold, so resting vertices do not jitter) leaves it with E times its incoming normal speed.
   The switch is a sigmoid of width v_rest / 2 in the impact speed, so the response is smooth.
-* ``floor_friction MU``: Coulomb friction in the projection (Jolt-style, physics.md §6). The
+* ``floor_friction MU``: Coulomb friction in the projection (Jolt-style, docs/model.md §6). The
   projection changes a contacting vertex's normal velocity by dv_n >= 0; its tangential
   velocity v_t then loses at most MU dv_n: v_t <- v_t max(0, 1 - MU dv_n / sqrt(|v_t|² + eps²)),
   eps = 1e-3 v_rest, and its tangential displacement this step is reduced to match. A vertex at

@@ -1,4 +1,4 @@
-"""Soft-soft contact between plushies (physics.md §7): a smooth penalty derived from a potential.
+"""Soft-soft contact between plushies (docs/model.md §7): a smooth penalty derived from a potential.
 
 Model. For every vertex p of object A near object B, let q be the closest point of B's surface and
 s the signed distance (positive outside B). Each such vertex carries the energy
@@ -56,9 +56,9 @@ vertex and its own object's faces more than two rest edges away (inside/outside 
 meaningful against one's own far surface). It is O(N²) per object and meant for meshes of at most
 about a thousand vertices.
 
-Defaults (physics.md §6, §9.1): thickness delta = half the mean rest edge length of the pair's
+Defaults (docs/model.md §6, §9.1): thickness delta = half the mean rest edge length of the pair's
 finer object; stiffness k_c = kappa m omega_G² with omega_G² = 2 k n_max / m the Gershgorin bound
-of the springs (physics.md §4), i.e. k_c = kappa 2 n_max min(k_A, k_B), kappa = 0.1: contact raises
+of the springs (docs/model.md §4), i.e. k_c = kappa 2 n_max min(k_A, k_B), kappa = 0.1: contact raises
 omega_max² by at most about 10% (the stable dt drops by about 5%), and k_c scales with k, hence
 with mass under the symmetry (k, c, nRT, M) -> lambda (k, c, nRT, M), unlike a fixed absolute
 stiffness. ``contact_stiffness K`` (N/m) in a scene fixes it instead.

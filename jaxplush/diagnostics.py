@@ -1,8 +1,9 @@
 """Health checks, energies and blow-up reports.
 
-Inside ``jit`` nothing raises: the rollout carries an (O,) int32 status code per object
-(../shared/style.md §2.5). After the run, outside ``jit``, :func:`raise_for_status` turns the
-first failure into a :class:`jaxplush.errors.SimulationError` naming step, object and cause.
+Inside ``jit`` nothing raises: the rollout carries an (O,) int32 status code per object. After
+the run, outside ``jit``, :func:`first_failure` finds the first failing frame, and
+``jaxplush.simulate`` turns it into a :class:`jaxplush.errors.SimulationError` naming step, object
+and cause.
 """
 
 from __future__ import annotations

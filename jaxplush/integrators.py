@@ -1,4 +1,4 @@
-"""Time integrators on the internal component-major (3, V) layout (physics.md §2-§5).
+"""Time integrators on the internal component-major (3, V) layout (docs/model.md §2-§5).
 
 Every integrator is a :class:`Scheme` of three pure functions built for one scene by
 :func:`build`:
@@ -23,15 +23,15 @@ rk4                4      State(x, v)          h omega < 2 sqrt(2)           sma
 verlet (default)   2      State(x, u), u the   h omega < 2 (damped:          none; the report's
                           half-step velocity   h² omega² + 2 h gamma < 4)    D is per step
 mesit              1      MesitState(x, v,     unsound: gains energy at      pumps energy
-                          dv previous change)  any h (physics.md §2)
+                          dv previous change)  any h (docs/model.md §2)
 implicit_euler     1      State(x, v)          any h (linearised, one        adds ~omega² h/2
-                                                Newton step per step)        (physics.md §3)
+                                                Newton step per step)        (docs/model.md §3)
 =================  =====  ===================  ============================  ===================
 
 The report's per-step Verlet damping D (``Params.damping``) multiplies Verlet's velocity by
 1 - 1/D every time step dt (with substeps, by (1 - 1/D)^(1/substeps) every substep, so D keeps
 its meaning per dt). The other schemes apply it as the equivalent drag rate
-gamma_D = -ln(1 - 1/D) / dt (physics.md §5), which decays a velocity by the same factor per
+gamma_D = -ln(1 - 1/D) / dt (docs/model.md §5), which decays a velocity by the same factor per
 time step: like Verlet's, its physical strength depends on dt (not on the substeps). Pinned vertices get zero acceleration
 inside the non-Verlet schemes (so RK4's stages see them fixed) and are reset by ``constrain``.
 """
@@ -136,7 +136,7 @@ def damping_factor(damping):
 
 def damping_rate(damping, dt):
     """gamma_D = -ln(1 - 1/D) / dt (1/s): the drag rate that decays a velocity by Verlet's
-    per-step factor 1 - 1/D over one time step dt (physics.md §5); 0 for D = 0."""
+    per-step factor 1 - 1/D over one time step dt (docs/model.md §5); 0 for D = 0."""
     f = damping_factor(damping)
     return -jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / dt
 
@@ -188,7 +188,7 @@ def verlet(system):
         u_{n+1} = (1 - f) u_n + a(x_n, u_n) h,   x_{n+1} = x_n + u_{n+1} h,   f = 1/D,
 
     the difference form of x_{n+1} = x_n + (1 - f)(x_n - x_{n-1}) + a h² (no rounding drift in
-    float32, physics.md §5); u_0 = v_0 - a_0 h/2 makes free fall exact (physics.md §8.1).
+    float32, docs/model.md §5); u_0 = v_0 - a_0 h/2 makes free fall exact (docs/model.md §8.1).
     Stable for h² omega² + 2 h gamma < 4 (undamped: h < 2/omega_max). Adds no numerical
     damping; D damps at gamma ~ 1/(D h), so its physical strength changes with h. Velocity-
     dependent forces (dashpot, drag) see u_n, half a step old, which makes the scheme first
@@ -260,7 +260,7 @@ def symplectic_euler(system):
     """Semi-implicit (symplectic) Euler: v_{n+1} = v_n + h a(x_n, v_n), x_{n+1} = x_n + h v_{n+1}.
 
     Order 1 (the same update as Verlet started from u_0 = v_0, which costs a global error of
-    g h t / 2 in free fall, physics.md §8.1); state State(x, v). Stable for h omega < 2 (damped:
+    g h t / 2 in free fall, docs/model.md §8.1); state State(x, v). Stable for h omega < 2 (damped:
     h² omega² + 2 h gamma < 4, as Verlet); energy error bounded, no drift, no numerical damping.
     """
     h = system.h
@@ -310,7 +310,7 @@ def _safe_unit(a):
 
 
 def mesit(system):
-    """Mesit et al.'s "simplified implicit" update, as the report describes it (physics.md §2).
+    """Mesit et al.'s "simplified implicit" update, as the report describes it (docs/model.md §2).
 
         dv_i = F_i/|F_i| * h (|F_i| + k h n_i |dv_i^prev|) / (m + k h² n_i),
         v <- v + dv,   x <- x + h v,
@@ -353,7 +353,7 @@ def mesit(system):
 # --------------------------------------------------------------------------- implicit Euler
 
 def implicit_euler(system, cg_tol=None, cg_maxiter=CG_MAXITER):
-    """Linearised backward Euler after Baraff and Witkin (physics.md §3).
+    """Linearised backward Euler after Baraff and Witkin (docs/model.md §3).
 
     One Newton step per time step:
         (M - h df/dv - h² df/dx) dv = h (f_0 + h (df/dx) v_0),   v_1 = v_0 + dv,   x_1 = x_0 + h v_1,
@@ -376,7 +376,7 @@ def implicit_euler(system, cg_tol=None, cg_maxiter=CG_MAXITER):
     Order 1; state State(x, v). Stable at any h for the linearised system (tested at 10x the
     explicit limit on a stiff 642-vertex ball). Strongly dissipative: a mode of frequency omega
     loses amplitude by 1/sqrt(1 + omega² h²) per step, numerical damping of rate ~omega² h/2,
-    which is confounded with any damping parameter being fitted (physics.md §9).
+    which is confounded with any damping parameter being fitted (docs/model.md §9).
     """
     topo, terms, h = system.topo, system.terms, system.h
     ring = np.ascontiguousarray(topo.ring.T)

@@ -1,4 +1,4 @@
-"""The physical model: static topology, forces and energies (physics.md §1, §5).
+"""The physical model: static topology, forces and energies (docs/model.md §1, §5).
 
 Forces are assembled per vertex from its ordered one-ring, with no scatter:
 
@@ -6,7 +6,7 @@ Forces are assembled per vertex from its ordered one-ring, with no scatter:
   f_i = sum_j k (l_ij - L_ij) d_ij / l_ij, d_ij = x_j - x_i, l = sqrt(|d|² + eps²);
 * edge dashpot: f_i = sum_j c ((v_j - v_i).d^) d^;
 * gas: f_i = P_o dV/dx_i with dV/dx_i = 1/6 sum_k (x_{n_k} - x_i) x (x_{n_{k+1}} - x_i) over the
-  ordered ring (equal to sum over incident faces of A_f n_f / 3, physics.md §1), and
+  ordered ring (equal to sum over incident faces of A_f n_f / 3, docs/model.md §1), and
   V_o = 1/3 sum_{i in o} (x_i - r_o).dV/dx_i (V is homogeneous of degree 3), P_o = nRT/max(V, eps V0);
 * air drag: f_i = -gamma m_i v_i.
 
@@ -27,7 +27,7 @@ from jaxplush import mesh as _mesh
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 #: Softening of edge lengths, relative to the shortest rest edge: l = sqrt(|d|² + eps²) keeps
-#: gradients finite at zero length (physics.md §8).
+#: gradients finite at zero length (docs/model.md §8).
 LENGTH_EPS = 1e-6
 
 
@@ -269,7 +269,7 @@ def _dot(a, b):
 
 
 def pressure(topo, params, volume, temperature):
-    """(O,) gas pressure nRT / max(V, eps V0) (physics.md §1: a C¹, conservative continuation)."""
+    """(O,) gas pressure nRT / max(V, eps V0) (docs/model.md §1: a C¹, conservative continuation)."""
     v0 = jnp.asarray(topo.rest_volume, volume.dtype)
     return params.nmol * (GAS_CONSTANT * temperature) / jnp.maximum(volume, VOLUME_EPS * v0)
 

@@ -7,7 +7,7 @@ Per object (they apply to the object they stand in; ``END_OBJECT`` closes it; a 
 single object may omit it):
   ``k_structural K``  spring stiffness of every unique edge, N/m (>= 0; default 100)
   ``damping D``       the report's Verlet damping, factor f = 1/D per step (D >= 1; 0 or
-                      absent: none). Its physical meaning changes with dt (physics.md §5).
+                      absent: none). Its physical meaning changes with dt (docs/model.md §5).
   ``dashpot C``       edge dashpot, N s/m (>= 0; default 0), dt-independent
   ``drag G``          mass-proportional air drag, 1/s (>= 0; default 0), dt-independent
   ``total_weight M``  mass in kg (> 0; default 1), split evenly over the object's vertices

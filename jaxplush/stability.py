@@ -1,4 +1,4 @@
-"""Largest stable explicit time step (physics.md §4).
+"""Largest stable explicit time step (docs/model.md §4).
 
 omega_max² = lambda_max(M^-1 K) with K = -df/dx the stiffness at the given positions (springs
 and gas), found by power iteration on the symmetric M^-1/2 K M^-1/2 with Jacobian-vector
@@ -125,7 +125,7 @@ def estimate(sim, params, x=None, iters=100, seed=0):
     lam, gam = (float(a) for a in run(params, x))
     if sim.terms.gas:
         # The gas inflates the body, pre-tensioning its springs and raising omega_max: also
-        # linearise at the uniform inflation s* that balances springs and gas (physics.md §8.5).
+        # linearise at the uniform inflation s* that balances springs and gas (docs/model.md §8.5).
         lam = max(lam, float(run(params, inflated(sim, params, x))[0]))
     b = bound(sim, params, None if x is None else np.asarray(x, np.float64))
     if not (np.isfinite(lam) and np.isfinite(gam)) or (b.omega_max > 0 and not lam > (1e-3 * b.omega_max) ** 2):
@@ -345,7 +345,7 @@ def _amplification(integrator, z):
     """|R(z)| of the scheme on y' = lambda y, z = h lambda (complex numpy)."""
     if integrator == "rk4":
         return np.abs(1 + z + z ** 2 / 2 + z ** 3 / 6 + z ** 4 / 24)
-    if integrator in ("euler", "mesit"):  # mesit is explicit Euler with a lag (physics.md §2)
+    if integrator in ("euler", "mesit"):  # mesit is explicit Euler with a lag (docs/model.md §2)
         return np.abs(1 + z)
     raise ValueError(f"no amplification factor for {integrator!r}")
 

@@ -1,6 +1,6 @@
 """Step factory: ``make_simulator(scene, dt) -> Simulator(init_fn, step_fn, ...)``.
 
-The step is built for its scene (../shared/style.md §2.3): topology is closed over as
+The step is built for its scene: topology is closed over as
 constants, and only the terms the scene needs are traced (``Simulator.terms``). Parameters
 (:class:`jaxplush.types.Params`) are the traced, differentiable inputs.
 

@@ -8,7 +8,7 @@ Shape letters used in every docstring:
   K  one-ring width (largest vertex valence)
   T  saved frames
 
-Three kinds of data, kept apart on purpose (../shared/style.md §2.2):
+Three kinds of data, kept apart on purpose:
   * ``Params``: per-object physical parameters, a pytree of (O,) arrays that gradients and
     ``vmap`` flow into.
   * ``State``: the integrator's carry (positions and a velocity).
@@ -25,7 +25,7 @@ import numpy as np
 #: Universal gas constant, J/(mol K).
 GAS_CONSTANT = 8.314
 
-#: Volume clamp: pressure uses max(V, VOLUME_EPS * V0) (physics.md §1), a C¹ continuation of
+#: Volume clamp: pressure uses max(V, VOLUME_EPS * V0) (docs/model.md §1), a C¹ continuation of
 #: -nRT ln V that keeps the force conservative and finite as V -> 0.
 VOLUME_EPS = 0.05
 
@@ -38,7 +38,7 @@ class Params(NamedTuple):
     Attributes:
       k_structural: (O,) spring stiffness of every edge, N/m.
       damping: (O,) the report's Verlet damping D; the per-step factor is f = 1/D, and
-        D = 0 means no damping. Depends on dt (physics.md §5); prefer ``dashpot``/``drag``.
+        D = 0 means no damping. Depends on dt (docs/model.md §5); prefer ``dashpot``/``drag``.
       dashpot: (O,) edge dashpot coefficient c, N s/m: f_i = -c ((v_i - v_j).d) d.
       drag: (O,) mass-proportional air drag gamma, 1/s: f_i = -gamma m_i v_i.
       nmol: (O,) moles of ideal gas inside (0: no gas).

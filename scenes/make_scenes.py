@@ -7,7 +7,7 @@ parameter table per scene, then re-reads every file it wrote and checks it (clos
 consistently wound, positive volume with trimesh; then ``jaxplush.scene.load_scene``).
 The output is deterministic: rerunning gives byte-identical files.
 
-Every number in the headers is computed here, not guessed (physics.md §4, §5, §8):
+Every number in the headers is computed here, not guessed (docs/model.md §4, §5, §8):
 
 * ``nmol``: the free (gravity-free) inflated size ``s*`` is 1.05 x rest. For the
   icosphere balls it comes from ``k s (s-1) sum(L^2) = 3 nRT`` (§8 item 5), i.e.
@@ -439,7 +439,7 @@ def make_object(name, vertices, faces, *, total_weight, k, zeta_spring=ZETA_SPRI
     sum_l2 = float(np.sum(rest**2))
     s = inflation
     rt = R_GAS * TEMPERATURE
-    nmol_formula = k * sum_l2 * s * (s - 1.0) / (3.0 * rt)  # physics.md §8 item 5
+    nmol_formula = k * sum_l2 * s * (s - 1.0) / (3.0 * rt)  # docs/model.md §8 item 5
     dashpot = zeta_spring * math.sqrt(2.0 * k * m)
     valence = np.bincount(edges.ravel(), minlength=n)
     v0 = volume(vertices, faces)
@@ -661,9 +661,9 @@ def run_plan(infos):
 def info_lines(i):
     if i["calibrated"]:
         gas_how = (f"chosen so the free equilibrium has (V*/V0)^(1/3) = {i['s_nominal']:g} "
-                   f"(the sphere formula of physics.md §8.5 would give {i['nmol_formula']:.4g})")
+                   f"(the sphere formula of docs/model.md §8.5 would give {i['nmol_formula']:.4g})")
     else:
-        gas_how = f"from physics.md §8.5 for s* = {i['s_nominal']:g}"
+        gas_how = f"from docs/model.md §8.5 for s* = {i['s_nominal']:g}"
     inflated = f"free inflated equilibrium: (V*/V0)^(1/3) = {i['s_free']:.4f}"
     if i["pinned"]:
         inflated += f"; hanging equilibrium: (V/V0)^(1/3) = {i['s_measured']:.4f}"

@@ -1,4 +1,4 @@
-"""Soft-soft contact, floor friction and restitution (issue 5; physics.md §6, §7, §8.2).
+"""Soft-soft contact, floor friction and restitution (issue 5; docs/model.md §6, §7, §8.2).
 
 Penetration is judged by an inside test written here independently of jaxplush.contact: the
 generalised winding number of the other object's closed surface (solid angles, Van

@@ -1,8 +1,8 @@
-"""Hard cases for every integrator (issue 4, physics.md §8 "Hard cases").
+"""Hard cases for every integrator (issue 4, docs/model.md §8 "Hard cases").
 
 Each run either is stable (no NaN, every saved volume positive, total energy bounded by its
 initial value plus a margin) or stops with a :class:`jaxplush.SimulationError` that names the
-step, the object and the cause. Where theory decides the outcome (physics.md §4) the test
+step, the object and the cause. Where theory decides the outcome (docs/model.md §4) the test
 asserts it: Verlet and symplectic Euler run at 0.9x the explicit limit 2/omega_max and fail at
 1.1x, RK4 (limit 2 sqrt(2)/omega_max) and implicit Euler run at both, explicit Euler and
 Mesit's update fail; the sound schemes run through every other case, and implicit Euler runs

@@ -1,5 +1,5 @@
 """Integrators: convergence orders, free fall, Mesit's unsoundness, the Baraff-Witkin solve and its
-gradients, substeps, per-integrator stability limits (physics.md §2-§4, §8)."""
+gradients, substeps, per-integrator stability limits (docs/model.md §2-§4, §8)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from jaxplush import integrators, model, stability
 from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 
 ALL = jaxplush.INTEGRATORS
-#: Global error order of each scheme (physics.md §4); Mesit's update is explicit Euler with a
+#: Global error order of each scheme (docs/model.md §4); Mesit's update is explicit Euler with a
 #: lag whose memory k h² n / (m + k h² n) vanishes as h -> 0, so it is first order too.
 ORDER = dict(euler=1, symplectic_euler=1, rk4=4, verlet=2, mesit=1, implicit_euler=1)
 
@@ -40,7 +40,7 @@ def _direct_runner(scene, name, cg_tol=1e-12):
 
 
 def _smooth_case():
-    """Icosahedron with gas (uniform scaling is an exact mode, physics.md §8.5), released at its
+    """Icosahedron with gas (uniform scaling is an exact mode, docs/model.md §8.5), released at its
     rest shape (it breathes), spinning and thrown: smooth, no floor, no damping."""
     scene = icosphere_scene(subdivisions=0, k=100.0, mass=0.05, nmol=5e-4)
     x0 = scene.vertices
@@ -75,7 +75,7 @@ def test_global_error_order(x64, name):
 def test_free_fall_centre_of_mass(x64, name, c):
     """Internal forces sum to zero, so the centre of mass follows each scheme's discrete free
     fall: exact for Verlet (its initialisation) and RK4, x0 + v0 t + g t²/2 + c g h t / 2 for the
-    Euler schemes (c = -1 explicit, +1 symplectic and implicit; physics.md §8.1)."""
+    Euler schemes (c = -1 explicit, +1 symplectic and implicit; docs/model.md §8.1)."""
     scene = icosphere_scene(subdivisions=1, k=200.0, nmol=1e-3, dashpot=0.01, gravity=(0.3, -9.81, 0.2))
     run = _direct_runner(scene, name)
     p = jaxplush.make_simulator(scene, 1e-3).params()
@@ -92,7 +92,7 @@ def test_free_fall_centre_of_mass(x64, name, c):
             assert np.abs(com - exact).max() > 1e-6
 
 
-# 3. Mesit's update is unsound (physics.md §2) -----------------------------------------------
+# 3. Mesit's update is unsound (docs/model.md §2) -----------------------------------------------
 
 def test_mesit_first_step_accelerates_at_a_fraction_of_g(x64):
     """At rest (no spring force, no gas) a dropped body's first velocity change is
@@ -142,7 +142,7 @@ def _ringing_energy(name, factor, steps):
 def test_mesit_pumps_energy_where_symplectic_euler_is_bounded(x64):
     """The evidence for the docs: at a quarter of the explicit limit, 2000 steps of an undamped
     pressurised 162-vertex ball. Symplectic Euler keeps the ringing energy within a few percent;
-    Mesit's lagged magnitude re-applied along the new force direction multiplies it (physics.md
+    Mesit's lagged magnitude re-applied along the new force direction multiplies it (docs/model.md
     §2 measured x4.5e3 of the initial kinetic energy on the same sphere)."""
     assert abs(_ringing_energy("symplectic_euler", 0.25, 2000) - 1) < 0.1
     assert _ringing_energy("mesit", 0.25, 2000) > 10
@@ -189,7 +189,7 @@ def test_implicit_jacobian_products_match_jvp(x64):
 
 def test_implicit_system_is_positive_definite_under_compression(x64):
     """Squashed to 60%: the exact spring Jacobian is indefinite (compressed springs), the clamped
-    one is negative semi-definite, so M - h df/dv - h² df/dx is SPD for CG (physics.md §3)."""
+    one is negative semi-definite, so M - h df/dv - h² df/dx is SPD for CG (docs/model.md §3)."""
     scene = icosphere_scene(subdivisions=1, k=200.0, gravity=(0, 0, 0))
     sim = jaxplush.make_simulator(scene, 1e-4, "implicit_euler")
     p = sim.params()
@@ -267,7 +267,7 @@ def test_substeps_equal_smaller_steps(x64, name):
 
 
 def test_dt_warning_per_integrator_and_substep():
-    """The limit each integrator is held to (physics.md §4): Verlet/symplectic 2/omega, RK4
+    """The limit each integrator is held to (docs/model.md §4): Verlet/symplectic 2/omega, RK4
     2 sqrt(2)/omega, Euler-type none without damping, implicit Euler none; per substep."""
     est = stability.StabilityEstimate(dt_max=2e-3, omega_max=1e3, gamma_max=0.0, dt_gershgorin=1e-3)
     assert "exceeds" in stability.dt_warning(est, "verlet", 2.2e-3)
@@ -337,7 +337,7 @@ def test_closed_form_bound_is_safe(x64, case):
 @pytest.mark.parametrize("factor, stable", [(0.9, True), (1.1, False)])
 def test_rk4_limit_is_right(x64, factor, stable):
     """RK4 runs at 0.9x its estimated limit 2 sqrt(2)/omega_max and fails at 1.1x, on the inflated
-    ball (physics.md §4 and §8.9; Verlet's own limit: tests/test_physics.py)."""
+    ball (docs/model.md §4 and §8.9; Verlet's own limit: tests/test_physics.py)."""
     name = "rk4"
     scene = icosphere_scene(subdivisions=2, k=100.0, mass=1.0, nmol=5e-4, gravity=(0, 0, 0))
     sim = jaxplush.make_simulator(scene, 1e-3)

@@ -1,4 +1,4 @@
-"""Physics checks: conservation laws, analytic cases, gradients (../shared/physics.md §1, §8)."""
+"""Physics checks: conservation laws, analytic cases, gradients (docs/model.md §1, §8)."""
 
 from __future__ import annotations
 
@@ -141,7 +141,7 @@ def test_ball_dropped_on_floor_comes_to_rest_and_recovers_shape():
     assert (traj.volumes > 0).all()
     # At rest: between the last two frames the centre of mass moves < 1 mm/s and the vertices
     # < 5 mm/s RMS (drop speed was ~2 m/s). Without bending terms the flat contact patch keeps a
-    # faint in-plane creep (physics.md §1), so individual vertices are not asked to stop dead.
+    # faint in-plane creep (docs/model.md §1), so individual vertices are not asked to stop dead.
     disp = (traj.positions[-1] - traj.positions[-2]) / (dt * 500)
     assert np.linalg.norm(disp.mean(0)) < 1e-3
     assert np.sqrt(np.mean(np.sum(disp ** 2, axis=1))) < 5e-3
@@ -165,7 +165,7 @@ def test_ball_dropped_on_floor_comes_to_rest_and_recovers_shape():
 
 @pytest.mark.parametrize("subdivisions", [0, 1, 2])
 def test_pressurised_icosphere_settles_at_analytic_radius(x64, subdivisions):
-    """No gravity: the radius matches s* of physics.md §8.5 (exact for the icosahedron, within the
+    """No gravity: the radius matches s* of docs/model.md §8.5 (exact for the icosahedron, within the
     uniform-scaling approximation, measured 0.05-0.2%, for finer icospheres) and the virial
     identity sum_e T_e l_e = 3 nRT (§8.6) holds exactly at equilibrium for any shape."""
     k, nmol = 100.0, 5e-4
@@ -213,7 +213,7 @@ def test_rollout_gradients_match_finite_differences(x64):
 # Numerics ------------------------------------------------------------------------------------
 
 def test_float32_verlet_stays_close_to_float64():
-    """The difference form of the damped Verlet update (physics.md §5) does not drift in float32."""
+    """The difference form of the damped Verlet update (docs/model.md §5) does not drift in float32."""
     scene = icosphere_scene(subdivisions=3, radius=0.1, k=500.0, mass=0.1, nmol=2e-3, damping=400.0,
                             translate=(0.7, 0.4, -0.3))
     out = {}
@@ -229,7 +229,7 @@ def test_float32_verlet_stays_close_to_float64():
 
 @pytest.mark.parametrize("factor, stable", [(0.9, True), (1.1, False)])
 def test_stability_estimate_is_right(x64, factor, stable):
-    """physics.md §8.9: Verlet runs at 0.9 x 2/omega_max and fails at 1.1 x, on the inflated ball."""
+    """docs/model.md §8.9: Verlet runs at 0.9 x 2/omega_max and fails at 1.1 x, on the inflated ball."""
     scene = icosphere_scene(subdivisions=2, k=100.0, mass=1.0, nmol=5e-4, gravity=(0, 0, 0))
     sim = jaxplush.make_simulator(scene, 1e-3)
     est = jaxplush.estimate_stable_dt(sim, sim.params())

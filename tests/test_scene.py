@@ -843,3 +843,48 @@ def test_blocks_of_v_and_f_lines_read_as_line_by_line(monkeypatch, edit):
         np.testing.assert_array_equal(fast.vertices, slow.vertices)
         np.testing.assert_array_equal(fast.faces, slow.faces)
         assert fast.objects == slow.objects and fast.n_vertices == 162 + 42
+
+
+def _test_meshes():
+    from jaxplush import mesh
+    out = []
+    for sub in (0, 1, 2):
+        m = trimesh.creation.icosphere(subdivisions=sub, radius=0.1)
+        out.append((np.asarray(m.vertices), np.asarray(m.faces, np.int64)))
+    t = trimesh.creation.torus(major_radius=0.1, minor_radius=0.03)
+    out.append((np.asarray(t.vertices), np.asarray(t.faces, np.int64)))
+    out.append(mesh.superellipsoid(0.12, 0.05, 4.0, subdivisions=2))
+    return out
+
+
+def test_vectorised_rings_and_orientation_match_the_reference_checks():
+    """The scene parser's vectorised mesh code (jaxplush.mesh.ring_tables, orient_all) gives what the
+    per-vertex / per-object reference code gives (ring_table(one_rings(...)), check_and_orient): the
+    same ordered one-rings, the same outward winding of randomly flipped faces, several objects at
+    once; and it flags an object with a hole, leaving the others oriented."""
+    from jaxplush import mesh
+    rng = np.random.default_rng(0)
+    xs, fs, fo, expect, off = [], [], [], [], 0
+    for i, (x, f) in enumerate(_test_meshes()):
+        nbr, mask, bad = mesh.ring_tables(f, len(x))
+        ref_nbr, ref_mask = mesh.ring_table(mesh.one_rings(f, len(x)))
+        np.testing.assert_array_equal(nbr, ref_nbr)
+        np.testing.assert_array_equal(mask, ref_mask)
+        assert not bad.any()
+        flipped = f.copy()
+        sel = rng.random(len(f)) < 0.3
+        flipped[sel] = flipped[sel][:, ::-1]
+        expect.append(mesh.check_and_orient(x, flipped)[0] + off)
+        xs.append(x + np.array([0.5 * i, 0.0, 0.0]))
+        fs.append(flipped + off)
+        fo.append(np.full(len(f), i))
+        off += len(x)
+    x, f, fo = np.concatenate(xs), np.concatenate(fs), np.concatenate(fo)
+    out, bad = mesh.orient_all(x, f, fo, len(xs))
+    assert not bad.any()
+    np.testing.assert_array_equal(out, np.concatenate(expect))
+    holed = np.delete(f, int(np.argmax(fo == 1)), axis=0)          # object 1 loses a face
+    out, bad = mesh.orient_all(x, holed, np.delete(fo, int(np.argmax(fo == 1))), len(xs))
+    assert bad.tolist() == [i == 1 for i in range(len(xs))]
+    with pytest.raises(mesh.MeshProblem, match="open mesh"):
+        mesh.check_and_orient(x, holed[np.delete(fo, int(np.argmax(fo == 1))) == 1])
