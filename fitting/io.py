@@ -272,7 +272,7 @@ def _write_lm(f, prob, run, settings):
         sg.create_dataset("theta", data=np.asarray(st.theta, np.float64))
         for k in ("loss", "mu", "radius", "jac_h"):
             sg.attrs[k] = float(getattr(st, k))
-        for k in ("iteration", "substeps", "evaluations"):
+        for k in ("iteration", "substeps", "evaluations", "rescues"):
             sg.attrs[k] = int(getattr(st, k))
         sg.attrs["done"] = bool(st.done)
         sg.attrs["reason"] = st.reason
@@ -346,7 +346,8 @@ def _read_lm(path, f, prob, settings):
             radius=float(sg.attrs["radius"]), iteration=int(sg.attrs["iteration"]), done=bool(sg.attrs["done"]),
             reason=str(sg.attrs["reason"]), stopped=str(sg.attrs["stopped"]),
             history=[(float(a), np.asarray(b)) for a, b in zip(hl, ht)], jac_h=float(sg.attrs["jac_h"]),
-            substeps=int(sg.attrs["substeps"]), evaluations=int(sg.attrs["evaluations"])))
+            substeps=int(sg.attrs["substeps"]), evaluations=int(sg.attrs["evaluations"]),
+            rescues=int(sg.attrs.get("rescues", 0))))
     return run
 
 

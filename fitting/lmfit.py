@@ -37,6 +37,11 @@ STARTS = 5
 KEEP = 2
 SCREEN_ROUNDS = 3
 MAX_ITER = 40
+#: Iterations per search in a stage before the last: those stages only carry the searches on
+#: toward the full target's optimum, which the last stage resolves.
+MAX_ITER_CONTINUATION = 12
+#: Restarts from an axis scan (:func:`fitting.search.rescue`) per search and stage.
+MAX_RESCUES = 2
 #: A kept start whose loss exceeds this many times the best one's is set aside (it cannot win).
 DROP_FACTOR = 30.0
 #: The stages' horizons, as fractions of the target's frames (the last is always all of them).
@@ -215,11 +220,15 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
             if not s.history:
                 s.history.append((f.loss, s.theta.copy()))
     screen = st.stage == 0 and len(states) > keep
+    if st.stage + 1 < len(st.horizons):
+        max_iter = min(max_iter, MAX_ITER_CONTINUATION)
     with Progress(max_iter, f"local search, {label}", enabled=progress, unit="it") as bar:
         bar.done = min(st.rounds, max_iter)
         while any(not s.done for s in states):
             _search.lm_round(ev, box, states, max_iter)
             st.rounds += 1
+            # a search that stalls on a jump of the loss restarts from the lowest point of a scan
+            _search.rescue(ev, box, states, MAX_RESCUES)
             if screen and st.rounds == SCREEN_ROUNDS:
                 for i in _order(states)[keep:]:
                     if not states[i].done:

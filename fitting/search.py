@@ -127,6 +127,7 @@ class LMState:
     residual: np.ndarray | None = None
     substeps: int = 1
     evaluations: int = 0
+    rescues: int = 0              # axis scans (:func:`rescue`) done in this stage
 
 
 def fd_step(radius):
@@ -201,6 +202,73 @@ def _steps(jac, r, mus, radius, box, theta):
         pred = float(r @ r - np.sum((r + jac @ step) ** 2))
         out.append((trial, step, pred, mu))
     return out
+
+
+#: Points of an axis scan, in all (split evenly over the parameters; one batch of the evaluator).
+SCAN_POINTS = 30
+#: A scan point must lower the loss by at least this fraction to restart a search from it.
+RESCUE_GAIN = 1e-3
+
+
+def scan_points(box, theta, n_total=SCAN_POINTS):
+    """Points on lines through theta along each parameter's axis across the whole box:
+    (points (M, *theta.shape), spacing per axis (P,)), at least 4 per axis."""
+    flat = np.asarray(theta, np.float64).ravel()
+    lo, hi = box.lo.ravel(), box.hi.ravel()
+    per = max(4, n_total // flat.size)
+    pts, spacing = [], []
+    for j in range(flat.size):
+        for v in np.linspace(lo[j], hi[j], per):
+            t = flat.copy()
+            t[j] = v
+            pts.append(t.reshape(np.shape(theta)))
+        spacing.append((hi[j] - lo[j]) / (per - 1))
+    return np.asarray(pts), np.asarray(spacing)
+
+
+def rescue(evaluator, box, states, limit=2):
+    """Restart stalled searches from the lowest point of an axis scan through them.
+
+    A search stalls when no step down to ``xtol`` lowers the loss although the gradient is not
+    small: the loss of a body in hard floor contact jumps where a contact event moves by a step,
+    and the search stands on such a jump, not at an optimum. Every stalled state gets one scan
+    across the box along each parameter's axis (:func:`scan_points`, all states in one
+    evaluation); where a scan point is lower by more than :data:`RESCUE_GAIN`, the search restarts
+    there with the scan's spacing as its trust radius (the jump goes into its history). A search
+    is restarted at most ``limit`` times, and is not scanned again once a scan found nothing
+    lower. Returns the states restarted."""
+    states = [st for st in states if st.stopped == "stalled" and st.rescues < limit]
+    if not states:
+        return []
+    pts, owner, spacing = [], [], []
+    for i, st in enumerate(states):
+        p, sp = scan_points(box, st.theta)
+        pts.append(p)
+        owner += [i] * len(p)
+        spacing.append(sp)
+    ev = evaluator(np.concatenate(pts))
+    owner = np.asarray(owner)
+    restarted = []
+    for i, st in enumerate(states):
+        idx = np.nonzero(owner == i)[0]
+        st.evaluations += len(idx)
+        st.rescues += 1
+        loss = np.where(ev.ok[idx], ev.loss[idx], np.inf)
+        j = int(idx[np.argmin(loss)])
+        if not (ev.loss[j] < (1.0 - RESCUE_GAIN) * st.loss):
+            st.reason += "; an axis scan across the box found nothing lower"
+            st.rescues = limit
+            continue
+        old = st.loss
+        st.theta = ev_theta = np.concatenate(pts)[j].copy()
+        st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
+        st.jac, st.mu = None, MU0
+        st.radius = float(np.max(spacing[i]))
+        st.done, st.stopped = False, ""
+        st.reason = f"restarted from an axis scan (loss {old:.4g} -> {st.loss:.4g})"
+        st.history.append((st.loss, ev_theta.copy()))
+        restarted.append(st)
+    return restarted
 
 
 def start_states(evaluator, thetas, losses=None):

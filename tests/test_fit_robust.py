@@ -145,6 +145,57 @@ def test_outcome_judgement():
     assert edge.status == "at_bound" and "--bounds" in edge.text
 
 
+def test_a_noise_free_fit_whose_gauss_newton_step_is_tiny_is_optimal():
+    """Noise-free, the gradient can stay above 1% of the start's on a rough loss while the local
+    model puts the optimum within 0.1%: that counts as optimal; a larger step does not, and for a
+    noisy target the step is judged against the standard errors instead."""
+    kw = dict(rms=1e-5, motion=0.1, grad=[0.011], grad0=[1.0], stopped="stalled")
+    ok = outcome.judge(noise=None, gn_step=[1e-4, -5e-5], stderr=[1e-6, 1e-6], **kw)
+    assert ok.converged and "Gauss-Newton step it implies is 0.0001" in ok.text
+    far = outcome.judge(noise=None, gn_step=[5e-3, 0.0], stderr=[1e-6, 1e-6], **kw)
+    assert far.status == "stalled"
+    noisy = outcome.judge(noise=1e-5, gn_step=[1e-4, 0.0], stderr=[1e-5, 1e-5], **kw)
+    assert noisy.status == "stalled"
+
+
+class _SteppedLoss:
+    """An evaluator stand-in with a jump: residual r = |theta - 1|, plus 0.5 for 0.2 <= theta < 0.6.
+    Just below 0.2 every step toward the minimum at 1 crosses the jump and raises the loss."""
+
+    class residual:
+        n = 1
+
+    def substeps_for(self, thetas):
+        return np.ones(len(thetas), int)
+
+    def __call__(self, thetas, substeps=None):
+        from fitting.evaluate import Evaluation
+        t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)[:, :1]
+        r = (t - 1.0) - 0.5 * ((t >= 0.2) & (t < 0.6))
+        n = len(thetas)
+        return Evaluation(r, np.sum(r ** 2, axis=1), np.ones(n, bool), np.ones(n, int), np.zeros(n, bool))
+
+
+def test_a_search_stalled_on_a_jump_restarts_from_an_axis_scan():
+    from fitting import search as S
+    ev, box = _SteppedLoss(), S.Box(np.array([[-2.0]]), np.array([[2.0]]))
+    states = S.start_states(ev, np.array([[[0.2 - 1e-5]]]))
+    while not all(st.done for st in states):
+        S.lm_round(ev, box, states, max_iter=40)
+    assert states[0].stopped == "stalled" and states[0].loss > 0.6     # stuck below the jump
+    restarted = S.rescue(ev, box, states, limit=2)
+    assert restarted == states and not states[0].done and "axis scan" in states[0].reason
+    assert 0.6 <= states[0].theta[0, 0] and states[0].loss < 0.2
+    while not all(st.done for st in states):
+        S.lm_round(ev, box, states, max_iter=40)
+    assert abs(states[0].theta[0, 0] - 1.0) < 1e-3 and states[0].stopped != "stalled"
+    # a scan that finds nothing lower leaves the search stopped and is not repeated
+    st = S.start_states(ev, np.array([[[1.0]]]))[0]
+    st.done, st.stopped = True, "stalled"
+    assert S.rescue(ev, box, [st], limit=2) == [] and st.done and st.rescues == 2
+    assert S.rescue(ev, box, [st], limit=2) == [] and st.evaluations == 1 + len(S.scan_points(box, st.theta)[0])
+
+
 def test_interrupted_default_fit_resumes_to_the_same_answer(tmp_path):
     """Ctrl-C during the local search saves the state; --resume continues to exactly the values of an
     uninterrupted fit (every evaluation is deterministic)."""
