@@ -284,7 +284,7 @@ class Evaluator:
         import warnings
         import jaxplush
         from jaxplush import contact
-        from jaxplush.simulate import contact_capacity_needed
+        from jaxplush.simulation import contact_capacity_needed
         prob = self.prob
         if getattr(prob.sim.terms, "contact", None) is None:
             return False

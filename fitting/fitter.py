@@ -573,7 +573,7 @@ def fit(scene, target, params=None, objects=None, *, iterations=None,
         if getattr(prob.sim.terms, "contact", None) is None:
             return False
         from jaxplush import contact
-        from jaxplush.simulate import contact_capacity_needed
+        from jaxplush.simulation import contact_capacity_needed
         need = contact_capacity_needed(prob.scene, int(prob.loss.frame_steps[-1]), prob.target.dt,
                                        params=prob.params_at(theta), sim=prob.sim)
         if need is None:

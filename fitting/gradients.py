@@ -13,7 +13,7 @@ Methods (all give the same value and gradient up to rounding; tests/test_gradien
   residuals (about 1 MB per step at 2562 vertices). The reference.
 * ``"checkpoint"``: autodiff with two levels of ``jax.checkpoint``: segments of ``segment``
   steps are recomputed from their first state, and inside a segment only each step's input is
-  kept. Memory: (steps/segment + segment) states. Any integrator (``sim.internal_step``).
+  kept. Memory: (steps/segment + segment) states. Any integrator (``sim.internal.step``).
 * ``"adjoint"``: a hand-written adjoint of the damped Verlet step (``jax.custom_vjp``), one
   fused backward kernel per step (:func:`_make_force_vjp`). The forward pass keeps every step's
   positions (and velocities when dashpot, drag or Verlet damping need them) if that fits in
@@ -95,7 +95,7 @@ def _take(aux, j):
 def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, checkpoint):
     """Autodiff through the rollout: one scan over segments of ``segment`` steps (padded)."""
     n_steps = steps[-1]
-    state = sim.to_internal(state0)
+    state = sim.internal.to_internal(state0)
 
     def frame_loss(x, j):
         return loss_fn(x.T, _take(aux, j))
@@ -105,7 +105,7 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
         return loss0
     table_j = jnp.asarray(table)
 
-    step = sim.internal_step
+    step = sim.internal.step
     if checkpoint:
         # Two levels: segments are recomputed from their first state, and inside a segment
         # only each step's input state is kept (residuals of a whole segment of steps cost
@@ -292,7 +292,7 @@ _Y_ROW = np.arange(3)[:, None] == 1                # (3, 1): the vertical compon
 
 def _make_step_dens_vjp(sim):
     """``step_vjp(params, x, u, x_next, x_bar, u_bar) -> (x_bar, u_bar, dens)``: the VJP of
-    ``sim.internal_step`` at the state (x, u) (internal (3, V) layout), given the positions
+    ``sim.internal.step`` at the state (x, u) (internal (3, V) layout), given the positions
     ``x_next`` it produced, with the parameter cotangents as per-vertex densities
     (:class:`_Dens`, reduced by :func:`_reduce_dens`). The step (jaxplush.step, verlet):
 
@@ -476,7 +476,7 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn):
             s, bufs = carry
             if grads:
                 bufs = record(bufs, n - 1, s)
-            return sim.internal_step(params, s), bufs
+            return sim.internal.step(params, s), bufs
 
         def frame(carry, j):
             s, bufs, acc, c_acc = carry
@@ -565,7 +565,7 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn):
 
                 def body(i, c):
                     s, bx, bu = c
-                    s = sim.internal_step(params, s)
+                    s = sim.internal.step(params, s)
                     bx = jax.lax.dynamic_update_index_in_dim(bx, s.x, i, 0)
                     if plan.keep_u:
                         bu = jax.lax.dynamic_update_index_in_dim(bu, s.v, i, 0)
@@ -589,7 +589,7 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn):
 
 
 def _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget):
-    x0, u0 = sim.to_internal(state0)
+    x0, u0 = sim.internal.to_internal(state0)
     dtype = jnp.result_type(x0)
     plan = _plan(sim, steps[-1], segment, memory_budget, np.dtype(dtype).itemsize)
     example_x = jax.ShapeDtypeStruct((sim.topology.n_vertices, 3), dtype)

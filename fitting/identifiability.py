@@ -71,14 +71,14 @@ def frames_at_steps(sim, params, state0, steps):
     slot = np.full(n_blocks + 1, len(steps), np.int32)  # block b ends at step b*g; len(steps) = discard
     for j, s in enumerate(steps):
         slot[s // g] = j
-    s0 = sim.to_internal(state0)
+    s0 = sim.internal.to_internal(state0)
     buf = jnp.zeros((len(steps) + 1,) + s0.x.shape, s0.x.dtype)
     buf = buf.at[slot[0]].set(s0.x)
     slot = jnp.asarray(slot)
 
     def block(carry, b):
         state, buf = carry
-        state = jax.lax.fori_loop(0, g, lambda _, s: sim.internal_step(params, s), state)
+        state = jax.lax.fori_loop(0, g, lambda _, s: sim.internal.step(params, s), state)
         buf = buf.at[slot[b]].set(state.x)
         return (state, buf), None
 

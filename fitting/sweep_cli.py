@@ -99,6 +99,8 @@ def main(argv=None):
         args = _parser().parse_args(attach_negative_values(argv))
     except SystemExit as e:  # argparse has printed its message
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
+    from jaxplush.compiled import enable_persistent_cache
+    enable_persistent_cache()          # a second run of the same scene reuses this one's compiles
     from jaxplush.errors import JaxplushError
     try:
         return _run(args)

@@ -25,13 +25,13 @@ from jaxplush.errors import JaxplushError, SceneError, SimulationError, Trajecto
 from jaxplush.io import load_trajectory, save_trajectory
 from jaxplush.rollouts import Health, rollout
 from jaxplush.scene import Scene, load_scene, parse_scene
-from jaxplush.simulate import Trajectory, simulate
+from jaxplush.simulation import Trajectory, contact_capacity_needed, simulate
 from jaxplush.stability import estimate as estimate_stable_dt
 from jaxplush.step import INTEGRATORS, Simulator, make_simulator
 from jaxplush.types import Params, State
 
 __all__ = [
     "Health", "INTEGRATORS", "JaxplushError", "Params", "Scene", "SceneError", "SimulationError",
-    "Simulator", "State", "Trajectory", "TrajectoryError", "estimate_stable_dt", "load_scene",
+    "Simulator", "State", "Trajectory", "TrajectoryError", "contact_capacity_needed", "estimate_stable_dt", "load_scene",
     "load_trajectory", "make_simulator", "parse_scene", "rollout", "save_trajectory", "simulate",
 ]

@@ -63,6 +63,8 @@ def _parser():
 
 def main(argv=None):
     args = _parser().parse_args(attach_negative_values(sys.argv[1:] if argv is None else argv))
+    from jaxplush.compiled import enable_persistent_cache
+    enable_persistent_cache()          # a second run of the same scene reuses this one's compiles
     from jaxplush.errors import JaxplushError
     try:
         if args.cmd == "simulate":

@@ -31,7 +31,7 @@ Candidates (static shapes, no N_A x F_B work):
    length of the surface is among them.
 
 Temporal coherence (Verlet lists). Rollouts carry the candidate lists from step to step
-(:class:`ContactCache`, ``Simulator.coherent``): they are rebuilt by the search above only once
+(:class:`ContactCache`, ``Simulator.internal.coherent``): they are rebuilt by the search above only once
 some vertex has moved more than s/2 since the last build, which the skin makes exact (a vertex
 now within reach of the other object's box and sphere was within reach + 2 s of them at the
 build); between rebuilds each query's nearest vertex is walked to the nearest of itself and its

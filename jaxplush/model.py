@@ -245,6 +245,28 @@ class Terms:
         return out
 
 
+#: Parameters whose values only act through a term that a scene may leave out: (field, term).
+SWITCHED = (("dashpot", "dashpot"), ("drag", "drag"), ("damping", "verlet_damping"), ("nmol", "gas"))
+
+
+def check_params(terms, params):
+    """Raise ValueError when ``params`` gives a value above 0 to a term ``terms`` leaves out,
+    which would be ignored without a trace (the term is not compiled in). Checked on concrete
+    values only, outside jit; traced values pass unchecked."""
+    import jax
+    for field, term in SWITCHED:
+        value = getattr(params, field)
+        if isinstance(value, jax.core.Tracer) or getattr(terms, term):
+            continue
+        if np.any(np.asarray(value) > 0):
+            how = ("give the object an nmol line in its scene (a scene without gas compiles no gas)"
+                   if term == "gas" else
+                   f"build it with make_simulator(scene, dt, terms=Terms.for_scene(scene, params)), or give "
+                   f"the scene a {field} above 0")
+            raise ValueError(f"{field} = {np.asarray(value).tolist()} would be ignored: this simulator has no "
+                             f"{term} term compiled in; {how}")
+
+
 def per_vertex(topo, values):
     """Spread an (O,) per-object array to (V,) (a broadcast for single-object scenes)."""
     if topo.n_objects == 1:

@@ -1,20 +1,23 @@
 """Rollouts: one ``jax.lax.scan`` over saved frames, an inner scan over the steps between them.
 
-``rollout`` is jit-compiled once per (simulator, n_frames, save_every, checkpoint); new
-parameter values or initial states reuse the compiled code. Health is checked at every saved
+``rollout`` is jit-compiled once per (program, n_frames, save_every, checkpoint): a simulator
+rebuilt for the same scene and settings compares equal to the first (``Simulator.key``) and
+reuses its compiled code (:mod:`jaxplush.compiled`), as do new parameter values and initial
+states. Health is checked at every saved
 frame and carried as data (:mod:`jaxplush.diagnostics`); the carry also keeps the last healthy
 state so a failure can be located to the exact step afterwards, outside ``jit``.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import diagnostics
+from jaxplush import compiled, diagnostics, model
 from jaxplush.types import State
 
 
@@ -47,11 +50,11 @@ def initial_health(sim, state, step=0):
 
 
 def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
-    step_fn = sim.internal_step
-    state = sim.to_internal(state)
-    health = health._replace(good_state=sim.to_internal(health.good_state))
+    step_fn = sim.internal.step
+    state = sim.internal.to_internal(state)
+    health = health._replace(good_state=sim.internal.to_internal(health.good_state))
 
-    coherent = sim.coherent
+    coherent = sim.internal.coherent
     if coherent is not None:
         # soft-soft contact: the candidate lists ride along in the carry (temporal coherence)
         def one(c):
@@ -73,7 +76,7 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
         c = steps(c)
         s = c[0] if coherent is not None else c
         step = step0 + (i + 1) * save_every
-        code = sim.status_fn(params, sim.to_public(s))
+        code = sim.status_fn(params, sim.internal.to_public(s))
         new_bad = (code >= diagnostics.ERROR) & (h.bad_step < 0)
         new_warn = (code == diagnostics.VOLUME_CLAMPED) & (h.warn_step < 0)
         healthy = jnp.all(code < diagnostics.ERROR) & jnp.all(h.bad_step < 0)
@@ -88,11 +91,14 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
 
     (carry, health), frames = jax.lax.scan(frame, (carry0, health), jnp.arange(n_frames, dtype=jnp.int32))
     state = carry[0] if coherent is not None else carry
-    health = health._replace(good_state=sim.to_public(health.good_state))
-    return sim.to_public(state), jnp.swapaxes(frames, 1, 2), health
+    health = health._replace(good_state=sim.internal.to_public(health.good_state))
+    return sim.internal.to_public(state), jnp.swapaxes(frames, 1, 2), health
 
 
-_core_jit = jax.jit(_core, static_argnames=("sim", "n_frames", "save_every", "checkpoint"))
+def _core_jit(sim, params, state, health, step0, *, n_frames, save_every, checkpoint):
+    fn = compiled.get(sim, "rollout", lambda: jax.jit(functools.partial(_core, sim),
+                                                       static_argnames=("n_frames", "save_every", "checkpoint")))
+    return fn(params, state, health, step0, n_frames=n_frames, save_every=save_every, checkpoint=checkpoint)
 
 
 def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health=None, step0=0):
@@ -113,9 +119,14 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
 
     Returns:
       (final_state, frames (n_frames, V, 3) positions after each block, health).
+
+    Raises:
+      ValueError: ``params`` (concrete, outside jit) gives a value above 0 to a term the
+        simulator leaves out (:func:`jaxplush.model.check_params`).
     """
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    model.check_params(sim.terms, params)
     if health is None:
         health = initial_health(sim, state, step0)
     return _core_jit(sim, params, state, health, jnp.asarray(step0, jnp.int32),

@@ -44,6 +44,8 @@ Every problem raises :class:`jaxplush.errors.SceneError` naming file, line and p
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import math
 import os
 import re
@@ -208,6 +210,24 @@ class Scene:
 
     def replace(self, **kw):
         return dataclasses.replace(self, **kw)
+
+    @functools.cached_property
+    def fingerprint(self):
+        """Hex digest of everything a compiled step takes from the scene: geometry, topology,
+        pins, gas, floor, contact and gravity settings; not the parameter values, names, path
+        or text (:mod:`jaxplush.compiled`)."""
+        h = hashlib.sha1()
+        for a in (self.vertices, self.faces):
+            a = np.ascontiguousarray(a)
+            h.update(repr((a.dtype.str, a.shape)).encode())
+            h.update(a.tobytes())
+        settings = (tuple((o.vertex_slice, o.face_slice, tuple(o.fixed), o.has_gas) for o in self.objects),
+                    tuple(np.asarray(self.gravity, np.float64).tolist()), self.floor, self.temperature,
+                    self.floor_friction, self.floor_restitution, self.contact, self.self_collision,
+                    self.contact_stiffness, self.contact_thickness, self.contact_capacity,
+                    self.contact_friction, self.floor_model, self.floor_stiffness)
+        h.update(repr(settings).encode())
+        return h.hexdigest()
 
 
 class _Obj:

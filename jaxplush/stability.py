@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import model
+from jaxplush import compiled, model
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 
@@ -69,17 +69,14 @@ def inflated(sim, params, x):
     return jnp.asarray(x, sim.dtype)
 
 
-#: Compiled power iterations per simulator (so repeated estimates, e.g. simulate's dt check and
-#: its failure hint, compile once).
-_RUNNERS = weakref.WeakKeyDictionary()
-
-
 def _runner(sim, iters, seed):
-    """jit(params, x) -> (lambda_max(M^-1 K), lambda_max(M^-1 C)) for ``sim``, cached."""
-    cache = _RUNNERS.setdefault(sim, {})
-    if (iters, seed) in cache:
-        return cache[(iters, seed)]
-    # Capture parts, not ``sim``: a value that referenced its weak key would keep it alive.
+    """jit(params, x) -> (lambda_max(M^-1 K), lambda_max(M^-1 C)) for ``sim``, compiled once per
+    program (:mod:`jaxplush.compiled`), so repeated estimates (simulate's dt check, its failure
+    hint, a rebuilt simulator of the same scene) compile once."""
+    return compiled.get(sim, ("estimate", iters, seed), lambda: _build_runner(sim, iters, seed))
+
+
+def _build_runner(sim, iters, seed):
     topo, dtype, force_fn, damped = sim.topology, sim.dtype, sim.force_fn, sim.terms.dashpot or sim.terms.drag
     free = np.ones((topo.n_vertices, 1))
     free[topo.fixed] = 0.0
@@ -103,7 +100,6 @@ def _runner(sim, iters, seed):
         gam = _power(damp, topo.n_vertices, dtype, iters, key) if damped else 0.0
         return lam, gam
 
-    cache[(iters, seed)] = run
     return run
 
 

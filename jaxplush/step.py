@@ -41,10 +41,13 @@ class Simulator:
       velocity_fn: (params, state) -> (V, 3) velocity at the state's time (Verlet carries the
         half-step velocity; this returns v_n = u_n + a_n h/2).
       topology, terms, dt, integrator, substeps, scene, dtype: how it was built.
-      internal_step, to_internal, to_public: the same step on the internal component-major
-        (3, V) state, and the layout conversions; rollouts scan ``internal_step``.
-      coherent: for scenes with soft-soft contact, a :class:`CoherentStep`: the step with the
-        contact candidate lists carried from step to step (rollouts scan it); None otherwise.
+      internal: :class:`Internal`, the step on the internal layout (for rollouts, sweeps and
+        gradients inside jaxplush; not needed to use a simulator).
+      key: what the compiled program depends on (:mod:`jaxplush.compiled`): simulators with
+        equal keys compare equal, so they share compiled code. Build variants with
+        :func:`make_simulator`, not ``dataclasses.replace``, which would keep the key.
+
+    Methods: :meth:`params` (the parameter pytree), :meth:`rollout` (a compiled run).
     """
 
     init_fn: Callable
@@ -57,22 +60,55 @@ class Simulator:
     integrator: str
     scene: object
     dtype: object
-    internal_step: Callable = None
-    to_internal: Callable = None
-    to_public: Callable = None
+    internal: "Internal" = None
     substeps: int = 1
     velocity_fn: Callable = None
-    coherent: object = None
+    key: tuple = None
+
+    def __eq__(self, other):
+        if self is other:
+            return True
+        if not isinstance(other, Simulator) or self.key is None or other.key is None:
+            return False
+        return self.key == other.key
+
+    def __hash__(self):
+        return hash(self.key) if self.key is not None else object.__hash__(self)
 
     @property
     def h(self):
         """The integrator's (sub)step length dt / substeps, s."""
         return self.dt / self.substeps
 
+    def rollout(self, params, state, n_frames, save_every=1, checkpoint=False):
+        """``jaxplush.rollout(self, ...)``: (final state, frames (n_frames, V, 3), health)."""
+        from jaxplush.rollouts import rollout
+        return rollout(self, params, state, n_frames, save_every, checkpoint=checkpoint)
+
     def params(self, scene_params=None):
-        """The scene's parameters (or ``scene_params``) as a pytree of jnp arrays of this dtype."""
+        """The scene's parameters (or ``scene_params``) as a pytree of jnp arrays of this dtype.
+
+        Raises ValueError when a value above 0 goes to a term this simulator leaves out (say
+        ``drag`` for a scene without drag), which would otherwise be ignored."""
         p = self.scene.params if scene_params is None else scene_params
-        return Params(*(jnp.asarray(np.asarray(a), self.dtype) for a in p))
+        out = Params(*(jnp.asarray(np.asarray(a), self.dtype) for a in p))
+        model.check_params(self.terms, out)
+        return out
+
+
+class Internal(NamedTuple):
+    """A simulator's step on the internal, component-major (3, V) layout.
+
+    step: (params, state) -> state on that layout (rollouts scan it); to_internal, to_public:
+    the layout conversions of a state; coherent: for scenes with soft-soft contact, a
+    :class:`CoherentStep` (the step with the contact candidate lists carried from step to step,
+    which rollouts scan instead), None otherwise.
+    """
+
+    step: Callable
+    to_internal: Callable
+    to_public: Callable
+    coherent: object = None
 
 
 class CoherentStep(NamedTuple):
@@ -106,7 +142,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
       cg_tol, cg_maxiter: ``implicit_euler`` only: relative CG residual (default 1e-5 in
         float32, 1e-10 in float64) and the static cap on CG iterations per step.
       coherent_contact: with soft-soft contact, let rollouts carry the contact candidate lists
-        from step to step (``Simulator.coherent``; default). False: every step searches afresh
+        from step to step (``Simulator.internal.coherent``; default). False: every step searches afresh
         (the same forces up to the rare step where the two disagree on a query's nearest vertex).
 
     Returns:
@@ -175,10 +211,12 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     def velocity_fn(params, state):
         return scheme.velocity(params, to_internal(state)).T
 
+    key = (scene.fingerprint, dt, integrator, assembly, terms, substeps, np.dtype(dtype).str, cg_tol, int(cg_maxiter),
+           bool(coherent_contact))
     return Simulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
                      topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype,
-                     internal_step=internal_step, to_internal=to_internal, to_public=to_public,
-                     substeps=substeps, velocity_fn=velocity_fn, coherent=coherent)
+                     internal=Internal(internal_step, to_internal, to_public, coherent),
+                     substeps=substeps, velocity_fn=velocity_fn, key=key)
 
 
 def to_internal(state):

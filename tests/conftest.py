@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
+
 import jax
 import numpy as np
 import pytest
@@ -34,6 +37,29 @@ def icosphere_text(subdivisions=1, radius=0.1, *, k=100.0, mass=0.05, nmol=None,
 
 def icosphere_scene(**kw):
     return jaxplush.parse_scene(icosphere_text(**kw), "<test>")
+
+
+@contextlib.contextmanager
+def compiles():
+    """Collect the names of the functions JAX traces or compiles inside the block."""
+    seen = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):
+            msg = record.getMessage()
+            if msg.startswith(("Compiling ", "Finished tracing")):
+                seen.append(msg.split("\n")[0])
+
+    handler, logger = Catch(level=logging.DEBUG), logging.getLogger("jax")
+    old_level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG)
+    try:
+        with jax.log_compiles(True):
+            yield seen
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(old_level)
 
 
 @pytest.fixture

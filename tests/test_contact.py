@@ -412,7 +412,7 @@ def test_capacity_overflow_is_detected_and_simulate_reruns_with_a_larger_capacit
 
 def test_capacity_overflow_that_cannot_be_fixed_is_a_clear_error(monkeypatch):
     import importlib
-    monkeypatch.setattr(importlib.import_module("jaxplush.simulate"), "MAX_CAPACITY_RETRIES", 0)
+    monkeypatch.setattr(importlib.import_module("jaxplush.simulation"), "MAX_CAPACITY_RETRIES", 0)
     scene, n = two_balls(sub=1, gap=-0.005, extra_scene="contact_capacity 4\n")
     with pytest.raises(jaxplush.SimulationError) as e:
         jaxplush.simulate(scene, steps=20, dt=1e-4, save_every=10, check_dt=False)
@@ -453,7 +453,7 @@ def test_carried_candidate_lists_give_the_search_every_step_result():
     scene, n, v0 = _thrown()
     sim = jaxplush.make_simulator(scene, 2e-4)
     ref = jaxplush.make_simulator(scene, 2e-4, terms=sim.terms, coherent_contact=False)
-    assert sim.coherent is not None and ref.coherent is None
+    assert sim.internal.coherent is not None and ref.internal.coherent is None
     p = sim.params()
     out = [jaxplush.rollout(s, p, s.init_fn(p, None, v0), 30, 25) for s in (sim, ref)]
     assert not out[0][2].failed and not out[1][2].failed
@@ -502,7 +502,7 @@ def test_carried_lists_hold_every_vertex_in_reach():
     p = sim.params()
     cfg = sim.terms.contact
     reach = contact._tables_margin(sim.topology, cfg)[0] - 2.0 * contact.skin_distance(sim.topology, cfg)
-    co = sim.coherent
+    co = sim.internal.coherent
 
     @jax.jit
     def run(state, cache):
@@ -511,7 +511,7 @@ def test_carried_lists_hold_every_vertex_in_reach():
             return (s, k), (s.x, k.q_idx, k.valid)
         return jax.lax.scan(body, (state, cache), None, length=600)[1]
 
-    s0 = sim.to_internal(sim.init_fn(p, None, v0))
+    s0 = sim.internal.to_internal(sim.init_fn(p, None, v0))
     xs, qs, valid = (np.asarray(a) for a in run(s0, co.init(s0.x)))
     rebuilds = 0
     for i in range(0, 600, 3):

@@ -175,7 +175,7 @@ def _pressed_pair(k_a, capacity=None):
 def test_contact_capacity_overflow_is_grown_not_rejected():
     """A fit through soft-soft contact whose candidate lists are too short is rebuilt with a larger
     capacity (a warning names it) and goes on; the overflow is not taken for a blow-up."""
-    from jaxplush.simulate import contact_capacity_needed
+    from jaxplush.simulation import contact_capacity_needed
     dt = 2e-4
     truth = _pressed_pair(150.0)
     target = make_target(truth, 100, dt, 25)

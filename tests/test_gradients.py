@@ -242,7 +242,7 @@ def test_cotangents_of_loss_data(x64):
 
 @pytest.mark.parametrize("name", list(SCENES))
 def test_step_vjp_matches_autodiff(x64, name):
-    """The fused adjoint's one-step VJP equals jax.vjp of sim.internal_step (all terms, pins,
+    """The fused adjoint's one-step VJP equals jax.vjp of sim.internal.step (all terms, pins,
     floor contacts, several objects) at a perturbed, moving state."""
     sim, p, _ = _setup(name)
     rng = np.random.default_rng(2)
@@ -253,7 +253,7 @@ def test_step_vjp_matches_autodiff(x64, name):
 
     @jax.jit
     def both(p, x, u):
-        out, vjp = jax.vjp(sim.internal_step, p, jaxplush.State(x, u))
+        out, vjp = jax.vjp(sim.internal.step, p, jaxplush.State(x, u))
         return out, vjp(jaxplush.State(x_bar, u_bar)), G._make_step_vjp(sim)(p, x, u, out.x, x_bar, u_bar)
 
     out, (p_ref, s_ref), (xb, ub, pb) = both(p, x, u)
@@ -294,7 +294,7 @@ def test_step_vjp_with_contact(x64):
 
     @jax.jit
     def both(p, x, u):
-        out, vjp = jax.vjp(sim.internal_step, p, jaxplush.State(x, u))
+        out, vjp = jax.vjp(sim.internal.step, p, jaxplush.State(x, u))
         return (vjp(jaxplush.State(x_bar, u_bar)), G._make_step_vjp(sim)(p, x, u, out.x, x_bar, u_bar),
                 jnp.max(jnp.abs(contact_force(p, x))))
 

@@ -238,8 +238,8 @@ def test_gradients_match_central_differences(x64, name):
         k, n, c, g = jnp.exp(theta)
         p = p0._replace(k_structural=p0.k_structural * 0 + k, nmol=p0.nmol * 0 + n,
                         dashpot=p0.dashpot * 0 + c, drag=p0.drag * 0 + g)
-        s = sim.to_internal(sim.init_fn(p, x0, None))
-        s = jax.lax.scan(lambda s, _: (sim.internal_step(p, s), None), s, None, length=30)[0]
+        s = sim.internal.to_internal(sim.init_fn(p, x0, None))
+        s = jax.lax.scan(lambda s, _: (sim.internal.step(p, s), None), s, None, length=30)[0]
         return jnp.mean((s.x.T - target) ** 2)
 
     theta = jnp.log(jnp.array([100.0, 1e-3, 0.05, 0.5]))

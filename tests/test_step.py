@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush.rollouts import _core_jit
+
 from jaxplush.types import Params
-from conftest import icosphere_scene
+from conftest import compiles, icosphere_scene
 
 
 def _hlo(scene):
@@ -62,10 +62,13 @@ def test_second_call_with_new_parameters_does_not_recompile():
     p = sim.params()
     s = sim.init_fn(p)
     jaxplush.rollout(sim, p, s, 5, 4)
-    n = _core_jit._cache_size()
     p2 = p._replace(k_structural=p.k_structural * 2, nmol=p.nmol * 0.5, dashpot=p.dashpot + 1)
-    _, frames, _ = jaxplush.rollout(sim, p2, sim.init_fn(p2), 5, 4)
-    assert _core_jit._cache_size() == n
+    s2 = sim.init_fn(p2)
+    with compiles() as seen:
+        _, frames, _ = jaxplush.rollout(sim, p2, s2, 5, 4)
+        # a simulator rebuilt for the same scene and dt is the same program
+        jaxplush.make_simulator(scene, 1e-4).rollout(p2, s2, 5, 4)
+    assert seen == []
     assert frames.shape == (5, scene.n_vertices, 3)
 
 

@@ -9,7 +9,7 @@ import warnings
 import jax
 import numpy as np
 
-from jaxplush import diagnostics, rollouts as _rollout, stability
+from jaxplush import compiled, diagnostics, rollouts as _rollout, stability
 from jaxplush.errors import SimulationError
 from jaxplush.model import Terms
 from jaxplush.progress import Progress
@@ -177,7 +177,11 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
         if msg:
             warnings.warn(msg, stacklevel=2)
             notes.append(msg)
-    state = jax.jit(sim.init_fn)(p, x0, v0)   # one compile, not one per primitive
+    # explicit arrays, so a default and a given initial state share one compiled init
+    x0 = np.asarray(sim.topology.x0 if x0 is None else x0, np.float64)
+    v0 = np.zeros_like(x0) if v0 is None else np.asarray(v0, np.float64)
+    init = compiled.get(sim, "init", lambda: jax.jit(sim.init_fn))   # one compile per program
+    state = init(p, x0, v0)
     health = _rollout.initial_health(sim, state)
     frames = [np.asarray(state.x)]
     n_full, rem = divmod(steps, save_every)

@@ -1,0 +1,81 @@
+"""Compiled functions, cached per program: compile once, run many.
+
+A :class:`jaxplush.step.Simulator` compares equal to another exactly when both would compile to
+the same program: the same geometry and topology, terms, dt, integrator, substeps, dtype and
+step options (``Simulator.key``). Scene values (k, damping, nmol, ...) and initial states are
+never part of the key: they are traced inputs. :func:`get` keeps the jitted functions of the
+last :data:`SIZE` simulators used (least recently used first out), so rebuilding a simulator for
+the same scene, as :func:`jaxplush.simulate` does on every call, reuses the compiled rollout,
+and a loop over many different scenes keeps at most :data:`SIZE` programs alive.
+
+Across processes, :func:`enable_persistent_cache` points JAX's persistent compilation cache at
+a user cache directory (the command-line tools do this on start).
+
+Environment:
+  ``JAXPLUSH_COMPILED_SIMULATORS``: how many simulators keep their compiled functions (default 16).
+  ``JAXPLUSH_CACHE_DIR``: the persistent cache's directory (default
+  ``$XDG_CACHE_HOME/jaxplush/xla``, else ``~/.cache/jaxplush/xla``); ``off`` (or ``0``) turns
+  it off.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+
+SIZE = max(1, int(os.environ.get("JAXPLUSH_COMPILED_SIMULATORS", "16") or 16))
+
+_CACHE: "collections.OrderedDict" = collections.OrderedDict()
+
+
+def get(sim, name, build):
+    """The function ``name`` of ``sim``'s program, built by ``build()`` on first use.
+
+    ``build`` must return a function that depends on ``sim`` only through what ``sim.key``
+    covers (its closures, not its scene's values)."""
+    entry = _CACHE.get(sim)
+    if entry is None:
+        entry = _CACHE[sim] = {}
+        while len(_CACHE) > SIZE:
+            _CACHE.popitem(last=False)
+    else:
+        _CACHE.move_to_end(sim)
+    fn = entry.get(name)
+    if fn is None:
+        fn = entry[name] = build()
+    return fn
+
+
+def clear():
+    """Drop every cached compiled function (their executables are freed with them)."""
+    _CACHE.clear()
+
+
+def size():
+    """Simulators whose compiled functions are cached now."""
+    return len(_CACHE)
+
+
+def default_cache_dir():
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "jaxplush", "xla")
+
+
+def enable_persistent_cache(path=None):
+    """Turn on JAX's persistent compilation cache in ``path`` (default ``JAXPLUSH_CACHE_DIR``, else
+    :func:`default_cache_dir`), so a second process reuses the first one's compiled programs.
+    Returns the directory, or None when ``JAXPLUSH_CACHE_DIR`` is ``off``/``0`` or the directory
+    cannot be created (the run then compiles as usual)."""
+    import jax
+    path = path or os.environ.get("JAXPLUSH_CACHE_DIR") or default_cache_dir()
+    if path.strip().lower() in ("off", "0", "none", "false"):
+        return None
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    # every compile counts toward a quick start, and the small ones are the many
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
