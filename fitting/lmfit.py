@@ -39,7 +39,11 @@ SCREEN_ROUNDS = 3
 MAX_ITER = 40
 #: Iterations per search in a stage before the last: those stages only carry the searches on
 #: toward the full target's optimum, which the last stage resolves.
-MAX_ITER_CONTINUATION = 12
+MAX_ITER_CONTINUATION = 8
+#: ... and there a search stops once its Gauss-Newton step is within one standard error (the
+#: last stage resolves the optimum to :data:`fitting.search.NOISE_STOP` of it): a shorter
+#: horizon's optimum lies about that far from the full target's anyway.
+NOISE_STOP_CONTINUATION = 1.0
 #: Restarts from an axis scan (:func:`fitting.search.rescue`) per search and stage.
 MAX_RESCUES = 2
 #: A kept start whose loss exceeds this many times the best one's is set aside (it cannot win).
@@ -220,12 +224,14 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
             if not s.history:
                 s.history.append((f.loss, s.theta.copy()))
     screen = st.stage == 0 and len(states) > keep
+    noise_stop = _search.NOISE_STOP
     if st.stage + 1 < len(st.horizons):
         max_iter = min(max_iter, MAX_ITER_CONTINUATION)
+        noise_stop = NOISE_STOP_CONTINUATION
     with Progress(max_iter, f"local search, {label}", enabled=progress, unit="it") as bar:
         bar.done = min(st.rounds, max_iter)
         while any(not s.done for s in states):
-            _search.lm_round(ev, box, states, max_iter)
+            _search.lm_round(ev, box, states, max_iter, noise_stop=noise_stop)
             st.rounds += 1
             # a search that stalls on a jump of the loss restarts from the lowest point of a scan
             _search.rescue(ev, box, states, MAX_RESCUES)

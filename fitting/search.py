@@ -314,9 +314,10 @@ def _gn_within_noise(jac, r):
     return float(np.max(np.abs(inv @ (jac.T @ r)) / np.sqrt(s2 * diag)))
 
 
-def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol=PRED_TOL):
+def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol=PRED_TOL, noise_stop=NOISE_STOP):
     """One Levenberg-Marquardt iteration of every unfinished state (two evaluations in all: the
-    Jacobians that are missing, then three trial steps per state)."""
+    Jacobians that are missing, then three trial steps per state). A state stops once its
+    Gauss-Newton step is at most ``noise_stop`` of every parameter's standard error."""
     active = []
     for st in states:
         if st.done:
@@ -337,9 +338,9 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol
     trials, owner = [], []
     for i, st in enumerate(active):
         within = _gn_within_noise(st.jac, st.residual) if st.jac_h <= NOISE_STOP_H else None
-        if within is not None and within <= NOISE_STOP:
+        if within is not None and within <= noise_stop:
             st.done, st.stopped = True, "noise"
-            st.reason = (f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors (<= {NOISE_STOP:g}): "
+            st.reason = (f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors (<= {noise_stop:g}): "
                          "the optimum is resolved to the noise")
             continue
         t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
