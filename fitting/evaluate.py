@@ -87,9 +87,13 @@ class Evaluator:
       calibrate: calibrate the closed-form stability bound against the power-iteration estimate
         at the start values (one compile); False uses the bound alone (more substeps than needed).
       calibration: a calibration to reuse (:meth:`calibration` of an evaluator of the same scene).
+      share: an evaluator of the same scene and dt (another horizon of the same fit) whose
+        compiled batched simulators this one reuses.
+      chunk_frames: run the target's frames in chunks of this many (one compiled rollout for
+        every horizon that is a multiple of it); None: each run of frames in one piece.
     """
 
-    def __init__(self, prob, batch=None, calibrate=True, calibration=None):
+    def __init__(self, prob, batch=None, calibrate=True, calibration=None, share=None, chunk_frames=None):
         self.prob = prob
         if batch is None:
             batch = DEFAULT_BATCH if prob.scene.n_vertices <= LARGE_MESH else DEFAULT_BATCH // 2
@@ -99,7 +103,11 @@ class Evaluator:
         self.runs = _runs(self.steps)
         sim = prob.sim
         self.batched = sim.integrator == "verlet" and len(self.runs) <= 8 and _batchable(sim.terms)
-        self._bsims = {}
+        # batched simulators depend on the scene, dt, terms, substeps and width, not on the
+        # target's frames: evaluators of one fit over different horizons share them (``share``),
+        # and run their frames in chunks of ``chunk_frames``, so one compiled rollout serves all
+        self._bsims = share._bsims if share is not None else {}
+        self.chunk_frames = int(chunk_frames) if chunk_frames else None
         self._single = {}
         self._res_fn = jax.jit(jax.vmap(self.residual.fn))
         self._calibration = calibration
@@ -209,14 +217,15 @@ class Evaluator:
 
     def _bsim(self, n, b):
         """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b`` (built once)."""
-        if (n, b) not in self._bsims:
+        key = (n, b, self.prob.sim.terms, self.prob.target.dt)
+        if key not in self._bsims:
             # two chunks, one per core; the dashpot gathers velocities too, and a chunk of 16 points
             # then outgrows the caches: chunks of 8 run it about 20% faster (benchmarks/RESULTS.md)
             chunk = max(1, min(b // 2, 8 if self.prob.sim.terms.dashpot else 16))
             bsim = batched.make_batched_simulator(self.prob.scene, self.prob.target.dt, b,
                                                   terms=self.prob.sim.terms, substeps=n, chunk=chunk)
-            self._bsims[(n, b)] = (bsim, jax.jit(bsim.init_fn))
-        return self._bsims[(n, b)]
+            self._bsims[key] = (bsim, jax.jit(bsim.init_fn))
+        return self._bsims[key]
 
     def _frames_batched(self, thetas, n):
         out, good, clamp = [], [], []
@@ -239,10 +248,14 @@ class Evaluator:
             chunks = []
             done = 0
             for gap, count in self.runs:
-                state, obs, health = batched.rollout(bsim, p, state, count, gap, health=health, step0=done,
-                                                     observe=batched.positions_observer)
-                chunks.append(np.asarray(obs, np.float64))            # (count, B, V, 3)
-                done += gap * count
+                size = self.chunk_frames or count
+                while count > 0:
+                    n_fr = min(size, count)
+                    state, obs, health = batched.rollout(bsim, p, state, n_fr, gap, health=health, step0=done,
+                                                         observe=batched.positions_observer)
+                    chunks.append(np.asarray(obs, np.float64))            # (n_fr, B, V, 3)
+                    done += gap * n_fr
+                    count -= n_fr
             fr = np.concatenate(chunks, axis=0).transpose(1, 0, 2, 3)[:live]
             failed = np.asarray(health.failed)[:live]
             warn = (np.asarray(health.warn_step) >= 0).any(axis=0)[:live]

@@ -152,7 +152,9 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
             calibration = next((e.calibration() for e in evaluators.values()), None)
             if evaluators:              # a contact capacity grown in an earlier stage carries over
                 sub = dataclasses.replace(sub, sim=evaluators[max(evaluators)].prob.sim)
-            evaluators[stage] = Evaluator(sub, calibration=calibration)
+            share = evaluators[min(evaluators)] if evaluators else None
+            # frames in chunks of the first horizon: every stage runs the same compiled rollout
+            evaluators[stage] = Evaluator(sub, calibration=calibration, share=share, chunk_frames=st.horizons[0])
         return evaluators[stage]
 
     def tick():

@@ -30,6 +30,14 @@ from jaxplush.stability import estimate as estimate_stable_dt
 from jaxplush.step import INTEGRATORS, Simulator, make_simulator
 from jaxplush.types import Params, State
 
+import os as _os
+
+if _os.environ.get("JAXPLUSH_CACHE_DIR"):
+    # set explicitly: every process that imports jaxplush shares the persistent compilation cache
+    # (the command-line tools turn it on themselves, in the default directory when this is unset)
+    from jaxplush.compiled import enable_persistent_cache as _enable_persistent_cache
+    _enable_persistent_cache()
+
 __all__ = [
     "Health", "INTEGRATORS", "JaxplushError", "Params", "Scene", "SceneError", "SimulationError",
     "Simulator", "State", "Trajectory", "TrajectoryError", "contact_capacity_needed", "estimate_stable_dt", "load_scene",

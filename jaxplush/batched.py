@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import constraints, diagnostics, integrators, model
+from jaxplush import compiled, constraints, diagnostics, integrators, model
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
 
 #: Terms fields this module implements. Any other field of :class:`jaxplush.model.Terms` that is
@@ -206,7 +206,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     terms = terms_for(scene) if terms is None else terms
     check_terms(terms)
     dtype = jnp.result_type(float)
-    topo = model.build_topology(scene)
+    topo = compiled.topology(scene)
     model.check_precision(topo, dtype, scene.path)
     kernel = _make_force_fn(topo, terms, scene.temperature)
     gravity = tuple(float(g) for g in scene.gravity)

@@ -9,7 +9,9 @@ the same scene, as :func:`jaxplush.simulate` does on every call, reuses the comp
 and a loop over many different scenes keeps at most :data:`SIZE` programs alive.
 
 Across processes, :func:`enable_persistent_cache` points JAX's persistent compilation cache at
-a user cache directory (the command-line tools do this on start).
+a user cache directory: the command-line tools do this on start, and ``import jaxplush`` does
+it when ``JAXPLUSH_CACHE_DIR`` is set (the test suite sets it, so its worker processes, the
+command-line runs and the notebooks it starts share their compiles).
 
 Environment:
   ``JAXPLUSH_COMPILED_SIMULATORS``: how many simulators keep their compiled functions (default 16).
@@ -49,6 +51,30 @@ def get(sim, name, build):
 def clear():
     """Drop every cached compiled function (their executables are freed with them)."""
     _CACHE.clear()
+    _TOPOLOGY.clear()
+
+
+_TOPOLOGY: "collections.OrderedDict" = collections.OrderedDict()
+
+
+def topology(scene):
+    """``jaxplush.model.build_topology(scene)``, shared by scenes of equal
+    :attr:`jaxplush.scene.Scene.fingerprint` at one precision (the last :data:`SIZE`), so a rebuilt
+    simulator does not redo the ring tables, nor the stability bound its rest geometry."""
+    import jax.numpy as jnp
+    from jaxplush import model
+    # per precision too: JAX caches the conversion of a closed-over numpy constant, so one
+    # topology's arrays must not be traced in both float32 and float64 (the second would get
+    # the first's dtype)
+    key = (scene.fingerprint, jnp.dtype(jnp.result_type(float)).str)
+    topo = _TOPOLOGY.get(key)
+    if topo is None:
+        topo = _TOPOLOGY[key] = model.build_topology(scene)
+        while len(_TOPOLOGY) > SIZE:
+            _TOPOLOGY.popitem(last=False)
+    else:
+        _TOPOLOGY.move_to_end(key)
+    return topo
 
 
 def size():

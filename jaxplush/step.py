@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import constraints, diagnostics, integrators, model
+from jaxplush import compiled, constraints, diagnostics, integrators, model
 from jaxplush.types import Params
 
 INTEGRATORS = integrators.INTEGRATORS
@@ -158,7 +158,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     substeps = int(substeps)
     h = dt / substeps
     dtype = jnp.result_type(float)
-    topo = model.build_topology(scene)
+    topo = compiled.topology(scene)
     model.check_precision(topo, dtype, scene.path)
     terms = model.Terms.for_scene(scene) if terms is None else terms
     kernel, cache_ops = model.make_force_fn(topo, terms, scene.temperature, assembly, h=h, with_cache=True)

@@ -1,9 +1,15 @@
-"""Shared test helpers: small icosphere scenes built in memory, and a float64 switch."""
+"""Shared test helpers: small icosphere scenes built in memory, a float64 switch, a compile
+counter; and one persistent compilation cache for the whole run (every worker process, and the
+command-line runs and notebooks the tests start, reuse each other's compiles)."""
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import os
+import tempfile
+
+os.environ.setdefault("JAXPLUSH_CACHE_DIR", os.path.join(tempfile.gettempdir(), f"jaxplush-tests-xla-{os.getuid()}"))
 
 import jax
 import numpy as np
