@@ -300,9 +300,10 @@ def _exact_rates(sim, params, x):
     s = np.repeat(free / np.sqrt(m), 3)
     n = 3 * topo.n_vertices
     zero = jnp.zeros((topo.n_vertices, 3))
-    k = -np.asarray(jax.jacfwd(lambda y: sim.force_fn(params, y.reshape(-1, 3), zero)[0].ravel())(
+    # jitted: one compile instead of thousands of small dispatches
+    k = -np.asarray(jax.jit(jax.jacfwd(lambda y: sim.force_fn(params, y.reshape(-1, 3), zero)[0].ravel()))(
         jnp.asarray(x).ravel())).reshape(n, n)
-    c = -np.asarray(jax.jacfwd(lambda w: sim.force_fn(params, jnp.asarray(x), w.reshape(-1, 3))[0].ravel())(
+    c = -np.asarray(jax.jit(jax.jacfwd(lambda w: sim.force_fn(params, jnp.asarray(x), w.reshape(-1, 3))[0].ravel()))(
         jnp.zeros(n))).reshape(n, n)
     sym = lambda a: 0.5 * (a + a.T)  # noqa: E731
     return (np.linalg.eigvalsh(sym(s[:, None] * k * s[None]))[-1],
