@@ -69,6 +69,16 @@ def compiles():
 
 
 @pytest.fixture
+def ctrl_c():
+    """Ctrl-C (SIGINT) raises KeyboardInterrupt in this test, as in an interactive Python, also
+    in a parallel test worker (which is started with SIGINT ignored)."""
+    import signal
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+@pytest.fixture
 def x64():
     with jax.enable_x64(True):
         yield

@@ -229,7 +229,7 @@ def test_parameter_and_object_selection():
 
 # --------------------------------------------------------------------------- Ctrl-C, checkpoint, resume
 
-def test_ctrl_c_saves_and_resume_reaches_the_same_answer(small, tmp_path):
+def test_ctrl_c_saves_and_resume_reaches_the_same_answer(small, tmp_path, ctrl_c):
     _, start, target = small
     kw = dict(optimizer="adam", iterations=12, noise_free=True, identifiability=False, check_dt=False)
     ref = F.fit(start, target, NAMES, **kw)

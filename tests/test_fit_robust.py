@@ -196,7 +196,7 @@ def test_a_search_stalled_on_a_jump_restarts_from_an_axis_scan():
     assert S.rescue(ev, box, [st], limit=2) == [] and st.evaluations == 1 + len(S.scan_points(box, st.theta)[0])
 
 
-def test_interrupted_default_fit_resumes_to_the_same_answer(tmp_path):
+def test_interrupted_default_fit_resumes_to_the_same_answer(tmp_path, ctrl_c):
     """Ctrl-C during the local search saves the state; --resume continues to exactly the values of an
     uninterrupted fit (every evaluation is deterministic)."""
     truth = jaxplush.parse_scene(F.recovery_scene_text(1), "<truth>")
