@@ -105,6 +105,8 @@ def _simulate(args):
         raise JaxplushError(f"--steps {args.steps} would write {frames:,} frames of {scene.n_vertices} vertices "
                             f"({size / 2 ** 30:.3g} GiB, more than {MAX_OUTPUT_BYTES / 2 ** 30:.0f} GiB); "
                             "raise --save-every")
+    if args.steps > PROBE_ABOVE:
+        _warn_if_long(scene, args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -121,6 +123,42 @@ def _simulate(args):
           f"wall ({args.steps / traj.wall_time:,.0f} steps/s incl. compile); wrote {len(traj.times)} frames to "
           f"{args.out} ({time.perf_counter() - t:.2f} s); final volume {vols}")
     return 0
+
+
+#: Runs of more steps than this are timed on a short probe first, and a run expected to take
+#: longer than LONG_RUN seconds is announced before it starts.
+PROBE_ABOVE = 200_000
+PROBE_STEPS = 500
+LONG_RUN = 1800.0
+
+
+def _warn_if_long(scene, args):
+    """Time PROBE_STEPS compiled steps of the scene (thrown away) and print a warning to stderr,
+    before the run, when ``--steps`` would take longer than LONG_RUN at that rate."""
+    import jax
+    import jaxplush
+    from jaxplush.model import Terms
+    sim = jaxplush.make_simulator(scene, args.dt, args.integrator, terms=Terms.for_scene(scene),
+                                  substeps=args.substeps)
+    p = sim.params()
+    s0 = sim.init_fn(p)
+    jax.block_until_ready(sim.rollout(p, s0, 1, PROBE_STEPS))          # compile
+    t = time.perf_counter()
+    jax.block_until_ready(sim.rollout(p, s0, 1, PROBE_STEPS))
+    rate = PROBE_STEPS / max(time.perf_counter() - t, 1e-9)
+    eta = args.steps / rate
+    if eta > LONG_RUN:
+        print(f"warning: --steps {args.steps:,} will take about {_duration(eta)} at the measured {rate:,.0f} steps/s "
+              f"({args.steps * args.dt:.4g} s simulated); Ctrl-C stops it and writes nothing", file=sys.stderr,
+              flush=True)
+
+
+def _duration(seconds):
+    if seconds >= 86400:
+        return f"{seconds / 86400:.1f} days"
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.0f} min"
 
 
 def _render(args):

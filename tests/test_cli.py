@@ -356,3 +356,31 @@ def test_progress_final_line_says_where_and_why_it_stopped():
         bar.update(40)
     final = buf.getvalue().rsplit("\r", 1)[-1]
     assert final.startswith("simulate [" + "#" * 30 + "] 40 steps in") and "eta" not in final
+
+
+def test_a_run_that_would_take_hours_is_announced_before_it_starts(work, tmp_path):
+    """--steps is checked against how long the run will take: a short compiled probe sets the rate,
+    and a run of more than half an hour says so on stderr before it starts (here 2e9 steps; the
+    process is stopped once it has said so, and wrote nothing)."""
+    out = tmp_path / "long.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "jaxplush", "simulate", str(work["scene"]), "--steps", "2000000000",
+                             "--dt", repr(work["dt"]), "--out", str(out), "--quiet"],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        import select
+        ready, _, _ = select.select([proc.stderr], [], [], 120)
+        # the warning comes first, before any step of the run (without it: nothing until the end)
+        line = proc.stderr.readline() if ready else "(nothing on stderr within 120 s)"
+    finally:
+        proc.kill()
+        proc.wait(timeout=60)
+    assert line.startswith("warning: --steps 2,000,000,000 will take about "), line
+    assert re.search(r"about [0-9.]+ (h|days) at the measured [0-9,]+ steps/s", line), line
+    assert not out.exists() and listing(tmp_path) == []
+
+
+def test_an_ordinary_run_is_not_announced(work, capsys):
+    import argparse
+    args = argparse.Namespace(steps=cli.PROBE_ABOVE + 1, dt=work["dt"], integrator="verlet", substeps=1)
+    cli._warn_if_long(jaxplush.load_scene(work["scene"]), args)
+    assert capsys.readouterr().err == ""
