@@ -246,7 +246,8 @@ def rescue(evaluator, box, states, limit=2):
         pts.append(p)
         owner += [i] * len(p)
         spacing.append(sp)
-    ev = evaluator(np.concatenate(pts))
+    pts = np.concatenate(pts)
+    ev = evaluator(pts)
     owner = np.asarray(owner)
     restarted = []
     for i, st in enumerate(states):
@@ -260,13 +261,13 @@ def rescue(evaluator, box, states, limit=2):
             st.rescues = limit
             continue
         old = st.loss
-        st.theta = ev_theta = np.concatenate(pts)[j].copy()
+        st.theta = pts[j].copy()
         st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
         st.jac, st.mu = None, MU0
         st.radius = float(np.max(spacing[i]))
         st.done, st.stopped = False, ""
         st.reason = f"restarted from an axis scan (loss {old:.4g} -> {st.loss:.4g})"
-        st.history.append((st.loss, ev_theta.copy()))
+        st.history.append((st.loss, st.theta.copy()))
         restarted.append(st)
     return restarted
 
