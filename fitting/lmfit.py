@@ -74,7 +74,8 @@ class LMRun:
       grad, grad0: loss gradients (log space) at the best point and at the start values;
       paths: per finished stage, the (loss, theta) paths of its searches and why each ended;
       loss0: the loss of the start values on the whole target;
-      wall: seconds spent; evaluations: points simulated.
+      wall: seconds spent; evaluations: points simulated;
+      smoothed: the :class:`fitting.search.Smoothed` stage of a noisy target's fit (else None).
     """
 
     phase: str = "global"
@@ -92,6 +93,7 @@ class LMRun:
     loss0: float = math.nan
     wall: float = 0.0
     evaluations: int = 0
+    smoothed: object = None
 
 
 def horizons(n_frames):
@@ -227,7 +229,9 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
                 s.history.append((f.loss, s.theta.copy()))
     screen = st.stage == 0 and len(states) > keep
     noise_stop = _search.NOISE_STOP
-    if st.stage + 1 < len(st.horizons):
+    if st.stage + 1 < len(st.horizons) or (prob.noise is not None and prob.noise > 0):
+        # only the last stage of a noise-free fit resolves the optimum itself: with a noisy
+        # target, the smoothing stage (fitting.search.smooth) does, at the scale of the noise
         max_iter = min(max_iter, MAX_ITER_CONTINUATION)
         noise_stop = NOISE_STOP_CONTINUATION
     with Progress(max_iter, f"local search, {label}", enabled=progress, unit="it") as bar:
@@ -265,7 +269,10 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
 
 
 def _final(prob, ev, box, st):
-    """Jacobian at the best point (at H_MIN) and the gradients at it and at the start."""
+    """Jacobian at the best point (at H_MIN) and the gradients at it and at the start; for a noisy
+    target, the smoothing stage (:func:`fitting.search.smooth`) moves the best point to the
+    optimum of a regression model, whose slope and intercept then stand for the Jacobian and the
+    residuals."""
     states = st.states
     st.best = states[_order(states)[0]]
     b = st.best
@@ -273,7 +280,25 @@ def _final(prob, ev, box, st):
     centre = ev(np.asarray([b.theta, th0]))
     st.residual = centre.residuals[0]
     st.loss0 = float(centre.loss[1])
-    st.jac = _search.jacobian(ev, box, b.theta, _search.H_MIN, max(int(centre.substeps[0]), b.substeps))
+    n_sub = max(int(centre.substeps[0]), b.substeps)
+    st.jac = _search.jacobian(ev, box, b.theta, _search.H_MIN, n_sub)
+    if prob.noise is not None and prob.noise > 0 and b.stopped != "callback":
+        sm = _search.smooth(ev, box, b.theta, st.jac, st.residual)
+        if sm is not None:
+            st.smoothed = sm
+            e = ev(np.asarray(sm.theta)[None])
+            history = list(sm.path)
+            if e.ok[0]:
+                b.theta, b.loss, b.residual, b.substeps = sm.theta.copy(), float(e.loss[0]), e.residuals[0], int(e.substeps[0])
+                history.append((b.loss, b.theta.copy()))
+                b.history.extend(history)
+            st.jac, st.residual = sm.jac, sm.residual
+            worst = float(np.max(np.abs(sm.step) / sm.stderr))
+            reason = (f"smoothed over {len(sm.path)} regression design(s): the Gauss-Newton step of the last is "
+                      f"{worst:.2g} of the standard errors")
+            b.reason = f"{b.reason}; {reason}" if b.reason else reason
+            if st.paths:
+                st.paths[-1].append((history, reason))
     st.grad = 2.0 * st.jac.T @ np.nan_to_num(st.residual)
     if centre.ok[1]:
         jac0 = _search.jacobian(ev, box, th0, _search.H_MAX, int(centre.substeps[1]))

@@ -16,6 +16,10 @@ A fit is *converged* only when both hold:
   float32 rollout's rounding leaves a noise-free loss a floor of its own: near it, the loss of
   a body in hard floor contact is rough, and the gradient need not fall far below the start's.)
 
+For a noisy target the default fit ends with a smoothing stage (:func:`fitting.search.smooth`):
+its regression model's slope and intercept stand for the Jacobian and the residuals, so the
+gradient, the Gauss-Newton step and the standard errors above are the model's.
+
 Otherwise the status says what happened, in this order: ``at_bound`` (a parameter ended on the
 edge of the search box), ``iteration_limit``, ``stalled`` (no step lowers the loss, yet the
 gradient is not small), ``poor_fit`` (an optimum that does not reach the data: residual RMS X

@@ -54,7 +54,11 @@ def test_default_fit_recovers_a_dropped_ball_from_a_far_start(drop, kind):
     assert res.outcome.reached and res.outcome.optimal
     if kind == "points":                  # a point's distance to the true surface is its noise's normal part
         assert res.outcome.reference_kind == "noise" and 0.9 < res.outcome.rms / 0.002 < outcome.NOISE_FACTOR
+        # a noisy target's optimum is resolved by the smoothing stage, whose path ends the last stage's
+        assert res.loop.smoothed is not None and res.loop.smoothed.converged
+        assert "smoothed over" in res.search["local_reasons"][-1]
     else:
+        assert res.loop.smoothed is None
         assert res.outcome.reference_kind == "motion" and res.outcome.rms < 1e-4 * res.outcome.reference
     # the search ran over horizons of growing length and sampled the default box (start/4 .. start x4)
     s = res.search
@@ -194,6 +198,68 @@ def test_a_search_stalled_on_a_jump_restarts_from_an_axis_scan():
     st.done, st.stopped = True, "stalled"
     assert S.rescue(ev, box, [st], limit=2) == [] and st.done and st.rescues == 2
     assert S.rescue(ev, box, [st], limit=2) == [] and st.evaluations == 1 + len(S.scan_points(box, st.theta)[0])
+
+
+class _RippledResiduals:
+    """An evaluator stand-in: residuals of a linear model with noise, r = A (theta - t) + e, plus a
+    ripple q sin(2 pi theta_0 / lam) cos(2 pi theta_1 / lam) whose wavelength is a third of the
+    standard error, as contact events put on a point cloud's loss."""
+
+    class residual:
+        n = 4000
+
+    def __init__(self, sigma=0.01, amp=0.2, seed=0):
+        from fitting import search as S
+        rng = np.random.default_rng(seed)
+        n = self.residual.n
+        self.e = rng.normal(0.0, 1.0 / np.sqrt(n), n)
+        a = rng.normal(size=(n, 2))
+        a[:, 1] += 0.5 * a[:, 0]                     # correlated parameters
+        self.a = a / np.linalg.norm(a, axis=0) / sigma / np.sqrt(n)
+        self.q = rng.normal(0.0, amp / np.sqrt(n), n)
+        self.lam, self.t = 0.004, np.array([0.3, -0.2])
+        # the optimum of the model without the ripple, and its standard errors
+        self.opt = self.t - np.linalg.lstsq(self.a, self.e, rcond=None)[0]
+        self.sigma = S._stderr(self.a, self.e)
+
+    def substeps_for(self, thetas):
+        return np.ones(len(thetas), int)
+
+    def __call__(self, thetas, substeps=None):
+        from fitting.evaluate import Evaluation
+        t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)
+        ripple = np.sin(2 * np.pi * t[:, :1] / self.lam) * np.cos(2 * np.pi * t[:, 1:2] / self.lam)
+        r = (t - self.t) @ self.a.T + self.e + ripple * self.q
+        n = len(t)
+        return Evaluation(r, np.sum(r ** 2, axis=1), np.ones(n, bool), np.ones(n, int), np.zeros(n, bool))
+
+
+@pytest.mark.parametrize("offset, narrow, amp", [((4.0, -3.0), 1.0, 0.2), ((4.0, -3.0), 10.0, 0.2),
+                                                  ((0.5, -0.5), 10.0, 0.0)])
+def test_the_smoothing_stage_averages_a_ripple_out(offset, narrow, amp):
+    """From 4 and 3 standard errors off, the smoothing stage (a regression model of the residuals
+    over a design at the scale of the standard errors) reaches the optimum of the model beneath the
+    ripple within one standard error, and its standard errors are the model's to 25%. A first
+    design sized by a Jacobian 10x too steep (the ripple's slope) is widened, not trusted, even
+    where its step would already be within the standard errors (half a standard error off)."""
+    from fitting import search as S
+    ev = _RippledResiduals(amp=amp)
+    box = S.Box(np.full((2, 1), -2.0), np.full((2, 1), 2.0))
+    th = (ev.opt + np.array(offset) * ev.sigma)[:, None]
+    c = ev(th[None])
+    jac = S.jacobian(ev, box, th, S.H_MIN) * narrow
+    sm = S.smooth(ev, box, th, jac, c.residuals[0])
+    assert sm.converged
+    assert np.all(np.abs(sm.theta.ravel() - ev.opt) <= ev.sigma), (sm.theta.ravel() - ev.opt) / ev.sigma
+    np.testing.assert_allclose(sm.stderr, ev.sigma, rtol=0.25)
+    assert sm.evaluations == len(sm.path) * (S.SMOOTH_POINTS + 1)
+    if narrow > 1:                           # the first design was too narrow: never the last
+        assert len(sm.path) >= 2 and np.all(np.abs(sm.centre.ravel() - th.ravel()) > 0)
+    # a regression recovers an exact affine model
+    pts = np.random.default_rng(1).normal(size=(8, 2))
+    a, b = S.regression(pts, pts @ ev.a.T + ev.e, np.zeros(2))
+    np.testing.assert_allclose(b, ev.a, rtol=1e-9)
+    np.testing.assert_allclose(a, ev.e, rtol=1e-9, atol=1e-12)
 
 
 def test_interrupted_default_fit_resumes_to_the_same_answer(tmp_path, ctrl_c):
