@@ -30,9 +30,8 @@ TRUE_K, TRUE_NMOL = 300.0, 2e-3
 
 def _two_object_scene(**kw):
     """Two icospheres with every term on: gas, floor, a pin, dashpot, drag, Verlet damping."""
-    # (soft-soft contact is not batched; switch it off where this checkout has it)
-    off = "contact off\n" if "contact" in {f.name for f in dataclasses.fields(jaxplush.Scene)} else ""
-    text = (off
+    # (soft-soft contact is not batched: switch it off)
+    text = ("contact off\n"
             + icosphere_text(subdivisions=1, nmol=1e-3, dashpot=0.01, drag=0.5, damping=200.0, floor=-0.12,
                              fixed=(0,), **kw)
             + icosphere_text(subdivisions=1, nmol=2e-3, k=200.0, name="b2", translate=(0.3, 0, 0), offset=42,
@@ -87,8 +86,6 @@ def test_batched_matches_separate_simulate_runs_float64(x64):
 
 
 def test_batched_floor_friction_and_restitution_match_simulate():
-    if "floor_friction" not in {f.name for f in dataclasses.fields(model.Terms)}:
-        pytest.skip("this checkout has no floor friction/restitution")
     scene = _ball(floor=-0.11, gravity=(2.0, -9.81, 0.0), extra="")
     scene = jaxplush.parse_scene("floor_friction 0.4\nfloor_restitution 0.5\n" + scene.text, "<friction>")
     assert scene.floor_friction == 0.4
