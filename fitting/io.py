@@ -475,7 +475,7 @@ def fitted_scene_text(result):
                     contact_friction=scene.contact_friction or None, contact_capacity=scene.contact_capacity,
                     floor_model=scene.floor_model if scene.floor_model != "projection" else None,
                     floor_stiffness=scene.floor_stiffness)
-    cfg = getattr(result.problem.sim.terms, "contact", None)
+    cfg = result.problem.sim.terms.contact
     grown = any(w.startswith("contact candidates overflowed") for w in result.warnings)
     if cfg is not None and (scene.contact_capacity is not None or grown):
         settings["contact_capacity"] = max(cfg.capacity)

@@ -293,7 +293,7 @@ def _make_floor(topo, terms, scene, h):
     if not terms.floor:
         return None
     height = float(scene.floor)
-    if getattr(terms, "floor_friction", 0.0) or getattr(terms, "floor_restitution", 0.0):
+    if terms.floor_friction or terms.floor_restitution:
         shared = constraints.make_constrain(topo, dataclasses.replace(terms, fixed=False), scene, h)
 
         def floor(x_old, x, v):

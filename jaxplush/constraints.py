@@ -33,8 +33,8 @@ def make_constrain(topo, terms, scene, dt):
     fixed = topo.fixed
     floor = scene.floor
     x0_soa = np.ascontiguousarray(topo.x0.T)
-    mu = float(getattr(terms, "floor_friction", 0.0))
-    restitution = float(getattr(terms, "floor_restitution", 0.0))
+    mu = float(terms.floor_friction)
+    restitution = float(terms.floor_restitution)
     v_rest = max(2.0 * abs(float(scene.gravity[1])) * dt, 1e-9)
 
     def constrain(x_old, x, v):

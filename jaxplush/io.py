@@ -98,7 +98,7 @@ def save_trajectory(traj, path):
             a["integrator"] = traj.integrator
             a["steps"] = int(traj.steps)
             a["save_every"] = int(traj.save_every)
-            a["substeps"] = int(getattr(traj, "substeps", 1))
+            a["substeps"] = int(traj.substeps)
             a["floor"] = np.nan if traj.floor is None else float(traj.floor)
             a["gravity"] = np.asarray(traj.gravity, np.float64)
             a["temperature"] = float(traj.temperature)

@@ -120,7 +120,7 @@ class SmoothFloor:
 
 def smooth_floor_for_scene(scene, topo=None):
     """:class:`SmoothFloor` of a scene with ``floor_model smooth``, else None."""
-    if scene.floor is None or getattr(scene, "floor_model", "projection") != "smooth":
+    if scene.floor is None or scene.floor_model != "smooth":
         return None
     beta, n_max = [], []
     edges = _mesh.unique_edges(scene.faces)
@@ -235,12 +235,12 @@ class Terms:
                    fixed=len(scene.fixed) > 0,
                    verlet_damping=on("damping"),
                    contact=_contact.config_for_scene(scene),
-                   floor_friction=float(getattr(scene, "floor_friction", 0.0)) if has_floor else 0.0,
-                   floor_restitution=float(getattr(scene, "floor_restitution", 0.0)) if has_floor else 0.0)
+                   floor_friction=float(scene.floor_friction) if has_floor else 0.0,
+                   floor_restitution=float(scene.floor_restitution) if has_floor else 0.0)
 
     def names(self):
         out = tuple(f.name for f in dataclasses.fields(self) if getattr(self, f.name))
-        if self.contact and getattr(self.contact, "friction", 0.0) > 0:
+        if self.contact and self.contact.friction > 0:
             out += ("contact_friction",)
         return out
 

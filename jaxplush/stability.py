@@ -240,11 +240,11 @@ def _rates(topo, terms, params, temperature, geo, scale=None):
         # the rank-one part (P/V) g g^T, dense within an object: |g| scales with s²
         rank1 = (pressure / np.maximum(vol, 1e-300) * s ** 4)[obj] * geo.g * geo.g_sum[obj]
         w2 = w2 + rank1 / m
-    floor = getattr(terms, "floor_smooth", None)
+    floor = terms.floor_smooth
     if floor:
         # U'' of the softplus penalty is at most 1.05 k_f (max over the contact depth)
         w2 = w2 + 1.05 * np.asarray(model.smooth_floor_stiffness(floor, k))[obj] / m
-    contact = getattr(terms, "contact", None)
+    contact = terms.contact
     if contact:
         kc = contact.stiffness if contact.stiffness is not None else 0.1 * 2 * int(val.max()) * k[obj]
         w2 = w2 + 3.0 * kc / m      # a vertex against a face (the vertex and the face's corners)
@@ -411,7 +411,7 @@ def check_dt(sim, params):
     simulator)."""
     if sim.integrator in UNCONDITIONAL:
         return None
-    substeps = getattr(sim, "substeps", 1)
+    substeps = sim.substeps
     if dt_warning(bound(sim, params), sim.integrator, sim.dt, substeps) is None:
         return None
     return dt_warning(estimate(sim, params), sim.integrator, sim.dt, substeps)
