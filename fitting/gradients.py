@@ -26,7 +26,7 @@ Methods (all give the same value and gradient up to rounding; tests/test_gradien
 
 Soft-soft contact: the step searches its candidates afresh; a search that overflows the contact
 capacity gives a finite but inexact force (:mod:`jaxplush.contact`), so every method also checks
-each step's positions and returns a NaN loss when one overflowed (``nan_on_overflow``), which
+the positions each step starts from and returns a NaN loss when one overflowed (``nan_on_overflow``), which
 ``fitting.fit`` takes as the signal to raise the capacity.
 
 Measured (benchmarks/bench_fit.py, benchmarks/RESULTS.md): the adjoint's value_and_grad costs
@@ -120,7 +120,7 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
 
     loss0 = frame_loss(state[0], 0) if steps[0] == 0 else jnp.zeros((), state[0].dtype)
     if n_steps == 0:
-        return loss0 + _nan_if(jnp.any(check(state[0])), jnp.result_type(loss0)) if check is not None else loss0
+        return loss0
     table_j = jnp.asarray(table)
 
     step = sim.internal.step
@@ -132,10 +132,10 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
 
     def one_step(carry, n):
         s, acc, flag = carry
+        if check is not None:
+            flag = flag | (jnp.any(check(s[0])) & (n <= n_steps))
         # Steps past the horizon (padding of the last segment) leave the carry unchanged.
         s = jax.lax.cond(n <= n_steps, lambda s: step(params, s), lambda s: s, s)
-        if check is not None:
-            flag = flag | jnp.any(check(s[0]))
         j = table_j[jnp.minimum(n, n_steps)]
         hit = (j >= 0) & (n <= n_steps)
         acc = acc + jax.lax.cond(hit, lambda: frame_loss(s[0], jnp.maximum(j, 0)).astype(acc.dtype),
@@ -152,8 +152,8 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
     if checkpoint:
         run_segment = jax.checkpoint(run_segment)
 
-    flag0 = jnp.any(check(state[0])) if check is not None else jnp.zeros((), bool)
-    (_, loss, flag), _ = jax.lax.scan(lambda c, first: (run_segment(c, first), None), (state, loss0, flag0),
+    (_, loss, flag), _ = jax.lax.scan(lambda c, first: (run_segment(c, first), None),
+                                      (state, loss0, jnp.zeros((), bool)),
                                       jnp.arange(n_seg) * seg)
     return loss + _nan_if(flag, jnp.result_type(loss)) if check is not None else loss
 
@@ -499,10 +499,9 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
             s, bufs, flag = carry
             if grads:
                 bufs = record(bufs, n - 1, s)
-            s = sim.internal.step(params, s)
             if check is not None:
                 flag = flag | jnp.any(check(s.x))
-            return s, bufs, flag
+            return sim.internal.step(params, s), bufs, flag
 
         def frame(carry, j):
             s, bufs, acc, c_acc, flag = carry
@@ -519,9 +518,8 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
             return (s, bufs, acc + val, c_acc, flag), (gx, ga)
 
         c0 = [jnp.zeros_like(c) for c in con_d] if grads else []
-        flag0 = jnp.any(check(x0)) if check is not None else jnp.zeros((), bool)
         (s_end, bufs, loss, c_acc, flag), outs = jax.lax.scan(
-            frame, (State(x0, u0), bufs, jnp.zeros((), dtype), c0, flag0), jnp.arange(n_frames))
+            frame, (State(x0, u0), bufs, jnp.zeros((), dtype), c0, jnp.zeros((), bool)), jnp.arange(n_frames))
         if grads and plan.store:
             bufs = record(bufs, n_steps, s_end)
         if check is not None:
@@ -657,9 +655,9 @@ def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, me
         ``memory_budget`` (else about sqrt(frame_steps[-1])); an int always recomputes segments.
       memory_budget: bytes the adjoint may spend on stored states (default 512 MiB, so that a
         10,000-step horizon at 2562 vertices stays under 1 GiB in all with velocities stored too).
-      nan_on_overflow: with soft-soft contact between objects, return a NaN loss when a fresh
-        candidate search at some step's positions (0 to ``frame_steps[-1]``) overflows the
-        contact capacity (the steps were then inexact: :mod:`jaxplush.contact`); the forces and
+      nan_on_overflow: with soft-soft contact between objects, return a NaN loss when the fresh
+        candidate search of some step (at the positions it starts from) overflows the contact
+        capacity (the steps were then inexact: :mod:`jaxplush.contact`); the forces and
         the gradient stay finite, so only the value says it. ``fitting.fit`` rejects such a point
         and raises the capacity. False: the loss of the inexact run.
 

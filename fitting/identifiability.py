@@ -57,9 +57,9 @@ def frames_at_steps(sim, params, state0, steps):
 
     Returns:
       (frames (T, V, 3), codes (T, O) int32 health codes, :mod:`jaxplush.diagnostics`). With
-      soft-soft contact, an object whose candidates overflowed their capacity at any step up to a
-      frame (a fresh search's count, checked at every step) has the code ``CONTACT_OVERFLOW``
-      there and at every later frame.
+      soft-soft contact, an object whose candidates overflowed their capacity in some step up to a
+      frame (a fresh search's count at the positions each step starts from) has the code
+      ``CONTACT_OVERFLOW`` there and at every later frame.
     """
     steps = [int(s) for s in steps]
     if not steps or steps[0] < 0 or any(b <= a for a, b in zip(steps, steps[1:])):
@@ -78,16 +78,16 @@ def frames_at_steps(sim, params, state0, steps):
     buf = jnp.zeros((len(steps) + 1,) + s0.x.shape, s0.x.dtype)
     buf = buf.at[slot[0]].set(s0.x)
     # soft-soft contact (searched afresh every step): a sticky per-object flag of the search's
-    # capacity overflow at every step's positions, recorded with each frame
+    # capacity overflow at the positions each step starts from, recorded with each frame
     check = getattr(sim.internal, "overflow", None)
     n_obj = sim.topology.n_objects
-    flag0 = check(s0.x) if check is not None else jnp.zeros((n_obj,), bool)
-    fbuf = jnp.zeros((len(steps) + 1, n_obj), bool).at[slot[0]].set(flag0)
+    flag0 = jnp.zeros((n_obj,), bool)
+    fbuf = jnp.zeros((len(steps) + 1, n_obj), bool)
     slot = jnp.asarray(slot)
 
     def one(_, c):
-        s = sim.internal.step(params, c[0])
-        return (s, c[1] | check(s.x)) if check is not None else (s, c[1])
+        s, flag = c
+        return sim.internal.step(params, s), (flag | check(s.x)) if check is not None else flag
 
     def block(carry, b):
         state, flag, buf, fbuf = carry

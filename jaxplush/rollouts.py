@@ -70,11 +70,11 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
             return c[1].overflow
     elif check is not None:
         # soft-soft contact searched afresh every step: a sticky flag of the same search's
-        # overflow at every step's positions rides along
+        # overflow at the positions each step starts from rides along (where the step's force
+        # is first evaluated: XLA can share the broad phase with it)
         def one(c):
-            s = step_fn(params, c[0])
-            return s, c[1] | check(s.x)
-        carry0 = (state, check(state.x))
+            return step_fn(params, c[0]), c[1] | check(c[0].x)
+        carry0 = (state, jnp.zeros((sim.topology.n_objects,), bool))
 
         def overflow(c):
             return c[1]
