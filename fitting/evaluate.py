@@ -282,8 +282,12 @@ class Evaluator:
                 sim, fn = self._single_fn(n)
                 fr, codes = fn(sim.params(self.prob.params_at(th)))
                 fr, codes = np.asarray(fr, np.float64), np.asarray(codes)
-                ok = diagnostics.first_failure(codes) is None and np.isfinite(fr).all()
-                if ok or not self._grow_contact(th, sim):
+                bad = diagnostics.first_failure(codes)
+                ok = bad is None and np.isfinite(fr).all()
+                # soft-soft contact candidates that overflowed are a status (finite, inexact frames),
+                # not a blow-up: grow the capacity and run the point again
+                if ok or bad is None or not (codes[bad[0]] == diagnostics.CONTACT_OVERFLOW).any() \
+                        or not self._grow_contact(th, sim):
                     break
             out.append(fr)
             good.append(ok)
@@ -291,8 +295,9 @@ class Evaluator:
         return np.stack(out), np.asarray(good), np.asarray(clamp)
 
     def _grow_contact(self, theta, sim):
-        """After a failed run at theta: if soft-soft contact candidates overflowed there, rebuild
-        with the capacity the run needs (a warning names it) and return True (run it again)."""
+        """After a run at theta whose contact candidates overflowed (health code
+        ``CONTACT_OVERFLOW``): rebuild with the capacity the run needs (a warning names it) and
+        return True (run it again); False when there is no soft-soft contact."""
         import dataclasses
         import warnings
         import jaxplush
@@ -303,9 +308,11 @@ class Evaluator:
             return False
         need = contact_capacity_needed(prob.scene, int(self.steps[-1]), prob.target.dt, params=prob.params_at(theta),
                                        sim=sim)
-        if need is None:
-            return False
         old = max(prob.sim.terms.contact.capacity)
+        if need is None:
+            # the fresh search of every step overflowed where simulate's carried candidate lists
+            # (rebuilt at other steps) did not: grow past the current capacity all the same
+            need = contact.grown_capacity(max(max(sim.terms.contact.capacity), old) + 1)
         new_sim = jaxplush.make_simulator(prob.scene, prob.target.dt, prob.sim.integrator,
                                           terms=contact.with_capacity(prob.sim.terms, need))
         self.prob = dataclasses.replace(prob, sim=new_sim)

@@ -567,8 +567,9 @@ def fit(scene, target, params=None, objects=None, *, iterations=None,
             _io.save_checkpoint(checkpoint_path, prob, state, settings, status=status)
 
     def grow_contact_capacity(theta):
-        """After a failed evaluation at theta: if soft-soft contact candidates overflowed there,
-        rebuild the problem with a capacity that fits (warning) and return True."""
+        """After a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
+        loss is NaN: :func:`fitting.gradients.rollout_loss`), rebuild the problem with a capacity
+        that fits (warning) and return True."""
         nonlocal prob, step_fn
         if getattr(prob.sim.terms, "contact", None) is None:
             return False

@@ -24,6 +24,11 @@ Methods (all give the same value and gradient up to rounding; tests/test_gradien
   drag, the floor, pins and soft-soft contact; not floor friction/restitution or substeps > 1.
 * ``"auto"``: ``"adjoint"`` where supported (:func:`adjoint_supported`), else ``"checkpoint"``.
 
+Soft-soft contact: the step searches its candidates afresh; a search that overflows the contact
+capacity gives a finite but inexact force (:mod:`jaxplush.contact`), so every method also checks
+the positions each step starts from and returns a NaN loss when one overflowed (``nan_on_overflow``), which
+``fitting.fit`` takes as the signal to raise the capacity.
+
 Measured (benchmarks/bench_fit.py, benchmarks/RESULTS.md): the adjoint's value_and_grad costs
 about 3.5-4x the forward loss on this CPU, against about 7x for the checkpointed autodiff; a
 10,000-step horizon at 2562 vertices keeps about 300 MB of positions.
@@ -92,8 +97,21 @@ def _take(aux, j):
 
 # --------------------------------------------------------------------------- generic methods
 
-def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, checkpoint):
-    """Autodiff through the rollout: one scan over segments of ``segment`` steps (padded)."""
+def _overflow_check(sim, nan_on_overflow):
+    """The soft-soft contact's fresh-search overflow check on internal positions (3, V) -> (O,)
+    bool, or None (no contact between objects, or not asked for)."""
+    return getattr(sim.internal, "overflow", None) if nan_on_overflow else None
+
+
+def _nan_if(flag, dtype):
+    """NaN where ``flag``, else 0, with no gradient: added to a loss it makes the value NaN and
+    leaves the gradient as it is."""
+    return jnp.where(flag, jnp.asarray(jnp.nan, dtype), jnp.zeros((), dtype))
+
+
+def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, checkpoint, check=None):
+    """Autodiff through the rollout: one scan over segments of ``segment`` steps (padded). With
+    ``check`` (:func:`_overflow_check`) the loss is NaN where a step's contact candidates overflowed."""
     n_steps = steps[-1]
     state = sim.internal.to_internal(state0)
 
@@ -113,14 +131,16 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
         step = jax.checkpoint(step)
 
     def one_step(carry, n):
-        s, acc = carry
+        s, acc, flag = carry
+        if check is not None:
+            flag = flag | (jnp.any(check(s[0])) & (n <= n_steps))
         # Steps past the horizon (padding of the last segment) leave the carry unchanged.
         s = jax.lax.cond(n <= n_steps, lambda s: step(params, s), lambda s: s, s)
         j = table_j[jnp.minimum(n, n_steps)]
         hit = (j >= 0) & (n <= n_steps)
         acc = acc + jax.lax.cond(hit, lambda: frame_loss(s[0], jnp.maximum(j, 0)).astype(acc.dtype),
                                  lambda: jnp.zeros((), acc.dtype))
-        return (s, acc), None
+        return (s, acc, flag), None
 
     seg = _segment_length(segment, n_steps) if checkpoint else n_steps
     n_seg = -(-n_steps // seg)
@@ -132,9 +152,10 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
     if checkpoint:
         run_segment = jax.checkpoint(run_segment)
 
-    (_, loss), _ = jax.lax.scan(lambda c, first: (run_segment(c, first), None), (state, loss0),
-                                jnp.arange(n_seg) * seg)
-    return loss
+    (_, loss, flag), _ = jax.lax.scan(lambda c, first: (run_segment(c, first), None),
+                                      (state, loss0, jnp.zeros((), bool)),
+                                      jnp.arange(n_seg) * seg)
+    return loss + _nan_if(flag, jnp.result_type(loss)) if check is not None else loss
 
 
 # --------------------------------------------------------------------------- fused adjoint (Verlet)
@@ -422,7 +443,7 @@ def _split(tree):
     return [leaves[i] for i in idx], rebuild, cotangent
 
 
-def _adjoint_fn(sim, plan, steps, table, loss_fn):
+def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
     """The custom-VJP loss ``f(params, x0, u0, aux, consts)`` for one static configuration.
 
     Forward: one scan over the frames, each running the steps up to its frame in a loop with
@@ -431,7 +452,9 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn):
     and closed-over constants, to be scaled by the output cotangent), and records the states
     (every one, or one checkpoint per segment) into preallocated buffers. Backward: segments in
     reverse, each a loop of fused step VJPs that adds a frame's position cotangent where one
-    lies and accumulates per-vertex parameter densities, reduced once at the end.
+    lies and accumulates per-vertex parameter densities, reduced once at the end. With ``check``
+    (:func:`_overflow_check`) the forward's loss is NaN where a step's contact candidates
+    overflowed (the gradient is left as computed).
     """
     step_vjp = _make_step_dens_vjp(sim)
     topo = sim.topology
@@ -473,29 +496,34 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn):
             return xs, us
 
         def one_step(n, carry):                         # step n: state n - 1 -> state n
-            s, bufs = carry
+            s, bufs, flag = carry
             if grads:
                 bufs = record(bufs, n - 1, s)
-            return sim.internal.step(params, s), bufs
+            if check is not None:
+                flag = flag | jnp.any(check(s.x))
+            return sim.internal.step(params, s), bufs, flag
 
         def frame(carry, j):
-            s, bufs, acc, c_acc = carry
-            s, bufs = jax.lax.fori_loop(jnp.asarray(lo)[j] + 1, jnp.asarray(hi)[j] + 1, one_step, (s, bufs))
+            s, bufs, acc, c_acc, flag = carry
+            s, bufs, flag = jax.lax.fori_loop(jnp.asarray(lo)[j] + 1, jnp.asarray(hi)[j] + 1, one_step,
+                                              (s, bufs, flag))
             if not grads:
-                return (s, bufs, acc + frame_loss(s.x, aux, consts, j).astype(dtype), c_acc), None
+                return (s, bufs, acc + frame_loss(s.x, aux, consts, j).astype(dtype), c_acc, flag), None
             aux_j = _take(aux, j)
 
             def h(x, a_d, c_d):
                 return loss_fn(x.T, aux_rebuild(a_d, aux_j), *con_rebuild(c_d, consts)).astype(dtype)
             val, (gx, ga, gc) = jax.value_and_grad(h, argnums=(0, 1, 2))(s.x, [a[j] for a in aux_d], con_d)
             c_acc = [a + b for a, b in zip(c_acc, gc)]
-            return (s, bufs, acc + val, c_acc), (gx, ga)
+            return (s, bufs, acc + val, c_acc, flag), (gx, ga)
 
         c0 = [jnp.zeros_like(c) for c in con_d] if grads else []
-        (s_end, bufs, loss, c_acc), outs = jax.lax.scan(frame, (State(x0, u0), bufs, jnp.zeros((), dtype), c0),
-                                                        jnp.arange(n_frames))
+        (s_end, bufs, loss, c_acc, flag), outs = jax.lax.scan(
+            frame, (State(x0, u0), bufs, jnp.zeros((), dtype), c0, jnp.zeros((), bool)), jnp.arange(n_frames))
         if grads and plan.store:
             bufs = record(bufs, n_steps, s_end)
+        if check is not None:
+            loss = loss + _nan_if(flag, dtype)
         return loss, s_end, bufs, outs, c_acc
 
     @jax.custom_vjp
@@ -588,13 +616,13 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn):
     return f
 
 
-def _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget):
+def _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget, check=None):
     x0, u0 = sim.internal.to_internal(state0)
     dtype = jnp.result_type(x0)
     plan = _plan(sim, steps[-1], segment, memory_budget, np.dtype(dtype).itemsize)
     example_x = jax.ShapeDtypeStruct((sim.topology.n_vertices, 3), dtype)
     converted, consts = jax.closure_convert(loss_fn, example_x, _take(aux, 0))
-    f = _adjoint_fn(sim, plan, steps, table, converted)
+    f = _adjoint_fn(sim, plan, steps, table, converted, check)
     return f(params, x0, u0, aux, tuple(consts))
 
 
@@ -607,7 +635,7 @@ def adjoint_supported(sim):
 
 
 def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, method="auto", segment=None,
-                 memory_budget=DEFAULT_MEMORY_BUDGET):
+                 memory_budget=DEFAULT_MEMORY_BUDGET, nan_on_overflow=True):
     """Loss summed over frames of a rollout, differentiable with bounded memory.
 
     Args:
@@ -627,6 +655,11 @@ def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, me
         ``memory_budget`` (else about sqrt(frame_steps[-1])); an int always recomputes segments.
       memory_budget: bytes the adjoint may spend on stored states (default 512 MiB, so that a
         10,000-step horizon at 2562 vertices stays under 1 GiB in all with velocities stored too).
+      nan_on_overflow: with soft-soft contact between objects, return a NaN loss when the fresh
+        candidate search of some step (at the positions it starts from) overflows the contact
+        capacity (the steps were then inexact: :mod:`jaxplush.contact`); the forces and
+        the gradient stay finite, so only the value says it. ``fitting.fit`` rejects such a point
+        and raises the capacity. False: the loss of the inexact run.
 
     Returns:
       scalar loss.
@@ -642,13 +675,14 @@ def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, me
         method = "adjoint" if adjoint_supported(sim) else "checkpoint"
     if steps[-1] == 0:                     # no step to take: the loss of state0 alone
         method = "plain"
+    check = _overflow_check(sim, nan_on_overflow)
     if method == "adjoint":
         if not adjoint_supported(sim):
             raise ValueError(f"method='adjoint' is not supported for integrator {sim.integrator!r} "
                              f"with terms {sim.terms.names()}; use 'checkpoint'")
-        return _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget)
+        return _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget, check)
     return _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment,
-                         checkpoint=(method == "checkpoint"))
+                         checkpoint=(method == "checkpoint"), check=check)
 
 
 def value_and_grad_rollout(sim, params, state0, frame_steps, loss_fn, aux, *, method="auto", segment=None,

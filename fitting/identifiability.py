@@ -56,7 +56,10 @@ def frames_at_steps(sim, params, state0, steps):
       steps: static increasing step indices (>= 0).
 
     Returns:
-      (frames (T, V, 3), codes (T, O) int32 health codes, :mod:`jaxplush.diagnostics`).
+      (frames (T, V, 3), codes (T, O) int32 health codes, :mod:`jaxplush.diagnostics`). With
+      soft-soft contact, an object whose candidates overflowed their capacity in some step up to a
+      frame (a fresh search's count at the positions each step starts from) has the code
+      ``CONTACT_OVERFLOW`` there and at every later frame.
     """
     steps = [int(s) for s in steps]
     if not steps or steps[0] < 0 or any(b <= a for a, b in zip(steps, steps[1:])):
@@ -74,18 +77,31 @@ def frames_at_steps(sim, params, state0, steps):
     s0 = sim.internal.to_internal(state0)
     buf = jnp.zeros((len(steps) + 1,) + s0.x.shape, s0.x.dtype)
     buf = buf.at[slot[0]].set(s0.x)
+    # soft-soft contact (searched afresh every step): a sticky per-object flag of the search's
+    # capacity overflow at the positions each step starts from, recorded with each frame
+    check = getattr(sim.internal, "overflow", None)
+    n_obj = sim.topology.n_objects
+    flag0 = jnp.zeros((n_obj,), bool)
+    fbuf = jnp.zeros((len(steps) + 1, n_obj), bool)
     slot = jnp.asarray(slot)
 
+    def one(_, c):
+        s, flag = c
+        return sim.internal.step(params, s), (flag | check(s.x)) if check is not None else flag
+
     def block(carry, b):
-        state, buf = carry
-        state = jax.lax.fori_loop(0, g, lambda _, s: sim.internal.step(params, s), state)
+        state, flag, buf, fbuf = carry
+        state, flag = jax.lax.fori_loop(0, g, one, (state, flag))
         buf = buf.at[slot[b]].set(state.x)
-        return (state, buf), None
+        fbuf = fbuf.at[slot[b]].set(flag)
+        return (state, flag, buf, fbuf), None
 
     if n_blocks:
-        (_, buf), _ = jax.lax.scan(block, (s0, buf), jnp.arange(1, n_blocks + 1))
+        (_, _, buf, fbuf), _ = jax.lax.scan(block, (s0, flag0, buf, fbuf), jnp.arange(1, n_blocks + 1))
     frames = jnp.swapaxes(buf[:-1], 1, 2)
     codes = jax.vmap(lambda x: diagnostics.object_status(sim.topology, sim.terms, x))(frames)
+    if check is not None:
+        codes = diagnostics.with_overflow(codes, fbuf[:-1])
     return frames, codes
 
 

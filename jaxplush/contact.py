@@ -46,10 +46,14 @@ operation costs about a microsecond of dispatch inside the step's loop (benchmar
 
 The cost is O(cap_A cap_B) per rebuild and O((cap_A + cap_B) K) per pair and step, set by the
 capacities (which follow the contact area, not the meshes). If more vertices than the capacity
-fall in an overlap region the step cannot be exact: the force is then poisoned with NaN, so the
-rollout's health check stops the run at that step; :func:`jaxplush.simulate` then reruns with a
-larger capacity (:func:`capacity_report` outside ``jit`` tells which pair overflowed and the
-capacity needed; ``with_capacity`` rebuilds).
+fall in an overlap region the step cannot be exact: the force then uses the candidates that fit
+(it stays finite), and the overflow is a status, not a NaN (as JAX-MD's neighbour-list overflow
+flag): :class:`ContactCache` carries a per-object flag that stays set once an overflow is seen, the
+rollout turns it into the object's health code ``diagnostics.CONTACT_OVERFLOW`` at the next saved
+frame, and ``Simulator.status_fn`` reports it for a state whose fresh search overflows
+(:func:`make_overflow_check`). :func:`jaxplush.simulate` then reruns with a larger capacity
+(:func:`capacity_report` outside ``jit`` tells which pair overflowed and the capacity needed;
+``with_capacity`` rebuilds).
 
 Self-collision (``self_collision on``) is cloth-style: an unsigned-distance penalty between each
 vertex and its own object's faces more than two rest edges away (inside/outside is not
@@ -470,8 +474,10 @@ def make_contact_energy(topo, cfg):
 
 def make_contact(topo, cfg, h=None):
     """Build ``(force, cache_ops)``: ``force(params, x, v=None, base=None, cache=None) -> f`` (3, V),
-    the contact force -dU/dx, NaN on capacity overflow, and the :class:`CacheOps` of its candidate
-    cache (None without object pairs).
+    the contact force -dU/dx, and the :class:`CacheOps` of its candidate cache (None without object
+    pairs). On a capacity overflow the force is that of the candidates that fit (finite, inexact):
+    the overflow is reported by the cache's flag (:class:`ContactCache`) or by
+    :func:`make_overflow_check`, never by a NaN.
 
     The soft-soft part is assembled in closed form rather than by ``jax.grad`` of the energy (the
     reverse pass through the gathers cost as much as the search): for a query vertex p whose
@@ -623,18 +629,18 @@ def make_contact(topo, cfg, h=None):
     def search(xs):
         """The candidate queries of every pair and direction at positions xs (no gradient): a
         :class:`ContactCache` (queries laid out as ``pair_of_query``)."""
-        qs, valids, targets = [], [], []
-        overflow = jnp.zeros((), bool)
+        qs, valids, targets, counts = [], [], [], []
         for (oa, ob), margin in zip(cfg.pairs, tab.margin):
             (a0, a1), (b0, b1) = slices[oa], slices[ob]
             cap_a, cap_b = cfg.capacity[oa], cfg.capacity[ob]
             ia, ib, n_a, n_b, near_a, near_b = _pair_candidates(xs, (a0, a1), (b0, b1), cap_a, cap_b, margin)
-            overflow = overflow | (n_a > cap_a) | (n_b > cap_b)
+            counts.append((n_a, n_b))
             qs += [a0 + ia, b0 + ib]
             valids += [(jnp.arange(cap_a) < n_a) & (n_b > 0), (jnp.arange(cap_b) < n_b) & (n_a > 0)]
             targets += [near_b, near_a]
         return ContactCache(jnp.concatenate(qs).astype(jnp.int32), jnp.concatenate(valids),
-                            jnp.concatenate(targets).astype(jnp.int32), xs, overflow)
+                            jnp.concatenate(targets).astype(jnp.int32), xs,
+                            _overflow_flags(cfg, topo.n_objects, counts))
 
     ring_ext = np.ascontiguousarray(np.concatenate([np.arange(n_v, dtype=np.int32)[:, None], ring], axis=1))
     half_skin2 = (0.5 * skin_distance(topo, cfg)) ** 2 if cfg.pairs else 0.0
@@ -647,12 +653,18 @@ def make_contact(topo, cfg, h=None):
         d2 = sum((nc - pc[:, None]) ** 2 for nc, pc in zip(n, p))
         return cache._replace(target=_pick(rk, _packed_argmin(d2, 1)))
 
+    def rebuild(cache, xs):
+        """A fresh search, its overflow flags OR-ed with the cache's (they stay set)."""
+        new = search(xs)
+        return new._replace(overflow=new.overflow | cache.overflow)
+
     def update(cache, x):
         """The cache for positions x: rebuilt (:func:`search`) once some vertex has moved more than
-        half the skin since the last build, else the targets walked."""
+        half the skin since the last build, else the targets walked. The overflow flags are
+        sticky: once set they stay set, so an overflow between saved frames is not lost."""
         xs = jax.lax.stop_gradient(x)
         moved = jnp.max(jnp.sum((xs - cache.x_ref) ** 2, axis=0)) > jnp.asarray(half_skin2, xs.dtype)
-        return jax.lax.cond(moved, lambda: search(xs), lambda: walk(cache, xs))
+        return jax.lax.cond(moved, lambda: rebuild(cache, xs), lambda: walk(cache, xs))
 
     # jit: inlined under an outer jit; outside one (e.g. an eager init_fn) it compiles once
     # instead of dispatching hundreds of small operations one by one.
@@ -667,18 +679,18 @@ def make_contact(topo, cfg, h=None):
         mass = _model.vertex_mass(topo, params) if friction > 0 else None
         tiny = jnp.asarray(tiny_len ** 2, dtype)
         f = jnp.zeros((3, n_v), dtype) if base is None else base
-        overflow = jnp.zeros((), bool)
         if cfg.pairs:
             if cache is None:
                 cache = search(jax.lax.stop_gradient(x))
-            overflow = cache.overflow
+            # on an overflow the lists hold the candidates that fit: the force stays finite (and
+            # inexact); the overflow is reported by the cache's flag, not here
             kc = _take(stiffness(params, dtype), jnp.asarray(pair_of_query))
             idx, rows = narrow(x, v, mass, cache.q_idx, cache.valid, cache.target,
                                jnp.asarray(delta_q, dtype), kc, tiny)
             f = jnp.stack([fc.at[idx].add(rc, mode="promise_in_bounds") for fc, rc in zip(f, rows)])
         if self_energy is not None:
             f = f - jax.grad(lambda y: self_energy(params, y)[0])(x)
-        return jnp.where(overflow, jnp.nan, f)
+        return f
 
     ops = CacheOps(init=lambda x: search(jax.lax.stop_gradient(x)), update=update) if cfg.pairs else None
     return force, ops
@@ -692,7 +704,10 @@ class ContactCache(NamedTuple):
       valid: (Q,) bool, the slot holds a candidate (and the other object has some).
       target: (Q,) int32 global index of the query's nearest vertex of the other object.
       x_ref: (3, V) positions at the last build.
-      overflow: () bool, some pair had more candidates than its capacity at the last build.
+      overflow: (O,) bool per object: at some build since the cache was made (:meth:`CacheOps.init`),
+        the object had more candidates in some pair than its capacity. Sticky: ``update`` never
+        clears it. The force then used the candidates that fit (inexact, finite); rollouts turn
+        the flag into the object's ``diagnostics.CONTACT_OVERFLOW`` health code.
     """
 
     q_idx: jax.Array
@@ -708,6 +723,40 @@ class CacheOps(NamedTuple):
 
     init: object
     update: object
+
+
+def _overflow_flags(cfg, n_objects, counts):
+    """(O,) bool: the objects whose candidate count exceeds their capacity in some pair, from
+    ``counts`` [(n_A, n_B), ...] aligned with ``cfg.pairs``."""
+    flags = [jnp.zeros((), bool)] * n_objects
+    for (oa, ob), (n_a, n_b) in zip(cfg.pairs, counts):
+        flags[oa] = flags[oa] | (n_a > cfg.capacity[oa])
+        flags[ob] = flags[ob] | (n_b > cfg.capacity[ob])
+    return jnp.stack(flags)
+
+
+def make_overflow_check(topo, cfg):
+    """``overflow(x) -> (O,) bool`` at internal positions x (3, V): the objects whose candidates
+    in some pair would overflow their capacity in a fresh search at x (the broad phase's counts
+    only, O(V) per pair: no distance table), or None when ``cfg`` has no object pairs.
+
+    For the paths that carry no :class:`ContactCache`: ``Simulator.status_fn``, rollouts built with
+    ``coherent_contact=False`` and :func:`fitting.identifiability.frames_at_steps`."""
+    if not cfg or not cfg.pairs:
+        return None
+    slices = topo.vertex_slices
+    margins = _tables_margin(topo, cfg)
+
+    def overflow(x):
+        xs = jax.lax.stop_gradient(x)
+        counts = []
+        for (oa, ob), margin in zip(cfg.pairs, margins):
+            (a0, a1), (b0, b1) = slices[oa], slices[ob]
+            in_a, in_b = _broad_phase(xs[:, a0:a1], xs[:, b0:b1], margin)
+            counts.append((jnp.sum(in_a), jnp.sum(in_b)))
+        return _overflow_flags(cfg, topo.n_objects, counts)
+
+    return overflow
 
 
 def make_contact_force(topo, cfg, h=None):

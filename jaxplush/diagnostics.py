@@ -4,6 +4,11 @@ Inside ``jit`` nothing raises: the rollout carries an (O,) int32 status code per
 the run, outside ``jit``, :func:`first_failure` finds the first failing frame, and
 ``jaxplush.simulate`` turns it into a :class:`jaxplush.errors.SimulationError` naming step, object
 and cause.
+
+A soft-soft contact candidate list that overflows its capacity (:mod:`jaxplush.contact`) is a code
+of its own, CONTACT_OVERFLOW, not a NaN: the contact force then uses the candidates that fit (the
+step is inexact, and the code says so), and ``jaxplush.simulate`` and ``fitting.fit`` read it and
+rerun with a larger capacity.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ OK = 0
 VOLUME_CLAMPED = 1   # warning: V < eps V0, the pressure clamp is active
 NON_FINITE = 2       # error: a position became NaN or infinite
 INVERTED = 3         # error: the enclosed volume became zero or negative
+CONTACT_OVERFLOW = 4  # error: soft-soft contact candidates overflowed their capacity (steps inexact)
 ERROR = NON_FINITE   # codes >= ERROR are failures
 
 MESSAGES = {
@@ -25,6 +31,8 @@ MESSAGES = {
     VOLUME_CLAMPED: f"volume fell below {VOLUME_EPS:g} of its rest volume (pressure clamp active)",
     NON_FINITE: "positions became non-finite (NaN or infinite)",
     INVERTED: "the enclosed volume became zero or negative (the mesh turned inside out)",
+    CONTACT_OVERFLOW: ("soft-soft contact candidates overflowed their capacity, so the contact forces were "
+                       "incomplete (raise the scene keyword 'contact_capacity')"),
 }
 
 
@@ -39,6 +47,12 @@ def object_status(topo, terms, x):
         code = jnp.where(finite & (vol <= 0), INVERTED, code)
         code = jnp.where(finite & (vol > 0) & (vol < VOLUME_EPS * v0), VOLUME_CLAMPED, code)
     return code.astype(jnp.int32)
+
+
+def with_overflow(code, overflow):
+    """(O,) codes with CONTACT_OVERFLOW where ``overflow`` (O,) bool is set (it takes precedence:
+    an inexact contact step may well be what made an object fail)."""
+    return jnp.where(overflow, CONTACT_OVERFLOW, code).astype(jnp.int32)
 
 
 def energies(sim, params, state):

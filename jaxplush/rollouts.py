@@ -5,7 +5,10 @@ rebuilt for the same scene and settings compares equal to the first (``Simulator
 reuses its compiled code (:mod:`jaxplush.compiled`), as do new parameter values and initial
 states. Health is checked at every saved
 frame and carried as data (:mod:`jaxplush.diagnostics`); the carry also keeps the last healthy
-state so a failure can be located to the exact step afterwards, outside ``jit``.
+state so a failure can be located to the exact step afterwards, outside ``jit``. A soft-soft
+contact overflow at any step (the candidate cache's sticky per-object flag, or with
+``coherent_contact=False`` a flag of the same check carried from step to step) becomes the
+object's ``CONTACT_OVERFLOW`` code at the next saved frame; the positions stay finite.
 """
 
 from __future__ import annotations
@@ -55,15 +58,31 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
     health = health._replace(good_state=sim.internal.to_internal(health.good_state))
 
     coherent = sim.internal.coherent
+    check = getattr(sim.internal, "overflow", None)
     if coherent is not None:
-        # soft-soft contact: the candidate lists ride along in the carry (temporal coherence)
+        # soft-soft contact: the candidate lists ride along in the carry (temporal coherence),
+        # with their sticky per-object overflow flags
         def one(c):
             return coherent.step(params, *c)
         carry0 = (state, coherent.init(state.x))
+
+        def overflow(c):
+            return c[1].overflow
+    elif check is not None:
+        # soft-soft contact searched afresh every step: a sticky flag of the same search's
+        # overflow at the positions each step starts from rides along (where the step's force
+        # is first evaluated: XLA can share the broad phase with it)
+        def one(c):
+            return step_fn(params, c[0]), c[1] | check(c[0].x)
+        carry0 = (state, jnp.zeros((sim.topology.n_objects,), bool))
+
+        def overflow(c):
+            return c[1]
     else:
-        def one(s):
-            return step_fn(params, s)
-        carry0 = state
+        def one(c):
+            return (step_fn(params, c[0]),)
+        carry0 = (state,)
+        overflow = None
 
     def steps(s):
         return jax.lax.scan(lambda c, _: (one(c), None), s, None, length=save_every)[0]
@@ -74,9 +93,13 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
     def frame(carry, i):
         c, h = carry
         c = steps(c)
-        s = c[0] if coherent is not None else c
+        s = c[0]
         step = step0 + (i + 1) * save_every
-        code = sim.status_fn(params, sim.internal.to_public(s))
+        if overflow is None:
+            code = sim.status_fn(params, sim.internal.to_public(s))
+        else:
+            # a contact overflow since the start of this rollout is the object's code
+            code = diagnostics.with_overflow(diagnostics.object_status(sim.topology, sim.terms, s.x.T), overflow(c))
         new_bad = (code >= diagnostics.ERROR) & (h.bad_step < 0)
         new_warn = (code == diagnostics.VOLUME_CLAMPED) & (h.warn_step < 0)
         healthy = jnp.all(code < diagnostics.ERROR) & jnp.all(h.bad_step < 0)
@@ -90,7 +113,7 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
         return (c, h), s.x
 
     (carry, health), frames = jax.lax.scan(frame, (carry0, health), jnp.arange(n_frames, dtype=jnp.int32))
-    state = carry[0] if coherent is not None else carry
+    state = carry[0]
     health = health._replace(good_state=sim.internal.to_public(health.good_state))
     return sim.internal.to_public(state), jnp.swapaxes(frames, 1, 2), health
 
@@ -133,21 +156,35 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
                      n_frames=int(n_frames), save_every=int(save_every), checkpoint=bool(checkpoint))
 
 
-def locate_failure(sim, params, health):
+def rerun_from_good(sim, params, health):
+    """Re-run from the last healthy state one step at a time, at least up to the first failure.
+
+    Returns (start step, frames (span, V, 3): the positions after steps start + 1, ...,
+    start + span, health of the re-run); span >= first bad step - start.
+    """
+    bad = np.asarray(health.bad_step)
+    start = int(health.good_step)
+    span = max(int(bad[bad >= 0].min()) - start, 1) if (bad >= 0).any() else 1
+    span = 1 << (span - 1).bit_length()   # a power of two: repeated searches reuse one compile
+    _, frames, h = _core_jit(sim, params, health.good_state, initial_health(sim, health.good_state, start),
+                             jnp.asarray(start, jnp.int32), n_frames=span, save_every=1, checkpoint=False)
+    return start, frames, h
+
+
+def locate_failure(sim, params, health, rerun=None):
     """Re-run from the last healthy state one step at a time to find the exact failing step.
 
+    ``rerun``: the result of :func:`rerun_from_good` for this health, if already at hand.
     Returns (step, object, code) of the first step whose state is unhealthy, or None.
     """
     bad = np.asarray(health.bad_step)
     if not (bad >= 0).any():
         return None
-    start = int(health.good_step)
-    span = max(int(bad[bad >= 0].min()) - start, 1)
-    span = 1 << (span - 1).bit_length()   # a power of two: repeated searches reuse one compile
-    _, _, h = _core_jit(sim, params, health.good_state, initial_health(sim, health.good_state, start),
-                        jnp.asarray(start, jnp.int32), n_frames=span, save_every=1, checkpoint=False)
+    _, _, h = rerun if rerun is not None else rerun_from_good(sim, params, health)
     b = np.asarray(h.bad_step)
-    if not (b >= 0).any():  # cannot happen for a deterministic step; fall back to the frame record
+    # none: a contact overflow of candidate lists the re-run rebuilt at other steps (a step is
+    # deterministic otherwise); fall back to the frame record
+    if not (b >= 0).any():
         b, code = bad, np.asarray(health.code)
     else:
         code = np.asarray(h.code)

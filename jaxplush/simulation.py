@@ -81,8 +81,9 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
       :class:`Trajectory`.
 
     Soft-soft contact keeps fixed-capacity candidate lists (:mod:`jaxplush.contact`); if a pair
-    overflows them, the run is repeated with a larger capacity (up to
-    :data:`MAX_CAPACITY_RETRIES` times), with a warning naming the capacity to set in the scene.
+    overflows them (the rollout's health code ``diagnostics.CONTACT_OVERFLOW``), the run is
+    repeated with a larger capacity (up to :data:`MAX_CAPACITY_RETRIES` times), with a warning
+    naming the capacity to set in the scene.
 
     Raises:
       SimulationError: the run blew up (which step, which object, why).
@@ -128,7 +129,8 @@ def contact_capacity_needed(scene, steps, dt, params=None, sim=None):
     when the scene has no soft-soft contact or the simulator's capacity never overflowed. A run
     that blows up for another reason ends the search (it returns what it has). For callers that
     build their own rollouts, such as :func:`fitting.fit`, which must rebuild with the capacity
-    instead of rerunning (its contact force returns NaN on an overflow).
+    instead of rerunning (its rollouts report an overflow as the ``CONTACT_OVERFLOW`` health code,
+    and its losses as NaN).
 
     Args:
       scene: :class:`jaxplush.scene.Scene`; steps: number of time steps; dt: time step, s.
@@ -205,24 +207,20 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     jax.block_until_ready(state)
     wall = time.perf_counter() - t0
     if health.failed:
-        step, obj, code = _rollout.locate_failure(sim, p, health)
-        report = None
-        if getattr(sim.terms, "contact", None) is not None:
-            # An overflowing candidate list poisons the force at the state *before* the failing
-            # step, which may lie after the last healthy saved frame; the rollout carried lists
-            # built at earlier positions, so check the last healthy state and that state.
-            from jaxplush import contact
-            checked = [health.good_state.x]
-            n = step - 1 - int(health.good_step)
-            if n >= 1:
-                checked.append(_rollout.rollout(sim, p, health.good_state, 1, n)[0].x)
-            checked = [np.asarray(x) for x in checked if np.isfinite(np.asarray(x)).all()]
-            report = next((r for r in (contact.capacity_report(sim, x) for x in checked[::-1]) if r), None)
-            if report is not None and retry:
-                raise _CapacityOverflow(step, max(contact.needed_capacity(sim, x) for x in checked))
+        rerun = _rollout.rerun_from_good(sim, p, health)
+        step, obj, code = _rollout.locate_failure(sim, p, health, rerun=rerun)
+        bad, codes = np.asarray(health.bad_step), np.asarray(health.code)
+        first = (bad >= 0) & (bad == bad[bad >= 0].min())
+        if (first & (codes == diagnostics.CONTACT_OVERFLOW)).any():
+            # Soft-soft contact candidates overflowed (a status of the rollout, not a NaN): find the
+            # capacity the states from the last healthy one to the failure need.
+            step, obj, need, report = _overflow_need(sim, health, rerun, step, obj, code, first, codes)
+            if retry:
+                raise _CapacityOverflow(step, need)
+            raise SimulationError(step, obj, scene.objects[obj].name,
+                                  diagnostics.MESSAGES[diagnostics.CONTACT_OVERFLOW], hint=report)
         # (the stability hint compiles an estimate: only for a failure that is reported)
-        raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code],
-                              hint=report or _hint(sim, p))
+        raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code], hint=_hint(sim, p))
     positions = np.concatenate([frames[0][None]] + frames[1:], axis=0)
     saved = np.arange(len(positions)) * save_every
     saved[-1] = steps
@@ -238,6 +236,31 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
         params=p.as_numpy(), dt=sim.dt, steps=steps, save_every=save_every, integrator=sim.integrator,
         floor=scene.floor, gravity=scene.gravity, temperature=scene.temperature, scene_text=scene.text,
         scene_path=scene.path, wall_time=wall, warnings=tuple(notes), substeps=sim.substeps)
+
+
+def _overflow_need(sim, health, rerun, step, obj, code, first, codes):
+    """(step, object, capacity needed, report) of a contact overflow the rollout's health reports.
+
+    The candidate counts are those of a fresh search (:func:`jaxplush.contact.needed_capacity`) at
+    every state from the last healthy one to the failure (the step-by-step re-run of
+    :func:`jaxplush.rollouts.rerun_from_good`); the capacity needed is at least one above the
+    current, so a rerun always grows it."""
+    from jaxplush import contact
+    start, frames, _ = rerun
+    if code != diagnostics.CONTACT_OVERFLOW:
+        # the re-run's freshly built lists did not overflow first: report the saved frame's record
+        obj = int(np.argmax(first & (codes == diagnostics.CONTACT_OVERFLOW)))
+        step = int(np.asarray(health.bad_step)[obj])
+    last = max(step, int(np.asarray(health.bad_step)[first][0])) - start
+    states = [np.asarray(health.good_state.x)] + list(np.asarray(frames[:last]))
+    states = [x for x in states if np.isfinite(x).all()]
+    counts = [contact.needed_capacity(sim, x) for x in states]
+    cap = max(sim.terms.contact.capacity)
+    need = max(counts + [cap + 1])
+    report = next((r for r in (contact.capacity_report(sim, x) for x in states[::-1]) if r), None)
+    if report is None:
+        report = f"raise 'contact_capacity' above {cap}"
+    return step, obj, need, report
 
 
 def _hint(sim, params):

@@ -36,7 +36,9 @@ class Simulator:
       init_fn: (params, x0=None, v0=None) -> state; defaults: rest positions, zero velocity.
       step_fn: (params, state) -> state, pure, one time step of length ``dt`` (``substeps``
         integrator steps of ``dt / substeps``).
-      status_fn: (params, state) -> (O,) int32 health code per object (see diagnostics).
+      status_fn: (params, state) -> (O,) int32 health code per object (see diagnostics); with
+        soft-soft contact also ``CONTACT_OVERFLOW`` for an object whose contact candidates a fresh
+        search at the state's positions would overflow.
       force_fn: (params, x, v) -> (internal force (V, 3), volume (O,) or None).
       velocity_fn: (params, state) -> (V, 3) velocity at the state's time (Verlet carries the
         half-step velocity; this returns v_n = u_n + a_n h/2).
@@ -102,13 +104,17 @@ class Internal(NamedTuple):
     step: (params, state) -> state on that layout (rollouts scan it); to_internal, to_public:
     the layout conversions of a state; coherent: for scenes with soft-soft contact, a
     :class:`CoherentStep` (the step with the contact candidate lists carried from step to step,
-    which rollouts scan instead), None otherwise.
+    which rollouts scan instead), None otherwise; overflow: for scenes with soft-soft contact
+    between objects, ``overflow(x) -> (O,) bool`` at internal positions x (3, V), the objects whose
+    candidates a fresh search there would overflow (:func:`jaxplush.contact.make_overflow_check`;
+    for paths that carry no candidate cache), None otherwise.
     """
 
     step: Callable
     to_internal: Callable
     to_public: Callable
     coherent: object = None
+    overflow: object = None
 
 
 class CoherentStep(NamedTuple):
@@ -205,8 +211,16 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
         f, volume = kernel(params, jnp.asarray(x).T, jnp.asarray(v).T)
         return f.T, volume
 
+    overflow = None
+    if terms.contact:
+        from jaxplush import contact as _contact
+        overflow = _contact.make_overflow_check(topo, terms.contact)
+
     def status_fn(params, state):
-        return diagnostics.object_status(topo, terms, state.x)
+        code = diagnostics.object_status(topo, terms, state.x)
+        if overflow is not None:
+            code = diagnostics.with_overflow(code, overflow(jnp.asarray(state.x).T))
+        return code
 
     def velocity_fn(params, state):
         return scheme.velocity(params, to_internal(state)).T
@@ -215,7 +229,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
            bool(coherent_contact))
     return Simulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
                      topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype,
-                     internal=Internal(internal_step, to_internal, to_public, coherent),
+                     internal=Internal(internal_step, to_internal, to_public, coherent, overflow),
                      substeps=substeps, velocity_fn=velocity_fn, key=key)
 
 

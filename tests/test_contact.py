@@ -391,10 +391,12 @@ def test_gradients_through_a_collision_match_finite_differences(x64):
 def test_capacity_overflow_is_detected_and_simulate_reruns_with_a_larger_capacity():
     scene, n = two_balls(sub=1, gap=-0.005, extra_scene="contact_capacity 4\n")
     sim = jaxplush.make_simulator(scene, 1e-4)
-    # the compiled rollout cannot be exact: it stops at the first step, and the report says why
+    # the compiled rollout cannot be exact: its health says so from the first saved frame on (a
+    # status, not a NaN), and the report says why
     p = sim.params()
-    _, _, health = jaxplush.rollout(sim, p, sim.init_fn(p), 2, 10)
-    assert health.failed
+    _, frames, health = jaxplush.rollout(sim, p, sim.init_fn(p), 2, 10)
+    assert health.failed and np.isfinite(np.asarray(frames)).all()
+    assert (np.asarray(health.code) == diagnostics.CONTACT_OVERFLOW).all() and (np.asarray(health.bad_step) == 10).all()
     report = contact.capacity_report(sim, scene.vertices)
     assert report is not None and "contact_capacity" in report
     need = contact.needed_capacity(sim, scene.vertices)
@@ -404,7 +406,7 @@ def test_capacity_overflow_is_detected_and_simulate_reruns_with_a_larger_capacit
     ref = jaxplush.simulate(scene, steps=20, dt=1e-4, save_every=10, check_dt=False, sim=bigger)
     assert np.isfinite(ref.positions).all()
     # simulate() handles it outside jit: it reruns with a larger capacity and says so
-    with pytest.warns(UserWarning, match="contact_capacity"):
+    with pytest.warns(UserWarning, match=r"at step 1 \(\d+ needed, capacity 4\); reran with contact_capacity"):
         traj = jaxplush.simulate(scene, steps=20, dt=1e-4, save_every=10, check_dt=False)
     assert any("contact_capacity" in w for w in traj.warnings)
     np.testing.assert_allclose(traj.positions, ref.positions, rtol=0, atol=1e-6)   # capacity does not change it
@@ -418,6 +420,82 @@ def test_capacity_overflow_that_cannot_be_fixed_is_a_clear_error(monkeypatch):
         jaxplush.simulate(scene, steps=20, dt=1e-4, save_every=10, check_dt=False)
     assert e.value.step == 1
     assert "contact_capacity" in str(e.value)          # the error says what to raise, not just "NaN"
+    assert diagnostics.MESSAGES[diagnostics.CONTACT_OVERFLOW] in str(e.value)
+
+
+def _overflowing(coherent=True):
+    """Two overlapping 42-vertex balls whose candidates overflow object a's capacity (4) only: b's
+    capacity holds all its vertices."""
+    scene, n = two_balls(sub=1, gap=-0.005)
+    base = jaxplush.make_simulator(scene, 1e-4)
+    terms = dataclasses.replace(base.terms, contact=dataclasses.replace(base.terms.contact, capacity=(4, n)))
+    sim = jaxplush.make_simulator(scene, 1e-4, terms=terms, coherent_contact=coherent)
+    ((_, n_a, n_b, cap_a, cap_b),) = contact.candidate_counts(sim, scene.vertices)
+    assert n_a > cap_a == 4 and n_b <= cap_b == n
+    return scene, n, sim
+
+
+@pytest.mark.parametrize("coherent", [True, False], ids=["carried-lists", "search-every-step"])
+def test_an_overflowing_rollout_reports_the_object_and_stays_finite(coherent):
+    scene, n, sim = _overflowing(coherent)
+    p = sim.params()
+    final, frames, health = jaxplush.rollout(sim, p, sim.init_fn(p), 3, 5)
+    assert np.isfinite(np.asarray(frames)).all() and np.isfinite(np.asarray(final.x)).all()
+    assert health.failed
+    np.testing.assert_array_equal(np.asarray(health.code), [diagnostics.CONTACT_OVERFLOW, diagnostics.OK])
+    np.testing.assert_array_equal(np.asarray(health.bad_step), [5, -1])        # the first saved frame
+    assert int(health.good_step) == 0
+    # the force uses the candidates that fit: finite (inexact), still equal and opposite
+    f, _ = sim.force_fn(p, scene.vertices, np.zeros_like(scene.vertices))
+    f = np.asarray(f, np.float64)
+    assert np.isfinite(f).all()
+    assert np.linalg.norm(f.sum(axis=0)) <= 1e-5 * np.linalg.norm(f[:n].sum(axis=0))
+    # the located failure is the first step, with the overflow's code
+    assert jaxplush.rollouts.locate_failure(sim, p, health) == (1, 0, diagnostics.CONTACT_OVERFLOW)
+
+
+def test_status_fn_reports_a_state_whose_candidates_overflow():
+    scene, n, sim = _overflowing()
+    p = sim.params()
+    state = sim.init_fn(p)
+    status = jax.jit(sim.status_fn)
+    np.testing.assert_array_equal(np.asarray(status(p, state)), [diagnostics.CONTACT_OVERFLOW, diagnostics.OK])
+    apart = state._replace(x=state.x.at[n:, 0].add(0.5))                     # b 0.5 m away: no candidates
+    assert contact.needed_capacity(sim, np.asarray(apart.x)) == 0
+    np.testing.assert_array_equal(np.asarray(status(p, apart)), [diagnostics.OK, diagnostics.OK])
+    # with the default capacity the same state is fine
+    ok = jaxplush.make_simulator(scene, 1e-4)
+    np.testing.assert_array_equal(np.asarray(ok.status_fn(p, state)), [diagnostics.OK, diagnostics.OK])
+
+
+def test_gradients_through_an_overflowing_rollout_are_finite():
+    """No NaN leaks from an overflow into values or gradients of a rollout; fitting's rollout loss
+    is NaN (the fit's signal to raise the capacity), its gradient finite."""
+    from fitting.gradients import rollout_loss
+    scene, n, sim = _overflowing()
+    p = sim.params()
+
+    def loss(k):
+        q = p._replace(k_structural=k)
+        _, frames, _ = jaxplush.rollout(sim, q, sim.init_fn(q), 2, 5)
+        return jnp.sum((frames[-1] - scene.vertices) ** 2)
+
+    val, g = jax.value_and_grad(loss)(p.k_structural)
+    assert np.isfinite(float(val)) and np.isfinite(np.asarray(g)).all() and np.abs(np.asarray(g)).max() > 0
+    target = jnp.asarray(np.stack([scene.vertices] * 2), jnp.float32)
+
+    def fit_loss(k, method, nan_on_overflow=True):
+        q = p._replace(k_structural=k)
+        return rollout_loss(sim, q, sim.init_fn(q), (5, 10), lambda x, a: jnp.sum((x - a) ** 2), target,
+                            method=method, nan_on_overflow=nan_on_overflow)
+
+    for method in ("plain", "adjoint"):
+        v, g = jax.value_and_grad(fit_loss)(p.k_structural, method)
+        assert np.isnan(float(v)) and np.isfinite(np.asarray(g)).all(), method
+        v2, g2 = jax.value_and_grad(fit_loss)(p.k_structural, method, False)
+        assert np.isfinite(float(v2)) and float(v2) > 0, method
+        # only the value says it: the gradient is that of the (inexact) run
+        assert np.linalg.norm(np.asarray(g - g2)) <= 1e-6 * np.linalg.norm(np.asarray(g2)), method
 
 
 def test_self_collision_repels_a_folded_surface(x64):
@@ -447,6 +525,36 @@ def _thrown(sub=2, gap=0.02):
     return scene, n, v0
 
 
+@pytest.mark.parametrize("coherent", [True, False], ids=["carried-lists", "search-every-step"])
+def test_an_overflow_between_saved_frames_is_not_lost(coherent):
+    """Capacity 60: the lists fit at the start (51 candidates) and at the end, but not while the
+    balls collide in between (up to about 90): the one saved frame still reports the overflow, and
+    simulate reruns with the capacity the states in between need, reproducing the exact run."""
+    scene, n, v0 = _thrown()
+    exact = jaxplush.make_simulator(scene, 2e-4)
+    terms = dataclasses.replace(exact.terms, contact=dataclasses.replace(exact.terms.contact, capacity=(60, 60)))
+    sim = jaxplush.make_simulator(scene, 2e-4, terms=terms, coherent_contact=coherent)
+    p = sim.params()
+    s0 = sim.init_fn(p, None, v0)
+    final, frames, health = jaxplush.rollout(sim, p, s0, 1, 300)
+    assert np.isfinite(np.asarray(frames)).all()
+    assert contact.needed_capacity(sim, scene.vertices) <= 60 and contact.needed_capacity(sim, np.asarray(final.x)) <= 60
+    assert int(sim.status_fn(p, final).max()) < diagnostics.ERROR              # the end state alone is fine
+    np.testing.assert_array_equal(np.asarray(health.code), [diagnostics.CONTACT_OVERFLOW] * 2)
+    np.testing.assert_array_equal(np.asarray(health.bad_step), [300, 300])
+    if not coherent:
+        from fitting.identifiability import frames_at_steps
+        fr, codes = jax.jit(lambda q: frames_at_steps(sim, q, sim.init_fn(q, None, v0), (0, 300)))(p)
+        np.testing.assert_array_equal(np.asarray(codes), [[diagnostics.OK] * 2, [diagnostics.CONTACT_OVERFLOW] * 2])
+        assert np.linalg.norm(np.asarray(fr[-1] - final.x)) <= 1e-6 * np.linalg.norm(np.asarray(final.x))
+        return
+    with pytest.warns(UserWarning, match=r"contact candidates overflowed at step \d+ \(\d+ needed, capacity 60\)"):
+        traj = jaxplush.simulate(scene, 300, 2e-4, save_every=300, v0=v0, sim=sim, check_dt=False)
+    ref = jaxplush.simulate(scene, 300, 2e-4, save_every=300, v0=v0, sim=exact, check_dt=False)
+    assert not ref.warnings
+    assert np.linalg.norm(traj.positions - ref.positions) <= 1e-6 * np.linalg.norm(ref.positions)
+
+
 def test_carried_candidate_lists_give_the_search_every_step_result():
     """Rollouts carry the candidate lists (rebuilt past half the skin, nearest vertices walked):
     a glancing collision then follows the search-every-step trajectory to float32 rounding."""
@@ -470,7 +578,7 @@ def test_contact_cache_is_rebuilt_past_half_the_skin_and_walks_otherwise():
     _, ops = contact.make_contact(sim.topology, sim.terms.contact)
     x = jnp.asarray(scene.vertices).T
     cache = ops.init(x)
-    assert not bool(cache.overflow) and int(cache.valid.sum()) > 0
+    assert cache.overflow.shape == (2,) and not np.asarray(cache.overflow).any() and int(cache.valid.sum()) > 0
     update = jax.jit(ops.update)
     # every vertex moved by 0.4 skin: no rebuild; each target walked to the nearest of itself and its ring
     shift = jnp.asarray([0.0, 0.4 * skin, 0.0])[:, None]
@@ -492,6 +600,10 @@ def test_contact_cache_is_rebuilt_past_half_the_skin_and_walks_otherwise():
     np.testing.assert_array_equal(np.asarray(c2.x_ref), np.asarray(x2))
     for a, b in zip(c2, fresh):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # an overflow flag stays set, through a walk and through a rebuild that does not overflow
+    flagged = cache._replace(overflow=jnp.asarray([False, True]))
+    for x_new in (x1, x2):
+        np.testing.assert_array_equal(np.asarray(update(flagged, x_new).overflow), [False, True])
 
 
 def test_carried_lists_hold_every_vertex_in_reach():

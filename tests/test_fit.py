@@ -198,6 +198,33 @@ def test_contact_capacity_overflow_is_grown_not_rejected():
     assert out.params.k_structural[0] == pytest.approx(res.values["k_structural"][0])
 
 
+def test_evaluator_grows_the_contact_capacity_on_an_overflow_code():
+    """The default fit's evaluator (one point at a time with contact) reads the health code
+    CONTACT_OVERFLOW of its rollout, raises the capacity (a warning names it) and runs the point
+    again; the frames it returns are those of the grown capacity."""
+    from fitting.evaluate import Evaluator
+    from fitting.identifiability import frames_at_steps
+    dt = 2e-4
+    target = make_target(_pressed_pair(150.0), 100, dt, 25)
+    small = _pressed_pair(300.0, capacity=2)
+    prob = F.build_problem(small, target, ("k_structural",), objects=["a"])
+    p = prob.sim.params(prob.params_at(prob.theta0))
+    frames, codes = jax.jit(lambda q: frames_at_steps(prob.sim, q, prob.sim.init_fn(q), prob.loss.frame_steps))(p)
+    assert np.isfinite(np.asarray(frames)).all()
+    assert (np.asarray(codes) == jaxplush.diagnostics.CONTACT_OVERFLOW).all()     # from the first frame on
+    ev = Evaluator(prob)
+    assert not ev.batched
+    with pytest.warns(UserWarning, match=r"contact candidates overflowed \(capacity 2\).*contact_capacity"):
+        e = ev(np.asarray(prob.theta0)[None], keep_frames=True)
+    assert e.ok.all() and np.isfinite(e.loss).all() and len(ev.notes) == 1
+    sim = ev.prob.sim
+    assert max(sim.terms.contact.capacity) > 2
+    ref, codes = jax.jit(lambda q: frames_at_steps(sim, q, sim.init_fn(q), prob.loss.frame_steps))(p)
+    assert (np.asarray(codes) == jaxplush.diagnostics.OK).all()
+    ref = np.asarray(ref, np.float64)
+    assert np.linalg.norm(e.frames[0] - ref) <= 1e-6 * np.linalg.norm(ref)
+
+
 # --------------------------------------------------------------------------- inputs
 
 def test_parameter_and_object_selection():
