@@ -304,7 +304,7 @@ class Evaluator:
         from jaxplush import contact
         from jaxplush.simulation import contact_capacity_needed
         prob = self.prob
-        if getattr(prob.sim.terms, "contact", None) is None:
+        if prob.sim.terms.contact is None:
             return False
         need = contact_capacity_needed(prob.scene, int(self.steps[-1]), prob.target.dt, params=prob.params_at(theta),
                                        sim=sim)

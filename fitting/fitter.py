@@ -571,7 +571,7 @@ def fit(scene, target, params=None, objects=None, *, iterations=None,
         loss is NaN: :func:`fitting.gradients.rollout_loss`), rebuild the problem with a capacity
         that fits (warning) and return True."""
         nonlocal prob, step_fn
-        if getattr(prob.sim.terms, "contact", None) is None:
+        if prob.sim.terms.contact is None:
             return False
         from jaxplush import contact
         from jaxplush.simulation import contact_capacity_needed

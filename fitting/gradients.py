@@ -100,7 +100,7 @@ def _take(aux, j):
 def _overflow_check(sim, nan_on_overflow):
     """The soft-soft contact's fresh-search overflow check on internal positions (3, V) -> (O,)
     bool, or None (no contact between objects, or not asked for)."""
-    return getattr(sim.internal, "overflow", None) if nan_on_overflow else None
+    return sim.internal.overflow if nan_on_overflow else None
 
 
 def _nan_if(flag, dtype):
@@ -233,7 +233,7 @@ def _make_force_vjp(topo, terms, temperature):
     all_real = bool(mask.all())
     rt = GAS_CONSTANT * temperature
     contact_force = None
-    if getattr(terms, "contact", None):
+    if terms.contact:
         from jaxplush import contact as _contact
         contact_force = _contact.make_contact_force(topo, terms.contact)
 
@@ -323,7 +323,7 @@ def _make_step_dens_vjp(sim):
     The floor and pins are masks; ``below`` is read off ``x_next`` (projected vertices lie
     exactly on the floor), so no primal force needs recomputing.
     """
-    topo, terms, dt = sim.topology, sim.terms, getattr(sim, "h", sim.dt)
+    topo, terms, dt = sim.topology, sim.terms, sim.h
     force_vjp = _make_force_vjp(topo, terms, sim.scene.temperature)
     floor = sim.scene.floor
     free = np.ones(topo.n_vertices)
@@ -630,7 +630,7 @@ def _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memo
 
 def adjoint_supported(sim):
     """Whether the fused adjoint supports this simulator (its integrator and compiled terms)."""
-    return (sim.integrator == "verlet" and getattr(sim, "substeps", 1) == 1
+    return (sim.integrator == "verlet" and sim.substeps == 1
             and set(sim.terms.names()) <= _ADJOINT_TERMS)
 
 

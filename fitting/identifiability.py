@@ -79,7 +79,7 @@ def frames_at_steps(sim, params, state0, steps):
     buf = buf.at[slot[0]].set(s0.x)
     # soft-soft contact (searched afresh every step): a sticky per-object flag of the search's
     # capacity overflow at the positions each step starts from, recorded with each frame
-    check = getattr(sim.internal, "overflow", None)
+    check = sim.internal.overflow
     n_obj = sim.topology.n_objects
     flag0 = jnp.zeros((n_obj,), bool)
     fbuf = jnp.zeros((len(steps) + 1, n_obj), bool)

@@ -130,8 +130,8 @@ def config_for_scene(scene):
     self-collision only with ``self_collision on``.
     """
     n_obj = scene.n_objects
-    want_pairs = n_obj > 1 and getattr(scene, "contact", True)
-    selfs = tuple(range(n_obj)) if getattr(scene, "self_collision", False) else ()
+    want_pairs = n_obj > 1 and scene.contact
+    selfs = tuple(range(n_obj)) if scene.self_collision else ()
     if not want_pairs and not selfs:
         return None
     mean_edge = []
@@ -139,17 +139,17 @@ def config_for_scene(scene):
         f = scene.faces[o.face_slice[0]:o.face_slice[1]]
         e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
         mean_edge.append(float(np.linalg.norm(scene.vertices[e[:, 0]] - scene.vertices[e[:, 1]], axis=1).mean()))
-    fixed = getattr(scene, "contact_thickness", None)
+    fixed = scene.contact_thickness
     pairs = tuple((a, b) for a in range(n_obj) for b in range(a + 1, n_obj)) if want_pairs else ()
     thick = tuple(fixed if fixed is not None else THICKNESS_FACTOR * min(mean_edge[a], mean_edge[b])
                   for a, b in pairs)
     self_thick = tuple(fixed if fixed is not None else THICKNESS_FACTOR * mean_edge[o] for o in selfs)
-    cap = getattr(scene, "contact_capacity", None)
+    cap = scene.contact_capacity
     capacity = tuple(min(o.n_vertices, cap if cap is not None else
                          max(MIN_CAPACITY, -(-o.n_vertices // CAPACITY_DIVISOR))) for o in scene.objects)
     return ContactConfig(pairs=pairs, self_objects=selfs, thickness=thick, self_thickness=self_thick,
-                         stiffness=getattr(scene, "contact_stiffness", None), capacity=capacity,
-                         friction=float(getattr(scene, "contact_friction", 0.0)) if pairs else 0.0)
+                         stiffness=scene.contact_stiffness, capacity=capacity,
+                         friction=float(scene.contact_friction) if pairs else 0.0)
 
 
 def with_capacity(terms, capacity):
@@ -528,7 +528,7 @@ def make_contact(topo, cfg, h=None):
         k = params.k_structural
         return STIFFNESS_FACTOR * 2.0 * tab.n_max * jnp.stack([jnp.minimum(k[a], k[b]) for a, b in cfg.pairs])
 
-    friction = float(getattr(cfg, "friction", 0.0))
+    friction = float(cfg.friction)
     if friction > 0 and h is None:
         raise ValueError("contact friction needs the integrator step h")
 

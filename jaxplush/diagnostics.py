@@ -72,7 +72,7 @@ def energies(sim, params, state):
     gas = jnp.sum(model.gas_energy(topo, params, x, sim.scene.temperature)) if sim.terms.gas else 0.0
     grav = -jnp.sum(model.vertex_mass(topo, params) * (x @ jnp.asarray(sim.scene.gravity, x.dtype)))
     floor = 0.0
-    if getattr(sim.terms, "floor_smooth", None):
+    if sim.terms.floor_smooth:
         floor = model.smooth_floor_energy(topo, sim.terms.floor_smooth, params, x[:, 1])
     out = dict(kinetic=kin, spring=spring, gas=gas, gravity=grav, floor=floor)
     out["total"] = kin + spring + gas + grav + floor

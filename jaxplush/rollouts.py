@@ -58,7 +58,7 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
     health = health._replace(good_state=sim.internal.to_internal(health.good_state))
 
     coherent = sim.internal.coherent
-    check = getattr(sim.internal, "overflow", None)
+    check = sim.internal.overflow
     if coherent is not None:
         # soft-soft contact: the candidate lists ride along in the carry (temporal coherence),
         # with their sticky per-object overflow flags

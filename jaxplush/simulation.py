@@ -139,7 +139,7 @@ def contact_capacity_needed(scene, steps, dt, params=None, sim=None):
         from the scene and dt).
     """
     sim = sim or make_simulator(scene, dt, terms=Terms.for_scene(scene, params))
-    if getattr(sim.terms, "contact", None) is None:
+    if sim.terms.contact is None:
         return None
     start = max(sim.terms.contact.capacity)
     last = [sim]
