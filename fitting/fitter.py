@@ -575,11 +575,17 @@ def fit(scene, target, params=None, objects=None, *, iterations=None,
             return False
         from jaxplush import contact
         from jaxplush.simulation import contact_capacity_needed
+        # the loss's own check (a fresh search at every step) decides whether it was an overflow
+        _, codes = prob.frames(theta)
+        if not (np.asarray(codes) == diagnostics.CONTACT_OVERFLOW).any():
+            return False
+        old = max(prob.sim.terms.contact.capacity)
         need = contact_capacity_needed(prob.scene, int(prob.loss.frame_steps[-1]), prob.target.dt,
                                        params=prob.params_at(theta), sim=prob.sim)
         if need is None:
-            return False
-        old = max(prob.sim.terms.contact.capacity)
+            # simulate's carried candidate lists (rebuilt at other steps) did not overflow where
+            # the fresh search of every step did: grow past the current capacity all the same
+            need = contact.grown_capacity(old + 1)
         sim = jaxplush.make_simulator(prob.scene, prob.target.dt, terms=contact.with_capacity(prob.sim.terms, need))
         prob = dataclasses.replace(prob, sim=sim)
         step_fn = _make_step(prob, opt, optimizer)
