@@ -504,13 +504,13 @@ def test_gradients_through_an_overflowing_rollout_are_finite():
         return rollout_loss(sim, q, sim.init_fn(q), (5, 10), lambda x, a: jnp.sum((x - a) ** 2), target,
                             method=method, nan_on_overflow=nan_on_overflow)
 
+    # only the value says it: the gradient is that of the (inexact) run, for every method
+    v2, g2 = jax.value_and_grad(fit_loss)(p.k_structural, "plain", False)
+    assert np.isfinite(float(v2)) and float(v2) > 0
     for method in ("plain", "adjoint"):
         v, g = jax.value_and_grad(fit_loss)(p.k_structural, method)
         assert np.isnan(float(v)) and np.isfinite(np.asarray(g)).all(), method
-        v2, g2 = jax.value_and_grad(fit_loss)(p.k_structural, method, False)
-        assert np.isfinite(float(v2)) and float(v2) > 0, method
-        # only the value says it: the gradient is that of the (inexact) run
-        assert np.linalg.norm(np.asarray(g - g2)) <= 1e-6 * np.linalg.norm(np.asarray(g2)), method
+        assert np.linalg.norm(np.asarray(g - g2)) <= 1e-5 * np.linalg.norm(np.asarray(g2)), method
 
 
 def test_self_collision_repels_a_folded_surface(x64):
