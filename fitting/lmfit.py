@@ -209,7 +209,7 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
     ev = evaluator(n_stages - 1)
     ev.notes[:0] = [m for k, e in sorted(evaluators.items()) if k != n_stages - 1 for m in e.notes]
     if st.phase == "final":
-        _final(prob, ev, box, st)
+        _final(prob, ev, box, st, progress)
         st.phase = "done"
         tick()
     return st, ev
@@ -268,7 +268,7 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
         bar.finish(states[_order(states)[0]].reason)
 
 
-def _final(prob, ev, box, st):
+def _final(prob, ev, box, st, progress=False):
     """Jacobian at the best point (at H_MIN) and the gradients at it and at the start; for a noisy
     target, the smoothing stage (:func:`fitting.search.smooth`) moves the best point to the
     optimum of a regression model, whose slope and intercept then stand for the Jacobian and the
@@ -283,7 +283,10 @@ def _final(prob, ev, box, st):
     n_sub = max(int(centre.substeps[0]), b.substeps)
     st.jac = _search.jacobian(ev, box, b.theta, _search.H_MIN, n_sub)
     if prob.noise is not None and prob.noise > 0 and b.stopped != "callback":
-        sm = _search.smooth(ev, box, b.theta, st.jac, st.residual)
+        with Progress(_search.SMOOTH_ITER, "smoothing (regression designs)", enabled=progress, unit="designs") as bar:
+            sm = _search.smooth(ev, box, b.theta, st.jac, st.residual, progress=bar.update)
+            bar.finish("skipped: singular Jacobian" if sm is None else
+                       ("the step is within the standard errors" if sm.converged else f"stopped after {len(sm.path)} designs"))
         if sm is not None:
             st.smoothed = sm
             e = ev(np.asarray(sm.theta)[None])

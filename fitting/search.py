@@ -453,7 +453,7 @@ def regression(thetas, residuals, centre):
     return coef[0], coef[1:].T
 
 
-def smooth(evaluator, box, theta, jac, residual, seed=0):
+def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None):
     """Gauss-Newton on a regression model of the residuals at the scale of the standard errors.
 
     With a noisy target, the loss of a body in floor contact carries a ripple (contact events
@@ -471,7 +471,7 @@ def smooth(evaluator, box, theta, jac, residual, seed=0):
     Args:
       evaluator: :class:`fitting.evaluate.Evaluator` of the full target; box: :class:`Box`;
       theta: the start (the local search's result); jac, residual: its Jacobian and residuals,
-        which size the first design.
+        which size the first design; progress: ``progress(1, extra=text)`` after each design.
     Returns:
       :class:`Smoothed`, or None when the first design cannot be sized (singular Jacobian).
     """
@@ -508,6 +508,8 @@ def smooth(evaluator, box, theta, jac, residual, seed=0):
         cut = np.clip(x + np.clip(step, -half, half), lo, hi)
         out = Smoothed(theta=cut.reshape(shape), centre=x.reshape(shape).copy(), jac=b, residual=a,
                        step=step, stderr=sig, converged=converged, path=path, evaluations=evaluations)
+        if progress is not None:
+            progress(1, extra=f"step {float(np.max(np.abs(step) / sig)):.2g} standard errors")
         if converged:
             break
         x, sigma = cut, sig
