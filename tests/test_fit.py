@@ -168,7 +168,8 @@ def _pressed_pair(k_a, capacity=None):
     a = icosphere_text(subdivisions=0, k=k_a, mass=0.04, nmol=5e-4, gravity=(0.0, 0.0, 0.0), name="a")
     b = icosphere_text(subdivisions=0, k=300.0, mass=0.08, nmol=8e-4, name="b", translate=(0.19, 0.0, 0.0),
                        offset=12, header=False)
-    head = "contact_friction 0.3\n" + ("" if capacity is None else f"contact_capacity {capacity}\n")
+    # a contact setting that --out-scene must carry over (not friction: the fused adjoint has none)
+    head = "contact_thickness 0.05\n" + ("" if capacity is None else f"contact_capacity {capacity}\n")
     return jaxplush.parse_scene(head + a + b, "<pressed pair>")
 
 
@@ -194,7 +195,7 @@ def test_contact_capacity_overflow_is_grown_not_rejected():
     assert contact.capacity_report(res.problem.sim, final.positions[-1]) is None
     # --out-scene: the fitted values, the scene's contact settings and the capacity the fit ran with
     out = jaxplush.parse_scene(fitted_scene_text(res), "<fitted>")
-    assert out.contact_capacity == need and out.contact_friction == 0.3 and out.contact
+    assert out.contact_capacity == need and out.contact_thickness == 0.05 and out.contact
     assert out.params.k_structural[0] == pytest.approx(res.values["k_structural"][0])
 
 
