@@ -910,6 +910,7 @@ def _fit_lm(prob, box, settings, notes, t_start, *, progress, callback, checkpoi
 def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability."""
     from fitting import outcome as _outcome
+    from fitting.search import gauss_newton
     notes = list(notes) + list(ev.notes)
     prob = dataclasses.replace(prob, sim=ev.prob.sim)       # with a grown contact capacity, if any
     best = run.best
@@ -933,7 +934,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     lo_edge = (best.theta <= box.lo + 1e-6).ravel()
     at_bound = tuple(f"{labels[i]} at its {'lower' if lo_edge[i] else 'upper'} bound "
                      f"{math.exp((box.lo if lo_edge[i] else box.hi).ravel()[i]):.4g}" for i in np.nonzero(edge)[0])
-    gn_step, stderr = _gauss_newton_step(run.jac, run.residual)
+    gn_step, stderr = gauss_newton(run.jac, run.residual)
     out = _outcome.judge(rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
                          stopped=best.stopped, at_bound=at_bound, gn_step=gn_step, stderr=stderr)
     if not out.converged:
@@ -974,22 +975,6 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
         noise=prob.noise, scene_text=prob.scene.text, scene_path=prob.scene.path, target_path=prob.target.path,
         wall_time=float(wall), warnings=tuple(notes), loop=run, problem=prob,
         settings=settings, outcome=out, search=search)
-
-
-def _gauss_newton_step(jac, residual):
-    """(the Gauss-Newton step -(JᵀJ)⁻¹ Jᵀ r, the standard errors sqrt(s² diag (JᵀJ)⁻¹)) in log space,
-    s² = |r|² / (n - p); (None, None) when JᵀJ is singular."""
-    r = np.nan_to_num(np.asarray(residual, np.float64))
-    j = np.asarray(jac, np.float64)
-    jtj = j.T @ j
-    try:
-        inv = np.linalg.inv(jtj)
-    except np.linalg.LinAlgError:
-        return None, None
-    if not np.all(np.isfinite(inv)) or np.any(np.diag(inv) <= 0):
-        return None, None
-    s2 = float(r @ r) / max(len(r) - j.shape[1], 1)
-    return -inv @ (j.T @ r), np.sqrt(s2 * np.diag(inv))
 
 
 def identifiability_at(prob, theta):

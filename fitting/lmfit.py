@@ -287,14 +287,14 @@ def _final(prob, ev, box, st, progress=False):
             sm = _search.smooth(ev, box, b.theta, st.jac, st.residual, progress=bar.update)
             bar.finish("skipped: singular Jacobian" if sm is None else
                        ("the step is within the standard errors" if sm.converged else f"stopped after {len(sm.path)} designs"))
-        if sm is not None:
+        e = ev(np.asarray(sm.theta)[None]) if sm is not None else None
+        if e is not None and e.ok[0]:
+            # the result moves to the model's optimum; the model's slope and intercept (at the last
+            # design's centre) stand for the Jacobian and residuals the outcome is judged by
             st.smoothed = sm
-            e = ev(np.asarray(sm.theta)[None])
-            history = list(sm.path)
-            if e.ok[0]:
-                b.theta, b.loss, b.residual, b.substeps = sm.theta.copy(), float(e.loss[0]), e.residuals[0], int(e.substeps[0])
-                history.append((b.loss, b.theta.copy()))
-                b.history.extend(history)
+            b.theta, b.loss, b.residual, b.substeps = sm.theta.copy(), float(e.loss[0]), e.residuals[0], int(e.substeps[0])
+            history = list(sm.path) + [(b.loss, b.theta.copy())]
+            b.history.extend(history)
             st.jac, st.residual = sm.jac, sm.residual
             worst = float(np.max(np.abs(sm.step) / sm.stderr))
             reason = (f"smoothed over {len(sm.path)} regression design(s): the Gauss-Newton step of the last is "

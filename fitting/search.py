@@ -303,20 +303,28 @@ NOISE_STOP = 0.1
 NOISE_STOP_H = 0.02
 
 
-def _gn_within_noise(jac, r):
-    """max_i |GN step_i| / standard error_i at a point (None when JᵀJ is singular)."""
-    jtj = jac.T @ jac
+def gauss_newton(jac, residual):
+    """(the Gauss-Newton step -(JᵀJ)⁻¹ Jᵀ r, the standard errors sqrt(s² diag (JᵀJ)⁻¹)) in log
+    space, s² = |r|² / (n - P) (NaN residuals count as 0); (None, None) when JᵀJ is singular."""
+    r = np.nan_to_num(np.asarray(residual, np.float64))
+    j = np.asarray(jac, np.float64)
     try:
-        inv = np.linalg.inv(jtj)
+        inv = np.linalg.inv(j.T @ j)
     except np.linalg.LinAlgError:
-        return None
+        return None, None
     diag = np.diag(inv)
     if not (np.all(np.isfinite(inv)) and np.all(diag > 0)):
+        return None, None
+    s2 = float(r @ r) / max(len(r) - j.shape[1], 1)
+    return -inv @ (j.T @ r), np.sqrt(s2 * diag)
+
+
+def _gn_within_noise(jac, r):
+    """max_i |GN step_i| / standard error_i at a point (None when JᵀJ is singular or s² is 0)."""
+    step, se = gauss_newton(jac, r)
+    if step is None or not np.all(se > 0):
         return None
-    s2 = float(r @ r) / max(len(r) - jac.shape[1], 1)
-    if s2 <= 0:
-        return None
-    return float(np.max(np.abs(inv @ (jac.T @ r)) / np.sqrt(s2 * diag)))
+    return float(np.max(np.abs(step) / se))
 
 
 def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol=PRED_TOL, noise_stop=NOISE_STOP):
@@ -432,18 +440,6 @@ class Smoothed:
     evaluations: int
 
 
-def _stderr(jac, r):
-    """Standard errors sqrt(s² diag (JᵀJ)⁻¹), s² = |r|²/(n - P), or None where JᵀJ is singular."""
-    try:
-        inv = np.linalg.inv(jac.T @ jac)
-    except np.linalg.LinAlgError:
-        return None
-    diag = np.diag(inv)
-    if not (np.all(np.isfinite(inv)) and np.all(diag > 0)):
-        return None
-    return np.sqrt(float(r @ r) / max(len(r) - jac.shape[1], 1) * diag)
-
-
 def regression(thetas, residuals, centre):
     """Least-squares affine model r(theta) ~ a + B (theta - centre) of residual vectors sampled at
     points around a centre: (a (n,), B (n, P)). Rows of ``thetas`` (M, P) and ``residuals`` (M, n)."""
@@ -478,7 +474,7 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None):
     from scipy.stats import qmc
     shape = np.shape(theta)
     x = np.asarray(theta, np.float64).ravel().copy()
-    sigma = _stderr(np.asarray(jac, np.float64), np.nan_to_num(np.asarray(residual, np.float64)))
+    sigma = gauss_newton(jac, residual)[1]
     if sigma is None:
         return None
     m = max(int(math.ceil(math.log2(SMOOTH_POINTS))), 1)
@@ -496,10 +492,9 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None):
             break
         path.append((float(ev.loss[0]), x.reshape(shape).copy()))
         a, b = regression(pts[ok], ev.residuals[ok], x)
-        sig = _stderr(b, a)
+        step, sig = gauss_newton(b, a)
         if sig is None:
             break
-        step = -np.linalg.lstsq(b, a, rcond=None)[0]
         # converged: the step is within the standard errors, and the design that measured them
         # spanned at least half its intended width in them (a design sized by a Jacobian that saw
         # the ripple's slope is too narrow to average it out)

@@ -220,7 +220,7 @@ class _RippledResiduals:
         self.lam, self.t = 0.004, np.array([0.3, -0.2])
         # the optimum of the model without the ripple, and its standard errors
         self.opt = self.t - np.linalg.lstsq(self.a, self.e, rcond=None)[0]
-        self.sigma = S._stderr(self.a, self.e)
+        self.sigma = S.gauss_newton(self.a, self.e)[1]
 
     def substeps_for(self, thetas):
         return np.ones(len(thetas), int)
