@@ -13,10 +13,11 @@ rerun with a larger capacity.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import model
+from jaxplush import compiled, model
 from jaxplush.types import VOLUME_EPS
 
 OK = 0
@@ -55,9 +56,9 @@ def with_overflow(code, overflow):
     return jnp.where(overflow, CONTACT_OVERFLOW, code).astype(jnp.int32)
 
 
-def energies(sim, params, state):
-    """Energies (J) of a state: dict of kinetic, spring, gas, gravity, floor (the smooth floor's
-    penalty) and total (floats).
+def energy_terms(sim, params, state):
+    """Energies (J) of a state as a dict of scalar arrays: kinetic, spring, gas, gravity, floor
+    (the smooth floor's penalty) and total. Pure and traceable (:func:`energies` compiles it).
 
     The velocity at the state's time comes from ``sim.velocity_fn`` (for Verlet's half-step
     velocity u_n it is estimated to second order as v_n = u_n + a_n dt / 2).
@@ -69,14 +70,23 @@ def energies(sim, params, state):
     d = x[topo.edges[:, 0]] - x[topo.edges[:, 1]]
     l = jnp.sqrt(jnp.sum(d * d, axis=-1) + topo.length_eps ** 2)
     spring = jnp.sum(0.5 * params.k_structural[topo.edge_object] * (l - topo.rest_length) ** 2)
-    gas = jnp.sum(model.gas_energy(topo, params, x, sim.scene.temperature)) if sim.terms.gas else 0.0
+    zero = jnp.zeros((), x.dtype)
+    gas = jnp.sum(model.gas_energy(topo, params, x, sim.scene.temperature)) if sim.terms.gas else zero
     grav = -jnp.sum(model.vertex_mass(topo, params) * (x @ jnp.asarray(sim.scene.gravity, x.dtype)))
-    floor = 0.0
+    floor = zero
     if sim.terms.floor_smooth:
         floor = model.smooth_floor_energy(topo, sim.terms.floor_smooth, params, x[:, 1])
     out = dict(kinetic=kin, spring=spring, gas=gas, gravity=grav, floor=floor)
     out["total"] = kin + spring + gas + grav + floor
-    return {k: float(v) for k, v in out.items()}
+    return out
+
+
+def energies(sim, params, state):
+    """Energies (J) of a state: dict of kinetic, spring, gas, gravity, floor (the smooth floor's
+    penalty) and total (floats); :func:`energy_terms`, compiled once per program."""
+    import functools
+    fn = compiled.get(sim, "energies", lambda: jax.jit(functools.partial(energy_terms, sim)))
+    return {k: float(v) for k, v in fn(params, state).items()}
 
 
 def first_failure(codes_by_frame):

@@ -199,7 +199,7 @@ def test_deeply_penetrating_vertices_are_pushed_out(x64):
 
 
 def _energy_series(sim, p, state, chunks, steps):
-    e_contact = contact.make_contact_energy(sim.topology, sim.terms.contact)
+    e_contact = jax.jit(contact.make_contact_energy(sim.topology, sim.terms.contact))
     out, states = [], []
     for _ in range(chunks + 1):
         e = diagnostics.energies(sim, p, state)["total"] + float(e_contact(p, state.x.T)[0])
@@ -367,6 +367,7 @@ def test_floor_restitution_reflects_each_impacting_vertex(restitution):
 # --------------------------------------------------------------------------- gradients
 
 
+@pytest.mark.heavy
 def test_gradients_through_a_collision_match_finite_differences(x64):
     """Two balls thrown at each other collide and bounce apart within the horizon; the loss on the
     final frame depends on the contact force throughout."""
@@ -403,6 +404,7 @@ def test_gradients_through_a_collision_match_finite_differences(x64):
 # --------------------------------------------------------------------------- capacity, self-collision
 
 
+@pytest.mark.heavy
 def test_capacity_overflow_is_detected_and_simulate_reruns_with_a_larger_capacity():
     scene, n = two_balls(sub=1, gap=-0.005, extra_scene="contact_capacity 4\n")
     sim = jaxplush.make_simulator(scene, 1e-4)
@@ -483,6 +485,7 @@ def test_status_fn_reports_a_state_whose_candidates_overflow():
     np.testing.assert_array_equal(np.asarray(ok.status_fn(p, state)), [diagnostics.OK, diagnostics.OK])
 
 
+@pytest.mark.heavy
 def test_gradients_through_an_overflowing_rollout_are_finite():
     """No NaN leaks from an overflow into values or gradients of a rollout; fitting's rollout loss
     is NaN (the fit's signal to raise the capacity), its gradient finite."""
@@ -540,6 +543,7 @@ def _thrown(sub=2, gap=0.02):
     return scene, n, v0
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("coherent", [True, False], ids=["carried-lists", "search-every-step"])
 def test_an_overflow_between_saved_frames_is_not_lost(coherent):
     """Capacity 60: the lists fit at the start (51 candidates) and at the end, but not while the
@@ -700,6 +704,7 @@ def test_plush_pile_holds_and_comes_to_rest():
     assert max(max_penetration(scene, pos[i]) for i in frames) <= 1e-3
 
 
+@pytest.mark.heavy
 def test_small_cushion_pile_holds_and_settles(tmp_path):
     """The pile scene at small size (162-vertex cushions, dt 2.5e-4, nmol calibrated by make_scenes for
     these meshes), 2 s: the stack keeps its order, settles, no NaN, no penetration beyond 1 mm."""

@@ -38,6 +38,7 @@ def small():
 
 # --------------------------------------------------------------------------- recovery
 
+@pytest.mark.heavy
 def test_recovery_162_vertices():
     """k, damping and nmol from x2 / x0.5 / x2 starts, noise-free, within 1% (the fast version of the
     issue's 642-vertex acceptance run, which is test_recovery_acceptance)."""
@@ -173,6 +174,7 @@ def _pressed_pair(k_a, capacity=None):
     return jaxplush.parse_scene(head + a + b, "<pressed pair>")
 
 
+@pytest.mark.heavy
 def test_contact_capacity_overflow_is_grown_not_rejected():
     """A fit through soft-soft contact whose candidate lists are too short is rebuilt with a larger
     capacity (a warning names it) and goes on; the overflow is not taken for a blow-up."""

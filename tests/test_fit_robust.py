@@ -37,7 +37,7 @@ def drop():
     return truth, make_target(truth, STEPS, DT, EVERY)
 
 
-@pytest.mark.parametrize("kind", ["positions", "points"])
+@pytest.mark.parametrize("kind", ["positions", pytest.param("points", marks=pytest.mark.heavy)])
 def test_default_fit_recovers_a_dropped_ball_from_a_far_start(drop, kind):
     """k, damping and nmol of a ball dropped on a floor, from k x2, damping x0.5, nmol x2 (a start the
     gradient fits could not leave), with no options: within 1% of the truth from positions, 3% from

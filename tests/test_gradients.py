@@ -94,7 +94,7 @@ def _results(name):
         return out
 
 
-@pytest.mark.parametrize("name", list(SCENES))
+@pytest.mark.parametrize("name", ["full", pytest.param("pinned_two", marks=pytest.mark.heavy)])
 def test_methods_agree(x64, name):
     res = _results(name)
     v_ref, g_ref = res[("plain", None)]
@@ -188,6 +188,7 @@ def test_bad_arguments():
         G.rollout_loss(sim, p, s, (), lf, t[:0])
 
 
+@pytest.mark.heavy
 def test_memory_is_bounded():
     """Compiled temporaries of the gradient: plain autodiff keeps residuals of every step; the
     checkpointed and the recomputing adjoint grow with segments; the storing adjoint keeps the
@@ -219,6 +220,7 @@ def _chamfer(x, aux, scale):
     return scale * w * (jnp.mean(jnp.min(d2, axis=1)) + jnp.mean(jnp.min(d2, axis=0)))
 
 
+@pytest.mark.heavy
 def test_cotangents_of_loss_data(x64):
     """A point-cloud (Chamfer) loss whose aux and a closed-over constant are differentiated too:
     the adjoint returns the same cotangents as autodiff for params, aux and the constant."""
@@ -263,6 +265,7 @@ def test_step_vjp_matches_autodiff(x64, name):
         assert bool(jnp.any(out.x[1] == sim.scene.floor))     # the projection is exercised
 
 
+@pytest.mark.heavy
 def test_generic_fallback_for_other_integrators(x64):
     """Integrators without a fused adjoint ("auto" -> checkpoint) give autodiff's gradient."""
     sim = jaxplush.make_simulator(_full_scene(), DT, integrator="symplectic_euler")
@@ -323,6 +326,7 @@ def test_vmap_over_params_and_integer_aux():
     np.testing.assert_allclose(got, ref, rtol=1e-4)
 
 
+@pytest.mark.heavy
 def test_adjoint_frames_on_segment_boundaries(x64):
     """Frames at step 0, on every step (1, 2, 3), on checkpoint boundaries (4, 8, 14, 21) and in a
     short last segment (23), under segments of 7, 4 and 1 step and with every state stored: the

@@ -218,7 +218,7 @@ def test_implicit_euler_is_stable_and_dissipative_at_ten_times_the_limit(x64):
 
 # 5. Gradients ---------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name", ["implicit_euler", "mesit"])
+@pytest.mark.parametrize("name", [pytest.param("implicit_euler", marks=pytest.mark.heavy), "mesit"])
 def test_gradients_match_central_differences(x64, name):
     """d loss / d log(k, nmol, dashpot, drag) through 30 steps against central finite differences,
     float64. implicit_euler (at 3x the explicit limit) differentiates the CG solve implicitly
@@ -310,7 +310,7 @@ def _exact_rates(sim, params, x):
             np.linalg.eigvalsh(sym(s[:, None] * c * s[None]))[-1])
 
 
-@pytest.mark.parametrize("case", ["gas_dashpot", "pinned_drag", "stretched", "two_objects"])
+@pytest.mark.parametrize("case", ["gas_dashpot", "pinned_drag", "stretched", pytest.param("two_objects", marks=pytest.mark.heavy)])
 def test_closed_form_bound_is_safe(x64, case):
     """stability.bound (numpy, nothing compiled) bounds omega_max and gamma_max from above, checked
     against the exact eigenvalues of dense Jacobians, at rest and inflated; so its dt is safe. It is

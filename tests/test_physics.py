@@ -163,7 +163,7 @@ def test_ball_dropped_on_floor_comes_to_rest_and_recovers_shape():
 
 # 5. Inflated radius --------------------------------------------------------------------------
 
-@pytest.mark.parametrize("subdivisions", [0, 1, 2])
+@pytest.mark.parametrize("subdivisions", [0, 1, pytest.param(2, marks=pytest.mark.heavy)])
 def test_pressurised_icosphere_settles_at_analytic_radius(x64, subdivisions):
     """No gravity: the radius matches s* of docs/model.md §8.5 (exact for the icosahedron, within the
     uniform-scaling approximation, measured 0.05-0.2%, for finer icospheres) and the virial
@@ -188,6 +188,7 @@ def test_pressurised_icosphere_settles_at_analytic_radius(x64, subdivisions):
 
 # 6. Gradients --------------------------------------------------------------------------------
 
+@pytest.mark.heavy
 def test_rollout_gradients_match_finite_differences(x64):
     scene = icosphere_scene(subdivisions=1, k=100.0, nmol=1e-3, damping=50.0, dashpot=0.01)
     dt, steps = 2e-4, 300
