@@ -1,5 +1,7 @@
 """fitting: recover material parameters (k_structural, damping, nmol, ...) of a jaxplush scene from
-a target deformation, by gradients through the rollout; batched parameter sweeps.
+a target deformation (by default a global search, then Levenberg-Marquardt with finite-difference
+Jacobians on batched rollouts; Adam or L-BFGS on gradients through the rollout as options);
+batched parameter sweeps. File formats: docs/formats.md §4-§6.
 
 Quick use (run from the repository root; the test suite executes this example): a target
 simulated from the bundled hanging ball, and a fit of its spring stiffness from a start 50% off.

@@ -33,7 +33,7 @@ from fitting import losses as _losses
 #: Largest substep count a point may be run with.
 MAX_SUBSTEPS = 16
 #: Points simulated together by the batched simulator, in two chunks run on two cores: a call
-#: of 32 points at 642 vertices costs about what 16 do (benchmarks/RESULTS.md); above
+#: of 32 points at 642 vertices costs little more than one of 16 (see benchmarks/RESULTS.md); above
 #: LARGE_MESH vertices the chunks outgrow the caches and 16 points a call are cheaper.
 DEFAULT_BATCH = 32
 LARGE_MESH = 1500

@@ -29,9 +29,9 @@ capacity gives a finite but inexact force (:mod:`jaxplush.contact`), so every me
 the positions each step starts from and returns a NaN loss when one overflowed (``nan_on_overflow``), which
 ``fitting.fit`` takes as the signal to raise the capacity.
 
-Measured (benchmarks/bench_fit.py, benchmarks/RESULTS.md): the adjoint's value_and_grad costs
-about 3.5-4x the forward loss on this CPU, against about 7x for the checkpointed autodiff; a
-10,000-step horizon at 2562 vertices keeps about 300 MB of positions.
+Cost: benchmarks/bench_fit.py compares the adjoint's value_and_grad with the forward loss and
+the checkpointed autodiff (figures in benchmarks/RESULTS.md). Memory: unsegmented, the adjoint
+stores steps x V x 3 positions (10,000 steps at 2562 vertices in float32: about 300 MB).
 """
 
 from __future__ import annotations
@@ -551,7 +551,7 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
             """Reverse steps last, ..., first + 1, with ``states(n)`` -> (x_n, u_n) for
             first <= n <= last. The state a step's VJP needs is read one iteration ahead into the
             carry: XLA then gathers from a loop buffer rather than fusing a dynamic slice of the
-            stored trajectory into every gather (about 1.4x faster here)."""
+            stored trajectory into every gather (faster; see benchmarks/RESULTS.md)."""
             x_bar, u_bar, dens = carry
 
             def body(i, inner):

@@ -2,7 +2,8 @@
 
 Layout:
 
-* attributes: ``status`` ("running" while checkpointing, "interrupted" after Ctrl-C, "done"),
+* attributes: ``status`` ("running" while checkpointing, "interrupted" after Ctrl-C, and once
+  the fit ends its outcome, one of :data:`fitting.outcome.STATUSES`), ``outcome_*`` (its fields),
   ``loss``, ``loss_start``, ``iterations``, ``rejected``, ``converged``, ``reason``,
   ``optimizer``, ``lr`` (NaN: default), ``dt``, ``normalisation``, ``scale2``, ``noise`` (NaN:
   unknown), ``wall_time``, ``scene`` (the scene text, start values), ``scene_path``,
@@ -15,11 +16,15 @@ Layout:
   ``history/<name>`` [n, n_fitted_objects] over accepted iterations; ``history/rejected``;
 * ``identifiability/``: ``jtj``, ``eigenvalues``, ``eigenvectors``, ``sensitivity``, ``stderr``,
   ``determined`` datasets; attributes ``labels``, ``condition``, ``sigma``, ``n_data``,
-  ``warnings`` (JSON), ``summary``;
+  ``warnings`` (JSON), ``weakest``, ``summary``;
 * ``fitted/positions`` [T, V, 3], ``fitted/steps``, ``fitted/times``: the fitted rollout at the
   target frames;
+* ``search/`` (the default fit): ``global/<name>`` and ``global/loss`` of every global sample,
+  ``local/NNN/`` the path of each local search;
 * ``checkpoint/``: the optimisation loop's complete state (log values, optimiser state leaves,
   history, counters, RNG-free), enough for ``--resume`` to continue to the same answer.
+
+Format: docs/formats.md §5.
 """
 
 from __future__ import annotations

@@ -86,7 +86,7 @@ def point_surface_distance2(x, p, faces, vfaces, near=None):
     Args:
       x: (V, 3) simulated vertex positions; p: (M, 3) target points.
       faces: (F, 3) int faces; vfaces: (V, W) faces around each vertex (:func:`vertex_faces`).
-      near: (M,) index of each point's nearest vertex, if known (:func:`nearest_vertices`);
+      near: (M,) index of each point's nearest vertex, if known (:func:`nearest_vertices_walk`);
         default: found here by brute force (an (M, V) table).
     """
     if near is None:

@@ -6,8 +6,8 @@ Both stages work in theta = log(parameters) and only ever *simulate* (batched fo
 Why no autodiff here: a dropped plush excites vertex-level modes that ring for the whole target
 (hundreds to thousands of radians of phase), so the loss carries a ripple whose wavelength in
 log k is about 1e-3 on top of a smooth bowl (benchmarks/RESULTS.md, "roughness"). The exact
-gradient and the JVP Jacobian are the derivatives of that ripple, which is why L-BFGS's line
-search stalled 2x away from the truth and reported convergence. Central differences taken at
+gradient and the JVP Jacobian are the derivatives of that ripple, so a gradient line search
+(L-BFGS) can stall far from the truth and report convergence. Central differences taken at
 the scale of the step (the trust radius, between :data:`H_MIN` and :data:`H_MAX`) see the bowl;
 as the steps shrink near the optimum, so does the difference step, where the loss is smooth.
 
@@ -15,7 +15,7 @@ Global stage (:func:`global_stage`): a scrambled Sobol design (scipy.stats.qmc) 
 points in the box, plus the start itself, all run in compiled batches; failed points (which
 even :data:`fitting.evaluate.MAX_SUBSTEPS` substeps cannot run) are kept with an infinite loss.
 
-Local stage (:func:`levenberg_marquardt`): a box-constrained Levenberg-Marquardt on the residual
+Local stage (:func:`lm_round`): a box-constrained Levenberg-Marquardt on the residual
 vector r (sum(r²) = loss) with a trust radius in log space:
 
 * J by central differences at step h = clip(radius / 4, H_MIN, H_MAX) (2 P runs, one batch);
@@ -454,8 +454,8 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None):
 
     With a noisy target, the loss of a body in floor contact carries a ripple (contact events
     that move by a step) whose dips lie several standard errors from the optimum of the smooth
-    bowl beneath it, and a local search stops in whichever dip it reaches: on the bean the eight
-    far starts ended from -1.6% to +3.75% in the dashpot, whose standard error is about 0.5%.
+    bowl beneath it, and a local search stops in whichever dip it reaches, so far starts end
+    several standard errors apart (benchmarks/RESULTS.md, "Fitting from far starts").
     A central difference only sees the ripple's slope. This stage instead samples
     :data:`SMOOTH_POINTS` scrambled Sobol points within ±:data:`SMOOTH_WIDTH` standard errors of
     the centre (one batch), fits an affine model of the residual vector over them (:func:`regression`),

@@ -8,8 +8,8 @@
 
 It reads like ``jax.vmap`` over parameter points: every point is an independent simulation of
 the scene with some parameters replaced. Under the hood the points run in chunks of a static
-batch size B through :mod:`jaxplush.batched` (the batch on the last axis, which is several times
-faster in total than one simulation at a time; a plain ``vmap`` of the single-scene step is not),
+batch size B through :mod:`jaxplush.batched` (the batch on the last axis, for throughput, which a
+plain ``vmap`` of the single-scene step does not give; see benchmarks/RESULTS.md, "Batch sweeps"),
 so a grid of any size compiles once. A sweep larger than B runs in equal batches of whole
 chunks (:func:`_outer_batch`); the last batch is padded by repeating its last point.
 
@@ -30,8 +30,8 @@ rollout blew up keeps its last healthy state as final positions (``final_step`` 
 step), a NaN loss and summaries, and its failure is listed in ``fail_code``/``fail_step``; it is
 never silently returned as NaN positions.
 
-File schema of :meth:`SweepResult.save` (HDF5, written atomically), P points, O objects,
-V vertices, A swept axes:
+File schema of :meth:`SweepResult.save` (HDF5, written atomically; docs/formats.md §6), P points,
+O objects, V vertices, A swept axes:
 
     attrs: format = "jaxplush-sweep", format_version = 1, kind ("grid" | "points"), shape [A or 1],
            labels [A] (e.g. "k_structural", "nmol@ball"), steps, dt, integrator, save_every

@@ -5,7 +5,8 @@ A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io`, so ever
 
 * ``positions`` float [T, V, 3]: the scene's vertices, in the scene's order, at T frames; or
 * ``points`` float [T, M, 3]: a point cloud per frame (a scan; M unrelated to V, no
-  correspondence), fitted with a symmetric Chamfer distance (:mod:`fitting.losses`),
+  correspondence), fitted by each point's distance to the simulated surface (sweeps: a
+  symmetric Chamfer distance; :mod:`fitting.losses`),
 
 and ``times`` float [T] (s, increasing). The frames may be any subset of the rollout (only the
 final shape, say) and may be noisy. Optional: attribute ``dt`` (the target's time step, used
@@ -17,6 +18,8 @@ against the scene when present).
 is readable HDF5, the datasets exist and have the right shapes, vertex and object counts match
 the scene (or points are given), the times lie on the dt grid, and all values are finite. Each
 problem raises :class:`jaxplush.errors.TrajectoryError` naming the file and the problem.
+
+Format: docs/formats.md §4 (with an h5py example that writes a valid target).
 """
 
 from __future__ import annotations

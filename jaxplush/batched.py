@@ -5,8 +5,8 @@
 optional friction/restitution, pinned vertices, the report's Verlet damping, several objects;
 only the terms the scene or the parameter batch needs are traced) for a static batch of B
 parameter points. It exists for throughput: a plain ``jax.vmap`` of the single-scene step puts
-the batch on the leading axis, so every one-ring gather moves single floats B times over, and a
-64-point batch runs no faster in total than one scene. Here every array carries the batch on
+the batch on the leading axis, so every one-ring gather moves single floats B times over, and
+batching then gains little over one scene at a time. Here every array carries the batch on
 its *last* axis:
 
 * positions and velocities are component-major, batch-last: a tuple ``(x, y, z)`` of three
@@ -24,7 +24,7 @@ use every core, where one call on the whole batch keeps about one core busy (its
 operations mostly wait on each other). The rollout is compiled with two XLA:CPU options of its
 own (:data:`ROLLOUT_COMPILER_OPTIONS`), and carries the positions folded to rows of at least 48
 floats (:func:`_folded`: at 16 points a row, XLA:CPU leaves the small in-place position update
-scalar; folded, it vectorises it, about 10% less CPU per step). Points are independent, so
+scalar; folded, it vectorises it; see benchmarks/RESULTS.md). Points are independent, so
 chunking changes the results only by rounding (chunks of another width vectorise differently).
 
 Only the Verlet integrator is batched. A scene whose :class:`jaxplush.model.Terms` selects
@@ -268,10 +268,10 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
 def default_chunk(batch):
     """Points per compiled rollout call for a batch of ``batch``: the whole batch up to
     :data:`MAX_CHUNK` points, else chunks of MAX_CHUNK (the last one padded), which run
-    concurrently, one per core. Measured at 642 vertices (float32; benchmarks/bench_sweep.py):
-    a 16-point chunk's step keeps its working set (about 1 MB) in the core's 2 MB L2 cache and
-    fills whole 512-bit vectors; 32-point chunks cost 2.5x the CPU time per point-step, 8-point
-    ones 2x, and widths that are no multiple of 8 (11, 13, 22) over 3x."""
+    concurrently, one per core. At 642 vertices (float32) a 16-point chunk's step keeps its
+    working set in a core's L2 cache and fills whole 512-bit vectors; wider and narrower chunks,
+    and widths that are no multiple of 8, cost more CPU time per point-step
+    (benchmarks/bench_sweep.py; figures in benchmarks/RESULTS.md)."""
     return batch if batch <= MAX_CHUNK else MAX_CHUNK
 
 
@@ -333,9 +333,8 @@ def _folded(fn, *arrays):
     A bare reshape, so the result is identical. It exists for XLA:CPU's code generation: an
     elementwise loop over rows of 16 floats (a 16-point chunk) with a body as small as the position
     update x + h u is fully unrolled by LLVM and then left scalar, while rows of 48 floats keep
-    the loop and vectorise it (measured at 642 vertices: the three position updates drop from
-    ~7 us to ~2 us per chunk step). :func:`_core` carries the positions in the same folded shape,
-    so the update stays in place.
+    the loop and vectorise it (see benchmarks/RESULTS.md). :func:`_core` carries the positions in
+    the same folded shape, so the update stays in place.
     """
     v, b = arrays[0].shape
     r = _fold_factor(v, b)
@@ -520,10 +519,10 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
 
 
 #: XLA:CPU compiler options of the rollout, set on this one function (no process-wide flag),
-#: each measured with benchmarks/bench_sweep.py on this repo's 2-core AVX-512 Xeon: 512-bit
-#: vectors (XLA prefers 256 even where AVX-512 exists; ~10% fewer CPU cycles per step), and
-#: XLA's own loop for the volume reduction instead of a YNNPACK call (~15% fewer: the call
-#: costs more than the 642-row sum it does). Results agree with the defaults to rounding.
+#: each measured with benchmarks/bench_sweep.py (figures in benchmarks/RESULTS.md): 512-bit
+#: vectors (XLA prefers 256 even where AVX-512 exists), and XLA's own loop for the volume
+#: reduction instead of a YNNPACK call (the call costs more than the sum it does). Results
+#: agree with the defaults to rounding.
 #: Where the installed XLA rejects them, the rollout compiles with the defaults.
 ROLLOUT_COMPILER_OPTIONS = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_ynn_fusion_type": ""}
 

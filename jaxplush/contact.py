@@ -6,10 +6,12 @@ s the signed distance (positive outside B). Each such vertex carries the energy
     U(p) = k_c / 2 * phi(delta - s)²,   phi(z) = softplus(beta z) / beta,   beta = 10 / delta,
 
 a smooth ramp that starts about ``delta`` (the contact thickness) outside B and grows
-quadratically inside. The force on p and on the three vertices of q's triangle is -dU/dx, taken
-with ``jax.grad`` of the summed energy: it is translation and rotation invariant, so linear and
-angular momentum are conserved to round-off. It is applied both ways (A's vertices against B's
-faces and B's vertices against A's faces).
+quadratically inside. The force on p and on the three vertices of q's triangle is -dU/dx,
+assembled in closed form (:func:`make_contact`; a test checks it against ``jax.grad`` of the
+summed energy, :func:`make_contact_energy`); self-collision takes ``jax.grad`` of its energy.
+The energy is translation and rotation invariant, so linear and angular momentum are conserved
+to round-off. It is applied both ways (A's vertices against B's faces and B's vertices against
+A's faces).
 
 Sign (the inside test, the backstop for deep penetration): s = (p - a).n on the interior of the
 closest face (smooth through zero); where the closest point lies on an edge or a vertex, s = +-|p - q|
@@ -42,7 +44,7 @@ single ``step_fn`` search every step (the same forces but for near-ties between 
 The search over a vertex's ring runs on slot-major (K, Q) arrays, and values are gathered and
 picked several at a time: XLA:CPU vectorises such elementwise loops, while its reductions over a
 short leading axis, its 2-D concatenations and its atan2 run element by element, and each XLA
-operation costs about a microsecond of dispatch inside the step's loop (benchmarks/RESULTS.md).
+operation adds a fixed dispatch cost inside the step's loop (see benchmarks/RESULTS.md).
 
 The cost is O(cap_A cap_B) per rebuild and O((cap_A + cap_B) K) per pair and step, set by the
 capacities (which follow the contact area, not the meshes). If more vertices than the capacity
@@ -332,7 +334,7 @@ def _face_distance2(ap, ab, ac, tiny):
 
 def _argmin(d, axis):
     """First index of the minimum along ``axis`` (a min and an int min: XLA's CPU argmin, a
-    variadic reduction, is several times slower)."""
+    variadic reduction, is slower)."""
     m = jnp.min(d, axis=axis, keepdims=True)
     iota = jax.lax.broadcasted_iota(jnp.int32, d.shape, axis % d.ndim)
     return jnp.min(jnp.where(d <= m, iota, d.shape[axis]), axis=axis).clip(0, d.shape[axis] - 1)
@@ -479,8 +481,8 @@ def make_contact(topo, cfg, h=None):
     the overflow is reported by the cache's flag (:class:`ContactCache`) or by
     :func:`make_overflow_check`, never by a NaN.
 
-    The soft-soft part is assembled in closed form rather than by ``jax.grad`` of the energy (the
-    reverse pass through the gathers cost as much as the search): for a query vertex p whose
+    The soft-soft part is assembled in closed form rather than by ``jax.grad`` of the energy (which
+    adds a reverse pass through the gathers; see benchmarks/RESULTS.md): for a query vertex p whose
     closest point on its face is q = sum_i w_i x_i (barycentric weights w of the interior, edge or
     corner region), the signed distance s has ds/dp = n and ds/dx_i = -w_i n, n = (p - q) / |p - q|
     oriented outward (the plane normal on the interior) - the envelope theorem, since q minimises the
@@ -542,7 +544,7 @@ def make_contact(topo, cfg, h=None):
 
         The search over v's ring works on slot-major (K, Q) arrays, so each operation is one
         vectorised loop over all slots and queries; values are gathered and picked several at a
-        time (each XLA operation costs about a microsecond of dispatch in the step's loop)."""
+        time (each XLA operation adds a fixed dispatch cost in the step's loop)."""
         rk = jnp.asarray(ring_t).at[:, target].get(mode="promise_in_bounds")    # (K + 1, Q)
         val = _take(valence, target)                                          # (Q,)
         pa = x.at[:, jnp.stack([q_idx, target])].get(mode="promise_in_bounds")   # (3, 2, Q)
@@ -806,7 +808,7 @@ def _packed_argmin(d2, axis):
     """argmin of non-negative float32/64 values along ``axis`` as one integer min reduction: the
     index replaces the lowest mantissa bits of the value's bit pattern (which orders like the value
     for non-negative floats), so ties within 2^-(mantissa bits - index bits) relative pick the lower
-    index. Several times faster than a min followed by a masked iota min on XLA's CPU backend."""
+    index. Cheaper than a min followed by a masked iota min on XLA's CPU backend."""
     n = d2.shape[axis]
     bits = max(1, int(n - 1).bit_length())
     itype = jnp.int32 if d2.dtype == jnp.float32 else jnp.int64

@@ -5,7 +5,9 @@ Datasets: ``positions`` float [T, V, 3] (m), ``times`` float [T] (s), ``faces`` 
 Attributes: ``dt``, ``integrator``, ``steps``, ``save_every``, ``substeps``, ``floor`` (NaN: none),
 ``gravity`` [3], ``temperature``, one (O,) array per parameter (``k_structural``, ``damping``,
 ``dashpot``, ``drag``, ``nmol``, ``total_weight``), ``jaxplush_version``, ``scene`` (the full
-scene text) and ``scene_path``. Files are written atomically (temp file, then rename).
+scene text), ``scene_path`` and ``wall_time``. Files are written atomically (temp file, then rename).
+
+Format: docs/formats.md §3 (dtypes, attributes, what readers require); atomic writes: §1.
 """
 
 from __future__ import annotations

@@ -300,8 +300,8 @@ def make_force_fn(topo, terms, temperature, assembly="ring", h=None, with_cache=
     """Build the force kernel ``force_fn(params, x, v) -> (f, volume)`` on component-major arrays.
 
     The kernel works on (3, V) arrays (x, y, z rows): every gather then moves single floats
-    through a 1-D index table, which XLA's CPU backend runs about 5x faster than gathering
-    (V, 3) rows (benchmarks/RESULTS.md). :func:`jaxplush.step.make_simulator` keeps its state in
+    through a 1-D index table, which XLA's CPU backend runs faster than gathering (V, 3) rows
+    (see benchmarks/RESULTS.md). :func:`jaxplush.step.make_simulator` keeps its state in
     this layout and exposes (V, 3) views to users.
 
     Args:

@@ -542,8 +542,8 @@ def _render_animation(traj, tmp, ext, durations, elev, azim, dpi):
 
 def _write_gif(scene, tmp, durations):
     """Draw the axes, floor and legend once, then only the mesh and the title per frame
-    (blitting), and quantise each frame with Pillow's fast octree: about 30 ms a frame at 642
-    vertices, where a full redraw and Pillow's default quantiser took about 130 ms."""
+    (blitting), and quantise each frame with Pillow's fast octree, which is much cheaper than a
+    full redraw with Pillow's default quantiser."""
     from PIL import Image
 
     fig, canvas = scene.fig, scene.fig.canvas

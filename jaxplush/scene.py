@@ -4,7 +4,7 @@ A scene file holds one or more objects. Standard OBJ geometry (``v``, ``f``, ``o
 ``vt``, ``vn``, ``vp``, ``s``, ``usemtl``, ``mtllib`` are accepted and ignored) plus keywords:
 
 Per object (they apply to the object they stand in; ``END_OBJECT`` closes it; a file with a
-single object may omit it):
+single object, or with objects separated by ``o`` lines, may omit it):
   ``k_structural K``  spring stiffness of every unique edge, N/m (>= 0; default 100)
   ``damping D``       the report's Verlet damping, factor f = 1/D per step (D >= 1; 0 or
                       absent: none). Its physical meaning changes with dt (docs/model.md §5).
@@ -39,6 +39,8 @@ Scene level (anywhere, at most once each):
 An object's vertices are the vertices its faces use; indices in ``f`` and ``fixed`` are
 1-based and global to the file, or negative (relative to the vertices defined so far).
 Every problem raises :class:`jaxplush.errors.SceneError` naming file, line and problem.
+
+Format: docs/formats.md §2 (every keyword, unit, default, valid range and rule).
 """
 
 from __future__ import annotations

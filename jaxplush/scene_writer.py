@@ -1,6 +1,6 @@
 """Write jaxplush scenes in the extended Wavefront OBJ format (numpy only, no jax).
 
-The format (read by :func:`jaxplush.load_scene`):
+The format (read by :func:`jaxplush.load_scene`; reference: docs/formats.md §2):
 
 * Standard OBJ lines: ``v x y z``, ``f a b c`` (1-based vertex indices, *global* to the
   file), ``o NAME`` starts an object, ``#`` starts a comment. y is up.

@@ -4,7 +4,8 @@ from the code.
 
 * README ```python blocks run in document order, each in a fresh namespace, in one scratch
   directory that holds a link to ``scenes/`` (so paths read as from the repository root), and
-  must finish without an exception.
+  must finish without an exception. The blocks of the other documents in ``OTHER_READMES``
+  (``scenes/README.md``, ``docs/formats.md``) run after them by the same rules.
 * README ```bash blocks run in the same directory, one command at a time (``\\`` continues a
   line), and must exit 0. The installation steps (``python -m pip install ...``) and the test
   suite itself (``python -m pytest``) are what CI runs around this test, so they are skipped.
@@ -54,7 +55,7 @@ def blocks(path=README):
             mm = _MARK.match(prev)
             if mm:
                 mark = mm.group(1)
-                assert mark != "skip" or mm.group(2).strip(), f"README.md:{i}: a skip mark needs a reason"
+                assert mark != "skip" or mm.group(2).strip(), f"{path}:{i}: a skip mark needs a reason"
             out.append((start, lang, "\n".join(lines[start:j]), mark))
             i = j + 1
         else:
@@ -87,8 +88,8 @@ def _strip_comment(cmd):
 
 
 README_BLOCKS = [b for b in blocks() if b[1] in ("python", "bash", "sh")]
-#: Other READMEs whose blocks run too (the same rules; paths relative to the repository root).
-OTHER_READMES = ("scenes/README.md",)
+#: Other documents whose blocks run too (the same rules; paths relative to the repository root).
+OTHER_READMES = ("scenes/README.md", "docs/formats.md")
 
 
 def _param(b, doc="README.md"):
@@ -96,7 +97,7 @@ def _param(b, doc="README.md"):
     marks = [pytest.mark.slow] if mark == "slow" else []
     if mark == "skip":
         marks.append(pytest.mark.skip(reason=f"marked skip in {doc}"))
-    return pytest.param(b, id=f"{doc}:{line}-{lang}", marks=marks)
+    return pytest.param((doc,) + b, id=f"{doc}:{line}-{lang}", marks=marks)
 
 
 ALL_BLOCKS = [_param(b) for b in README_BLOCKS] + [
@@ -122,13 +123,13 @@ def test_readme_has_runnable_blocks():
 
 @pytest.mark.parametrize("block", ALL_BLOCKS)
 def test_readme_block_runs(block, workdir, monkeypatch):
-    line, lang, code, _ = block
+    doc, line, lang, code, _ = block
     monkeypatch.chdir(workdir)
     if lang == "python":
         import matplotlib
         matplotlib.use("Agg")
         namespace = {"__name__": "__readme__"}
-        exec(compile(code, f"README.md:{line}", "exec"), namespace)   # noqa: S102
+        exec(compile(code, f"{doc}:{line}", "exec"), namespace)   # noqa: S102
         return
     env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", JAXPLUSH_TEST="1")
     for cmd in shell_commands(code):
@@ -136,7 +137,7 @@ def test_readme_block_runs(block, workdir, monkeypatch):
             if cmd.startswith("python ") else _strip_comment(cmd)
         proc = subprocess.run(["bash", "-c", run], cwd=workdir, env=env, capture_output=True, text=True,
                               timeout=900)
-        assert proc.returncode == 0, (f"README.md:{line}: `{cmd}` exited {proc.returncode}\n"
+        assert proc.returncode == 0, (f"{doc}:{line}: `{cmd}` exited {proc.returncode}\n"
                                       f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}")
 
 
