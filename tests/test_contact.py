@@ -210,6 +210,7 @@ def _energy_series(sim, p, state, chunks, steps):
     return np.array(out), states
 
 
+@pytest.mark.heavy
 def test_zero_gravity_collision_conserves_momentum_and_energy(x64):
     scene, n = two_balls(sub=2, gap=0.02)
     sim = jaxplush.make_simulator(scene, 2e-4)
@@ -303,7 +304,7 @@ def _settled_cushions(mu, dt):
     return jaxplush.simulate(settle, steps=2000, dt=dt, save_every=2000, check_dt=False).positions[-1], n
 
 
-@pytest.mark.parametrize("tilt, sticks", [(15.0, True), (40.0, False)])
+@pytest.mark.parametrize("tilt, sticks", [pytest.param(15.0, True, marks=pytest.mark.heavy), (40.0, False)])
 def test_contact_friction_resists_below_and_slides_above_the_friction_angle(tilt, sticks):
     """Soft-soft friction is explicit and velocity level: below the friction angle it does not
     hold exactly (the jiggling cushions creep), but it removes most of the sliding; above it the
@@ -574,6 +575,7 @@ def test_an_overflow_between_saved_frames_is_not_lost(coherent):
     assert np.linalg.norm(traj.positions - ref.positions) <= 1e-6 * np.linalg.norm(ref.positions)
 
 
+@pytest.mark.heavy
 def test_carried_candidate_lists_give_the_search_every_step_result():
     """Rollouts carry the candidate lists (rebuilt past half the skin, nearest vertices walked):
     a glancing collision then follows the search-every-step trajectory to float32 rounding."""

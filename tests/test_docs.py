@@ -10,7 +10,8 @@ from the code.
   line), and must exit 0. The installation steps (``python -m pip install ...``) and the test
   suite itself (``python -m pytest``) are what CI runs around this test, so they are skipped.
 * A block whose fence is preceded by the line ``<!-- test: slow -->`` runs only with
-  ``pytest -m slow``; ``<!-- test: skip REASON -->`` never runs (the reason must be given).
+  ``pytest -m slow``; ``<!-- test: heavy -->`` runs in CI's second tier (``pytest -m heavy``, for
+  blocks that compile many programs; a heavy block may use files only from heavy blocks above it); ``<!-- test: skip REASON -->`` never runs (the reason must be given).
   ```text blocks are not code (command syntax, file layouts).
 * Docstring examples: :mod:`doctest` on every module of ``jaxplush`` and ``fitting``; a
   docstring must not hide an example in a reST literal block (``::``), which doctest would skip.
@@ -35,11 +36,11 @@ README = ROOT / "README.md"
 BIN = Path(sys.executable).parent
 
 _FENCE = re.compile(r"^```(\w*)\s*$")
-_MARK = re.compile(r"^<!--\s*test:\s*(slow|skip)\b(.*?)-->\s*$")
+_MARK = re.compile(r"^<!--\s*test:\s*(slow|heavy|skip)\b(.*?)-->\s*$")
 
 
 def blocks(path=README):
-    """(line, language, code, mark) of every fenced block; mark is None, "slow" or "skip"."""
+    """(line, language, code, mark) of every fenced block; mark is None, "slow", "heavy" or "skip"."""
     lines = Path(path).read_text().splitlines()
     out = []
     i = 0
@@ -94,7 +95,7 @@ OTHER_READMES = ("scenes/README.md", "docs/formats.md")
 
 def _param(b, doc="README.md"):
     line, lang, _, mark = b
-    marks = [pytest.mark.slow] if mark == "slow" else []
+    marks = [getattr(pytest.mark, mark)] if mark in ("slow", "heavy") else []
     if mark == "skip":
         marks.append(pytest.mark.skip(reason=f"marked skip in {doc}"))
     return pytest.param((doc,) + b, id=f"{doc}:{line}-{lang}", marks=marks)

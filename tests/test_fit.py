@@ -201,6 +201,7 @@ def test_contact_capacity_overflow_is_grown_not_rejected():
     assert out.params.k_structural[0] == pytest.approx(res.values["k_structural"][0])
 
 
+@pytest.mark.heavy
 def test_evaluator_grows_the_contact_capacity_on_an_overflow_code():
     """The default fit's evaluator (one point at a time with contact) reads the health code
     CONTACT_OVERFLOW of its rollout, raises the capacity (a warning names it) and runs the point

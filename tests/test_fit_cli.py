@@ -41,6 +41,7 @@ def _leftovers(d):
     return sorted(n for n in os.listdir(d) if n.startswith(".tmp-") or n.endswith(".tmp"))
 
 
+@pytest.mark.heavy
 def test_fit_end_to_end(files, tmp_path, capsys):
     """The default fit, as a user runs it: jaxplush-fit SCENE TARGET --out FIT.h5 (no other options):
     the scene's material parameters recovered from starts x2 / x0.5, a converged status, FIT.h5 and
