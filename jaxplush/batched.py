@@ -191,6 +191,27 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
       NotImplementedError: another integrator, or terms this module does not implement.
       ValueError: bad dt, batch, substeps or chunk.
     """
+    dt, batch, substeps, chunk = _checked_batch_args(integrator, dt, batch, substeps, chunk)
+    h = dt / substeps
+    terms = terms_for(scene) if terms is None else terms
+    check_terms(terms)
+    dtype = jnp.result_type(float)
+    topo = compiled.topology(scene)
+    model.check_precision(topo, dtype, scene.path)
+    kernel = _make_force_fn(topo, terms, scene.temperature)
+    init_fn, step_fn = _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype)
+
+    def status_fn(params, x):
+        return _status(topo, terms, x)
+
+    return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=kernel,
+                            topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
+                            dtype=dtype, chunk=chunk)
+
+
+def _checked_batch_args(integrator, dt, batch, substeps, chunk):
+    """(dt as a float, batch, substeps and chunk as ints: chunk defaulted and at most batch), or
+    the errors :func:`make_batched_simulator` raises for bad ones."""
     if integrator != "verlet":
         raise NotImplementedError(f"the batched simulator implements only the 'verlet' integrator, "
                                   f"not {integrator!r}")
@@ -202,13 +223,12 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
     batch, substeps = int(batch), int(substeps)
     chunk = default_chunk(batch) if chunk is None else min(int(chunk), batch)
-    h = dt / substeps
-    terms = terms_for(scene) if terms is None else terms
-    check_terms(terms)
-    dtype = jnp.result_type(float)
-    topo = compiled.topology(scene)
-    model.check_precision(topo, dtype, scene.path)
-    kernel = _make_force_fn(topo, terms, scene.temperature)
+    return dt, batch, substeps, chunk
+
+
+def _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype):
+    """The batched damped Verlet scheme on the internal layout: (init_fn, step_fn) of
+    :class:`BatchedSimulator`, ``substeps`` steps of h per ``step_fn`` call."""
     gravity = tuple(float(g) for g in scene.gravity)
     fixed = topo.fixed
     x0_fixed = np.ascontiguousarray(topo.x0[fixed].T)                 # (3, P)
@@ -257,12 +277,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
         def step_fn(params, state):
             return jax.lax.fori_loop(0, substeps, lambda _, s: substep(params, s), state)
 
-    def status_fn(params, x):
-        return _status(topo, terms, x)
-
-    return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=kernel,
-                            topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
-                            dtype=dtype, chunk=chunk)
+    return init_fn, step_fn
 
 
 def default_chunk(batch):

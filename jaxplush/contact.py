@@ -355,72 +355,8 @@ def make_contact_energy(topo, cfg):
     """
     tab = _tables(topo, cfg)
     slices = topo.vertex_slices
-    faces, near_faces, face_adj, ring = tab.faces, tab.near_faces, tab.face_adj, tab.ring
-    ring_next = np.roll(ring, -1, axis=1)                        # next neighbour around the ring
+    ring_next = np.roll(tab.ring, -1, axis=1)                    # next neighbour around the ring
     tiny_len = float(topo.length_eps)
-
-    def stiffness(params, a, b, dtype):
-        if cfg.stiffness is not None:
-            return jnp.asarray(cfg.stiffness, dtype)
-        k = params.k_structural
-        return STIFFNESS_FACTOR * 2.0 * tab.n_max * jnp.minimum(k[a], k[b])
-
-    def ramp_energy(s, delta, kc):
-        beta = SHARPNESS / delta
-        phi = jax.nn.softplus(beta * (delta - s)) / beta
-        return 0.5 * kc * phi * phi
-
-    def vertex_pseudo_normal(x, v, tiny):
-        """Angle-weighted normal of the surface at vertices v (any shape) from their one-rings."""
-        c = _gather(x, v)
-        d = _sub(_gather(x, jnp.asarray(ring)[v]), tuple(ci[..., None] for ci in c))
-        dn = _gather(x, jnp.asarray(ring_next)[v])
-        dn = _sub(dn, tuple(ci[..., None] for ci in c))
-        cr = _cross(d, dn)
-        sin = jnp.sqrt(_dot(cr, cr) + tiny)
-        ang = jnp.arctan2(sin, _dot(d, dn))
-        return tuple(jnp.sum(ang * ci / sin, axis=-1) for ci in cr)
-
-    def signed_distance(x, p, f, tiny):
-        """Signed distance (positive outside) of points p (tuple of (Q,)) to faces f (Q,)."""
-        tri = jnp.asarray(faces)[f]
-        a, b, c = (_gather(x, tri[..., i]) for i in range(3))
-        cl = _closest(p, a, b, c, tiny)
-        inside, plane, e, t = cl.inside, cl.plane, cl.e, cl.t
-        corners = (a, b, c)
-        e0 = tuple(jnp.select([e == 0, e == 1], [a[i], b[i]], c[i]) for i in range(3))
-        e1 = tuple(jnp.select([e == 0, e == 1], [b[i], c[i]], a[i]) for i in range(3))
-        q = _add(e0, _scale(_sub(e1, e0), t))
-        r = _sub(p, q)
-        dist = jnp.sqrt(_dot(r, r) + tiny)
-        # pseudo-normal of the closest feature (no gradient: only its sign is used)
-        xs = jax.lax.stop_gradient(x)
-        fa = jnp.asarray(face_adj)[f, e]
-        ta = jnp.asarray(faces)[fa]
-        ga, gb, gc = (_gather(xs, ta[..., i]) for i in range(3))
-        sa, sb, sc = (jax.lax.stop_gradient(v_) for v_ in corners)
-        n_edge = _add(_unit(_cross(_sub(sb, sa), _sub(sc, sa)), tiny),
-                      _unit(_cross(_sub(gb, ga), _sub(gc, ga)), tiny))
-        tri_s = jnp.asarray(faces)[f]
-        vid = jnp.where(t <= 0.0, jnp.take_along_axis(tri_s, e[..., None], -1)[..., 0],
-                        jnp.take_along_axis(tri_s, ((e + 1) % 3)[..., None], -1)[..., 0])
-        n_vert = vertex_pseudo_normal(xs, vid, tiny)
-        at_vertex = (t <= 0.0) | (t >= 1.0)
-        n_feat = tuple(jnp.where(at_vertex, nv, ne) for nv, ne in zip(n_vert, n_edge))
-        sign = jnp.where(_dot(jax.lax.stop_gradient(r), n_feat) >= 0, 1.0, -1.0)
-        return jnp.where(inside, plane, sign * dist)
-
-    def directed(x, q_idx, q_valid, target, delta, kc, tiny):
-        """Energy of query vertices q_idx against the faces near their nearest target vertices."""
-        xs = jax.lax.stop_gradient(x)
-        ps = _gather(xs, q_idx)
-        fset = jnp.asarray(near_faces)[target]                      # (Q, W)
-        tri = jnp.asarray(faces)[fset]                              # (Q, W, 3)
-        a, b, c = (_gather(xs, tri[..., i]) for i in range(3))
-        d2, *_ = _closest(tuple(pi[:, None] for pi in ps), a, b, c, tiny)
-        f = jnp.take_along_axis(fset, _argmin(d2, 1)[:, None], 1)[:, 0]
-        s = signed_distance(x, _gather(x, q_idx), f, tiny)
-        return jnp.sum(jnp.where(q_valid, ramp_energy(s, delta, kc), 0.0))
 
     def energy(params, x):
         dtype = x.dtype
@@ -434,44 +370,120 @@ def make_contact_energy(topo, cfg):
             ia, ib, n_a, n_b, near_a, near_b = _pair_candidates(xs, (a0, a1), (b0, b1), cap_a, cap_b, margin)
             overflow = overflow | (n_a > cap_a) | (n_b > cap_b)
             va, vb = jnp.arange(cap_a) < n_a, jnp.arange(cap_b) < n_b
-            kc = stiffness(params, oa, ob, dtype)
+            kc = _energy_stiffness(params, cfg, tab, oa, ob, dtype)
             any_a, any_b = n_a > 0, n_b > 0
-            total = total + directed(x, a0 + ia, va & any_b, near_b, delta, kc, tiny)
-            total = total + directed(x, b0 + ib, vb & any_a, near_a, delta, kc, tiny)
+            total = total + _directed_energy(x, a0 + ia, va & any_b, near_b, delta, kc, tab, ring_next, tiny)
+            total = total + _directed_energy(x, b0 + ib, vb & any_a, near_a, delta, kc, tab, ring_next, tiny)
         for o, delta, excl in zip(cfg.self_objects, cfg.self_thickness, tab.self_exclude):
-            total = total + self_energy(params, x, o, delta, excl, tiny)
+            total = total + _self_energy(params, x, o, delta, excl, tiny, slices[o], cfg, tab)
         return total, overflow
 
-    def self_energy(params, x, o, delta, excl, tiny):
-        a0, a1 = slices[o]
-        n = a1 - a0
-        xs = jax.lax.stop_gradient(x)
-        xo = xs[:, a0:a1]
-        d2 = sum((xo[c][:, None] - xo[c][None, :]) ** 2 for c in range(3))
-        d2 = jnp.where(jnp.asarray(excl), jnp.inf, d2)
-        target = a0 + _argmin(d2, 1)
-        q_idx = np.arange(a0, a1)
-        fset = jnp.asarray(near_faces)[target]                     # (n, W), faces of object o
-        tri = jnp.asarray(faces)[fset]                             # (n, W, 3)
-        # faces with a corner within the exclusion radius (at rest) of the query are its own
-        own = jnp.any(jnp.asarray(excl)[np.arange(n)[:, None, None], tri - a0], axis=-1)
-        ps = _gather(xs, q_idx)
-        a, b, c = (_gather(xs, tri[..., i]) for i in range(3))
-        d2f, *_ = _closest(tuple(pi[:, None] for pi in ps), a, b, c, tiny)
-        d2f = jnp.where(own, jnp.inf, d2f)
-        j = _argmin(d2f, 1)
-        f = jnp.take_along_axis(fset, j[:, None], 1)[:, 0]
-        valid = jnp.isfinite(jnp.take_along_axis(d2f, j[:, None], 1)[:, 0])
-        p = _gather(x, q_idx)
-        tri_f = jnp.asarray(faces)[f]
-        fa, fb, fc = (_gather(x, tri_f[:, i]) for i in range(3))
-        d2u, *_ = _closest(p, fa, fb, fc, tiny)
-        s = jnp.sqrt(d2u + tiny)
-        kc = (jnp.asarray(cfg.stiffness, x.dtype) if cfg.stiffness is not None
-              else STIFFNESS_FACTOR * 2.0 * tab.n_max * params.k_structural[o])
-        return jnp.sum(jnp.where(valid, ramp_energy(s, delta, kc), 0.0))
-
     return energy
+
+
+def _energy_stiffness(params, cfg, tab, a, b, dtype):
+    """k_c of the object pair (a, b) in :func:`make_contact_energy`."""
+    if cfg.stiffness is not None:
+        return jnp.asarray(cfg.stiffness, dtype)
+    k = params.k_structural
+    return STIFFNESS_FACTOR * 2.0 * tab.n_max * jnp.minimum(k[a], k[b])
+
+
+def _ramp_energy(s, delta, kc):
+    """The penalty energy k_c / 2 phi(delta - s)² at signed distances s."""
+    beta = SHARPNESS / delta
+    phi = jax.nn.softplus(beta * (delta - s)) / beta
+    return 0.5 * kc * phi * phi
+
+
+def _vertex_pseudo_normal(x, v, ring, ring_next, tiny):
+    """Angle-weighted normal of the surface at vertices v (any shape) from their one-rings."""
+    c = _gather(x, v)
+    d = _sub(_gather(x, jnp.asarray(ring)[v]), tuple(ci[..., None] for ci in c))
+    dn = _gather(x, jnp.asarray(ring_next)[v])
+    dn = _sub(dn, tuple(ci[..., None] for ci in c))
+    cr = _cross(d, dn)
+    sin = jnp.sqrt(_dot(cr, cr) + tiny)
+    ang = jnp.arctan2(sin, _dot(d, dn))
+    return tuple(jnp.sum(ang * ci / sin, axis=-1) for ci in cr)
+
+
+def _signed_distance(x, p, f, tab, ring_next, tiny):
+    """Signed distance (positive outside) of points p (tuple of (Q,)) to faces f (Q,)."""
+    faces, face_adj = tab.faces, tab.face_adj
+    tri = jnp.asarray(faces)[f]
+    a, b, c = (_gather(x, tri[..., i]) for i in range(3))
+    cl = _closest(p, a, b, c, tiny)
+    inside, plane, e, t = cl.inside, cl.plane, cl.e, cl.t
+    corners = (a, b, c)
+    e0 = tuple(jnp.select([e == 0, e == 1], [a[i], b[i]], c[i]) for i in range(3))
+    e1 = tuple(jnp.select([e == 0, e == 1], [b[i], c[i]], a[i]) for i in range(3))
+    q = _add(e0, _scale(_sub(e1, e0), t))
+    r = _sub(p, q)
+    dist = jnp.sqrt(_dot(r, r) + tiny)
+    # pseudo-normal of the closest feature (no gradient: only its sign is used)
+    xs = jax.lax.stop_gradient(x)
+    fa = jnp.asarray(face_adj)[f, e]
+    ta = jnp.asarray(faces)[fa]
+    ga, gb, gc = (_gather(xs, ta[..., i]) for i in range(3))
+    sa, sb, sc = (jax.lax.stop_gradient(v_) for v_ in corners)
+    n_edge = _add(_unit(_cross(_sub(sb, sa), _sub(sc, sa)), tiny),
+                  _unit(_cross(_sub(gb, ga), _sub(gc, ga)), tiny))
+    tri_s = jnp.asarray(faces)[f]
+    vid = jnp.where(t <= 0.0, jnp.take_along_axis(tri_s, e[..., None], -1)[..., 0],
+                    jnp.take_along_axis(tri_s, ((e + 1) % 3)[..., None], -1)[..., 0])
+    n_vert = _vertex_pseudo_normal(xs, vid, tab.ring, ring_next, tiny)
+    at_vertex = (t <= 0.0) | (t >= 1.0)
+    n_feat = tuple(jnp.where(at_vertex, nv, ne) for nv, ne in zip(n_vert, n_edge))
+    sign = jnp.where(_dot(jax.lax.stop_gradient(r), n_feat) >= 0, 1.0, -1.0)
+    return jnp.where(inside, plane, sign * dist)
+
+
+def _directed_energy(x, q_idx, q_valid, target, delta, kc, tab, ring_next, tiny):
+    """Energy of query vertices q_idx against the faces near their nearest target vertices."""
+    faces, near_faces = tab.faces, tab.near_faces
+    xs = jax.lax.stop_gradient(x)
+    ps = _gather(xs, q_idx)
+    fset = jnp.asarray(near_faces)[target]                      # (Q, W)
+    tri = jnp.asarray(faces)[fset]                              # (Q, W, 3)
+    a, b, c = (_gather(xs, tri[..., i]) for i in range(3))
+    d2, *_ = _closest(tuple(pi[:, None] for pi in ps), a, b, c, tiny)
+    f = jnp.take_along_axis(fset, _argmin(d2, 1)[:, None], 1)[:, 0]
+    s = _signed_distance(x, _gather(x, q_idx), f, tab, ring_next, tiny)
+    return jnp.sum(jnp.where(q_valid, _ramp_energy(s, delta, kc), 0.0))
+
+
+def _self_energy(params, x, o, delta, excl, tiny, vertex_slice, cfg, tab):
+    """Self-collision energy of object o (its vertices ``vertex_slice``): each vertex against the
+    nearest of its own faces outside the exclusion radius ``excl``."""
+    faces, near_faces = tab.faces, tab.near_faces
+    a0, a1 = vertex_slice
+    n = a1 - a0
+    xs = jax.lax.stop_gradient(x)
+    xo = xs[:, a0:a1]
+    d2 = sum((xo[c][:, None] - xo[c][None, :]) ** 2 for c in range(3))
+    d2 = jnp.where(jnp.asarray(excl), jnp.inf, d2)
+    target = a0 + _argmin(d2, 1)
+    q_idx = np.arange(a0, a1)
+    fset = jnp.asarray(near_faces)[target]                     # (n, W), faces of object o
+    tri = jnp.asarray(faces)[fset]                             # (n, W, 3)
+    # faces with a corner within the exclusion radius (at rest) of the query are its own
+    own = jnp.any(jnp.asarray(excl)[np.arange(n)[:, None, None], tri - a0], axis=-1)
+    ps = _gather(xs, q_idx)
+    a, b, c = (_gather(xs, tri[..., i]) for i in range(3))
+    d2f, *_ = _closest(tuple(pi[:, None] for pi in ps), a, b, c, tiny)
+    d2f = jnp.where(own, jnp.inf, d2f)
+    j = _argmin(d2f, 1)
+    f = jnp.take_along_axis(fset, j[:, None], 1)[:, 0]
+    valid = jnp.isfinite(jnp.take_along_axis(d2f, j[:, None], 1)[:, 0])
+    p = _gather(x, q_idx)
+    tri_f = jnp.asarray(faces)[f]
+    fa, fb, fc = (_gather(x, tri_f[:, i]) for i in range(3))
+    d2u, *_ = _closest(p, fa, fb, fc, tiny)
+    s = jnp.sqrt(d2u + tiny)
+    kc = (jnp.asarray(cfg.stiffness, x.dtype) if cfg.stiffness is not None
+          else STIFFNESS_FACTOR * 2.0 * tab.n_max * params.k_structural[o])
+    return jnp.sum(jnp.where(valid, _ramp_energy(s, delta, kc), 0.0))
 
 
 def make_contact(topo, cfg, h=None):
@@ -508,142 +520,222 @@ def make_contact(topo, cfg, h=None):
     pairs and both directions run as one batch of queries.
     """
     tab = _tables(topo, cfg)
-    slices = topo.vertex_slices
-    ring = tab.ring
-    n_k = ring.shape[1]
-    valence = np.asarray(topo.ring_mask.sum(axis=1), np.int32)
-    # padded rings repeat their last neighbour: real slots are 0 .. valence-2 and K-1 (the wrap)
-    assert np.all(ring[:, -1] == ring[np.arange(len(ring)), valence - 1])
+    ring_t, valence = _ring_slot_tables(topo, tab)
     tiny_len = float(topo.length_eps)
     n_v = topo.n_vertices
     self_energy = (make_contact_energy(topo, dataclasses.replace(cfg, pairs=(), thickness=()))
                    if cfg.self_objects else None)
-    # per query slot: which pair (for delta and k_c), laid out as [A of pair 0, B of pair 0, A of pair 1, ...]
-    pair_of_query = np.concatenate([np.full(cfg.capacity[o], i, np.int32)
-                                    for i, (oa, ob) in enumerate(cfg.pairs) for o in (oa, ob)]) \
-        if cfg.pairs else np.zeros(0, np.int32)
-    delta_q = np.asarray(cfg.thickness, np.float64)[pair_of_query] if cfg.pairs else np.zeros(0)
-
-    def stiffness(params, dtype):
-        if cfg.stiffness is not None:
-            return jnp.full((len(cfg.pairs),), cfg.stiffness, dtype)
-        k = params.k_structural
-        return STIFFNESS_FACTOR * 2.0 * tab.n_max * jnp.stack([jnp.minimum(k[a], k[b]) for a, b in cfg.pairs])
-
+    pair_of_query, delta_q = _query_layout(cfg)
     friction = float(cfg.friction)
     if friction > 0 and h is None:
         raise ValueError("contact friction needs the integrator step h")
 
-    # neighbour-major ring table (K + 1, V): row j holds every vertex's j-th ring neighbour and row K
-    # repeats row 0, so "the next neighbour" of slot j is row j + 1 (as in model._ring_force_fn)
-    ring_t = np.ascontiguousarray(np.concatenate([ring.T, ring.T[:1]], axis=0))
-
-    def narrow(x, v, mass, q_idx, q_valid, target, delta, kc, tiny):
-        """(indices (4Q,), force rows 3 x (4Q,)) of query vertices q_idx against the faces around
-        their nearest vertices ``target``.
-
-        The search over v's ring works on slot-major (K, Q) arrays, so each operation is one
-        vectorised loop over all slots and queries; values are gathered and picked several at a
-        time (each XLA operation adds a fixed dispatch cost in the step's loop)."""
-        rk = jnp.asarray(ring_t).at[:, target].get(mode="promise_in_bounds")    # (K + 1, Q)
-        val = _take(valence, target)                                          # (Q,)
-        pa = x.at[:, jnp.stack([q_idx, target])].get(mode="promise_in_bounds")   # (3, 2, Q)
-        P, A = tuple(pa[c, 0] for c in range(3)), tuple(pa[c, 1] for c in range(3))
-        # the search (no gradient)
-        xs = jax.lax.stop_gradient(x)
-        g = xs.at[:, rk].get(mode="promise_in_bounds")                        # (3, K + 1, Q)
-        As = tuple(jax.lax.stop_gradient(ai)[None] for ai in A)
-        ps = tuple(jax.lax.stop_gradient(pi)[None] for pi in P)
-        d = tuple(g[c] - As[c] for c in range(3))                            # (K + 1, Q) spokes
-        d0, d1 = tuple(dc[:n_k] for dc in d), tuple(dc[1:] for dc in d)       # spokes j and j + 1
-        slot = jnp.arange(n_k)[:, None]
-        real = (slot < val[None] - 1) | (slot == n_k - 1)                     # padded slots are degenerate
-        # the distances to the K faces around v, ending in a square root: XLA:CPU does not copy an
-        # expensive operation into each of its consumers, so the (K, Q) table is computed once, in
-        # one vectorised loop, and the minimum over its rows is a short elementwise chain (a
-        # reduction over the leading axis would be a scalar loop)
-        dist = jnp.sqrt(jnp.where(real, _face_distance2(_sub(ps, As), d0, d1, tiny), jnp.inf))
-        best, k = dist[0], jnp.zeros(dist.shape[1:], jnp.int32)              # (Q,) the closest face
-        for j in range(1, n_k):
-            closer = dist[j] < best
-            best, k = jnp.where(closer, dist[j], best), jnp.where(closer, j, k)
-        cr = _cross(d0, d1)
-        sin = jnp.sqrt(_dot(cr, cr) + tiny)
-        ang = _angle(sin, _dot(d0, d1))
-        inv = 1.0 / sin
-        unit = tuple(ci * inv for ci in cr)                                   # (K, Q); degenerate slots ~0
-        n_vertex = _sum_rows(tuple(ang * u for u in unit))                   # angle-weighted normal of v
-        # the unit normals of face k and of the real slots before and after it (the faces across
-        # its spokes), and its corners, in one pick: slot k_prev is k - 1 but K - 1 for k = 0 and
-        # valence - 2 for the wrap slot K - 1; k_next is k + 1 but 0 for K - 1 and K - 1 for
-        # valence - 2
-        kp = jnp.where(k == 0, n_k - 1, jnp.where(k == n_k - 1, val - 2, k - 1))
-        kn = jnp.where(k == n_k - 1, 0, jnp.where(k == val - 2, n_k - 1, k + 1))
-        picked = jnp.take_along_axis(jnp.stack(unit), jnp.stack([k, kp, kn])[None], 1,
-                                     mode="promise_in_bounds")               # (3, 3, Q)
-        n_face, n_prev, n_next = (tuple(picked[c, i] for c in range(3)) for i in range(3))
-        corners = jnp.take_along_axis(rk, jnp.stack([k, k + 1]), 0, mode="promise_in_bounds")
-        i1, i2 = corners[0], corners[1]
-        n_spoke0 = _add(n_face, n_prev)                                      # edge (v, ring_k)
-        n_spoke2 = _add(n_face, n_next)                                      # edge (ring_k+1, v)
-        # differentiable part: closest point on the face (v, i1, i2) and its barycentric weights
-        bc = x.at[:, corners].get(mode="promise_in_bounds")                   # (3, 2, Q)
-        p, a = P, A
-        b, c = tuple(bc[ci, 0] for ci in range(3)), tuple(bc[ci, 1] for ci in range(3))
-        cl = _closest(p, a, b, c, tiny)
-        inside, plane, n_plane, e, t, r = cl.inside, cl.plane, cl.n, cl.e, cl.t, cl.r
-        bv, bw, dist2 = cl.v, cl.w, cl.d2                       # dist2 is the edge distance where not inside
-        dist = jnp.sqrt(dist2 + tiny)
-        # sign of the edge and corner regions from the closest feature's pseudo-normal
-        at_v = ((e == 0) & (t <= 0.0)) | ((e == 2) & (t >= 1.0))
-        n_feat = tuple(jnp.where(at_v, nv, jnp.where((e == 0) & (t < 1.0), s0, jnp.where((e == 2) & (t > 0.0), s2, nf)))
-                       for nv, s0, s2, nf in zip(n_vertex, n_spoke0, n_spoke2, n_face))
-        sign = jnp.where(_dot(jax.lax.stop_gradient(r), n_feat) >= 0, 1.0, -1.0)
-        s = jnp.where(inside, plane, sign * dist)
-        num = tuple(jnp.where(inside, npl, sign * ri) for npl, ri in zip(n_plane, r))
-        den_n = jnp.where(inside, 1.0, dist)
-        n = tuple(ni / den_n for ni in num)                                  # unit outward normal
-        one_t = 1.0 - t
-        we = (jnp.where(e == 0, one_t, jnp.where(e == 2, t, 0.0)),
-              jnp.where(e == 1, one_t, jnp.where(e == 0, t, 0.0)),
-              jnp.where(e == 2, one_t, jnp.where(e == 1, t, 0.0)))
-        w = (jnp.where(inside, 1.0 - bv - bw, we[0]), jnp.where(inside, bv, we[1]), jnp.where(inside, bw, we[2]))
-        beta = SHARPNESS / delta
-        z = beta * (delta - s)
-        # -dU/ds = k_c phi(delta - s) sigmoid(beta (delta - s)), phi = softplus(z) / beta
-        mag = jnp.where(q_valid, kc * jax.nn.softplus(z) / beta * jax.nn.sigmoid(z), 0.0)
-        # force on p, written to end in a division: XLA:CPU then computes it once instead of
-        # re-deriving it for every row of the scattered (3, 4Q) table
-        vec = tuple((mag * ni) / den_n for ni in num)
-        idx = jnp.concatenate([q_idx, target, i1, i2])                        # (4Q,)
-        if friction > 0:
-            vv = v.at[:, idx].get(mode="promise_in_bounds").reshape(3, 4, -1)
-            vq, va, vb, vc = (tuple(vv[ci, i] for ci in range(3)) for i in range(4))
-            rel = _sub(vq, _add(_add(_scale(va, w[0]), _scale(vb, w[1])), _scale(vc, w[2])))
-            vt = _sub(rel, _scale(n, _dot(rel, n)))
-            speed = jnp.sqrt(_dot(vt, vt) + tiny)
-            mp, ma, mb, mc = _take(mass, idx).reshape(4, -1)
-            m_eff = 1.0 / (1.0 / mp + w[0] ** 2 / ma + w[1] ** 2 / mb + w[2] ** 2 / mc)
-            ft = jnp.minimum(friction * mag, FRICTION_CLAMP * m_eff * speed / h) / speed
-            vec = _sub(vec, _scale(vt, ft))
-        return idx, tuple(jnp.concatenate([vi] + [-wi * vi for wi in w]) for vi in vec)
-
     def search(xs):
-        """The candidate queries of every pair and direction at positions xs (no gradient): a
-        :class:`ContactCache` (queries laid out as ``pair_of_query``)."""
-        qs, valids, targets, counts = [], [], [], []
-        for (oa, ob), margin in zip(cfg.pairs, tab.margin):
-            (a0, a1), (b0, b1) = slices[oa], slices[ob]
-            cap_a, cap_b = cfg.capacity[oa], cfg.capacity[ob]
-            ia, ib, n_a, n_b, near_a, near_b = _pair_candidates(xs, (a0, a1), (b0, b1), cap_a, cap_b, margin)
-            counts.append((n_a, n_b))
-            qs += [a0 + ia, b0 + ib]
-            valids += [(jnp.arange(cap_a) < n_a) & (n_b > 0), (jnp.arange(cap_b) < n_b) & (n_a > 0)]
-            targets += [near_b, near_a]
-        return ContactCache(jnp.concatenate(qs).astype(jnp.int32), jnp.concatenate(valids),
-                            jnp.concatenate(targets).astype(jnp.int32), xs,
-                            _overflow_flags(cfg, topo.n_objects, counts))
+        return _search(xs, topo, cfg, tab.margin)
 
+    # jit: inlined under an outer jit; outside one (e.g. an eager init_fn) it compiles once
+    # instead of dispatching hundreds of small operations one by one.
+    @jax.jit
+    def force(params, x, v=None, base=None, cache=None):
+        """Contact force (3, V), added to ``base`` (3, V) when given (saves a buffer). With a
+        ``cache`` (:class:`ContactCache`) its candidate lists and nearest vertices are used
+        instead of searching."""
+        dtype = x.dtype
+        if friction > 0 and v is None:
+            raise ValueError("contact friction needs the velocities")
+        mass = _model.vertex_mass(topo, params) if friction > 0 else None
+        tiny = jnp.asarray(tiny_len ** 2, dtype)
+        f = jnp.zeros((3, n_v), dtype) if base is None else base
+        if cfg.pairs:
+            if cache is None:
+                cache = search(jax.lax.stop_gradient(x))
+            # on an overflow the lists hold the candidates that fit: the force stays finite (and
+            # inexact); the overflow is reported by the cache's flag, not here
+            kc = _take(_pair_stiffnesses(params, cfg, tab, dtype), jnp.asarray(pair_of_query))
+            idx, rows = _narrow(x, v, mass, cache.q_idx, cache.valid, cache.target,
+                                jnp.asarray(delta_q, dtype), kc, tiny, ring_t, valence, friction, h)
+            f = jnp.stack([fc.at[idx].add(rc, mode="promise_in_bounds") for fc, rc in zip(f, rows)])
+        if self_energy is not None:
+            f = f - jax.grad(lambda y: self_energy(params, y)[0])(x)
+        return f
+
+    ops = _cache_ops(topo, cfg, tab.ring, search) if cfg.pairs else None
+    return force, ops
+
+
+def _ring_slot_tables(topo, tab):
+    """(ring_t, valence) of the narrow phase (:func:`_narrow`). ring_t: the neighbour-major ring
+    table (K + 1, V): row j holds every vertex's j-th ring neighbour and row K repeats row 0, so
+    "the next neighbour" of slot j is row j + 1 (as in model._ring_force_fn); valence (V,) int32."""
+    ring = tab.ring
+    valence = np.asarray(topo.ring_mask.sum(axis=1), np.int32)
+    # padded rings repeat their last neighbour: real slots are 0 .. valence-2 and K-1 (the wrap)
+    assert np.all(ring[:, -1] == ring[np.arange(len(ring)), valence - 1])
+    ring_t = np.ascontiguousarray(np.concatenate([ring.T, ring.T[:1]], axis=0))
+    return ring_t, valence
+
+
+def _query_layout(cfg):
+    """Per query slot of :func:`make_contact`'s force, laid out as [A of pair 0, B of pair 0, A of
+    pair 1, ...]: (which pair (Q,) int32, for delta and k_c; that pair's thickness delta (Q,))."""
+    pair_of_query = np.concatenate([np.full(cfg.capacity[o], i, np.int32)
+                                    for i, (oa, ob) in enumerate(cfg.pairs) for o in (oa, ob)]) \
+        if cfg.pairs else np.zeros(0, np.int32)
+    delta_q = np.asarray(cfg.thickness, np.float64)[pair_of_query] if cfg.pairs else np.zeros(0)
+    return pair_of_query, delta_q
+
+
+def _pair_stiffnesses(params, cfg, tab, dtype):
+    """(P,) k_c of every object pair of :func:`make_contact`."""
+    if cfg.stiffness is not None:
+        return jnp.full((len(cfg.pairs),), cfg.stiffness, dtype)
+    k = params.k_structural
+    return STIFFNESS_FACTOR * 2.0 * tab.n_max * jnp.stack([jnp.minimum(k[a], k[b]) for a, b in cfg.pairs])
+
+
+def _narrow(x, v, mass, q_idx, q_valid, target, delta, kc, tiny, ring_t, valence, friction, h):
+    """(indices (4Q,), force rows 3 x (4Q,)) of query vertices q_idx against the faces around
+    their nearest vertices ``target``.
+
+    The search over v's ring works on slot-major (K, Q) arrays, so each operation is one
+    vectorised loop over all slots and queries; values are gathered and picked several at a
+    time (each XLA operation adds a fixed dispatch cost in the step's loop)."""
+    P, A, rk, val, d0, d1, k = _ring_search(x, q_idx, target, ring_t, valence, tiny)
+    corners, normals = _ring_normals(rk, val, d0, d1, k, tiny)
+    n, w, mag, vec = _penalty(x, P, A, corners, normals, q_valid, delta, kc, tiny)
+    idx = jnp.concatenate([q_idx, target, corners[0], corners[1]])        # (4Q,)
+    if friction > 0:
+        vec = _friction(v, mass, idx, n, w, mag, vec, friction, h, tiny)
+    return idx, tuple(jnp.concatenate([vi] + [-wi * vi for wi in w]) for vi in vec)
+
+
+def _ring_search(x, q_idx, target, ring_t, valence, tiny):
+    """The closest of the K faces around each query's nearest vertex v = ``target`` (no gradient):
+    (P, A: the query's and v's positions, rk (K + 1, Q) v's ring, val (Q,) v's valence, d0, d1:
+    the spokes j and j + 1 (K, Q), k (Q,) the closest face's slot)."""
+    n_k = ring_t.shape[0] - 1
+    rk = jnp.asarray(ring_t).at[:, target].get(mode="promise_in_bounds")    # (K + 1, Q)
+    val = _take(valence, target)                                          # (Q,)
+    pa = x.at[:, jnp.stack([q_idx, target])].get(mode="promise_in_bounds")   # (3, 2, Q)
+    P, A = tuple(pa[c, 0] for c in range(3)), tuple(pa[c, 1] for c in range(3))
+    # the search (no gradient)
+    xs = jax.lax.stop_gradient(x)
+    g = xs.at[:, rk].get(mode="promise_in_bounds")                        # (3, K + 1, Q)
+    As = tuple(jax.lax.stop_gradient(ai)[None] for ai in A)
+    ps = tuple(jax.lax.stop_gradient(pi)[None] for pi in P)
+    d = tuple(g[c] - As[c] for c in range(3))                            # (K + 1, Q) spokes
+    d0, d1 = tuple(dc[:n_k] for dc in d), tuple(dc[1:] for dc in d)       # spokes j and j + 1
+    slot = jnp.arange(n_k)[:, None]
+    real = (slot < val[None] - 1) | (slot == n_k - 1)                     # padded slots are degenerate
+    # the distances to the K faces around v, ending in a square root: XLA:CPU does not copy an
+    # expensive operation into each of its consumers, so the (K, Q) table is computed once, in
+    # one vectorised loop, and the minimum over its rows is a short elementwise chain (a
+    # reduction over the leading axis would be a scalar loop)
+    dist = jnp.sqrt(jnp.where(real, _face_distance2(_sub(ps, As), d0, d1, tiny), jnp.inf))
+    best, k = dist[0], jnp.zeros(dist.shape[1:], jnp.int32)              # (Q,) the closest face
+    for j in range(1, n_k):
+        closer = dist[j] < best
+        best, k = jnp.where(closer, dist[j], best), jnp.where(closer, j, k)
+    return P, A, rk, val, d0, d1, k
+
+
+def _ring_normals(rk, val, d0, d1, k, tiny):
+    """The corners (2, Q) (ring_k, ring_k+1) of the closest face k of :func:`_ring_search` and the
+    pseudo-normals (no gradient) of its features: (n_vertex, n_spoke0, n_spoke2, n_face)."""
+    n_k = rk.shape[0] - 1
+    cr = _cross(d0, d1)
+    sin = jnp.sqrt(_dot(cr, cr) + tiny)
+    ang = _angle(sin, _dot(d0, d1))
+    inv = 1.0 / sin
+    unit = tuple(ci * inv for ci in cr)                                   # (K, Q); degenerate slots ~0
+    n_vertex = _sum_rows(tuple(ang * u for u in unit))                   # angle-weighted normal of v
+    # the unit normals of face k and of the real slots before and after it (the faces across
+    # its spokes), and its corners, in one pick: slot k_prev is k - 1 but K - 1 for k = 0 and
+    # valence - 2 for the wrap slot K - 1; k_next is k + 1 but 0 for K - 1 and K - 1 for
+    # valence - 2
+    kp = jnp.where(k == 0, n_k - 1, jnp.where(k == n_k - 1, val - 2, k - 1))
+    kn = jnp.where(k == n_k - 1, 0, jnp.where(k == val - 2, n_k - 1, k + 1))
+    picked = jnp.take_along_axis(jnp.stack(unit), jnp.stack([k, kp, kn])[None], 1,
+                                 mode="promise_in_bounds")               # (3, 3, Q)
+    n_face, n_prev, n_next = (tuple(picked[c, i] for c in range(3)) for i in range(3))
+    corners = jnp.take_along_axis(rk, jnp.stack([k, k + 1]), 0, mode="promise_in_bounds")
+    n_spoke0 = _add(n_face, n_prev)                                      # edge (v, ring_k)
+    n_spoke2 = _add(n_face, n_next)                                      # edge (ring_k+1, v)
+    return corners, (n_vertex, n_spoke0, n_spoke2, n_face)
+
+
+def _penalty(x, P, A, corners, normals, q_valid, delta, kc, tiny):
+    """The penalty force of queries P against their faces (A, corners): (n: the unit outward
+    normal, w: the closest point's barycentric weights, mag: -dU/ds, vec: the force on P)."""
+    n_vertex, n_spoke0, n_spoke2, n_face = normals
+    # differentiable part: closest point on the face (v, i1, i2) and its barycentric weights
+    bc = x.at[:, corners].get(mode="promise_in_bounds")                   # (3, 2, Q)
+    p, a = P, A
+    b, c = tuple(bc[ci, 0] for ci in range(3)), tuple(bc[ci, 1] for ci in range(3))
+    cl = _closest(p, a, b, c, tiny)
+    inside, plane, n_plane, e, t, r = cl.inside, cl.plane, cl.n, cl.e, cl.t, cl.r
+    bv, bw, dist2 = cl.v, cl.w, cl.d2                       # dist2 is the edge distance where not inside
+    dist = jnp.sqrt(dist2 + tiny)
+    # sign of the edge and corner regions from the closest feature's pseudo-normal
+    at_v = ((e == 0) & (t <= 0.0)) | ((e == 2) & (t >= 1.0))
+    n_feat = tuple(jnp.where(at_v, nv, jnp.where((e == 0) & (t < 1.0), s0, jnp.where((e == 2) & (t > 0.0), s2, nf)))
+                   for nv, s0, s2, nf in zip(n_vertex, n_spoke0, n_spoke2, n_face))
+    sign = jnp.where(_dot(jax.lax.stop_gradient(r), n_feat) >= 0, 1.0, -1.0)
+    s = jnp.where(inside, plane, sign * dist)
+    num = tuple(jnp.where(inside, npl, sign * ri) for npl, ri in zip(n_plane, r))
+    den_n = jnp.where(inside, 1.0, dist)
+    n = tuple(ni / den_n for ni in num)                                  # unit outward normal
+    one_t = 1.0 - t
+    we = (jnp.where(e == 0, one_t, jnp.where(e == 2, t, 0.0)),
+          jnp.where(e == 1, one_t, jnp.where(e == 0, t, 0.0)),
+          jnp.where(e == 2, one_t, jnp.where(e == 1, t, 0.0)))
+    w = (jnp.where(inside, 1.0 - bv - bw, we[0]), jnp.where(inside, bv, we[1]), jnp.where(inside, bw, we[2]))
+    beta = SHARPNESS / delta
+    z = beta * (delta - s)
+    # -dU/ds = k_c phi(delta - s) sigmoid(beta (delta - s)), phi = softplus(z) / beta
+    mag = jnp.where(q_valid, kc * jax.nn.softplus(z) / beta * jax.nn.sigmoid(z), 0.0)
+    # force on p, written to end in a division: XLA:CPU then computes it once instead of
+    # re-deriving it for every row of the scattered (3, 4Q) table
+    vec = tuple((mag * ni) / den_n for ni in num)
+    return n, w, mag, vec
+
+
+def _friction(v, mass, idx, n, w, mag, vec, friction, h, tiny):
+    """``vec`` (the force on the queries) less the friction force of :func:`make_contact`; idx
+    (4Q,): the queries and their faces' corners."""
+    vv = v.at[:, idx].get(mode="promise_in_bounds").reshape(3, 4, -1)
+    vq, va, vb, vc = (tuple(vv[ci, i] for ci in range(3)) for i in range(4))
+    rel = _sub(vq, _add(_add(_scale(va, w[0]), _scale(vb, w[1])), _scale(vc, w[2])))
+    vt = _sub(rel, _scale(n, _dot(rel, n)))
+    speed = jnp.sqrt(_dot(vt, vt) + tiny)
+    mp, ma, mb, mc = _take(mass, idx).reshape(4, -1)
+    m_eff = 1.0 / (1.0 / mp + w[0] ** 2 / ma + w[1] ** 2 / mb + w[2] ** 2 / mc)
+    ft = jnp.minimum(friction * mag, FRICTION_CLAMP * m_eff * speed / h) / speed
+    return _sub(vec, _scale(vt, ft))
+
+
+def _search(xs, topo, cfg, margins):
+    """The candidate queries of every pair and direction at positions xs (no gradient): a
+    :class:`ContactCache` (queries laid out as in :func:`_query_layout`)."""
+    slices = topo.vertex_slices
+    qs, valids, targets, counts = [], [], [], []
+    for (oa, ob), margin in zip(cfg.pairs, margins):
+        (a0, a1), (b0, b1) = slices[oa], slices[ob]
+        cap_a, cap_b = cfg.capacity[oa], cfg.capacity[ob]
+        ia, ib, n_a, n_b, near_a, near_b = _pair_candidates(xs, (a0, a1), (b0, b1), cap_a, cap_b, margin)
+        counts.append((n_a, n_b))
+        qs += [a0 + ia, b0 + ib]
+        valids += [(jnp.arange(cap_a) < n_a) & (n_b > 0), (jnp.arange(cap_b) < n_b) & (n_a > 0)]
+        targets += [near_b, near_a]
+    return ContactCache(jnp.concatenate(qs).astype(jnp.int32), jnp.concatenate(valids),
+                        jnp.concatenate(targets).astype(jnp.int32), xs,
+                        _overflow_flags(cfg, topo.n_objects, counts))
+
+
+def _cache_ops(topo, cfg, ring, search):
+    """The :class:`CacheOps` of :func:`make_contact`'s candidate cache (ring: the (V, K) one-rings;
+    ``search(xs)``: a fresh :class:`ContactCache`)."""
+    n_v = topo.n_vertices
     ring_ext = np.ascontiguousarray(np.concatenate([np.arange(n_v, dtype=np.int32)[:, None], ring], axis=1))
     half_skin2 = (0.5 * skin_distance(topo, cfg)) ** 2 if cfg.pairs else 0.0
 
@@ -668,34 +760,7 @@ def make_contact(topo, cfg, h=None):
         moved = jnp.max(jnp.sum((xs - cache.x_ref) ** 2, axis=0)) > jnp.asarray(half_skin2, xs.dtype)
         return jax.lax.cond(moved, lambda: rebuild(cache, xs), lambda: walk(cache, xs))
 
-    # jit: inlined under an outer jit; outside one (e.g. an eager init_fn) it compiles once
-    # instead of dispatching hundreds of small operations one by one.
-    @jax.jit
-    def force(params, x, v=None, base=None, cache=None):
-        """Contact force (3, V), added to ``base`` (3, V) when given (saves a buffer). With a
-        ``cache`` (:class:`ContactCache`) its candidate lists and nearest vertices are used
-        instead of searching."""
-        dtype = x.dtype
-        if friction > 0 and v is None:
-            raise ValueError("contact friction needs the velocities")
-        mass = _model.vertex_mass(topo, params) if friction > 0 else None
-        tiny = jnp.asarray(tiny_len ** 2, dtype)
-        f = jnp.zeros((3, n_v), dtype) if base is None else base
-        if cfg.pairs:
-            if cache is None:
-                cache = search(jax.lax.stop_gradient(x))
-            # on an overflow the lists hold the candidates that fit: the force stays finite (and
-            # inexact); the overflow is reported by the cache's flag, not here
-            kc = _take(stiffness(params, dtype), jnp.asarray(pair_of_query))
-            idx, rows = narrow(x, v, mass, cache.q_idx, cache.valid, cache.target,
-                               jnp.asarray(delta_q, dtype), kc, tiny)
-            f = jnp.stack([fc.at[idx].add(rc, mode="promise_in_bounds") for fc, rc in zip(f, rows)])
-        if self_energy is not None:
-            f = f - jax.grad(lambda y: self_energy(params, y)[0])(x)
-        return f
-
-    ops = CacheOps(init=lambda x: search(jax.lax.stop_gradient(x)), update=update) if cfg.pairs else None
-    return force, ops
+    return CacheOps(init=lambda x: search(jax.lax.stop_gradient(x)), update=update)
 
 
 class ContactCache(NamedTuple):

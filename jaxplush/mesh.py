@@ -59,8 +59,27 @@ def check_and_orient(vertices, faces, labels=None):
     lab = np.arange(n) if labels is None else np.asarray(labels)
     if len(faces) == 0:
         raise MeshProblem("object has no faces")
+    extent = _check_faces_not_degenerate(vertices, faces, lab)
+    inverse = _check_edges_shared_by_two(faces, n, lab)
+    out, flipped = _orient_consistently(faces, inverse, lab)
 
-    # Degenerate faces: repeated indices or (numerically) zero area.
+    used = np.unique(out)
+    vol = signed_volume(vertices[used], np.searchsorted(used, out))
+    if abs(vol) <= 1e-12 * extent ** 3:
+        raise MeshProblem("mesh encloses zero volume")
+    if vol < 0:  # wound inward as a whole: turn it outward, as the user meant
+        out = out[:, ::-1].copy()
+        flipped = len(out) - flipped
+
+    # Vertex manifoldness: the faces around each vertex must form a single fan.
+    one_rings(out, n, labels=lab)  # raises MeshProblem at a non-manifold vertex
+    return out, flipped
+
+
+def _check_faces_not_degenerate(vertices, faces, lab):
+    """Raise MeshProblem at a face that repeats a vertex or has (numerically) zero area; return
+    the mesh's extent (its largest bounding-box side)."""
+    n = len(vertices)
     rep = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
     if rep.any():
         i = int(np.argmax(rep))
@@ -71,8 +90,12 @@ def check_and_orient(vertices, faces, labels=None):
     if (area2 <= tiny).any():
         i = int(np.argmax(area2 <= tiny))
         raise MeshProblem("degenerate face (zero area: its vertices are collinear or coincide)", face=i)
+    return extent
 
-    # Every undirected edge must be shared by exactly two faces.
+
+def _check_edges_shared_by_two(faces, n, lab):
+    """Raise MeshProblem unless every undirected edge is shared by exactly two faces; return the
+    (3 F,) undirected-edge number of each half-edge (face f's edges are 3 f .. 3 f + 2)."""
     und = np.sort(np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1).reshape(-1, 2), axis=1)
     keys = und[:, 0] * n + und[:, 1]
     uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
@@ -89,8 +112,14 @@ def check_and_orient(vertices, faces, labels=None):
         raise MeshProblem(
             f"non-manifold edge between vertices {lab[e[0]]} and {lab[e[1]]}: shared by "
             f"{int(counts[inverse[j]])} faces", face=j // 3)
+    return inverse
 
-    # Consistent orientation by breadth-first propagation over shared edges.
+
+def _orient_consistently(faces, inverse, lab):
+    """Consistent orientation by breadth-first propagation over shared edges, from face 0.
+
+    Returns (faces wound consistently, number flipped); raises MeshProblem for a non-orientable
+    surface, parts touching at a vertex, or several disconnected parts."""
     edge_faces = np.argsort(inverse, kind="stable").reshape(-1, 2) // 3  # the two faces of each edge
     nbrs = [[] for _ in range(len(faces))]
     for f0, f1 in edge_faces:
@@ -132,17 +161,6 @@ def check_and_orient(vertices, faces, labels=None):
         raise MeshProblem(
             f"object has {1 + _count_parts(nbrs, seen)} disconnected parts; give each closed part its "
             "own object (END_OBJECT between them)", face=int(np.argmin(seen)))
-
-    used = np.unique(out)
-    vol = signed_volume(vertices[used], np.searchsorted(used, out))
-    if abs(vol) <= 1e-12 * extent ** 3:
-        raise MeshProblem("mesh encloses zero volume")
-    if vol < 0:  # wound inward as a whole: turn it outward, as the user meant
-        out = out[:, ::-1].copy()
-        flipped = len(out) - flipped
-
-    # Vertex manifoldness: the faces around each vertex must form a single fan.
-    one_rings(out, n, labels=lab)  # raises MeshProblem at a non-manifold vertex
     return out, flipped
 
 
@@ -258,27 +276,56 @@ def orient_all(vertices, faces, face_object, n_objects):
       A defective object's faces are returned unchanged; :func:`check_and_orient` on it names the
       defect (the same checks, one object at a time, with the exact face and message).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order, connected_components
     faces = np.asarray(faces, np.int64)
     fo = np.asarray(face_object, np.int64)
     n_f, n_v = len(faces), len(vertices)
     bad = np.zeros(n_objects, bool)
     if n_f == 0:
         return faces, np.ones(n_objects, bool)
+    vo, used, extent = _vertex_objects(vertices, faces, fo, n_objects)
     # degenerate faces: a repeated vertex, or zero area against the object's size
     rep = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
+    area2 = np.linalg.norm(face_area_normals(vertices, faces), axis=1)
+    bad[fo[rep | (area2 <= (extent[fo] ** 2) * 1e-12)]] = True
+    # every undirected edge in exactly two faces
+    f0, f1, same, not_two = _edge_face_pairs(faces, n_v)
+    bad[fo[not_two]] = True
+    # one connected piece per object
+    first_of = _first_face_of_pieces(f0, f1, n_f)
+    per_obj = np.bincount(fo[first_of], minlength=n_objects)
+    bad[per_obj != 1] = True
+    flip = _winding_flips(f0, f1, same, first_of, n_f)
+    bad[fo[f1[same ^ flip[f0] ^ flip[f1]]]] = True           # not orientable
+    out = np.where(flip[:, None], faces[:, ::-1], faces)
+    # outward: the signed volume of each object positive (about its vertices' mean)
+    vol = _object_volumes(vertices, out, fo, vo, used, n_objects)
+    bad[np.abs(vol) <= 1e-12 * extent ** 3] = True
+    out = np.where((vol[fo] < 0)[:, None], out[:, ::-1], out)
+    # every vertex's faces one fan (ring_tables checks it)
+    _, _, fan_bad = ring_tables(out, n_v)
+    bad[vo[fan_bad & used]] = True
+    keep = bad[fo]
+    out[keep] = faces[keep]
+    return out, bad
+
+
+def _vertex_objects(vertices, faces, fo, n_objects):
+    """(vo (V,) object of each vertex, -1 where no face uses it; used (V,) bool, vo >= 0;
+    extent (O,) each object's largest bounding-box side)."""
     lo = np.full((n_objects, 3), np.inf)
     hi = np.full((n_objects, 3), -np.inf)
-    vo = np.full(n_v, -1)
+    vo = np.full(len(vertices), -1)
     vo[faces.ravel()] = np.repeat(fo, 3)
     used = vo >= 0
     np.minimum.at(lo, vo[used], vertices[used])
     np.maximum.at(hi, vo[used], vertices[used])
-    extent = np.max(hi - lo, axis=1)
-    area2 = np.linalg.norm(face_area_normals(vertices, faces), axis=1)
-    bad[fo[rep | (area2 <= (extent[fo] ** 2) * 1e-12)]] = True
-    # every undirected edge in exactly two faces
+    return vo, used, np.max(hi - lo, axis=1)
+
+
+def _edge_face_pairs(faces, n_v):
+    """The faces on either side of every undirected edge shared by exactly two faces: (f0, f1,
+    same: the edge runs the same way in both, not_two: the faces of the half-edges whose edge is
+    in one face or more than two)."""
     de = np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1).reshape(-1, 2)
     und = np.sort(de, axis=1)
     keys = und[:, 0] * n_v + und[:, 1]
@@ -288,18 +335,29 @@ def orient_all(vertices, faces, face_object, n_objects):
     counts = np.diff(np.append(np.nonzero(start)[0], len(sk)))
     grp = np.cumsum(start) - 1
     cnt = counts[grp]
-    bad[fo[order[cnt != 2] // 3]] = True
     pair = order[cnt == 2].reshape(-1, 2)                    # the two half-edges of each edge
     f0, f1 = pair[:, 0] // 3, pair[:, 1] // 3
     same = de[pair[:, 0], 0] == de[pair[:, 1], 0]            # the edge runs the same way in both
-    # one connected piece per object
+    return f0, f1, same, order[cnt != 2] // 3
+
+
+def _first_face_of_pieces(f0, f1, n_f):
+    """The lowest face index of every connected piece of the face graph (edges f0[i]-f1[i])."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
     graph = coo_matrix((np.ones(len(f0)), (f0, f1)), shape=(n_f, n_f)).tocsr()
     n_c, comp = connected_components(graph, directed=False)
     first_of = np.full(n_c, n_f)
     np.minimum.at(first_of, comp, np.arange(n_f))
-    per_obj = np.bincount(fo[first_of], minlength=n_objects)
-    bad[per_obj != 1] = True
-    # winding parity by breadth-first search from a virtual root joined to each piece's first face
+    return first_of
+
+
+def _winding_flips(f0, f1, same, first_of, n_f):
+    """(F,) bool: the faces to reverse for a consistent winding, by winding parity along a
+    breadth-first tree from a virtual root joined to each piece's first face."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order
+    n_c = len(first_of)
     rows = np.concatenate([f0, f1, np.full(n_c, n_f)])
     cols = np.concatenate([f1, f0, first_of])
     tree = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_f + 1, n_f + 1)).tocsr()
@@ -319,23 +377,16 @@ def orient_all(vertices, faces, face_object, n_objects):
             break
         flip = flip ^ flip[anc]
         anc = anc[anc]
-    flip = flip[:n_f]
-    bad[fo[f1[same ^ flip[f0] ^ flip[f1]]]] = True           # not orientable
-    out = np.where(flip[:, None], faces[:, ::-1], faces)
-    # outward: the signed volume of each object positive (about its vertices' mean)
+    return flip[:n_f]
+
+
+def _object_volumes(vertices, faces, fo, vo, used, n_objects):
+    """(O,) signed volume of each object, about the mean of its vertices."""
     centre = np.zeros((n_objects, 3))
     np.add.at(centre, vo[used], vertices[used])
     centre /= np.maximum(np.bincount(vo[used], minlength=n_objects), 1)[:, None]
-    a, b, c = (vertices[out[:, i]] - centre[fo] for i in range(3))
-    vol = np.bincount(fo, weights=np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0, minlength=n_objects)
-    bad[np.abs(vol) <= 1e-12 * extent ** 3] = True
-    out = np.where((vol[fo] < 0)[:, None], out[:, ::-1], out)
-    # every vertex's faces one fan (ring_tables checks it)
-    _, _, fan_bad = ring_tables(out, n_v)
-    bad[vo[fan_bad & used]] = True
-    keep = bad[fo]
-    out[keep] = faces[keep]
-    return out, bad
+    a, b, c = (vertices[faces[:, i]] - centre[fo] for i in range(3))
+    return np.bincount(fo, weights=np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0, minlength=n_objects)
 
 
 def ring_tables(faces, n_vertices):

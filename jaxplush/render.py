@@ -284,8 +284,40 @@ def _dataset(path, f, name, required):
 def _read_open_file(path, f, frame, max_frames, min_gap):
     pos_ds = _dataset(path, f, "positions", required=True)
     faces_ds = _dataset(path, f, "faces", required=True)
+    n_frames, n_verts = _positions_shape(path, pos_ds)
+    faces = _read_faces(path, faces_ds, n_verts)
 
-    # --- positions: shape and dtype (values are scanned below) -------------
+    if frame is not None and not -n_frames <= int(frame) < n_frames:
+        raise TrajectoryError(path, f"frame {int(frame)} out of range: the trajectory has {n_frames} frames")
+
+    times = _read_times(path, f, n_frames)
+
+    # --- frame selection --------------------------------------------------------
+    if frame is not None:
+        frames = np.array([int(frame) % n_frames])
+    else:
+        frames = _select_frames(times, max_frames, min_gap)
+
+    object_id, names = _read_objects(path, f, n_verts)
+    positions, lo, hi = _scan_positions(path, pos_ds, frames, times)
+
+    return _Trajectory(
+        n_frames=n_frames,
+        frames=frames,
+        positions=positions,
+        times=times,
+        faces=faces,
+        face_object=object_id[faces[:, 0]],
+        names=names,
+        lo=lo,
+        hi=hi,
+        floor=_float_attr(f, "floor"),
+    )
+
+
+def _positions_shape(path, pos_ds):
+    """(n_frames, n_verts) of the positions dataset, after checking its shape and dtype (its
+    values are scanned by :func:`_scan_positions`)."""
     if pos_ds.ndim != 3 or pos_ds.shape[2] != 3:
         raise TrajectoryError(path, f"positions must have shape [T, N, 3], got {list(pos_ds.shape)}")
     n_frames, n_verts = int(pos_ds.shape[0]), int(pos_ds.shape[1])
@@ -293,8 +325,11 @@ def _read_open_file(path, f, frame, max_frames, min_gap):
         raise TrajectoryError(path, f"positions is empty (shape {list(pos_ds.shape)})")
     if pos_ds.dtype.kind not in "fiu":
         raise TrajectoryError(path, f"positions must be numeric, got dtype {pos_ds.dtype}")
+    return n_frames, n_verts
 
-    # --- faces ----------------------------------------------------------------
+
+def _read_faces(path, faces_ds, n_verts):
+    """The (F, 3) int64 faces, checked against the vertex count."""
     if faces_ds.ndim != 2 or faces_ds.shape[1] != 3:
         raise TrajectoryError(path, f"faces must have shape [F, 3], got {list(faces_ds.shape)}")
     if faces_ds.shape[0] == 0:
@@ -304,11 +339,12 @@ def _read_open_file(path, f, frame, max_frames, min_gap):
         raise TrajectoryError(
             path, f"face vertex indices must lie in [0, {n_verts - 1}], found [{faces.min()}, {faces.max()}]"
         )
+    return faces
 
-    if frame is not None and not -n_frames <= int(frame) < n_frames:
-        raise TrajectoryError(path, f"frame {int(frame)} out of range: the trajectory has {n_frames} frames")
 
-    # --- times ----------------------------------------------------------------
+def _read_times(path, f, n_frames):
+    """(T,) float64 frame times: the ``times`` dataset, else from the ``dt`` and ``save_every``
+    attributes, else the frame index."""
     times_ds = _dataset(path, f, "times", required=False)
     if times_ds is not None:
         times = np.asarray(times_ds[()], dtype=np.float64).reshape(-1) if times_ds.ndim <= 1 else None
@@ -321,14 +357,11 @@ def _read_open_file(path, f, frame, max_frames, min_gap):
         every = _float_attr(f, "save_every")
         step = dt * (every if math.isfinite(every) else 1.0)
         times = np.arange(n_frames, dtype=np.float64) * (step if math.isfinite(step) and step > 0 else 1.0)
+    return times
 
-    # --- frame selection --------------------------------------------------------
-    if frame is not None:
-        frames = np.array([int(frame) % n_frames])
-    else:
-        frames = _select_frames(times, max_frames, min_gap)
 
-    # --- objects ------------------------------------------------------------------
+def _read_objects(path, f, n_verts):
+    """(object_id (N,) int64, names: one per object, defaults filled in)."""
     oid_ds = _dataset(path, f, "object_id", required=False)
     if oid_ds is not None:
         if oid_ds.shape != (n_verts,):
@@ -341,8 +374,13 @@ def _read_open_file(path, f, frame, max_frames, min_gap):
     names = _read_names(f)
     n_objects = max(int(object_id.max()) + 1, len(names))
     names = names + [f"object {i}" for i in range(len(names), n_objects)]
+    return object_id, names
 
-    # --- scan all positions once: finiteness, bounds, and the selected frames ----
+
+def _scan_positions(path, pos_ds, frames, times):
+    """Scan all positions once, in chunks: check finiteness, and return (the selected frames'
+    positions (k, N, 3) float64, lo (3,), hi (3,) bounds over all frames)."""
+    n_frames, n_verts = int(pos_ds.shape[0]), int(pos_ds.shape[1])
     chunk = max(1, _CHUNK_VALUES // (3 * n_verts))
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
@@ -362,20 +400,7 @@ def _read_open_file(path, f, frame, max_frames, min_gap):
         sel = frames[(frames >= start) & (frames < start + len(block))]
         if len(sel):
             picked.append(block[sel - start])
-    positions = np.concatenate(picked, axis=0)
-
-    return _Trajectory(
-        n_frames=n_frames,
-        frames=frames,
-        positions=positions,
-        times=times,
-        faces=faces,
-        face_object=object_id[faces[:, 0]],
-        names=names,
-        lo=lo,
-        hi=hi,
-        floor=_float_attr(f, "floor"),
-    )
+    return np.concatenate(picked, axis=0), lo, hi
 
 
 def _as_index_array(path, name, values):

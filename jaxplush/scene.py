@@ -496,99 +496,119 @@ class _Parser:
         text = self.text
         lines = text.split("\n") if "\r" not in text else re.split(r"\r\n|\r|\n", text)
         vertices, vertex_line = [], []
-        add_vertex, add_vertex_line = vertices.append, vertex_line.append
-        faces = None
         for seg_start, seg_end, run_key in self.segments(lines):
             if run_key is not None:
                 if vertices and run_key == "v":         # keep file order: the line-by-line ones first
                     self.vchunks.append(("t", vertices, vertex_line))
                     vertices, vertex_line = [], []
-                    add_vertex, add_vertex_line = vertices.append, vertex_line.append
                 if self.bulk(lines, seg_start, seg_end, run_key):
                     continue
-            for lineno, raw in enumerate(lines[seg_start:seg_end], seg_start + 1):
-                if "#" in raw:
-                    raw = raw.split("#", 1)[0]
-                toks = raw.split()
-                if not toks:
-                    continue
-                key = toks[0]
-                # 'v' and 'f' lines are most of a file: stored as text, converted in bulk in build()
-                if key == "v":
-                    n = len(toks)
-                    if n == 4:
-                        del toks[0]
-                        add_vertex(toks)
-                    elif n in (5, 7, 8):
-                        add_vertex(toks[1:4])
-                    else:
-                        raise self.err(lineno, f"'v' expects 3 coordinates, got {n - 1} value(s)")
-                    add_vertex_line(lineno)
-                    self.nv += 1
-                    continue
-                if key == "f":
-                    if len(toks) < 4:
-                        raise self.err(lineno, f"'f' needs at least 3 vertices, got {len(toks) - 1}")
-                    if faces is None or self.cur is None or faces is not self.cur.faces:
-                        faces = (self.cur or self.obj(lineno)).faces
-                    del toks[0]
-                    faces.append((toks, lineno, self.nv))
-                    continue
-                args = toks[1:]
-                if key in ("o", "g"):
-                    name = " ".join(args) if args else None
-                    if key == "o" and self.cur is not None:
-                        if self.cur.faces:
-                            self.close(lineno)  # a new 'o' after faces starts the next object
-                        elif self.cur.o_line is not None:  # else its keywords would silently go to the next one
-                            raise self.err(self.cur.o_line, f"object has no faces ({self.cur.name!r}: the next 'o' "
-                                                            f"on line {lineno} comes before any 'f' line)")
-                    o = self.obj(lineno)
-                    if key == "o":
-                        o.o_line = lineno
-                    if name and (o.name is None or key == "o"):
-                        o.name = name
-                elif key == "END_OBJECT":
-                    if args:
-                        raise self.err(lineno, "'END_OBJECT' takes no values")
-                    if self.cur is None:
-                        raise self.err(lineno, "'END_OBJECT' without an open object (no faces since the last one)")
-                    self.close(lineno)
-                elif key in _OBJECT_KEYS:
-                    vals = self.values(key, args, _OBJECT_KEYS[key], lineno)
-                    o = self.obj(lineno)
-                    if key in o.keys:
-                        raise self.err(lineno, f"'{key}' given twice for one object (first on line {o.keys[key][1]})")
-                    o.keys[key] = (vals, lineno)
-                elif key == "fixed":
-                    if len(args) != 1:
-                        raise self.err(lineno, f"'fixed' expects 1 vertex index, got {len(args)} value(s)")
-                    self.obj(lineno).fixed.append((self.resolve(args[0], "fixed", lineno), lineno))
-                elif key in _SCENE_KEYS:
-                    vals = self.values(key, args, _SCENE_KEYS[key], lineno)
-                    if key in self.scene_keys:
-                        raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
-                    self.scene_keys[key] = (vals, lineno)
-                elif key in _SWITCH_KEYS:
-                    if len(args) != 1 or args[0].lower() not in ("on", "off"):
-                        raise self.err(lineno, f"'{key}' expects 'on' or 'off', got {' '.join(args)!r}")
-                    if key in self.scene_keys:
-                        raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
-                    self.scene_keys[key] = ([args[0].lower() == "on"], lineno)
-                elif key in _CHOICE_KEYS:
-                    choices = _CHOICE_KEYS[key]
-                    if len(args) != 1 or args[0].lower() not in choices:
-                        raise self.err(lineno, f"'{key}' expects {' or '.join(repr(c) for c in choices)}, "
-                                               f"got {' '.join(args)!r}")
-                    if key in self.scene_keys:
-                        raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
-                    self.scene_keys[key] = ([args[0].lower()], lineno)
-                elif key in _IGNORED:
-                    continue
-                else:
-                    raise self.err(lineno, f"unknown keyword {key!r}")
+            self.read_lines(lines, seg_start, seg_end, vertices, vertex_line)
         if vertices:
             self.vchunks.append(("t", vertices, vertex_line))
+        self.finish()
+        return self.build()
+
+    def read_lines(self, lines, start, end, vertices, vertex_line):
+        """Read lines[start:end] line by line: the tokens of 'v' lines go to ``vertices`` (their
+        line numbers to ``vertex_line``), 'f' lines to the current object, the rest to
+        :meth:`keyword`."""
+        add_vertex, add_vertex_line = vertices.append, vertex_line.append
+        faces = None
+        for lineno, raw in enumerate(lines[start:end], start + 1):
+            if "#" in raw:
+                raw = raw.split("#", 1)[0]
+            toks = raw.split()
+            if not toks:
+                continue
+            key = toks[0]
+            # 'v' and 'f' lines are most of a file: stored as text, converted in bulk in build()
+            if key == "v":
+                n = len(toks)
+                if n == 4:
+                    del toks[0]
+                    add_vertex(toks)
+                elif n in (5, 7, 8):
+                    add_vertex(toks[1:4])
+                else:
+                    raise self.err(lineno, f"'v' expects 3 coordinates, got {n - 1} value(s)")
+                add_vertex_line(lineno)
+                self.nv += 1
+                continue
+            if key == "f":
+                if len(toks) < 4:
+                    raise self.err(lineno, f"'f' needs at least 3 vertices, got {len(toks) - 1}")
+                if faces is None or self.cur is None or faces is not self.cur.faces:
+                    faces = (self.cur or self.obj(lineno)).faces
+                del toks[0]
+                faces.append((toks, lineno, self.nv))
+                continue
+            self.keyword(key, toks[1:], lineno)
+
+    def keyword(self, key, args, lineno):
+        """Apply one line other than 'v' and 'f': its keyword ``key`` and values ``args``."""
+        if key in ("o", "g"):
+            self.start_object(key, args, lineno)
+        elif key == "END_OBJECT":
+            if args:
+                raise self.err(lineno, "'END_OBJECT' takes no values")
+            if self.cur is None:
+                raise self.err(lineno, "'END_OBJECT' without an open object (no faces since the last one)")
+            self.close(lineno)
+        elif key in _OBJECT_KEYS:
+            vals = self.values(key, args, _OBJECT_KEYS[key], lineno)
+            o = self.obj(lineno)
+            if key in o.keys:
+                raise self.err(lineno, f"'{key}' given twice for one object (first on line {o.keys[key][1]})")
+            o.keys[key] = (vals, lineno)
+        elif key == "fixed":
+            if len(args) != 1:
+                raise self.err(lineno, f"'fixed' expects 1 vertex index, got {len(args)} value(s)")
+            self.obj(lineno).fixed.append((self.resolve(args[0], "fixed", lineno), lineno))
+        elif key in _SCENE_KEYS or key in _SWITCH_KEYS or key in _CHOICE_KEYS:
+            self.scene_keyword(key, args, lineno)
+        elif key not in _IGNORED:
+            raise self.err(lineno, f"unknown keyword {key!r}")
+
+    def start_object(self, key, args, lineno):
+        """An 'o' or 'g' line: a new 'o' after faces starts the next object; the name is set."""
+        name = " ".join(args) if args else None
+        if key == "o" and self.cur is not None:
+            if self.cur.faces:
+                self.close(lineno)  # a new 'o' after faces starts the next object
+            elif self.cur.o_line is not None:  # else its keywords would silently go to the next one
+                raise self.err(self.cur.o_line, f"object has no faces ({self.cur.name!r}: the next 'o' "
+                                                f"on line {lineno} comes before any 'f' line)")
+        o = self.obj(lineno)
+        if key == "o":
+            o.o_line = lineno
+        if name and (o.name is None or key == "o"):
+            o.name = name
+
+    def scene_keyword(self, key, args, lineno):
+        """A scene-level keyword line (numbers, an on/off switch or a choice), at most once each."""
+        if key in _SCENE_KEYS:
+            vals = self.values(key, args, _SCENE_KEYS[key], lineno)
+            if key in self.scene_keys:
+                raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+            self.scene_keys[key] = (vals, lineno)
+        elif key in _SWITCH_KEYS:
+            if len(args) != 1 or args[0].lower() not in ("on", "off"):
+                raise self.err(lineno, f"'{key}' expects 'on' or 'off', got {' '.join(args)!r}")
+            if key in self.scene_keys:
+                raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+            self.scene_keys[key] = ([args[0].lower() == "on"], lineno)
+        else:
+            choices = _CHOICE_KEYS[key]
+            if len(args) != 1 or args[0].lower() not in choices:
+                raise self.err(lineno, f"'{key}' expects {' or '.join(repr(c) for c in choices)}, "
+                                       f"got {' '.join(args)!r}")
+            if key in self.scene_keys:
+                raise self.err(lineno, f"'{key}' given twice (first on line {self.scene_keys[key][1]})")
+            self.scene_keys[key] = ([args[0].lower()], lineno)
+
+    def finish(self):
+        """At the end of the text: close the last object; raise if there is none."""
         if self.cur is not None:
             if self.cur.faces:
                 self.close(None)
@@ -600,7 +620,6 @@ class _Parser:
         if not self.objects:
             raise self.err(None, "empty scene: no objects (no 'f' lines)" if not self.nv
                            else "no faces: the scene defines vertices but no 'f' lines")
-        return self.build()
 
     def check_meshes(self, xs, faces, lines, objs):
         """Every object closed, manifold, orientable, one piece, with volume: all objects at once
@@ -642,41 +661,10 @@ class _Parser:
         vstart = fstart = 0
         for oi, o in enumerate(self.objects):
             name = o.name or f"object{oi}"
-            idx, flines = self.face_indices(o)
-            bad = idx >= nv
-            if bad.any():
-                r = int(np.argmax(bad.any(axis=1)))
-                raise self.err(int(flines[r]), f"face index {int(idx[r][bad[r]][0]) + 1} out of range "
-                                          f"(the file defines {nv} vertices)")
-            used = np.unique(idx)
-            shared = used[owner[used] >= 0]
-            if len(shared):
-                r = int(np.argmax((idx == shared[0]).any(axis=1)))
-                raise self.err(int(flines[r]), f"object {name!r} uses vertex {shared[0] + 1}, which already "
-                                          f"belongs to object {objs[owner[shared[0]]].name!r}")
-            owner[used] = oi
+            idx, flines, used = self.object_faces(o, oi, name, owner, objs)
             local = np.searchsorted(used, idx)
-            x = raw[used].copy()
-            with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported just below
-                if "scale" in o.keys:
-                    x *= o.keys["scale"][0][0]
-                if "translate" in o.keys:
-                    x += np.asarray(o.keys["translate"][0])
-            huge = ~(np.abs(x) < _MAX_COORD)  # also catches overflow to inf; squares must stay finite
-            if huge.any():
-                i = int(np.argmax(huge.any(axis=1)))
-                if not (np.abs(raw[used[i]]) < _MAX_COORD).all():
-                    raise self.err(int(vertex_line[used[i]]), f"vertex {used[i] + 1}: coordinate too large "
-                                                              f"(|value| must be < {_MAX_COORD:g} m)")
-                key = "scale" if "scale" in o.keys else "translate"
-                raise self.err(o.keys[key][1], f"object {name!r}: coordinates too large after scale/translate "
-                                               f"(|value| must be < {_MAX_COORD:g} m)")
-            fixed = []
-            for g, ln in o.fixed:
-                j = np.searchsorted(used, g)
-                if j >= len(used) or used[j] != g:
-                    raise self.err(ln, f"'fixed' vertex {g + 1} is not a vertex of object {name!r}")
-                fixed.append(vstart + int(j))
+            x = self.object_positions(o, name, raw, used, vertex_line)
+            fixed = self.object_fixed(o, name, used, vstart)
             for k, d in DEFAULTS.items():
                 params[k].append(o.keys[k][0][0] if k in o.keys else d)
             objs.append(SceneObject(name=name, vertex_slice=(vstart, vstart + len(used)),
@@ -700,10 +688,68 @@ class _Parser:
                 src = self.objects[i]
                 raise self.err(src.o_line or src.line, f"object name {o.name!r} used by more than one object")
             first_use[o.name] = i
+        vertices = np.concatenate(all_x)
+        settings = self.scene_settings(objs, vertices)
+        return Scene(path=self.path, text=self.text, objects=tuple(objs), vertices=vertices,
+                     faces=all_f.astype(np.int32),
+                     params=Params(**{k: np.asarray(v, np.float64) for k, v in params.items()}), **settings)
+
+    def object_faces(self, o, oi, name, owner, objs):
+        """(idx (F, 3) 0-based global indices of object ``oi``'s faces, their (F,) lines, used: the
+        sorted vertices they use), after checking that the indices are in range and the vertices
+        no earlier object's (``owner`` (V,): each vertex's object so far, -1 for none; updated)."""
+        nv = self.nv
+        idx, flines = self.face_indices(o)
+        bad = idx >= nv
+        if bad.any():
+            r = int(np.argmax(bad.any(axis=1)))
+            raise self.err(int(flines[r]), f"face index {int(idx[r][bad[r]][0]) + 1} out of range "
+                                      f"(the file defines {nv} vertices)")
+        used = np.unique(idx)
+        shared = used[owner[used] >= 0]
+        if len(shared):
+            r = int(np.argmax((idx == shared[0]).any(axis=1)))
+            raise self.err(int(flines[r]), f"object {name!r} uses vertex {shared[0] + 1}, which already "
+                                      f"belongs to object {objs[owner[shared[0]]].name!r}")
+        owner[used] = oi
+        return idx, flines, used
+
+    def object_positions(self, o, name, raw, used, vertex_line):
+        """The positions of an object's vertices ``used`` (rows of ``raw``), scaled and translated,
+        checked to stay below _MAX_COORD."""
+        x = raw[used].copy()
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported just below
+            if "scale" in o.keys:
+                x *= o.keys["scale"][0][0]
+            if "translate" in o.keys:
+                x += np.asarray(o.keys["translate"][0])
+        huge = ~(np.abs(x) < _MAX_COORD)  # also catches overflow to inf; squares must stay finite
+        if huge.any():
+            i = int(np.argmax(huge.any(axis=1)))
+            if not (np.abs(raw[used[i]]) < _MAX_COORD).all():
+                raise self.err(int(vertex_line[used[i]]), f"vertex {used[i] + 1}: coordinate too large "
+                                                          f"(|value| must be < {_MAX_COORD:g} m)")
+            key = "scale" if "scale" in o.keys else "translate"
+            raise self.err(o.keys[key][1], f"object {name!r}: coordinates too large after scale/translate "
+                                           f"(|value| must be < {_MAX_COORD:g} m)")
+        return x
+
+    def object_fixed(self, o, name, used, vstart):
+        """Scene indices of an object's 'fixed' vertices (its vertices ``used`` start at ``vstart``)."""
+        fixed = []
+        for g, ln in o.fixed:
+            j = np.searchsorted(used, g)
+            if j >= len(used) or used[j] != g:
+                raise self.err(ln, f"'fixed' vertex {g + 1} is not a vertex of object {name!r}")
+            fixed.append(vstart + int(j))
+        return fixed
+
+    def scene_settings(self, objs, vertices):
+        """The Scene fields set by scene keywords (gravity, floor, temperature and the floor and
+        contact keywords given), checked against each other and the objects' positions."""
         gravity = np.asarray(self.scene_keys.get("gravity", (DEFAULT_GRAVITY, 0))[0], np.float64)
         floor = self.scene_keys["floor"][0][0] if "floor" in self.scene_keys else None
         temperature = self.scene_keys.get("temperature", ((DEFAULT_TEMPERATURE,), 0))[0][0]
-        vertices = np.concatenate(all_x)
         if floor is None:
             for key in ("floor_friction", "floor_restitution", "floor_model", "floor_stiffness"):
                 if key in self.scene_keys:
@@ -729,7 +775,4 @@ class _Parser:
                 if lo < floor:
                     raise self.err(self.scene_keys["floor"][1],
                                    f"object {o.name!r} starts below the floor (lowest y = {lo:.6g} < floor {floor:.6g})")
-        return Scene(path=self.path, text=self.text, objects=tuple(objs), vertices=vertices,
-                     faces=all_f.astype(np.int32),
-                     params=Params(**{k: np.asarray(v, np.float64) for k, v in params.items()}),
-                     gravity=gravity, floor=floor, temperature=float(temperature), **extra)
+        return dict(gravity=gravity, floor=floor, temperature=float(temperature), **extra)

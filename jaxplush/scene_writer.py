@@ -193,13 +193,45 @@ def format_scene(
     if not objects:
         raise ValueError("a scene needs at least one object")
 
+    lines = _header_lines(header)
+    scene_lines = _scene_lines(
+        gravity=gravity, floor=floor, temperature=temperature, floor_friction=floor_friction,
+        floor_restitution=floor_restitution, contact=contact, self_collision=self_collision,
+        contact_stiffness=contact_stiffness, contact_thickness=contact_thickness,
+        contact_capacity=contact_capacity, contact_friction=contact_friction, floor_model=floor_model,
+        floor_stiffness=floor_stiffness)
+    if scene_lines:
+        lines.extend(scene_lines)
+        lines.append("")
+
+    seen: set[str] = set()
+    offset = 0  # number of vertices written so far (global index base)
+    for i, obj in enumerate(objects):
+        name, vertices, faces, fixed = _check_object(obj, i)
+        if name in seen:
+            raise ValueError(f"duplicate object name {name!r}")
+        seen.add(name)
+        lines.extend(_object_lines(obj, name, vertices, faces, fixed, offset))
+        offset += vertices.shape[0]
+
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _header_lines(header) -> list[str]:
+    """The header's lines as comments, then a blank line (none without a header)."""
     lines: list[str] = []
     if header:
         for hl in header.splitlines():
             hl = hl.rstrip()
             lines.append(f"# {hl}" if hl else "#")
         lines.append("")
+    return lines
 
+
+def _scene_lines(*, gravity, floor, temperature, floor_friction, floor_restitution, contact, self_collision,
+                 contact_stiffness, contact_thickness, contact_capacity, contact_friction, floor_model,
+                 floor_stiffness) -> list[str]:
+    """The checked scene keyword lines of :func:`format_scene` (its arguments of the same names)."""
     scene_lines = []
     if gravity is not None:
         g = _vec3(gravity, "gravity")
@@ -239,33 +271,25 @@ def format_scene(
     for key, val in (("contact", contact), ("self_collision", self_collision)):
         if val is not None:
             scene_lines.append(f"{key} {'on' if val else 'off'}")
-    if scene_lines:
-        lines.extend(scene_lines)
-        lines.append("")
+    return scene_lines
 
-    seen: set[str] = set()
-    offset = 0  # number of vertices written so far (global index base)
-    for i, obj in enumerate(objects):
-        name, vertices, faces, fixed = _check_object(obj, i)
-        if name in seen:
-            raise ValueError(f"duplicate object name {name!r}")
-        seen.add(name)
 
-        lines.append(f"o {name}")
-        for key, _, _ in _SCALAR_PARAMS:
-            if obj.get(key) is not None:
-                lines.append(f"{key} {_num(obj[key])}")
-        if obj.get("translate") is not None:
-            t = _vec3(obj["translate"], "translate")
-            lines.append("translate " + " ".join(_num(c) for c in t))
-        lines.extend(f"v {_num(x)} {_num(y)} {_num(z)}" for x, y, z in vertices.tolist())
-        lines.extend(f"f {a} {b} {c}" for a, b, c in (faces + (offset + 1)).tolist())
-        lines.extend(f"fixed {j + offset + 1}" for j in fixed)
-        lines.append("END_OBJECT")
-        lines.append("")
-        offset += vertices.shape[0]
-
-    return "\n".join(lines).rstrip("\n") + "\n"
+def _object_lines(obj: Mapping, name: str, vertices, faces, fixed, offset: int) -> list[str]:
+    """One checked object's block (``o NAME`` ... ``END_OBJECT`` and a blank line), its vertices
+    numbered from ``offset`` + 1."""
+    lines = [f"o {name}"]
+    for key, _, _ in _SCALAR_PARAMS:
+        if obj.get(key) is not None:
+            lines.append(f"{key} {_num(obj[key])}")
+    if obj.get("translate") is not None:
+        t = _vec3(obj["translate"], "translate")
+        lines.append("translate " + " ".join(_num(c) for c in t))
+    lines.extend(f"v {_num(x)} {_num(y)} {_num(z)}" for x, y, z in vertices.tolist())
+    lines.extend(f"f {a} {b} {c}" for a, b, c in (faces + (offset + 1)).tolist())
+    lines.extend(f"fixed {j + offset + 1}" for j in fixed)
+    lines.append("END_OBJECT")
+    lines.append("")
+    return lines
 
 
 def write_scene(path, objects: Sequence[Mapping], **kw) -> None:

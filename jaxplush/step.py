@@ -154,14 +154,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     Returns:
       :class:`Simulator`. The dtype is float64 when ``jax_enable_x64`` is on, else float32.
     """
-    if integrator not in INTEGRATORS:
-        raise ValueError(f"unknown integrator {integrator!r}; available: {', '.join(INTEGRATORS)}")
-    dt = float(dt)
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive number, got {dt!r}")
-    if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
-        raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
-    substeps = int(substeps)
+    dt, substeps = _checked_step_args(integrator, dt, substeps)
     h = dt / substeps
     dtype = jnp.result_type(float)
     topo = compiled.topology(scene)
@@ -175,31 +168,66 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     scheme = integrators.build(integrator, system, cg_tol=cg_tol, cg_maxiter=cg_maxiter)
     coherent = None
     if cache_ops is not None and coherent_contact:
-        def coherent_substep(params, state, cache):
-            # the same scheme, its force kernel reading the carried candidate lists
-            sys_c = dataclasses.replace(system, kernel=functools.partial(kernel, cache=cache))
-            state = integrators.build(integrator, sys_c, cg_tol=cg_tol, cg_maxiter=cg_maxiter).step(params, state)
-            return state, cache_ops.update(cache, state.x)
-
-        if substeps == 1:
-            coherent_step = coherent_substep
-        else:
-            def coherent_step(params, state, cache):
-                return jax.lax.fori_loop(0, substeps, lambda _, c: coherent_substep(params, *c), (state, cache))
-
-        coherent = CoherentStep(init=cache_ops.init, step=coherent_step)
+        coherent = _coherent_step(system, kernel, cache_ops, integrator, substeps, cg_tol, cg_maxiter)
 
     # Internally everything is component-major, (3, V): see model.make_force_fn.
-    def internal_init(params, x0=None, v0=None):
-        x = jnp.asarray(topo.x0 if x0 is None else x0, dtype).T
-        v = jnp.zeros_like(x) if v0 is None else jnp.asarray(v0, dtype).T
-        return scheme.init(params, x, v)
-
     if substeps == 1:
         internal_step = scheme.step
     else:
         def internal_step(params, state):
             return jax.lax.fori_loop(0, substeps, lambda _, s: scheme.step(params, s), state)
+
+    overflow = None
+    if terms.contact:
+        from jaxplush import contact as _contact
+        overflow = _contact.make_overflow_check(topo, terms.contact)
+    fns = _public_fns(topo, terms, dtype, scheme, internal_step, kernel, overflow)
+
+    key = (scene.fingerprint, dt, integrator, assembly, terms, substeps, np.dtype(dtype).str, cg_tol, int(cg_maxiter),
+           bool(coherent_contact))
+    return Simulator(**fns, topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype,
+                     internal=Internal(internal_step, to_internal, to_public, coherent, overflow),
+                     substeps=substeps, key=key)
+
+
+def _checked_step_args(integrator, dt, substeps):
+    """(dt as a float, substeps as an int), or ValueError for an unknown integrator, a dt that is
+    not a positive number or substeps that is not a positive integer."""
+    if integrator not in INTEGRATORS:
+        raise ValueError(f"unknown integrator {integrator!r}; available: {', '.join(INTEGRATORS)}")
+    dt = float(dt)
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive number, got {dt!r}")
+    if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
+        raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+    return dt, int(substeps)
+
+
+def _coherent_step(system, kernel, cache_ops, integrator, substeps, cg_tol, cg_maxiter):
+    """The :class:`CoherentStep` of a scheme with soft-soft contact: ``substeps`` integrator steps,
+    the force kernel reading the carried candidate lists, the lists updated after each."""
+    def coherent_substep(params, state, cache):
+        # the same scheme, its force kernel reading the carried candidate lists
+        sys_c = dataclasses.replace(system, kernel=functools.partial(kernel, cache=cache))
+        state = integrators.build(integrator, sys_c, cg_tol=cg_tol, cg_maxiter=cg_maxiter).step(params, state)
+        return state, cache_ops.update(cache, state.x)
+
+    if substeps == 1:
+        coherent_step = coherent_substep
+    else:
+        def coherent_step(params, state, cache):
+            return jax.lax.fori_loop(0, substeps, lambda _, c: coherent_substep(params, *c), (state, cache))
+
+    return CoherentStep(init=cache_ops.init, step=coherent_step)
+
+
+def _public_fns(topo, terms, dtype, scheme, internal_step, kernel, overflow):
+    """The :class:`Simulator`'s functions on the public (V, 3) layout: init_fn, step_fn,
+    status_fn, force_fn and velocity_fn (a dict of them)."""
+    def internal_init(params, x0=None, v0=None):
+        x = jnp.asarray(topo.x0 if x0 is None else x0, dtype).T
+        v = jnp.zeros_like(x) if v0 is None else jnp.asarray(v0, dtype).T
+        return scheme.init(params, x, v)
 
     def init_fn(params, x0=None, v0=None):
         return to_public(internal_init(params, x0, v0))
@@ -211,11 +239,6 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
         f, volume = kernel(params, jnp.asarray(x).T, jnp.asarray(v).T)
         return f.T, volume
 
-    overflow = None
-    if terms.contact:
-        from jaxplush import contact as _contact
-        overflow = _contact.make_overflow_check(topo, terms.contact)
-
     def status_fn(params, state):
         code = diagnostics.object_status(topo, terms, state.x)
         if overflow is not None:
@@ -225,12 +248,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     def velocity_fn(params, state):
         return scheme.velocity(params, to_internal(state)).T
 
-    key = (scene.fingerprint, dt, integrator, assembly, terms, substeps, np.dtype(dtype).str, cg_tol, int(cg_maxiter),
-           bool(coherent_contact))
-    return Simulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
-                     topology=topo, terms=terms, dt=dt, integrator=integrator, scene=scene, dtype=dtype,
-                     internal=Internal(internal_step, to_internal, to_public, coherent, overflow),
-                     substeps=substeps, velocity_fn=velocity_fn, key=key)
+    return dict(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn, velocity_fn=velocity_fn)
 
 
 def to_internal(state):
