@@ -14,6 +14,10 @@ simulated from the bundled hanging ball, and a fit of its spring stiffness from 
 >>> result.status, round(float(result.values["k_structural"][0] / truth.params.k_structural[0]), 3)
 ('converged', 1.0)
 
+Options: ``fitting.fit(scene, target, options=fitting.FitOptions(...))``, or single fields as
+keywords (``iterations=40``); ``optimizer`` is "lm" (default), "adam", "lbfgs" or any optax
+transformation (:mod:`fitting.options`, :func:`fitting.fitter.fit`).
+
 Command line: ``jaxplush-fit SCENE.obj TARGET.h5 --out FIT.h5`` (exit 4 when the fit did not converge).
 
 ``fitting`` depends on ``jaxplush``, never the reverse. Names are imported lazily, so that
@@ -29,6 +33,9 @@ _EXPORTS = {
     "load_target": "fitting.targets",
     "make_target": "fitting.targets",
     "fit": "fitting.fitter",
+    "FitOptions": "fitting.options",
+    "SearchOptions": "fitting.options",
+    "CheckpointOptions": "fitting.options",
     "FitResult": "fitting.fitter",
     "FitError": "fitting.fitter",
     "synthetic_recovery": "fitting.fitter",

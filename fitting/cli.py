@@ -97,8 +97,28 @@ def main(argv=None):
 
 
 def _fit(args):
+    _check_args(args)
+    if args.x64:
+        import jax
+        jax.config.update("jax_enable_x64", True)
+    import jaxplush
+    from fitting import fitter as _fit_mod
+    from fitting.targets import load_target
+
+    names = _fit_mod.canonical_names(args.params) if args.params is not None else None
+    options = _options(args, names)
+    scene = jaxplush.load_scene(args.scene)
+    target = load_target(args.target, scene, args.dt)
+    result = _run(args, lambda: _fit_mod.fit(scene, target, names, args.objects, optimizer=args.optimizer,
+                                             options=options, progress=not args.quiet))
+    if result is None:
+        return EXIT_INTERRUPTED
+    return _report(args, result)
+
+
+def _check_args(args):
+    """Everything checked before anything is traced or written (JaxplushError with the first problem)."""
     from jaxplush.errors import JaxplushError
-    # --- everything checked before anything is traced or written
     if args.iterations is not None and args.iterations < 1:
         raise JaxplushError(f"--iterations must be >= 1, got {args.iterations}")
     if args.checkpoint_every < 1:
@@ -127,18 +147,24 @@ def _fit(args):
             raise JaxplushError(f"{a}: an output must not overwrite an input")
     if args.resume and not os.path.exists(args.out):
         raise JaxplushError(f"{args.out}: no checkpoint to resume (the file does not exist); run without --resume")
-    if args.x64:
-        import jax
-        jax.config.update("jax_enable_x64", True)
-    import jaxplush
-    from fitting import fitter as _fit_mod
-    from fitting.targets import load_target
 
-    names = _fit_mod.canonical_names(args.params) if args.params is not None else None
+
+def _options(args, names):
+    """The :class:`fitting.FitOptions` of the command line (--start and --bounds parsed and checked)."""
+    from fitting import fitter as _fit_mod
+    from fitting.options import CheckpointOptions, FitOptions, SearchOptions
     start = parse_start(args.start) if args.start is not None else None
     bounds = _fit_mod.parse_bounds(args.bounds, names or _fit_mod.PARAM_NAMES) if args.bounds is not None else None
-    scene = jaxplush.load_scene(args.scene)
-    target = load_target(args.target, scene, args.dt)
+    return FitOptions(iterations=args.iterations, lr=args.lr, start=start, noise=args.noise,
+                      noise_free=args.noise_free, method=args.method, force=args.force,
+                      search=SearchOptions(bounds=bounds, samples=args.samples, starts=args.starts),
+                      checkpoint=CheckpointOptions(path=args.out, every=args.checkpoint_every, resume=args.resume))
+
+
+def _run(args, run_fit):
+    """``run_fit()`` with its warnings printed once each, SIGTERM taken as Ctrl-C; the result, or
+    None after an interrupt (reported: whether the state was saved to --out)."""
+    from jaxplush.errors import JaxplushError
 
     # SIGTERM behaves like Ctrl-C: save, then exit
     def _term(signum, frame):
@@ -158,12 +184,7 @@ def _fit(args):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                result = _fit_mod.fit(
-                    scene, target, names, args.objects, start=start, iterations=args.iterations,
-                    optimizer=args.optimizer, bounds=bounds, samples=args.samples, starts=args.starts,
-                    lr=args.lr, noise=args.noise, noise_free=args.noise_free, method=args.method,
-                    force=args.force, progress=not args.quiet, checkpoint_path=args.out,
-                    checkpoint_every=args.checkpoint_every, resume=args.resume)
+                result = run_fit()
             except JaxplushError as e:
                 if type(e).__name__ in ("FitError", "SimulationError"):
                     show(caught)              # e.g. the dt warning that explains a blow-up
@@ -178,10 +199,15 @@ def _fit(args):
         saved = os.path.exists(args.out) and (args.resume or _stamp(args.out) != before)
         print("jaxplush-fit: interrupted; " + (f"state saved to {args.out}; continue with --resume"
                                                  if saved else "nothing written"), file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return None
     finally:
         if old is not None:
             signal.signal(signal.SIGTERM, old)
+    return result
+
+
+def _report(args, result):
+    """Write --out-scene, print the table and the identifiability summary; the exit code."""
     if args.out_scene:
         result.write_scene(args.out_scene)
     print(result.table())

@@ -1,6 +1,8 @@
 """Fit material parameters of a scene to a target.
 
-``fit(scene, target, params=None, objects=None, ...)``:
+``fit(scene, target, params=None, objects=None, *, optimizer="lm", options=None, callback=None,
+progress=False, **overrides)``, its options a :class:`fitting.options.FitOptions` (keywords
+override single fields: ``fit(scene, target, iterations=40)``):
 
 * the fitted variables are theta = log(p) for the chosen parameters of the chosen objects
   (positivity for free); every other parameter stays at the scene's value. ``params=None``
@@ -12,11 +14,11 @@
   simulator, then Levenberg-Marquardt with central-difference Jacobians from the best
   candidates, over horizons of growing length, every evaluated point stable (substeps where
   needed, :mod:`fitting.evaluate`);
-* ``"adam"`` and ``"lbfgs"`` descend the gradient through the rollout
-  (:func:`fitting.gradients.rollout_loss`): a step whose rollout blows up (non-finite loss or
-  gradient, an inverted object, damping < 1) is rejected and the step halved; a start that
-  blows up, or too many rejections in a row, raise :class:`FitError`; they stop at
-  ``iterations`` or at ``gtol``/``rtol``/``xtol``/``ftol``;
+* ``"adam"``, ``"lbfgs"`` and any optax transformation the caller passes descend the gradient
+  through the rollout (:func:`fitting.gradients.rollout_loss`) in one loop: a step whose
+  rollout blows up (non-finite loss or gradient, an inverted object, damping < 1) is rejected
+  and the step halved; a start that blows up, or too many rejections in a row, raise
+  :class:`FitError`; they stop at ``iterations`` or at ``gtol``/``rtol``/``xtol``/``ftol``;
 * every fit's outcome is judged by :mod:`fitting.outcome` ("converged" only at the noise level
   and an optimum), recorded in the result and FIT.h5 and warned about otherwise;
 * checkpoints (``checkpoint_path``) hold the complete state, so ``resume=True`` continues an
@@ -47,6 +49,8 @@ from jaxplush.types import PARAM_NAMES, Params
 
 from fitting import identifiability as _ident
 from fitting import losses as _losses
+from fitting import options as _options
+from fitting.options import CheckpointOptions, FitOptions, SearchOptions  # noqa: F401  (fitting.fitter.FitOptions)
 from fitting.targets import Target, load_target
 
 #: Accepted spellings of parameter names.
@@ -207,39 +211,66 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
 
     ``params`` None fits :func:`default_params` (the note saying which is warned)."""
     if params is None:
-        objs_for_default = None
-        if objects is not None:
-            objs_for_default = [scene.object_names.index(o) if isinstance(o, str) and o in scene.object_names else o
-                                for o in ([x.strip() for x in objects.split(",")] if isinstance(objects, str)
-                                          else objects)
-                                if (isinstance(o, str) and o in scene.object_names) or
-                                (isinstance(o, (int, np.integer)) and 0 <= o < scene.n_objects)]
-        params, note = default_params(scene, objs_for_default or None)
+        params, note = default_params(scene, _default_param_objects(scene, objects))
         warnings.warn(note, stacklevel=3)
     names = canonical_names(params)
     check_mass_fit(names, force)
+    objs = _fit_objects(scene, objects)
+    base = _start_values(scene, start, objs)
+    _check_start_values(scene, names, objs, base)
+    fit_scene = scene.replace(params=Params(**base))
+    target = _fit_target(scene, target, dt)
+    if noise is not None and not (np.isfinite(noise) and noise >= 0):
+        raise JaxplushError(f"noise must be a number >= 0, got {noise!r}")
+    sim = _fit_simulator(scene, fit_scene, target, method)
+    loss = _losses.make_loss(target, sim.topology, sim.dtype, noise=noise, noise_free=noise_free,
+                             check_volume=sim.terms.gas)
+    theta0 = np.log(np.stack([base[n][list(objs)] for n in names]))
+    sigma = None if noise_free else (target.noise if noise is None else float(noise))
+    return Problem(scene=fit_scene, target=target, sim=sim, names=names, objects=objs,
+                   base=Params(**base), theta0=theta0, loss=loss, method=method, noise=sigma)
+
+
+def _default_param_objects(scene, objects):
+    """The objects among ``objects`` (names or indices; bad ones left to :func:`_fit_objects` to
+    report) whose switched-on parameters are fitted by default; None: every object."""
     if objects is None:
-        objs = tuple(range(scene.n_objects))
-    else:
-        if isinstance(objects, str):
-            objects = [o.strip() for o in objects.split(",") if o.strip()]
-        objs = []
-        for o in objects:
-            if isinstance(o, (int, np.integer)) and not isinstance(o, bool):
-                if not 0 <= o < scene.n_objects:
-                    raise JaxplushError(f"object index {o} out of range: the scene has {scene.n_objects} object(s)")
-                i = int(o)
-            elif o in scene.object_names:
-                i = scene.object_names.index(o)
-            else:
-                raise JaxplushError(f"unknown object {o!r}; the scene's objects: {', '.join(scene.object_names)}")
-            if i in objs:
-                raise JaxplushError(f"object {scene.object_names[i]!r} given twice")
-            objs.append(i)
-        if not objs:
-            raise JaxplushError("no objects to fit")
-        objs = tuple(objs)
-    # start values: the scene's, overridden by `start` {name: scalar or (O,) or {object: value}}
+        return None
+    items = [x.strip() for x in objects.split(",")] if isinstance(objects, str) else objects
+    objs = [scene.object_names.index(o) if isinstance(o, str) and o in scene.object_names else o
+            for o in items
+            if (isinstance(o, str) and o in scene.object_names) or
+            (isinstance(o, (int, np.integer)) and 0 <= o < scene.n_objects)]
+    return objs or None
+
+
+def _fit_objects(scene, objects):
+    """Validated fitted object indices (tuple) from names, indices or "a,b" text; None: all."""
+    if objects is None:
+        return tuple(range(scene.n_objects))
+    if isinstance(objects, str):
+        objects = [o.strip() for o in objects.split(",") if o.strip()]
+    objs = []
+    for o in objects:
+        if isinstance(o, (int, np.integer)) and not isinstance(o, bool):
+            if not 0 <= o < scene.n_objects:
+                raise JaxplushError(f"object index {o} out of range: the scene has {scene.n_objects} object(s)")
+            i = int(o)
+        elif o in scene.object_names:
+            i = scene.object_names.index(o)
+        else:
+            raise JaxplushError(f"unknown object {o!r}; the scene's objects: {', '.join(scene.object_names)}")
+        if i in objs:
+            raise JaxplushError(f"object {scene.object_names[i]!r} given twice")
+        objs.append(i)
+    if not objs:
+        raise JaxplushError("no objects to fit")
+    return tuple(objs)
+
+
+def _start_values(scene, start, objs):
+    """dict name -> (O,) float64 values of every parameter: the scene's, overridden by ``start``
+    {name: scalar or (O,) or {object: value}} (a scalar or array applies to the fitted objects)."""
     base = {n: np.array(getattr(scene.params, n), np.float64) for n in PARAM_NAMES}
     for key, val in (start or {}).items():
         n = canonical_names([key])[0]
@@ -256,6 +287,11 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
         else:
             v = np.broadcast_to(np.asarray(val, np.float64), (scene.n_objects,))
             base[n][list(objs)] = v[list(objs)]
+    return base
+
+
+def _check_start_values(scene, names, objs, base):
+    """Every fitted start value positive (log space), damping >= 1, nmol only where there is gas."""
     for n in names:
         for o in objs:
             v = base[n][o]
@@ -270,7 +306,11 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
             if n == "damping" and v < 1:
                 raise JaxplushError(f"cannot fit damping of object {oname!r}: start value {v:g} < 1 "
                                     "(the per-step factor 1/D must be <= 1)")
-    fit_scene = scene.replace(params=Params(**base))
+
+
+def _fit_target(scene, target, dt):
+    """The target (loaded from a path, or put on the ``dt`` grid) checked against the scene, without
+    its initial frames (t = 0 does not depend on the parameters)."""
     if not isinstance(target, Target):
         target = load_target(target, scene, dt)
     elif dt is not None:
@@ -282,9 +322,11 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
     if not keep.any():
         raise JaxplushError(f"{target.path}: the target holds only the initial frame (t = 0), which does not "
                             "depend on the parameters")
-    target = target.select(keep)
-    if noise is not None and not (np.isfinite(noise) and noise >= 0):
-        raise JaxplushError(f"noise must be a number >= 0, got {noise!r}")
+    return target.select(keep)
+
+
+def _fit_simulator(scene, fit_scene, target, method):
+    """The simulator of the fit (the terms ``fit_scene`` switches on), the gradient ``method`` checked."""
     from fitting.gradients import METHODS, adjoint_supported
     if method not in METHODS:
         raise JaxplushError(f"unknown gradient method {method!r}; expected one of {', '.join(METHODS)}")
@@ -292,12 +334,7 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
     if method == "adjoint" and not adjoint_supported(sim):
         raise JaxplushError(f"gradient method 'adjoint' does not support this scene ({scene.path}: integrator "
                             f"{sim.integrator!r}, terms {', '.join(sim.terms.names())}); use auto or checkpoint")
-    loss = _losses.make_loss(target, sim.topology, sim.dtype, noise=noise, noise_free=noise_free,
-                             check_volume=sim.terms.gas)
-    theta0 = np.log(np.stack([base[n][list(objs)] for n in names]))
-    sigma = None if noise_free else (target.noise if noise is None else float(noise))
-    return Problem(scene=fit_scene, target=target, sim=sim, names=names, objects=objs,
-                   base=Params(**base), theta0=theta0, loss=loss, method=method, noise=sigma)
+    return sim
 
 
 def make_optimizer(name, lr=None, iterations=100):
@@ -442,11 +479,8 @@ class FitResult:
         return _io.write_fitted_scene(self, path)
 
 
-def fit(scene, target, params=None, objects=None, *, iterations=None,
-        optimizer="lm", lr=None, dt=None, start=None, noise=None, noise_free=False, gtol=1e-9, rtol=1e-7,
-        xtol=1e-7, ftol=0.0, patience=5, method="auto", force=False, callback=None, progress=False,
-        checkpoint_path=None, checkpoint_every=10, resume=False, identifiability=True, check_dt=True,
-        bounds=None, samples=None, starts=None, seed=0):
+def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=None, callback=None, progress=False,
+        **overrides):
     """Fit parameters of ``scene`` to ``target``.
 
     The default (``optimizer="lm"``) is global, then local (:mod:`fitting.search`): a Sobol
@@ -464,31 +498,26 @@ def fit(scene, target, params=None, objects=None, *, iterations=None,
         only alone, with a warning, unless ``force``); default :func:`default_params`, the
         material parameters the scene switches on (with a warning naming them).
       objects: object names or indices to fit (default all); the others keep their values.
-      iterations: maximum iterations (default 40 Levenberg-Marquardt iterations per start, 200
-        for Adam and L-BFGS, each an evaluation of loss and gradient).
-      optimizer: "lm" (default: global stage and Levenberg-Marquardt), "adam" or "lbfgs".
-      lr: learning rate in log space (Adam default 0.05; L-BFGS: line search unless given).
-      dt: time step (default: the target's).
-      start: optional start values {name: value, (O,) array or {object: value}} overriding the scene's.
-      noise: measurement noise sigma per coordinate (m) for the normalisation and the report
-        (default: the target's ``noise`` attribute, if any).
-      noise_free: the target is exact (normalise by its motion; ignore any noise value).
-      gtol, rtol, xtol, ftol, patience: convergence criteria (module docstring).
-      method: gradient method of :func:`fitting.gradients.rollout_loss`.
-      force: allow fitting ``total_weight`` jointly with k/dashpot/nmol.
+      optimizer: "lm" (default: global stage and Levenberg-Marquardt), "adam", "lbfgs", or any
+        ``optax.GradientTransformation`` (e.g. ``optax.adam(0.02)`` or an ``optax.chain``). The
+        gradient optimisers descend the gradient of the loss with respect to the log-parameters
+        in one loop (module docstring). An optax transformation that is an
+        ``optax.GradientTransformationExtraArgs`` (as ``optax.chain`` and most of optax's are)
+        gets ``value``, ``grad`` and ``value_fn`` (the loss at the log-parameters) with every
+        ``update``, as its line searches and ``polyak_sgd`` need. One whose state holds a line
+        search (``optax.lbfgs``, ``scale_by_zoom_linesearch``, ``scale_by_backtracking_linesearch``)
+        is run as "lbfgs" is: its step is never rescaled, and a rejected step restarts its state.
+      options: :class:`fitting.FitOptions` (default ``FitOptions()``): iterations, lr, dt, start
+        values, noise, tolerances, gradient method, identifiability, the default fit's
+        :class:`fitting.SearchOptions` (bounds, samples, starts, seed) and
+        :class:`fitting.CheckpointOptions` (path, every, resume); see :mod:`fitting.options`.
       callback: called after every accepted iteration with a dict (iteration, loss, values,
         grad_norm); returning True stops the fit.
       progress: draw a progress bar (loss and parameters) on stderr.
-      checkpoint_path: FIT.h5 to checkpoint into (atomically) every ``checkpoint_every``
-        iterations, on Ctrl-C, and at the end.
-      resume: continue from the checkpoint in ``checkpoint_path`` (it must be the same fit).
-      identifiability: compute the identifiability report at the optimum.
-      check_dt: warn when dt exceeds the estimated stability limit at the start values (Adam
-        and L-BFGS; the default fit substeps such points instead).
-      bounds: the default fit's search box {name: (lo, hi)} in parameter units (every fitted
-        object); default start/4 to start*4.
-      samples, starts, seed: the default fit's global Sobol points (64), local starts (5) and
-        the Sobol scrambling seed.
+      **overrides: changes to ``options`` by field name, e.g. ``iterations=40``,
+        ``noise_free=True``; the group fields by their flat names ``bounds``, ``samples``,
+        ``starts``, ``seed``, ``checkpoint_path``, ``checkpoint_every``, ``resume``
+        (:meth:`fitting.FitOptions.replace`). An unknown name raises :class:`JaxplushError`.
 
     Returns:
       :class:`FitResult`.
@@ -496,81 +525,200 @@ def fit(scene, target, params=None, objects=None, *, iterations=None,
     Raises:
       JaxplushError / TrajectoryError: bad input (before anything is traced).
       FitError: the fit cannot proceed (the rollout blows up at the start or for every step).
-      KeyboardInterrupt: after saving the checkpoint (when ``checkpoint_path`` is given).
+      KeyboardInterrupt: after saving the checkpoint (when a checkpoint path is given).
 
     Soft-soft contact: an evaluation whose contact candidates overflow the capacity is not a
     blow-up; the fit raises the capacity to what the run needs, warns, and evaluates that point
     again (see ``contact_capacity`` in the scene format).
     """
     t_start = time.perf_counter()
-    if optimizer not in OPTIMIZERS:
-        raise JaxplushError(f"unknown optimizer {optimizer!r}; expected one of {', '.join(OPTIMIZERS)}")
-    if iterations is None:
-        from fitting.lmfit import MAX_ITER
-        iterations = MAX_ITER if optimizer == "lm" else 200
-    if int(iterations) < 1:
-        raise JaxplushError(f"iterations must be >= 1, got {iterations}")
-    for name, val in (("samples", samples), ("starts", starts)):
-        if val is not None and (isinstance(val, bool) or int(val) != val or int(val) < (0 if name == "samples" else 1)):
-            raise JaxplushError(f"{name} must be an integer >= {0 if name == 'samples' else 1}, got {val!r}")
-    if checkpoint_every is not None and int(checkpoint_every) < 1:
-        raise JaxplushError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
-    if resume and checkpoint_path is None:
-        raise JaxplushError("resume needs a checkpoint_path (the FIT.h5 of the interrupted fit)")
+    opts = _options.resolve(options, overrides)
+    kind = optimizer_kind(optimizer)
+    _options.validate(opts, kind)
+    prob, notes = _problem(scene, target, params, objects, opts)
+    if kind == "lm":
+        return _fit_lm(prob, opts, notes, t_start, progress=progress, callback=callback)
+    return _GradientFit(prob, optimizer, opts, notes, progress=progress, callback=callback).run(t_start)
+
+
+def optimizer_kind(optimizer):
+    """"lm", "adam" or "lbfgs" for those names, "optax" for an ``optax.GradientTransformation``."""
+    if isinstance(optimizer, str) and optimizer in OPTIMIZERS:
+        return optimizer
+    if isinstance(optimizer, optax.GradientTransformation):
+        return "optax"
+    raise JaxplushError(f"unknown optimizer {optimizer!r}; expected one of {', '.join(OPTIMIZERS)} or an "
+                        "optax.GradientTransformation")
+
+
+def _iterations(opts, kind):
+    """The iteration limit: ``opts.iterations``, or the default for the optimiser."""
+    if opts.iterations is not None:
+        return int(opts.iterations)
+    from fitting.lmfit import MAX_ITER
+    return MAX_ITER if kind == "lm" else 200
+
+
+def _problem(scene, target, params, objects, opts):
+    """:func:`build_problem` with ``opts``; its warnings are re-issued (for the caller of
+    :func:`fit`) and returned as the fit's notes."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        prob = build_problem(scene, target, params, objects, dt=dt, start=start, noise=noise,
-                             noise_free=noise_free, method=method, force=force)
+        prob = build_problem(scene, target, params, objects, dt=opts.dt, start=opts.start, noise=opts.noise,
+                             noise_free=opts.noise_free, method=opts.method, force=opts.force)
     notes = [str(w.message) for w in caught]
     for msg in notes:
-        warnings.warn(msg, stacklevel=2)
-    if optimizer == "lm":
-        box = _lm_box(prob, bounds)
-        from fitting import lmfit
-        settings = dict(optimizer=optimizer, lr=None, iterations=int(iterations), names=list(prob.names),
-                        objects=[prob.scene.object_names[o] for o in prob.objects], dt=prob.target.dt,
-                        noise_free=bool(noise_free), noise=-1.0 if prob.noise is None else float(prob.noise),
-                        method=method, frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind,
-                        box_lo=box.lo.ravel().tolist(), box_hi=box.hi.ravel().tolist(),
-                        samples=int(lmfit.GLOBAL_SAMPLES if samples is None else samples),
-                        starts=int(lmfit.STARTS if starts is None else starts), seed=int(seed))
-        return _fit_lm(prob, box, settings, notes, t_start, progress=progress, callback=callback,
-                       checkpoint_path=checkpoint_path, resume=resume, want_ident=identifiability)
-    if bounds is not None:
-        raise JaxplushError("bounds apply to the default fit (optimizer 'lm'), not to adam or lbfgs")
-    opt = make_optimizer(optimizer, lr, iterations)
-    settings = dict(optimizer=optimizer, lr=lr, iterations=int(iterations), names=list(prob.names),
-                    objects=[prob.scene.object_names[o] for o in prob.objects], dt=prob.target.dt,
-                    noise_free=bool(noise_free), noise=-1.0 if prob.noise is None else float(prob.noise),
-                    method=method, gtol=gtol, rtol=rtol, xtol=xtol, ftol=ftol, patience=int(patience),
-                    frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind)
-    dtype = prob.sim.dtype
-    step_fn = _make_step(prob, opt, optimizer)
+        warnings.warn(msg, stacklevel=3)
+    return prob, notes
 
-    if resume:
-        from fitting import io as _io
-        loop = _io.load_checkpoint(checkpoint_path, prob, opt, settings)
-    else:
-        th0 = jnp.asarray(prob.theta0, dtype)
-        loop = LoopState(theta=np.asarray(th0), opt_state=jax.jit(opt.init)(th0))
-        loop.best_theta = np.asarray(th0)
-    est = jaxplush.estimate_stable_dt(prob.sim, prob.sim.params(prob.params_at(loop.theta))) if check_dt else None
-    if est is not None and prob.target.dt > est.dt_max:
-        msg = (f"dt = {prob.target.dt:g} s exceeds the estimated stability limit {est.dt_max:.3g} s at the start "
-               "values; expect rejected steps")
-        warnings.warn(msg, stacklevel=2)
-        notes.append(msg)
 
-    def save(state, status="running"):
-        if checkpoint_path is not None:
+def _common_settings(prob, opts, kind, iterations, lr):
+    """The settings every fit records (and a resume must match; :mod:`fitting.io`)."""
+    return dict(optimizer=kind, lr=lr, iterations=int(iterations), names=list(prob.names),
+                objects=[prob.scene.object_names[o] for o in prob.objects], dt=prob.target.dt,
+                noise_free=bool(opts.noise_free), noise=-1.0 if prob.noise is None else float(prob.noise),
+                method=opts.method)
+
+
+#: Depth from :class:`_GradientFit`'s methods to the caller of :func:`fit`, for warnings.
+_LOOP_STACKLEVEL = {"warn_dt": 4, "grow_contact_capacity": 6}
+
+
+class _GradientFit:
+    """The gradient optimisers' loop ("adam", "lbfgs" or a user's optax transformation) on
+    log-parameters: a step whose rollout blows up is rejected and the step halved (:func:`_iterate`);
+    a contact-candidate overflow grows the capacity and evaluates the point again; checkpoints,
+    Ctrl-C saves, callbacks and the progress bar; then :func:`_finish`."""
+
+    def __init__(self, prob, optimizer, opts, notes, *, progress, callback):
+        self.kind = optimizer_kind(optimizer)
+        self.iterations = _iterations(opts, self.kind)
+        self.opt = optimizer if self.kind == "optax" else make_optimizer(self.kind, opts.lr, self.iterations)
+        self.prob, self.opts, self.notes = prob, opts, notes
+        self.progress, self.callback = progress, callback
+        shape = jax.eval_shape(self.opt.init, jax.ShapeDtypeStruct(np.shape(prob.theta0), prob.sim.dtype))
+        self.linesearch = uses_linesearch(shape)
+        self.settings = _common_settings(prob, opts, self.kind, self.iterations, opts.lr)
+        self.settings.update(gtol=opts.gtol, rtol=opts.rtol, xtol=opts.xtol, ftol=opts.ftol,
+                             patience=int(opts.patience), frame_steps=list(prob.loss.frame_steps),
+                             target_kind=prob.target.kind)
+        if self.kind == "optax":     # what a resume can check of a user's transformation: its state's structure
+            self.settings["optax_state"] = str(jax.tree_util.tree_structure(shape))
+        self.step_fn = _make_step(prob, self.opt, self.linesearch)
+        self.bar = None
+        self.consistent = None      # the last loop state that is not half-way through an iteration
+
+    def run(self, t_start):
+        """The whole fit: the loop (from a checkpoint with ``resume``), its result, FIT.h5."""
+        loop = self.initial_loop()
+        self.warn_dt(loop)
+        wall_before = loop.wall
+        self.bar = Progress(self.iterations, "fit", enabled=self.progress, unit="it")
+        self.bar.done = min(loop.iteration, self.iterations)
+        t_loop = time.perf_counter() - loop.wall
+        loop = self.loop(loop, t_loop)
+        if not loop.done:
+            loop.reason = f"reached the iteration limit ({self.iterations})"
+        loop.wall = time.perf_counter() - t_loop
+        try:
+            result = _finish(self.prob, loop, self.settings, self.notes, self.opts.identifiability,
+                             time.perf_counter() - t_start + wall_before)
+        except KeyboardInterrupt:
+            # Ctrl-C during the health check or the identifiability report (JVPs through the rollout,
+            # not short): the loop has finished, so save it; --resume goes straight to this step
+            self.save(loop, "interrupted")
+            raise
+        if self.opts.checkpoint.path is not None:
             from fitting import io as _io
-            _io.save_checkpoint(checkpoint_path, prob, state, settings, status=status)
+            _io.save_fit(result, self.opts.checkpoint.path)
+        return result
 
-    def grow_contact_capacity(theta):
+    def initial_loop(self):
+        """The :class:`LoopState` to start from: the checkpoint's (resume), or the start values."""
+        if self.opts.checkpoint.resume:
+            from fitting import io as _io
+            return _io.load_checkpoint(self.opts.checkpoint.path, self.prob, self.opt, self.settings)
+        th0 = jnp.asarray(self.prob.theta0, self.prob.sim.dtype)
+        loop = LoopState(theta=np.asarray(th0), opt_state=jax.jit(self.opt.init)(th0))
+        loop.best_theta = np.asarray(th0)
+        return loop
+
+    def warn_dt(self, loop):
+        """Warn (and note) when dt exceeds the estimated stability limit at the loop's point."""
+        prob = self.prob
+        if not self.opts.check_dt:
+            return
+        est = jaxplush.estimate_stable_dt(prob.sim, prob.sim.params(prob.params_at(loop.theta)))
+        if est is not None and prob.target.dt > est.dt_max:
+            msg = (f"dt = {prob.target.dt:g} s exceeds the estimated stability limit {est.dt_max:.3g} s at the "
+                   "start values; expect rejected steps")
+            warnings.warn(msg, stacklevel=_LOOP_STACKLEVEL["warn_dt"])
+            self.notes.append(msg)
+
+    def loop(self, loop, t_loop):
+        """Iterate to the limit or a stop; Ctrl-C saves the last consistent state and re-raises."""
+        last_saved = loop.iteration
+        self.consistent = loop
+        every = self.opts.checkpoint.every
+        try:
+            with self.bar:
+                while not loop.done and loop.iteration < self.iterations:
+                    loop, again = self.attempt(loop)
+                    if again:
+                        continue
+                    loop.wall = time.perf_counter() - t_loop
+                    self.report(loop)
+                    if every and loop.iteration - last_saved >= int(every) and not loop.done:
+                        self.save(loop)
+                        last_saved = loop.iteration
+                self.bar.finish(loop.reason if loop.done else "iteration limit")
+        except KeyboardInterrupt:
+            # Ctrl-C may land anywhere, also inside an iteration: save the last consistent state
+            self.consistent.wall = time.perf_counter() - t_loop
+            self.save(self.consistent, "interrupted")
+            raise
+        return loop
+
+    def attempt(self, loop):
+        """One :func:`_iterate`. Returns (the loop state to go on from, whether the point is to be
+        evaluated again because the contact capacity was grown)."""
+        before = loop.snapshot()
+        self.consistent = before
+        try:
+            _iterate(self.prob, self.opt, self.linesearch, self.step_fn, loop, self.opts)
+        except FitError:
+            if not self.grow_contact_capacity(before.theta):
+                raise
+            return before, True             # evaluate the same point again, with room for contact
+        if loop.h_rejected and loop.h_rejected[-1] == before.iteration \
+                and self.grow_contact_capacity(before.theta):
+            return before, True
+        self.consistent = loop
+        return loop, False
+
+    def report(self, loop):
+        """The progress bar and the callback after an iteration (a True return stops the fit)."""
+        if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
+            vals = self.prob.values(loop.h_theta[-1])
+            self.bar.update(1, extra=_progress_text(loop.h_loss[-1], vals))
+            if self.callback is not None:
+                stop = self.callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1], values=vals,
+                                          grad_norm=loop.h_gnorm[-1]))
+                if stop is True and not loop.done:
+                    loop.done, loop.reason = True, "stopped by the callback"
+        else:
+            self.bar.update(1, extra="step rejected (rollout blew up); halving the step")
+
+    def save(self, state, status="running"):
+        if self.opts.checkpoint.path is not None:
+            from fitting import io as _io
+            _io.save_checkpoint(self.opts.checkpoint.path, self.prob, state, self.settings, status=status)
+
+    def grow_contact_capacity(self, theta):
         """After a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
         loss is NaN: :func:`fitting.gradients.rollout_loss`), rebuild the problem with a capacity
         that fits (warning) and return True."""
-        nonlocal prob, step_fn
+        prob = self.prob
         if prob.sim.terms.contact is None:
             return False
         from jaxplush import contact
@@ -587,71 +735,14 @@ def fit(scene, target, params=None, objects=None, *, iterations=None,
             # the fresh search of every step did: grow past the current capacity all the same
             need = contact.grown_capacity(old + 1)
         sim = jaxplush.make_simulator(prob.scene, prob.target.dt, terms=contact.with_capacity(prob.sim.terms, need))
-        prob = dataclasses.replace(prob, sim=sim)
-        step_fn = _make_step(prob, opt, optimizer)
+        self.prob = prob = dataclasses.replace(prob, sim=sim)
+        self.step_fn = _make_step(prob, self.opt, self.linesearch)
         msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "
                f"refitting with contact_capacity {need} (set it in the scene to skip this)")
-        warnings.warn(msg, stacklevel=3)
-        notes.append(msg)
-        bar.update(0, extra=f"contact capacity raised to {need}; recompiling")
+        warnings.warn(msg, stacklevel=_LOOP_STACKLEVEL["grow_contact_capacity"])
+        self.notes.append(msg)
+        self.bar.update(0, extra=f"contact capacity raised to {need}; recompiling")
         return True
-
-    last_saved = loop.iteration
-    wall_before = loop.wall
-    bar = Progress(int(iterations), "fit", enabled=progress, unit="it")
-    bar.done = min(loop.iteration, int(iterations))
-    t_loop = time.perf_counter() - loop.wall
-    consistent = loop      # the last loop state that is not half-way through an iteration
-    try:
-        with bar:
-            while not loop.done and loop.iteration < int(iterations):
-                consistent = loop.snapshot()
-                try:
-                    _iterate(prob, opt, optimizer, step_fn, loop, gtol, rtol, xtol, ftol, int(patience))
-                except FitError:
-                    if not grow_contact_capacity(consistent.theta):
-                        raise
-                    loop = consistent            # evaluate the same point again, with room for contact
-                    continue
-                if loop.h_rejected and loop.h_rejected[-1] == consistent.iteration \
-                        and grow_contact_capacity(consistent.theta):
-                    loop = consistent
-                    continue
-                consistent = loop
-                loop.wall = time.perf_counter() - t_loop
-                if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
-                    vals = prob.values(loop.h_theta[-1])
-                    bar.update(1, extra=_progress_text(loop.h_loss[-1], vals))
-                    if callback is not None:
-                        stop = callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1], values=vals,
-                                             grad_norm=loop.h_gnorm[-1]))
-                        if stop is True and not loop.done:
-                            loop.done, loop.reason = True, "stopped by the callback"
-                else:
-                    bar.update(1, extra="step rejected (rollout blew up); halving the step")
-                if checkpoint_every and loop.iteration - last_saved >= int(checkpoint_every) and not loop.done:
-                    save(loop)
-                    last_saved = loop.iteration
-            bar.finish(loop.reason if loop.done else "iteration limit")
-    except KeyboardInterrupt:
-        # Ctrl-C may land anywhere, also inside an iteration: save the last consistent state
-        consistent.wall = time.perf_counter() - t_loop
-        save(consistent, "interrupted")
-        raise
-    if not loop.done:
-        loop.reason = f"reached the iteration limit ({int(iterations)})"
-    loop.wall = time.perf_counter() - t_loop
-    try:
-        result = _finish(prob, loop, settings, notes, identifiability, time.perf_counter() - t_start + wall_before)
-    except KeyboardInterrupt:
-        # Ctrl-C during the health check or the identifiability report (JVPs through the rollout,
-        # not short): the loop has finished, so save it; --resume goes straight to this step
-        save(loop, "interrupted")
-        raise
-    if checkpoint_path is not None:
-        from fitting import io as _io
-        _io.save_fit(result, checkpoint_path)
-    return result
 
 
 def _progress_text(loss, vals):
@@ -663,27 +754,45 @@ def _values_text(vals):
                     for n, v in vals.items())
 
 
-def _make_step(prob, opt, optimizer):
-    """The jitted update: (theta, opt_state) -> (loss, grad, updates, new_opt_state) at theta."""
+_LINESEARCH_STATES = (optax.ScaleByZoomLinesearchState, optax.ScaleByBacktrackingLinesearchState)
+
+
+def _linesearch_states(state):
+    """The line-search states (optax's zoom and backtracking line searches) inside an optimiser state."""
+    nodes = jax.tree_util.tree_leaves(state, is_leaf=lambda s: isinstance(s, _LINESEARCH_STATES))
+    return [s for s in nodes if isinstance(s, _LINESEARCH_STATES)]
+
+
+def uses_linesearch(state):
+    """Whether an optax state (or its ``jax.eval_shape``) holds a line search, as L-BFGS's does:
+    such an optimiser chooses its own step, which the loop then never rescales."""
+    return bool(_linesearch_states(state))
+
+
+def _make_step(prob, opt, linesearch):
+    """The jitted update: (theta, opt_state) -> (loss, grad, updates, new_opt_state) at theta.
+
+    A line search that stores the loss and gradient at its accepted point (L-BFGS's zoom line
+    search) has them read back from its state (``optax.value_and_grad_from_state``) rather than
+    recomputed. A ``GradientTransformationExtraArgs`` gets ``value``, ``grad`` and ``value_fn``
+    with the update (transformations that need none ignore them)."""
     loss_fn = prob.loss_fn
-    if optimizer == "lbfgs":
-        vg = optax.value_and_grad_from_state(loss_fn)
+    extra = isinstance(opt, optax.GradientTransformationExtraArgs)
+    from_state = linesearch and all(s.grad is not None for s in _linesearch_states(
+        jax.eval_shape(opt.init, jax.ShapeDtypeStruct(np.shape(prob.theta0), prob.sim.dtype))))
+    vg = optax.value_and_grad_from_state(loss_fn) if from_state else jax.value_and_grad(loss_fn)
 
-        def step(theta, state):
-            loss, g = vg(theta, state=state)
+    def step(theta, state):
+        loss, g = vg(theta, state=state) if from_state else vg(theta)
+        if extra:
             updates, new_state = opt.update(g, state, theta, value=loss, grad=g, value_fn=loss_fn)
-            return loss, g, updates, new_state
-    else:
-        vg = jax.value_and_grad(loss_fn)
-
-        def step(theta, state):
-            loss, g = vg(theta)
+        else:
             updates, new_state = opt.update(g, state, theta)
-            return loss, g, updates, new_state
+        return loss, g, updates, new_state
     return jax.jit(step)
 
 
-def _iterate(prob, opt, optimizer, step_fn, loop, gtol, rtol, xtol, ftol, patience):
+def _iterate(prob, opt, linesearch, step_fn, loop, opts):
     """One evaluation at loop.theta: accept and step, or reject and halve the step."""
     dtype = prob.sim.dtype
     t0 = time.perf_counter()
@@ -697,19 +806,7 @@ def _iterate(prob, opt, optimizer, step_fn, loop, gtol, rtol, xtol, ftol, patien
     it = loop.iteration
     loop.iteration += 1
     if not ok:
-        loop.rejected += 1
-        loop.rejected_in_row += 1
-        loop.h_rejected.append(it)
-        if loop.anchor is None:
-            raise FitError("the rollout blows up (non-finite loss or gradient, or an object turned inside out) "
-                           "at the start values; start closer to a stable setting or use a smaller dt")
-        if loop.rejected_in_row > MAX_REJECTIONS:
-            raise FitError(f"{loop.rejected_in_row} steps in a row blew up the rollout; the last good values were "
-                           + _progress_text(loop.best_loss, prob.values(loop.anchor)))
-        loop.scale *= 0.5
-        loop.theta = loop.anchor + 0.5 * (loop.theta - loop.anchor)
-        if optimizer == "lbfgs":  # its memory holds the rejected pair: start it afresh there
-            loop.opt_state = jax.jit(opt.init)(jnp.asarray(loop.theta, dtype))
+        _reject(prob, opt, linesearch, loop, it)
         return
     loop.rejected_in_row = 0
     gnorm = float(np.max(np.abs(g)))
@@ -721,26 +818,50 @@ def _iterate(prob, opt, optimizer, step_fn, loop, gtol, rtol, xtol, ftol, patien
     loop.h_time.append(loop.wall + time.perf_counter() - t0)
     if loss < loop.best_loss:
         loop.best_loss, loop.best_theta = loss, np.asarray(loop.theta)
-    # L-BFGS's line search already chose the step (and stored the loss there): never rescale it
-    step = np.asarray(updates) if optimizer == "lbfgs" else loop.scale * np.asarray(updates)
-    # convergence (on accepted points)
-    if prev is not None and abs(prev - loss) <= rtol * max(abs(loss), 1e-300):
-        loop.stall += 1
-    else:
-        loop.stall = 0
-    if loss <= ftol:
-        loop.done, loop.reason = True, f"converged: loss {loss:.3g} <= ftol {ftol:g}"
-    elif gnorm <= gtol:
-        loop.done, loop.reason = True, f"converged: gradient max-norm {gnorm:.3g} <= gtol {gtol:g}"
-    elif loop.stall >= patience:
-        loop.done, loop.reason = True, f"converged: relative loss change <= rtol {rtol:g} for {patience} iterations"
-    elif float(np.max(np.abs(step))) <= xtol:
-        loop.done, loop.reason = True, f"converged: step {float(np.max(np.abs(step))):.3g} <= xtol {xtol:g} (log space)"
+    # a line search (L-BFGS's) already chose the step (and stored the loss there): never rescale it
+    step = np.asarray(updates) if linesearch else loop.scale * np.asarray(updates)
+    _check_convergence(loop, loss, prev, gnorm, step, opts)
     if loop.done:
         return
     loop.anchor = np.asarray(loop.theta)
     loop.theta = (np.asarray(loop.theta, dtype) + step.astype(dtype)).astype(dtype)
     loop.opt_state = new_state
+
+
+def _reject(prob, opt, linesearch, loop, it):
+    """A blown-up evaluation (iteration ``it``): halve the step back toward the last accepted point,
+    or raise :class:`FitError` at the start or after too many rejections in a row."""
+    loop.rejected += 1
+    loop.rejected_in_row += 1
+    loop.h_rejected.append(it)
+    if loop.anchor is None:
+        raise FitError("the rollout blows up (non-finite loss or gradient, or an object turned inside out) "
+                       "at the start values; start closer to a stable setting or use a smaller dt")
+    if loop.rejected_in_row > MAX_REJECTIONS:
+        raise FitError(f"{loop.rejected_in_row} steps in a row blew up the rollout; the last good values were "
+                       + _progress_text(loop.best_loss, prob.values(loop.anchor)))
+    loop.scale *= 0.5
+    loop.theta = loop.anchor + 0.5 * (loop.theta - loop.anchor)
+    if linesearch:  # its memory holds the rejected pair: start it afresh there
+        loop.opt_state = jax.jit(opt.init)(jnp.asarray(loop.theta, prob.sim.dtype))
+
+
+def _check_convergence(loop, loss, prev, gnorm, step, opts):
+    """Set ``loop.done`` and its reason when an accepted point meets a criterion of ``opts``."""
+    rtol, patience = opts.rtol, int(opts.patience)
+    if prev is not None and abs(prev - loss) <= rtol * max(abs(loss), 1e-300):
+        loop.stall += 1
+    else:
+        loop.stall = 0
+    if loss <= opts.ftol:
+        loop.done, loop.reason = True, f"converged: loss {loss:.3g} <= ftol {opts.ftol:g}"
+    elif gnorm <= opts.gtol:
+        loop.done, loop.reason = True, f"converged: gradient max-norm {gnorm:.3g} <= gtol {opts.gtol:g}"
+    elif loop.stall >= patience:
+        loop.done, loop.reason = True, f"converged: relative loss change <= rtol {rtol:g} for {patience} iterations"
+    elif float(np.max(np.abs(step))) <= opts.xtol:
+        loop.done, loop.reason = True, (f"converged: step {float(np.max(np.abs(step))):.3g} <= xtol {opts.xtol:g} "
+                                        "(log space)")
 
 
 def _finish(prob, loop, settings, notes, want_ident, wall):
@@ -762,13 +883,13 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
         t, o = (int(a[0]) for a in np.nonzero(codes == diagnostics.VOLUME_CLAMPED))
         msg = (f"object {prob.scene.object_names[o]!r}: {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
                f"at step {prob.loss.frame_steps[t]} of the fitted rollout")
-        warnings.warn(msg, stacklevel=3)
+        warnings.warn(msg, stacklevel=4)
         notes.append(msg)
     report = None
     if want_ident:
         report = _report(prob, frames, jac)
         for w in report.warnings:
-            warnings.warn(w, stacklevel=3)
+            warnings.warn(w, stacklevel=4)
     vals = prob.values(best)
     full = {n: np.array(getattr(prob.base, n), np.float64) for n in PARAM_NAMES}
     for n in prob.names:
@@ -781,7 +902,7 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
         hist[n] = np.exp(th[:, i])
     out = _judge_loop(prob, loop)
     if not out.converged:
-        warnings.warn(out.text, stacklevel=3)
+        warnings.warn(out.text, stacklevel=4)
         notes.append(out.text)
     return FitResult(
         params=Params(**full), names=prob.names, objects=tuple(prob.scene.object_names[o] for o in prob.objects),
@@ -871,10 +992,25 @@ def _lm_box(prob, bounds):
     return box
 
 
-def _fit_lm(prob, box, settings, notes, t_start, *, progress, callback, checkpoint_path, resume, want_ident):
+def _lm_settings(prob, opts, box):
+    """The default fit's settings (:func:`_common_settings`, its box and global design)."""
+    from fitting import lmfit
+    s = opts.search
+    settings = _common_settings(prob, opts, "lm", _iterations(opts, "lm"), None)
+    settings.update(frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind,
+                    box_lo=box.lo.ravel().tolist(), box_hi=box.hi.ravel().tolist(),
+                    samples=int(lmfit.GLOBAL_SAMPLES if s.samples is None else s.samples),
+                    starts=int(lmfit.STARTS if s.starts is None else s.starts), seed=int(s.seed))
+    return settings
+
+
+def _fit_lm(prob, opts, notes, t_start, *, progress, callback):
     """The default fit (fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome."""
     from fitting import io as _io, lmfit
-    prior = _io.load_lm_checkpoint(checkpoint_path, prob, settings) if resume else None
+    box = _lm_box(prob, opts.search.bounds)
+    settings = _lm_settings(prob, opts, box)
+    checkpoint_path, want_ident = opts.checkpoint.path, opts.identifiability
+    prior = _io.load_lm_checkpoint(checkpoint_path, prob, settings) if opts.checkpoint.resume else None
     last = [prior]
 
     def save(run, status="running"):

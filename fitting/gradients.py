@@ -240,6 +240,9 @@ def _make_force_vjp(topo, terms, temperature):
     def gather(a):
         return a.at[ring].get(mode="promise_in_bounds")
 
+    def masked(a):
+        return a if all_real else jnp.where(mask, a, 0.0)
+
     def force_vjp(params, x, u, lam):
         dtype = x.dtype
         rest = jnp.asarray(ring_rest, dtype)
@@ -248,9 +251,7 @@ def _make_force_vjp(topo, terms, temperature):
         inv_l = jax.lax.rsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + topo.length_eps ** 2)
         s = 1.0 - rest * inv_l
         t = d[0] * dl[0] + d[1] * dl[1] + d[2] * dl[2]
-        if not all_real:
-            t = jnp.where(mask, t, 0.0)
-            s = jnp.where(mask, s, 0.0)
+        t, s = masked(t), masked(s)
         k = model.per_vertex(topo, params.k_structural)
         w = k * s                                                        # spring tension / l
         coef = k * rest * inv_l * inv_l * inv_l                          # of t d
@@ -261,33 +262,15 @@ def _make_force_vjp(topo, terms, temperature):
         ju = jnp.zeros_like(x)
         extra = None
         if terms.dashpot:
-            dv = [gather(u[c]) - u[c] for c in range(3)]
-            inv_l2 = inv_l * inv_l
-            q = (dv[0] * d[0] + dv[1] * d[1] + dv[2] * d[2]) * inv_l2
-            if not all_real:
-                q = jnp.where(mask, q, 0.0)
-            c = model.per_vertex(topo, params.dashpot)
-            w = w + c * q
-            coef = coef - 2.0 * c * q * inv_l2
-            ct = c * inv_l2 * t
-            ju = jnp.stack([_ring_sum(ct * d[i]) for i in range(3)])
-            extra = [ct * dv[i] for i in range(3)]
-            dens_c = -0.5 * _ring_sum(q * t)
+            cq, coef_c, ju, extra, dens_c = _dashpot_vjp(topo, params, [gather(u[c]) - u[c] for c in range(3)],
+                                                         d, inv_l, t, masked)
+            w = w + cq
+            coef = coef - coef_c
         ctt = coef * t
         jx = jnp.stack([_ring_sum(w * dl[i] + ctt * d[i] + (extra[i] if extra else 0.0)) for i in range(3)])
         if terms.gas:
-            g = jnp.stack(_fan(d, d)) / 6.0
-            h = jnp.stack([a + b for a, b in zip(_fan(dl, d), _fan(d, dl))]) / 6.0
-            volume = _object_volumes(topo, x, g)
-            v_clamp = VOLUME_EPS * jnp.asarray(topo.rest_volume, dtype)
-            v_safe = jnp.maximum(volume, v_clamp)
-            p = params.nmol * rt / v_safe
-            # dP/dV, 0 on the clamp (and halved at a tie, as jnp.maximum's derivative)
-            dp = jnp.where(volume > v_clamp, -p / v_safe, jnp.where(volume == v_clamp, -0.5 * p / v_safe, 0.0))
-            g_lam = model.per_object_sum(topo, jnp.sum(g * lam, axis=0))  # dV.lam per object
-            jx = jx + model.per_vertex(topo, p) * h + model.per_vertex(topo, dp * g_lam) * g
-            n_bar = g_lam * rt / v_safe
-            f_gas = p * g_lam
+            jx_p, jx_dp, n_bar, f_gas = _gas_vjp(topo, params, x, lam, d, dl, rt)
+            jx = jx + jx_p + jx_dp
         p_extra = None
         if contact_force is not None:
             # soft-soft contact (jaxplush.contact, -grad of a penalty energy on candidate lists):
@@ -299,6 +282,35 @@ def _make_force_vjp(topo, terms, temperature):
         return jx, ju, _Dens(dens_k, dens_c, None, None, n_bar, f_gas, p_extra)
 
     return force_vjp
+
+
+def _dashpot_vjp(topo, params, dv, d, inv_l, t, masked):
+    """The dashpot's share of :func:`_make_force_vjp` for ring velocity differences ``dv``: (its
+    term c q of the tension, its term 2 c q / l² of the t d coefficient, J_u^T lam, its extra
+    J_x^T lam rows c t dv / l², its cotangent density)."""
+    inv_l2 = inv_l * inv_l
+    q = masked((dv[0] * d[0] + dv[1] * d[1] + dv[2] * d[2]) * inv_l2)
+    c = model.per_vertex(topo, params.dashpot)
+    ct = c * inv_l2 * t
+    ju = jnp.stack([_ring_sum(ct * d[i]) for i in range(3)])
+    extra = [ct * dv[i] for i in range(3)]
+    return c * q, 2.0 * c * q * inv_l2, ju, extra, -0.5 * _ring_sum(q * t)
+
+
+def _gas_vjp(topo, params, x, lam, d, dl, rt):
+    """The gas's share of :func:`_make_force_vjp`: J_x^T lam as its two terms P H_V lam and
+    P'(V) (g.lam) g, the nmol cotangent and the gas's share of sum F.lam per object."""
+    g = jnp.stack(_fan(d, d)) / 6.0
+    h = jnp.stack([a + b for a, b in zip(_fan(dl, d), _fan(d, dl))]) / 6.0
+    volume = _object_volumes(topo, x, g)
+    v_clamp = VOLUME_EPS * jnp.asarray(topo.rest_volume, x.dtype)
+    v_safe = jnp.maximum(volume, v_clamp)
+    p = params.nmol * rt / v_safe
+    # dP/dV, 0 on the clamp (and halved at a tie, as jnp.maximum's derivative)
+    dp = jnp.where(volume > v_clamp, -p / v_safe, jnp.where(volume == v_clamp, -0.5 * p / v_safe, 0.0))
+    g_lam = model.per_object_sum(topo, jnp.sum(g * lam, axis=0))  # dV.lam per object
+    return (model.per_vertex(topo, p) * h, model.per_vertex(topo, dp * g_lam) * g, g_lam * rt / v_safe,
+            p * g_lam)
 
 
 def _object_volumes(topo, x, g):
@@ -446,54 +458,74 @@ def _split(tree):
 def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
     """The custom-VJP loss ``f(params, x0, u0, aux, consts)`` for one static configuration.
 
-    Forward: one scan over the frames, each running the steps up to its frame in a loop with
-    (static-table) dynamic bounds, so no step is wrapped in a per-step ``cond``; with gradients
-    it also evaluates each frame loss's own VJP there (the cotangents of its position, aux slice
-    and closed-over constants, to be scaled by the output cotangent), and records the states
-    (every one, or one checkpoint per segment) into preallocated buffers. Backward: segments in
-    reverse, each a loop of fused step VJPs that adds a frame's position cotangent where one
-    lies and accumulates per-vertex parameter densities, reduced once at the end. With ``check``
-    (:func:`_overflow_check`) the forward's loss is NaN where a step's contact candidates
-    overflowed (the gradient is left as computed).
+    Forward (:func:`_adjoint_forward`): one scan over the frames, each running the steps up to
+    its frame in a loop with (static-table) dynamic bounds, so no step is wrapped in a per-step
+    ``cond``; with gradients it also evaluates each frame loss's own VJP there (the cotangents of
+    its position, aux slice and closed-over constants, to be scaled by the output cotangent), and
+    records the states (every one, or one checkpoint per segment) into preallocated buffers.
+    Backward (:func:`_adjoint_backward`): segments in reverse, each a loop of fused step VJPs that
+    adds a frame's position cotangent where one lies and accumulates per-vertex parameter
+    densities, reduced once at the end. With ``check`` (:func:`_overflow_check`) the forward's
+    loss is NaN where a step's contact candidates overflowed (the gradient is left as computed).
     """
-    step_vjp = _make_step_dens_vjp(sim)
-    topo = sim.topology
-    n_steps, seg, n_seg = plan.n_steps, plan.seg, plan.n_seg
+    forward = _adjoint_forward(sim, plan, steps, loss_fn, check)
+
+    @jax.custom_vjp
+    def f(params, x0, u0, aux, consts):
+        return forward(params, x0, u0, aux, consts, grads=False)[0]
+
+    def fwd(params, x0, u0, aux, consts):
+        loss, s_end, bufs, (gx, ga), gc = forward(params, x0, u0, aux, consts, grads=True)
+        return loss, (params, s_end, bufs, gx, ga, gc, aux, consts)
+
+    f.defvjp(fwd, _adjoint_backward(sim, plan, table))
+    return f
+
+
+def _recorder(plan):
+    """``record(bufs, n, s)``: keep state ``n`` (every one, or the first of each segment, the
+    others into a scratch slot) in the (positions, velocities or None) buffers."""
+    seg, n_seg = plan.seg, plan.n_seg
+
+    def record(bufs, n, s):
+        if plan.store:
+            i = n
+        else:
+            i = jnp.where(n % seg == 0, n // seg, n_seg)
+        xs, us = bufs
+        xs = jax.lax.dynamic_update_index_in_dim(xs, s.x, i, 0)
+        if plan.keep_u:
+            us = jax.lax.dynamic_update_index_in_dim(us, s.v, i, 0)
+        return xs, us
+
+    return record
+
+
+def _state_buffers(plan, shape, dtype):
+    """Zeroed (positions, velocities or None) buffers for :func:`_recorder`: every state, or one
+    checkpoint per segment and a scratch slot."""
+    n_buf = plan.n_steps + 1 if plan.store else plan.n_seg + 1
+    return jnp.zeros((n_buf,) + shape, dtype), jnp.zeros((n_buf,) + shape, dtype) if plan.keep_u else None
+
+
+def _adjoint_forward(sim, plan, steps, loss_fn, check):
+    """``forward(params, x0, u0, aux, consts, grads) -> (loss, final state, state buffers, per-frame
+    (position, aux) loss cotangents, the constants' cotangents)`` of :func:`_adjoint_fn` (without
+    ``grads``: the loss and the final state only)."""
     n_frames = len(steps)
     hi = np.asarray(steps, np.int32)
     lo = np.concatenate([[0], hi[:-1]]).astype(np.int32)
-    table_np = np.asarray(table, np.int32)                  # (n_steps + 1,) frame index or -1
+    record = _recorder(plan)
 
     def frame_loss(x, aux, consts, j):
         return loss_fn(x.T, _take(aux, j), *consts)
 
     def forward(params, x0, u0, aux, consts, grads):
         dtype = x0.dtype
-        shape = x0.shape
-        keep_u = plan.keep_u
         if grads:
             aux_d, aux_rebuild, _ = _split(aux)
             con_d, con_rebuild, _ = _split(consts)
-        if grads and plan.store:
-            n_buf = n_steps + 1
-        elif grads:
-            n_buf = n_seg + 1                           # one checkpoint per segment + a scratch slot
-        else:
-            n_buf = 0
-        bufs = (jnp.zeros((n_buf,) + shape, dtype), jnp.zeros((n_buf,) + shape, dtype) if keep_u else None) \
-            if grads else None
-
-        def record(bufs, n, s):
-            """Keep state ``n`` (every one, or the first of each segment) in the buffers."""
-            if plan.store:
-                i = n
-            else:
-                i = jnp.where(n % seg == 0, n // seg, n_seg)
-            xs, us = bufs
-            xs = jax.lax.dynamic_update_index_in_dim(xs, s.x, i, 0)
-            if keep_u:
-                us = jax.lax.dynamic_update_index_in_dim(us, s.v, i, 0)
-            return xs, us
+        bufs = _state_buffers(plan, x0.shape, dtype) if grads else None
 
         def one_step(n, carry):                         # step n: state n - 1 -> state n
             s, bufs, flag = carry
@@ -521,18 +553,20 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
         (s_end, bufs, loss, c_acc, flag), outs = jax.lax.scan(
             frame, (State(x0, u0), bufs, jnp.zeros((), dtype), c0, jnp.zeros((), bool)), jnp.arange(n_frames))
         if grads and plan.store:
-            bufs = record(bufs, n_steps, s_end)
+            bufs = record(bufs, plan.n_steps, s_end)
         if check is not None:
             loss = loss + _nan_if(flag, dtype)
         return loss, s_end, bufs, outs, c_acc
 
-    @jax.custom_vjp
-    def f(params, x0, u0, aux, consts):
-        return forward(params, x0, u0, aux, consts, grads=False)[0]
+    return forward
 
-    def fwd(params, x0, u0, aux, consts):
-        loss, s_end, bufs, (gx, ga), gc = forward(params, x0, u0, aux, consts, grads=True)
-        return loss, (params, s_end, bufs, gx, ga, gc, aux, consts)
+
+def _adjoint_backward(sim, plan, table):
+    """The backward pass ``bwd(res, g)`` of :func:`_adjoint_fn`: the steps reversed
+    (:func:`_reverse_steps`) over the stored states, or segment by segment from their checkpoints
+    (:func:`_reverse_segments`); the densities reduced to a Params cotangent at the end."""
+    step_vjp = _make_step_dens_vjp(sim)
+    table_np = np.asarray(table, np.int32)                  # (n_steps + 1,) frame index or -1
 
     def bwd(res, g):
         params, s_end, (xs, us), gx, ga, gc, aux, consts = res
@@ -547,73 +581,94 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
             hit = (j >= 0).astype(dtype)
             return x_bar + hit * jax.lax.dynamic_index_in_dim(gx, jnp.maximum(j, 0), keepdims=False)
 
-        def reverse(carry, states, first, last):
-            """Reverse steps last, ..., first + 1, with ``states(n)`` -> (x_n, u_n) for
-            first <= n <= last. The state a step's VJP needs is read one iteration ahead into the
-            carry: XLA then gathers from a loop buffer rather than fusing a dynamic slice of the
-            stored trajectory into every gather (faster; see benchmarks/RESULTS.md)."""
-            x_bar, u_bar, dens = carry
-
-            def body(i, inner):
-                (x_bar, u_bar, dens), x_next, x, u = inner
-                n = last - i                              # reverses step n: state n - 1 -> state n
-                x_bar = add_frame(x_bar, n)
-                x_bar, u_bar, d = step_vjp(params, x, u, x_next, x_bar, u_bar)
-                dens = jax.tree_util.tree_map(jnp.add, dens, d)
-                return ((x_bar, u_bar, dens), x) + states(jnp.maximum(n - 2, first))
-
-            init = ((x_bar, u_bar, dens), states(last)[0]) + states(last - 1)
-            out = jax.lax.fori_loop(0, last - first, body, init)
-            return out[0]
-
+        reverse = _reverse_steps(step_vjp, params, add_frame)
         zeros = jnp.zeros_like(s_end.x)
-        terms = sim.terms
-        per_v = jnp.zeros((topo.n_vertices,), dtype)
-        per_o = jnp.zeros((topo.n_objects,), dtype)
-        dens0 = _Dens(per_v, per_v if terms.dashpot else None, per_v if terms.verlet_damping else None,
-                      per_v if terms.drag else None, per_o, per_o,
-                      jax.tree_util.tree_map(jnp.zeros_like, params) if terms.contact else None)
-        carry = (zeros, zeros, dens0)
-
-        def read(buf_x, buf_u, i):
-            x = jax.lax.dynamic_index_in_dim(buf_x, i, keepdims=False)
-            u = jax.lax.dynamic_index_in_dim(buf_u, i, keepdims=False) if plan.keep_u else x
-            return x, u
-
+        carry = (zeros, zeros, _zero_dens(sim, params, dtype))
         if plan.store:
-            carry = reverse(carry, lambda n: read(xs, us, n), 0, n_steps)
+            carry = reverse(carry, lambda n: _read_state(plan, xs, us, n), 0, plan.n_steps)
         else:
-            def recompute(k):
-                """States first, ..., last of segment k, from its checkpoint, in (seg + 1) buffers."""
-                first = k * seg
-                last = jnp.minimum(first + seg, n_steps)
-                s0 = State(*read(xs, us, k))
-                bx = jnp.zeros((seg + 1,) + zeros.shape, dtype).at[0].set(s0.x)
-                bu = jnp.zeros((seg + 1,) + zeros.shape, dtype).at[0].set(s0.v) if plan.keep_u else None
-
-                def body(i, c):
-                    s, bx, bu = c
-                    s = sim.internal.step(params, s)
-                    bx = jax.lax.dynamic_update_index_in_dim(bx, s.x, i, 0)
-                    if plan.keep_u:
-                        bu = jax.lax.dynamic_update_index_in_dim(bu, s.v, i, 0)
-                    return s, bx, bu
-                _, bx, bu = jax.lax.fori_loop(1, last - first + 1, body, (s0, bx, bu))
-                return first, last, bx, bu
-
-            def back_segment(carry, k):
-                first, last, bx, bu = recompute(k)
-                return reverse(carry, lambda n: read(bx, bu, n - first), first, last), None
-
-            carry, _ = jax.lax.scan(back_segment, carry, jnp.arange(n_seg), reverse=True)
+            carry = _reverse_segments(sim, plan, params, reverse, carry, xs, us)
         x_bar, u_bar, dens = carry
         x_bar = add_frame(x_bar, 0)
-        p_bar = _reduce_dens(topo, params, dens)
+        p_bar = _reduce_dens(sim.topology, params, dens)
         g_ = g.astype(dtype)
         return (p_bar, x_bar, u_bar, aux_cot([a * g_ for a in ga]), con_cot([c * g_ for c in gc]))
 
-    f.defvjp(fwd, bwd)
-    return f
+    return bwd
+
+
+def _zero_dens(sim, params, dtype):
+    """Zero :class:`_Dens` accumulators for the terms the simulator has."""
+    topo, terms = sim.topology, sim.terms
+    per_v = jnp.zeros((topo.n_vertices,), dtype)
+    per_o = jnp.zeros((topo.n_objects,), dtype)
+    return _Dens(per_v, per_v if terms.dashpot else None, per_v if terms.verlet_damping else None,
+                 per_v if terms.drag else None, per_o, per_o,
+                 jax.tree_util.tree_map(jnp.zeros_like, params) if terms.contact else None)
+
+
+def _read_state(plan, buf_x, buf_u, i):
+    """State ``i`` of the buffers: (x, u), u = x as a placeholder where velocities are not kept."""
+    x = jax.lax.dynamic_index_in_dim(buf_x, i, keepdims=False)
+    u = jax.lax.dynamic_index_in_dim(buf_u, i, keepdims=False) if plan.keep_u else x
+    return x, u
+
+
+def _reverse_steps(step_vjp, params, add_frame):
+    """``reverse(carry, states, first, last)``: reverse steps last, ..., first + 1, with
+    ``states(n)`` -> (x_n, u_n) for first <= n <= last; carry (x_bar, u_bar, dens). The state a
+    step's VJP needs is read one iteration ahead into the carry: XLA then gathers from a loop
+    buffer rather than fusing a dynamic slice of the stored trajectory into every gather (faster;
+    see benchmarks/RESULTS.md)."""
+
+    def reverse(carry, states, first, last):
+        x_bar, u_bar, dens = carry
+
+        def body(i, inner):
+            (x_bar, u_bar, dens), x_next, x, u = inner
+            n = last - i                              # reverses step n: state n - 1 -> state n
+            x_bar = add_frame(x_bar, n)
+            x_bar, u_bar, d = step_vjp(params, x, u, x_next, x_bar, u_bar)
+            dens = jax.tree_util.tree_map(jnp.add, dens, d)
+            return ((x_bar, u_bar, dens), x) + states(jnp.maximum(n - 2, first))
+
+        init = ((x_bar, u_bar, dens), states(last)[0]) + states(last - 1)
+        out = jax.lax.fori_loop(0, last - first, body, init)
+        return out[0]
+
+    return reverse
+
+
+def _reverse_segments(sim, plan, params, reverse, carry, xs, us):
+    """The backward pass segment by segment, last first: each segment's states recomputed from
+    its checkpoint (in (seg + 1) buffers), then its steps reversed."""
+    seg, n_steps = plan.seg, plan.n_steps
+    shape, dtype = carry[0].shape, carry[0].dtype
+
+    def recompute(k):
+        """States first, ..., last of segment k, from its checkpoint, in (seg + 1) buffers."""
+        first = k * seg
+        last = jnp.minimum(first + seg, n_steps)
+        s0 = State(*_read_state(plan, xs, us, k))
+        bx = jnp.zeros((seg + 1,) + shape, dtype).at[0].set(s0.x)
+        bu = jnp.zeros((seg + 1,) + shape, dtype).at[0].set(s0.v) if plan.keep_u else None
+
+        def body(i, c):
+            s, bx, bu = c
+            s = sim.internal.step(params, s)
+            bx = jax.lax.dynamic_update_index_in_dim(bx, s.x, i, 0)
+            if plan.keep_u:
+                bu = jax.lax.dynamic_update_index_in_dim(bu, s.v, i, 0)
+            return s, bx, bu
+        _, bx, bu = jax.lax.fori_loop(1, last - first + 1, body, (s0, bx, bu))
+        return first, last, bx, bu
+
+    def back_segment(carry, k):
+        first, last, bx, bu = recompute(k)
+        return reverse(carry, lambda n: _read_state(plan, bx, bu, n - first), first, last), None
+
+    carry, _ = jax.lax.scan(back_segment, carry, jnp.arange(plan.n_seg), reverse=True)
+    return carry
 
 
 def _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget, check=None):

@@ -47,7 +47,7 @@ from jaxplush.types import PARAM_NAMES
 #: Settings that must agree between a checkpoint and the fit resuming it.
 _RESUME_KEYS = ("optimizer", "lr", "names", "objects", "dt", "noise_free", "noise", "method", "frame_steps",
                 "target_kind", "target_hash", "scene_hash", "params_hash", "dtype", "gtol", "rtol", "xtol", "ftol",
-                "patience")
+                "patience", "optax_state")
 #: ... and for Adam, whose cosine learning-rate schedule spans the iterations, also these.
 _RESUME_KEYS_ADAM = ("iterations",)
 #: ... and for the default fit, its search box and global design.

@@ -145,74 +145,102 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
     t0 = time.perf_counter()
     st = resume or LMRun(horizons=horizons(prob.target.n_frames))
     wall0, evals0 = st.wall, st.evaluations
-    th0 = np.asarray(prob.theta0, np.float64)
-    evaluators = {}
-
-    def evaluator(stage):
-        if stage not in evaluators:
-            sub = prob.truncated(st.horizons[stage])
-            calibration = next((e.calibration() for e in evaluators.values()), None)
-            if evaluators:              # a contact capacity grown in an earlier stage carries over
-                sub = dataclasses.replace(sub, sim=evaluators[max(evaluators)].prob.sim)
-            share = evaluators[min(evaluators)] if evaluators else None
-            # frames in chunks of the first horizon: every stage runs the same compiled rollout
-            evaluators[stage] = Evaluator(sub, calibration=calibration, share=share, chunk_frames=st.horizons[0])
-        return evaluators[stage]
+    evaluators = _Evaluators(prob, st.horizons)
 
     def tick():
         st.wall = wall0 + time.perf_counter() - t0
-        st.evaluations = evals0 + sum(e.evaluations for e in evaluators.values())
+        st.evaluations = evals0 + evaluators.evaluations()
 
     n_stages = len(st.horizons)
     while st.phase in ("global", "local"):
-        ev = evaluator(st.stage)
+        ev = evaluators(st.stage)
         label = f"stage {st.stage + 1}/{n_stages} ({st.horizons[st.stage]} of {st.horizons[-1]} frames)"
         if st.phase == "global":
-            with Progress(samples + 1, f"global search, {label}", enabled=progress, unit="points") as bar:
-                st.global_result = _search.global_stage(ev, box, th0, samples, seed, progress=bar.update)
-                g = st.global_result
-                bar.extra = f"best loss {np.min(np.where(g.ok, g.loss, np.inf)):.4g}"
-                bar.finish(f"{int((~g.ok).sum())} failed" if (~g.ok).any() else "")
-            width = float(np.max(box.hi - box.lo))
-            chosen = st.global_result.best(starts, 0.1 * width)
-            st.states = [_search.LMState(theta=st.global_result.thetas[i].copy(),
-                                         loss=float(st.global_result.loss[i])) for i in chosen]
-            st.phase = "local"
+            _global(prob, ev, box, st, samples, starts, seed, progress, label)
             tick()
             if save is not None:
                 save(st)
         _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, label)
         st.paths.append([(list(s.history), s.reason) for s in st.states])
         if st.stage + 1 < n_stages and not any(s.stopped == "callback" for s in st.states):
-            # the stage's best points start the next, longer stage
-            kept = []
-            best_loss = st.states[_order(st.states)[0]].loss
-            for i in _order(st.states)[:keep]:
-                s = st.states[i]
-                # searches that ended at the same point continue as one, and one that ended far
-                # above the best (in another basin) stops here: a longer horizon does not rescue it
-                if (math.isfinite(s.loss) and s.loss <= CARRY_FACTOR * best_loss
-                        and all(np.max(np.abs(s.theta - o.theta)) > SAME_POINT for o in kept)):
-                    kept.append(s)
-            # a longer horizon moves the optimum little: start with a small trust radius (and so
-            # an accurate difference step), from the damping the previous stage ended with
-            st.states = [_search.LMState(theta=s.theta.copy(), loss=math.inf, radius=NEXT_RADIUS,
-                                         mu=min(s.mu, 1.0)) for s in kept]
-            st.stage += 1
-            st.rounds = 0
-            st.phase = "local"
+            _next_stage(st, keep)
             tick()
             if save is not None:
                 save(st)
         else:
             st.phase = "final"
-    ev = evaluator(n_stages - 1)
-    ev.notes[:0] = [m for k, e in sorted(evaluators.items()) if k != n_stages - 1 for m in e.notes]
+    ev = evaluators.last()
     if st.phase == "final":
         _final(prob, ev, box, st, progress)
         st.phase = "done"
         tick()
     return st, ev
+
+
+class _Evaluators:
+    """One :class:`fitting.evaluate.Evaluator` per stage (the problem truncated to its horizon),
+    made on first use: each shares the first one's compiled rollout (frames in chunks of the
+    first horizon), its calibration, and a contact capacity grown in an earlier stage."""
+
+    def __init__(self, prob, horizons):
+        self.prob, self.horizons, self.by_stage = prob, horizons, {}
+
+    def __call__(self, stage):
+        evaluators = self.by_stage
+        if stage not in evaluators:
+            sub = self.prob.truncated(self.horizons[stage])
+            calibration = next((e.calibration() for e in evaluators.values()), None)
+            if evaluators:              # a contact capacity grown in an earlier stage carries over
+                sub = dataclasses.replace(sub, sim=evaluators[max(evaluators)].prob.sim)
+            share = evaluators[min(evaluators)] if evaluators else None
+            # frames in chunks of the first horizon: every stage runs the same compiled rollout
+            evaluators[stage] = Evaluator(sub, calibration=calibration, share=share, chunk_frames=self.horizons[0])
+        return evaluators[stage]
+
+    def evaluations(self):
+        return sum(e.evaluations for e in self.by_stage.values())
+
+    def last(self):
+        """The full problem's evaluator, holding the earlier stages' notes first."""
+        last = len(self.horizons) - 1
+        ev = self(last)
+        ev.notes[:0] = [m for k, e in sorted(self.by_stage.items()) if k != last for m in e.notes]
+        return ev
+
+
+def _global(prob, ev, box, st, samples, starts, seed, progress, label):
+    """The global stage (:func:`fitting.search.global_stage`) and the local searches it starts."""
+    th0 = np.asarray(prob.theta0, np.float64)
+    with Progress(samples + 1, f"global search, {label}", enabled=progress, unit="points") as bar:
+        st.global_result = _search.global_stage(ev, box, th0, samples, seed, progress=bar.update)
+        g = st.global_result
+        bar.extra = f"best loss {np.min(np.where(g.ok, g.loss, np.inf)):.4g}"
+        bar.finish(f"{int((~g.ok).sum())} failed" if (~g.ok).any() else "")
+    width = float(np.max(box.hi - box.lo))
+    chosen = st.global_result.best(starts, 0.1 * width)
+    st.states = [_search.LMState(theta=st.global_result.thetas[i].copy(),
+                                 loss=float(st.global_result.loss[i])) for i in chosen]
+    st.phase = "local"
+
+
+def _next_stage(st, keep):
+    """The stage's best points start the next, longer stage."""
+    kept = []
+    best_loss = st.states[_order(st.states)[0]].loss
+    for i in _order(st.states)[:keep]:
+        s = st.states[i]
+        # searches that ended at the same point continue as one, and one that ended far
+        # above the best (in another basin) stops here: a longer horizon does not rescue it
+        if (math.isfinite(s.loss) and s.loss <= CARRY_FACTOR * best_loss
+                and all(np.max(np.abs(s.theta - o.theta)) > SAME_POINT for o in kept)):
+            kept.append(s)
+    # a longer horizon moves the optimum little: start with a small trust radius (and so
+    # an accurate difference step), from the damping the previous stage ended with
+    st.states = [_search.LMState(theta=s.theta.copy(), loss=math.inf, radius=NEXT_RADIUS,
+                                 mu=min(s.mu, 1.0)) for s in kept]
+    st.stage += 1
+    st.rounds = 0
+    st.phase = "local"
 
 
 def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, label):

@@ -444,7 +444,55 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
       NotImplementedError: the scene needs a term the batched simulator does not implement.
     """
     t_start = time.perf_counter()
-    # --- validate everything before tracing
+    plan = _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, batch, progress)
+    n_points, batch = plan.n_points, plan.batch
+    out = _Collector(scene, n_points, plan.steps, plan.keep, plan.save_every, plan.frame_steps,
+                     0 if plan.tsteps is None else len(plan.tsteps))
+    with Progress(n_points * plan.steps, "sweep", enabled=progress, unit="point-steps") as bar:
+        for c in range(-(-n_points // batch)):
+            _run_chunk(plan, c, out, bar)
+    res = out.finish(plan.tsteps)
+    wall = time.perf_counter() - t_start
+    _warn_failures(res, n_points)
+    return _sweep_result(scene, plan, res, wall)
+
+
+@dataclasses.dataclass
+class _SweepPlan:
+    """A validated sweep: its points, batched simulator, target frames and frame grid (period
+    steps per frame, ``n_full`` frames then ``rem`` steps), and what each rollout call observes."""
+
+    kind: str
+    axes: list
+    values: np.ndarray
+    pparams: tuple
+    steps: int
+    dt: float
+    save_every: int | None
+    batch: int
+    tgt: object
+    tkind: str | None
+    tsteps: np.ndarray | None
+    tdata: np.ndarray | None
+    bsim: object
+    period: int
+    n_full: int
+    rem: int
+    frame_steps: np.ndarray
+    aux: dict | None
+    keep: bool
+    observe: object
+    per_call: int
+    integrator: str
+
+    @property
+    def n_points(self):
+        return len(self.values)
+
+
+def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, batch, progress):
+    """Validate everything before tracing; the batched simulator and the frame grid: target frames
+    and saves land on frames, a remainder call ends the run."""
     if (grid is None) == (points is None):
         raise SweepError("give exactly one of grid (a cartesian product) or points")
     kind = "grid" if grid is not None else "points"
@@ -467,7 +515,6 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
     terms = batched.terms_for(scene, pparams)
     bsim = batched.make_batched_simulator(scene, dt, batch, integrator, terms=terms)
 
-    # --- the frame grid: target frames and saves land on frames; a remainder call ends the run
     required = list(tsteps if tsteps is not None else []) + (
         list(range(save_every, steps + 1, save_every)) if save_every else [])
     period = _frame_period(steps, required)
@@ -484,63 +531,73 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
     keep = save_every is not None
     observe = _observer(scan_kind, keep) if (scan_kind is not None or keep) else None
     per_call = _frames_per_call(n_full, n_points, batch, progress)
+    return _SweepPlan(kind=kind, axes=axes, values=values, pparams=pparams, steps=steps, dt=dt,
+                      save_every=save_every, batch=batch, tgt=tgt, tkind=tkind, tsteps=tsteps, tdata=tdata,
+                      bsim=bsim, period=period, n_full=n_full, rem=rem, frame_steps=frame_steps, aux=aux,
+                      keep=keep, observe=observe, per_call=per_call, integrator=integrator)
 
-    n_chunks = -(-n_points // batch)
-    out = _Collector(scene, n_points, steps, keep, save_every, frame_steps,
-                     0 if tsteps is None else len(tsteps))
-    with Progress(n_points * steps, "sweep", enabled=progress, unit="point-steps") as bar:
-        for c in range(n_chunks):
-            idx = np.arange(c * batch, (c + 1) * batch)
-            live = idx < n_points
-            idx = np.minimum(idx, n_points - 1)           # pad the last chunk with its last point
-            p = bsim.params(Params(*(a[idx].T for a in pparams)))
-            state = bsim.init_fn(p)
-            health = batched.initial_health(bsim, state)
-            loss = np.zeros(batch) if tkind is not None else None
-            kept = []
-            done = 0
-            while done < n_full:
-                n = min(per_call, n_full - done)
-                if aux is not None:
-                    aux["frame0"] = jnp.asarray(done, jnp.int32)
-                state, obs, health = batched.rollout(bsim, p, state, n, period, health=health,
-                                                     step0=done * period, observe=observe, aux=aux)
-                if obs is not None and "loss" in obs:
-                    loss += np.asarray(obs["loss"], np.float64).sum(axis=0)
-                if keep:
-                    kept.append(np.asarray(obs["x"]))
-                done += n
-                bar.update(int(live.sum()) * n * period)
-            if rem:
-                state, _, health = batched.rollout(bsim, p, state, 1, rem, health=health,
-                                                   step0=n_full * period)
-                bar.update(int(live.sum()) * rem)
-            if tkind is not None and np.any(tsteps == 0):
-                x0 = bsim.init_fn(p).x
-                for y in tdata[tsteps == 0]:
-                    loss += np.asarray(frame_loss(tkind, x0, jnp.asarray(y, bsim.dtype)), np.float64)
-            out.add(bsim, p, state, health, loss, kept, live, idx)
-    res = out.finish(tsteps)
-    wall = time.perf_counter() - t_start
+
+def _run_chunk(plan, c, out, bar):
+    """Simulate chunk ``c`` of the points (the last padded with its last point) into ``out``."""
+    bsim, batch, n_points, aux, period = plan.bsim, plan.batch, plan.n_points, plan.aux, plan.period
+    idx = np.arange(c * batch, (c + 1) * batch)
+    live = idx < n_points
+    idx = np.minimum(idx, n_points - 1)           # pad the last chunk with its last point
+    p = bsim.params(Params(*(a[idx].T for a in plan.pparams)))
+    state = bsim.init_fn(p)
+    health = batched.initial_health(bsim, state)
+    loss = np.zeros(batch) if plan.tkind is not None else None
+    kept = []
+    done = 0
+    while done < plan.n_full:
+        n = min(plan.per_call, plan.n_full - done)
+        if aux is not None:
+            aux["frame0"] = jnp.asarray(done, jnp.int32)
+        state, obs, health = batched.rollout(bsim, p, state, n, period, health=health,
+                                             step0=done * period, observe=plan.observe, aux=aux)
+        if obs is not None and "loss" in obs:
+            loss += np.asarray(obs["loss"], np.float64).sum(axis=0)
+        if plan.keep:
+            kept.append(np.asarray(obs["x"]))
+        done += n
+        bar.update(int(live.sum()) * n * period)
+    if plan.rem:
+        state, _, health = batched.rollout(bsim, p, state, 1, plan.rem, health=health,
+                                           step0=plan.n_full * period)
+        bar.update(int(live.sum()) * plan.rem)
+    if plan.tkind is not None and np.any(plan.tsteps == 0):
+        x0 = bsim.init_fn(p).x
+        for y in plan.tdata[plan.tsteps == 0]:
+            loss += np.asarray(frame_loss(plan.tkind, x0, jnp.asarray(y, bsim.dtype)), np.float64)
+    out.add(bsim, p, state, health, loss, kept, live, idx)
+
+
+def _warn_failures(res, n_points):
+    """Warn (for the caller of :func:`sweep`) about failed points and points with the volume clamp."""
     if res["failed"].any():
         nf = int(res["failed"].sum())
         warnings.warn(f"{nf} of {n_points} sweep point(s) failed (blow-up); see fail_code/fail_step "
-                      f"(their loss is NaN, their final positions the last healthy ones)", stacklevel=2)
+                      f"(their loss is NaN, their final positions the last healthy ones)", stacklevel=3)
     clamp = np.any(res["warn_step"] >= 0, axis=1) & ~res["failed"]
     if clamp.any():
         warnings.warn(f"{int(clamp.sum())} sweep point(s): {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
-                      f"(see warn_step)", stacklevel=2)
-    shape = tuple(len(a.values) for a in axes) if kind == "grid" else (n_points,)
+                      f"(see warn_step)", stacklevel=3)
+
+
+def _sweep_result(scene, plan, res, wall):
+    kind, axes, values, tgt = plan.kind, plan.axes, plan.values, plan.tgt
+    shape = tuple(len(a.values) for a in axes) if kind == "grid" else (plan.n_points,)
     axes_out = {a.label: (a.values if kind == "grid" else values[:, j]) for j, a in enumerate(axes)}
     return SweepResult(
         kind=kind, labels=tuple(a.label for a in axes), axes=axes_out, shape=shape, values=values,
-        params=pparams, final_positions=res["positions"], final_step=res["final_step"], volume=res["volume"],
+        params=plan.pparams, final_positions=res["positions"], final_step=res["final_step"], volume=res["volume"],
         centroid_height=res["centroid_height"], max_displacement=res["max_displacement"],
         fail_code=res["fail_code"], fail_step=res["fail_step"], warn_step=res["warn_step"],
-        loss=res["loss"], target_kind=tkind, target_path=None if tgt is None else str(getattr(tgt, "path", "")),
-        frames=res["frames"], frame_steps=res["frame_steps"], steps=steps, dt=dt, integrator=integrator,
-        save_every=save_every, scene_text=scene.text, scene_path=scene.path, faces=scene.faces,
-        object_id=scene.object_id, object_names=scene.object_names, wall_time=wall)
+        loss=res["loss"], target_kind=plan.tkind,
+        target_path=None if tgt is None else str(getattr(tgt, "path", "")),
+        frames=res["frames"], frame_steps=res["frame_steps"], steps=plan.steps, dt=plan.dt,
+        integrator=plan.integrator, save_every=plan.save_every, scene_text=scene.text, scene_path=scene.path,
+        faces=scene.faces, object_id=scene.object_id, object_names=scene.object_names, wall_time=wall)
 
 
 def _positive_int(v, what):

@@ -186,6 +186,27 @@ def _read(path, fh, kind):
 def _validate(path, raw, scene, dt):
     kind = raw["kind"]
     data = np.asarray(raw[kind])
+    _check_data_shape(path, kind, data, scene)
+    n_frames, n = data.shape[:2]
+    _check_object_names(path, raw.get("object_names"), scene)
+    if kind == "positions":
+        _check_object_id(path, raw.get("object_id"), scene, n)
+        faces = raw.get("faces")
+        if faces is not None and not _same_faces(np.asarray(faces), scene.faces):
+            raise TrajectoryError(path, f"'faces' differ from the scene {scene.path}'s: the target was "
+                                        "made from a different mesh")
+    times = _check_times(path, raw["times"], n_frames, kind)
+    dt = _target_dt(path, raw["dt_attr"], dt)
+    steps = _grid_steps(path, times, dt, raw["times"].dtype)
+    data = data.astype(np.float64)
+    _check_data_values(path, kind, data, scene)
+    noise = _noise_attr(path, raw["noise"])
+    params = {k: v for k, v in raw["params"].items() if v.shape == (scene.n_objects,)}
+    return Target(positions=data if kind == "positions" else None, points=data if kind == "points" else None,
+                  steps=steps, times=times, dt=dt, path=path, noise=noise, params=params)
+
+
+def _check_data_shape(path, kind, data, scene):
     if data.ndim != 3 or data.shape[2] != 3:
         what = "[T, V, 3]" if kind == "positions" else "[T, M, 3]"
         raise TrajectoryError(path, f"'{kind}' must have shape {what}, got {list(data.shape)}")
@@ -197,38 +218,42 @@ def _validate(path, raw, scene, dt):
     if kind == "positions" and n != scene.n_vertices:
         raise TrajectoryError(path, f"'positions' has {n} vertices but the scene {scene.path} has "
                                     f"{scene.n_vertices}")
-    names = raw.get("object_names")
-    if names is not None:
-        names = [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(names)]
-        if len(names) != scene.n_objects:
-            raise TrajectoryError(path, f"the target has {len(names)} object(s) {names} but the scene "
-                                        f"{scene.path} has {scene.n_objects} {list(scene.object_names)}")
-        if names != list(scene.object_names):
-            raise TrajectoryError(path, f"'object_names' {names} differ from the scene {scene.path}'s "
-                                        f"{list(scene.object_names)}: the target's objects are other objects "
-                                        "or in another order")
-    if kind == "positions":
-        oid = raw.get("object_id")
-        if oid is not None:
-            oid = np.asarray(oid)
-            if oid.shape != (n,):
-                raise TrajectoryError(path, f"'object_id' must have shape [{n}], got {list(oid.shape)}")
-            if oid.size and not (np.all(np.isfinite(oid)) and np.all(oid == np.rint(oid)) and oid.min() >= 0):
-                raise TrajectoryError(path, "'object_id' must hold integers >= 0 (an object index per vertex)")
-            oid = oid.astype(np.int64)
-            n_obj = int(oid.max()) + 1 if oid.size else 0
-            if n_obj != scene.n_objects:
-                raise TrajectoryError(path, f"'object_id' describes {n_obj} object(s) but the scene "
-                                            f"{scene.path} has {scene.n_objects}")
-            if not np.array_equal(oid, scene.object_id):
-                raise TrajectoryError(path, f"'object_id' does not match the scene {scene.path}: its "
-                                            "objects' vertices are numbered differently")
-        faces = raw.get("faces")
-        if faces is not None and not _same_faces(np.asarray(faces), scene.faces):
-            raise TrajectoryError(path, f"'faces' differ from the scene {scene.path}'s: the target was "
-                                        "made from a different mesh")
 
-    times = np.asarray(raw["times"], np.float64)
+
+def _check_object_names(path, names, scene):
+    if names is None:
+        return
+    names = [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(names)]
+    if len(names) != scene.n_objects:
+        raise TrajectoryError(path, f"the target has {len(names)} object(s) {names} but the scene "
+                                    f"{scene.path} has {scene.n_objects} {list(scene.object_names)}")
+    if names != list(scene.object_names):
+        raise TrajectoryError(path, f"'object_names' {names} differ from the scene {scene.path}'s "
+                                    f"{list(scene.object_names)}: the target's objects are other objects "
+                                    "or in another order")
+
+
+def _check_object_id(path, oid, scene, n):
+    if oid is None:
+        return
+    oid = np.asarray(oid)
+    if oid.shape != (n,):
+        raise TrajectoryError(path, f"'object_id' must have shape [{n}], got {list(oid.shape)}")
+    if oid.size and not (np.all(np.isfinite(oid)) and np.all(oid == np.rint(oid)) and oid.min() >= 0):
+        raise TrajectoryError(path, "'object_id' must hold integers >= 0 (an object index per vertex)")
+    oid = oid.astype(np.int64)
+    n_obj = int(oid.max()) + 1 if oid.size else 0
+    if n_obj != scene.n_objects:
+        raise TrajectoryError(path, f"'object_id' describes {n_obj} object(s) but the scene "
+                                    f"{scene.path} has {scene.n_objects}")
+    if not np.array_equal(oid, scene.object_id):
+        raise TrajectoryError(path, f"'object_id' does not match the scene {scene.path}: its "
+                                    "objects' vertices are numbered differently")
+
+
+def _check_times(path, raw_times, n_frames, kind):
+    """(T,) float64 frame times: one per frame, finite, >= 0, strictly increasing."""
+    times = np.asarray(raw_times, np.float64)
     if times.shape != (n_frames,):
         raise TrajectoryError(path, f"'times' must have shape [{n_frames}] (one per frame of '{kind}'), "
                                     f"got {list(times.shape)}")
@@ -241,11 +266,15 @@ def _validate(path, raw, scene, dt):
         i = int(np.argmax(np.diff(times) <= 0)) + 1
         raise TrajectoryError(path, f"'times' must be strictly increasing; frame {i} (t = {times[i]:g} s) "
                                     f"follows t = {times[i - 1]:g} s")
+    return times
 
+
+def _target_dt(path, dt_attr, dt):
+    """The fit's time step: ``dt``, else the target's 'dt' attribute; a positive float."""
     if dt is None:
-        if raw["dt_attr"] is None:
+        if dt_attr is None:
             raise TrajectoryError(path, "no 'dt' attribute: give the fit's time step (--dt)")
-        dt = raw["dt_attr"]
+        dt = dt_attr
         where = "the target's 'dt' attribute"
     else:
         where = "dt"
@@ -255,31 +284,34 @@ def _validate(path, raw, scene, dt):
         raise TrajectoryError(path, f"{where} must be a number, got {dt!r}") from None
     if not (np.isfinite(dt) and dt > 0):
         raise TrajectoryError(path, f"{where} must be a positive number, got {dt!r}")
-    steps = _grid_steps(path, times, dt, raw["times"].dtype)
+    return dt
 
-    data = data.astype(np.float64)
+
+def _check_data_values(path, kind, data, scene):
+    """Finite values, within TARGET_FAR scene sizes of the scene's centre."""
     bad = ~np.isfinite(data).all(axis=2)
     if bad.any():
         t, i = (int(a[0]) for a in np.nonzero(bad))
         what = "vertex" if kind == "positions" else "point"
         raise TrajectoryError(path, f"'{kind}' has non-finite values (first at frame {t}, {what} {i})")
-
     extent = float(max(np.max(np.ptp(scene.vertices, axis=0)), 1e-6))
     far = float(np.max(np.abs(data - scene.vertices.mean(axis=0))))
     if far > TARGET_FAR * extent:
         raise TrajectoryError(path, f"'{kind}' reaches {far:.3g} m from the scene's centre, {far / extent:.3g} times "
                                     f"the scene's size ({extent:.3g} m): wrong units, or a target of another scene?")
-    noise = raw["noise"]
-    if noise is not None:
-        try:
-            noise = float(np.asarray(noise, np.float64).reshape(()))
-        except (TypeError, ValueError):
-            raise TrajectoryError(path, f"attribute 'noise' must be a number (m), got {noise!r}") from None
-        if not (np.isfinite(noise) and noise >= 0):
-            raise TrajectoryError(path, f"attribute 'noise' must be a finite number >= 0, got {noise!r}")
-    params = {k: v for k, v in raw["params"].items() if v.shape == (scene.n_objects,)}
-    return Target(positions=data if kind == "positions" else None, points=data if kind == "points" else None,
-                  steps=steps, times=times, dt=dt, path=path, noise=noise, params=params)
+
+
+def _noise_attr(path, noise):
+    """The target's 'noise' attribute as a float >= 0, or None."""
+    if noise is None:
+        return None
+    try:
+        noise = float(np.asarray(noise, np.float64).reshape(()))
+    except (TypeError, ValueError):
+        raise TrajectoryError(path, f"attribute 'noise' must be a number (m), got {noise!r}") from None
+    if not (np.isfinite(noise) and noise >= 0):
+        raise TrajectoryError(path, f"attribute 'noise' must be a finite number >= 0, got {noise!r}")
+    return noise
 
 
 def _grid_steps(path, times, dt, stored_dtype):

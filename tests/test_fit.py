@@ -4,6 +4,7 @@ check of the fit's loss, identifiability flags, blow-up handling, Ctrl-C save an
 from __future__ import annotations
 
 import os
+import re
 import signal
 
 import jax
@@ -360,3 +361,61 @@ def test_parameter_list_and_method_are_checked_before_tracing():
         F.build_problem(scene, target, "k", start={"k": {"bear": 50.0}})
     with pytest.raises(JaxplushError, match="unknown object 3"):
         F.build_problem(scene, target, "k", start={"k": {3: 50.0}})
+
+
+# --------------------------------------------------------------------------- options and optimisers
+
+def test_fit_options_and_keywords_are_checked_before_anything_is_built():
+    """Keywords are FitOptions fields (or its groups' flat names); an unknown one is an error naming
+    it and the valid ones, raised before the scene or target is looked at (None here)."""
+    import optax
+    from fitting import CheckpointOptions, FitOptions, SearchOptions
+    opts = FitOptions().replace(iterations=7, samples=16, checkpoint_path="FIT.h5", resume=True)
+    assert opts == FitOptions(iterations=7, search=SearchOptions(samples=16),
+                              checkpoint=CheckpointOptions(path="FIT.h5", resume=True))
+    assert FitOptions(lr=0.1).replace(lr=0.2).lr == 0.2 and FitOptions().search.samples is None
+    with pytest.raises(JaxplushError, match=r"unknown option 'iteration' \(did you mean 'iterations'\?\); "
+                                            r"valid options: iterations, lr, .*checkpoint_path"):
+        F.fit(None, None, iteration=3)
+    with pytest.raises(JaxplushError, match="unknown option 'colour'"):
+        F.fit(None, None, options=FitOptions(), colour="red")
+    bad = [(dict(iterations=0), "iterations must be >= 1"), (dict(samples=-1), "samples must be an integer >= 0"),
+           (dict(starts=0), "starts must be an integer >= 1"), (dict(resume=True), "resume needs a checkpoint_path"),
+           (dict(checkpoint_every=0), "checkpoint_every must be >= 1"), (dict(patience=0), "patience must be"),
+           (dict(gtol=-1.0), "gtol must be a number >= 0"),
+           (dict(optimizer="adam", lr=-0.1), "learning rate must be > 0"),
+           (dict(optimizer="adam", bounds={"k": (1, 2)}), "bounds apply to the default fit"),
+           (dict(optimizer=optax.adam(0.1), lr=0.1), "an optax transformation carries its own learning rate"),
+           (dict(optimizer="sgd"), "unknown optimizer 'sgd'; expected one of lm, adam, lbfgs or an optax"),
+           (dict(options={"iterations": 3}), "options must be a fitting.FitOptions"),
+           (dict(search=dict(samples=3)), "search must be a fitting.SearchOptions")]
+    for kw, msg in bad:
+        with pytest.raises(JaxplushError, match=re.escape(msg)):
+            F.fit(None, None, **kw)
+
+
+def test_user_optax_optimizer_and_options_object(small, tmp_path):
+    """A user's optax transformation runs through the fit's loop: the options object and the same
+    keywords give the identical fit, the loss falls from the start, the checkpoint records the
+    transformation's state structure (a different one is refused on resume); optax.lbfgs() passed
+    in runs exactly as optimizer="lbfgs" (its line search chooses the step)."""
+    import optax
+    from fitting import FitOptions
+    _, start, target = small
+    names = ("k_structural",)
+    opts = FitOptions(iterations=6, noise_free=True, identifiability=False, check_dt=False)
+    out = tmp_path / "FIT.h5"
+    a = F.fit(start, target, names, optimizer=optax.adam(0.05), options=opts, checkpoint_path=out)
+    b = F.fit(start, target, names, optimizer=optax.adam(0.05), iterations=6, noise_free=True,
+              identifiability=False, check_dt=False)
+    np.testing.assert_array_equal(a.history["loss"], b.history["loss"])
+    assert a.optimizer == "optax" and a.iterations == 6 and a.loss < a.loss_start
+    assert "ScaleByAdamState" in a.settings["optax_state"] and load_fit(out)["attrs"]["optimizer"] == "optax"
+    with pytest.raises(JaxplushError, match="different fit \\(optax_state"):
+        F.fit(start, target, names, optimizer=optax.sgd(0.05), options=opts, checkpoint_path=out, resume=True)
+    with pytest.raises(JaxplushError, match="different fit \\(optimizer: checkpoint 'optax', now 'adam'"):
+        F.fit(start, target, names, optimizer="adam", options=opts, checkpoint_path=out, resume=True)
+    named = F.fit(start, target, names, optimizer="lbfgs", options=opts.replace(iterations=3))
+    user = F.fit(start, target, names, optimizer=optax.lbfgs(), options=opts.replace(iterations=3))
+    np.testing.assert_array_equal(named.history["loss"], user.history["loss"])
+    assert user.loss < user.loss_start
