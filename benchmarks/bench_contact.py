@@ -29,7 +29,7 @@ import trimesh
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import jaxplush  # noqa: E402
-from jaxplush import contact  # noqa: E402
+from jaxplush.model import contact  # noqa: E402
 
 
 def pair_scene(subdivisions, gap=0.0, drag=0.0):

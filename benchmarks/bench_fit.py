@@ -1,4 +1,4 @@
-"""Fitting benchmarks: gradient cost and memory through rollouts (fitting.gradients), and (lead's
+"""Fitting benchmarks: gradient cost and memory through rollouts (jaxplush.fitting.gradients), and (lead's
 section) time to fit and sweep throughput.
 
 Gradient section. The ball-drop plush (springs, gas, gravity, floor; ``--dashpot`` adds the
@@ -10,7 +10,7 @@ time is reported apart; times are the minimum of repeats, wall clock and process
 CPU ratio is steadier on a shared machine; XLA's CPU backend runs these loops on one thread).
 
 Memory section. A 10,000-step horizon at 2562 vertices: XLA's static buffer analysis of the
-compiled value_and_grad (``fitting.gradients.compiled_memory``: temporaries + arguments +
+compiled value_and_grad (``jaxplush.fitting.gradients.compiled_memory``: temporaries + arguments +
 outputs; no run needed), and, for the bounded methods, the measured peak resident memory of a
 fresh process that compiles and runs it once (``ru_maxrss``), next to the same process's
 peak when it only compiles and runs the forward loss.
@@ -37,7 +37,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.dirname(__file__))
 import jaxplush  # noqa: E402
 from bench_step import ball_scene  # noqa: E402
-from fitting import gradients  # noqa: E402
+from jaxplush.fitting import gradients  # noqa: E402
 
 METHODS = ("adjoint", "checkpoint", "plain")
 
@@ -183,7 +183,7 @@ def main(argv=None):
                   flush=True)
 
     if not args.skip_fit:
-        from fitting.fitter import synthetic_recovery
+        from jaxplush.fitting.fitter import synthetic_recovery
         print("\n## Time to fit: synthetic recovery at 642 vertices (k, damping, nmol from x2 / x0.5 starts, "
               "L-BFGS)\n")
         print("| target | k error | damping error | nmol error | iterations | fit wall time (s) |")

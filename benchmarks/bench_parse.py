@@ -73,7 +73,7 @@ def timed(text, repeats, topology):
                 loads.append(time.perf_counter() - t)
                 if topology:
                     t = time.perf_counter()
-                    jaxplush.model.build_topology(scene)
+                    jaxplush.model.forces.build_topology(scene)
                     builds.append(time.perf_counter() - t)
         return statistics.median(loads), (statistics.median(builds) if builds else float("nan")), len(text)
 

@@ -1,6 +1,6 @@
 """Parameter recovery of the default fit, case by case, as a user runs it.
 
-Scenes (``fitting.scenarios``), each dropped 0.2 m onto a floor, 0.12 kg, gas at 1800 Pa rest
+Scenes (``jaxplush.fitting.scenarios``), each dropped 0.2 m onto a floor, 0.12 kg, gas at 1800 Pa rest
 pressure, k = 420 N/m:
 
 * ``ball``: a 642-vertex icosphere with the report's per-step damping 2000;
@@ -56,8 +56,8 @@ def _damp_name(spec):
 def make_case_files(d, name, kind):
     """Write the truth scene and the target of one scene and target kind; return (truth scene, target path)."""
     import jaxplush
-    from fitting.scenarios import drop_scene_text
-    from fitting.targets import make_target
+    from jaxplush.fitting.scenarios import drop_scene_text
+    from jaxplush.fitting.targets import make_target
     spec = dict(SCENES[name])
     text = drop_scene_text(spec.pop("shape"), spec.pop("subdivisions"), **spec)
     truth_path = os.path.join(d, f"{name}_truth.obj")
@@ -74,8 +74,8 @@ def make_case_files(d, name, kind):
 
 
 def start_scene(d, name, truth, factors):
-    from jaxplush.scene_writer import format_scene
-    from fitting.io import fitted_scene_text  # noqa: F401  (the same writer the fit uses)
+    from jaxplush.scene.write import format_scene
+    from jaxplush.fitting.io import fitted_scene_text  # noqa: F401  (the same writer the fit uses)
     spec = SCENES[name]
     dn = _damp_name(spec)
     p = truth.params
@@ -99,7 +99,7 @@ def run_case(d, name, kind, truth, target, factors):
     t = time.perf_counter()
     # cold: no persistent compilation cache, so every case compiles as a user's first fit does
     env = dict(os.environ, JAXPLUSH_CACHE_DIR="off")
-    proc = subprocess.run([sys.executable, "-m", "fitting.cli", start, target, "--out", out, "--quiet"],
+    proc = subprocess.run([sys.executable, "-m", "jaxplush.fitting.cli", start, target, "--out", out, "--quiet"],
                           capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t
     spec = SCENES[name]

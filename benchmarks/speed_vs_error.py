@@ -180,7 +180,7 @@ def plot(rows, scene, path=None, ax=None):
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     if own and path is not None:
-        from jaxplush.io import atomic_path
+        from jaxplush.io.trajectory import atomic_path
         with atomic_path(path, ".png") as tmp:
             fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
         plt.close(fig)

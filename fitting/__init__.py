@@ -1,4 +1,4 @@
-"""fitting: recover material parameters (k_structural, damping, nmol, ...) of a jaxplush scene from
+"""jaxplush.fitting: recover material parameters (k_structural, damping, nmol, ...) of a jaxplush scene from
 a target deformation (by default a global search, then Levenberg-Marquardt with finite-difference
 Jacobians on batched rollouts; Adam or L-BFGS on gradients through the rollout as options);
 batched parameter sweeps. File formats: docs/formats.md §4-§6.
@@ -6,7 +6,8 @@ batched parameter sweeps. File formats: docs/formats.md §4-§6.
 Quick use (run from the repository root; the test suite executes this example): a target
 simulated from the bundled hanging ball, and a fit of its spring stiffness from a start 50% off.
 
->>> import jaxplush, fitting
+>>> import jaxplush
+>>> from jaxplush import fitting
 >>> truth = jaxplush.load_scene("scenes/hanging.obj")
 >>> target = fitting.make_target(truth, steps=400, dt=5e-4, save_every=20)
 >>> start = truth.replace(params=truth.params._replace(k_structural=truth.params.k_structural * 1.5))
@@ -16,12 +17,12 @@ simulated from the bundled hanging ball, and a fit of its spring stiffness from 
 
 Options: ``fitting.fit(scene, target, options=fitting.FitOptions(...))``, or single fields as
 keywords (``iterations=40``); ``optimizer`` is "lm" (default), "adam", "lbfgs" or any optax
-transformation (:mod:`fitting.options`, :func:`fitting.fitter.fit`).
+transformation (:mod:`jaxplush.fitting.options`, :func:`jaxplush.fitting.fitter.fit`).
 
 Command line: ``jaxplush-fit SCENE.obj TARGET.h5 --out FIT.h5`` (exit 4 when the fit did not converge).
 
 ``fitting`` depends on ``jaxplush``, never the reverse. Names are imported lazily, so that
-``import fitting.targets`` (or the CLI's input checks) does not pull in every module.
+``import jaxplush.fitting.targets`` (or the CLI's input checks) does not pull in every module.
 """
 
 from __future__ import annotations
@@ -29,20 +30,20 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {
-    "Target": "fitting.targets",
-    "load_target": "fitting.targets",
-    "make_target": "fitting.targets",
-    "fit": "fitting.fitter",
-    "FitOptions": "fitting.options",
-    "SearchOptions": "fitting.options",
-    "CheckpointOptions": "fitting.options",
-    "FitResult": "fitting.fitter",
-    "FitError": "fitting.fitter",
-    "synthetic_recovery": "fitting.fitter",
-    "identifiability": "fitting.identifiability",
-    "load_fit": "fitting.io",
-    "SweepResult": "fitting.sweep",
-    "load_sweep": "fitting.sweep",
+    "Target": "jaxplush.fitting.targets",
+    "load_target": "jaxplush.fitting.targets",
+    "make_target": "jaxplush.fitting.targets",
+    "fit": "jaxplush.fitting.fitter",
+    "FitOptions": "jaxplush.fitting.options",
+    "SearchOptions": "jaxplush.fitting.options",
+    "CheckpointOptions": "jaxplush.fitting.options",
+    "FitResult": "jaxplush.fitting.fitter",
+    "FitError": "jaxplush.fitting.fitter",
+    "synthetic_recovery": "jaxplush.fitting.fitter",
+    "identifiability": "jaxplush.fitting.identifiability",
+    "load_fit": "jaxplush.fitting.io",
+    "SweepResult": "jaxplush.fitting.sweep",
+    "load_sweep": "jaxplush.fitting.sweep",
 }
 
 __all__ = sorted(_EXPORTS)

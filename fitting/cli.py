@@ -6,7 +6,7 @@
 
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
-exits 3; a fit that finished without converging to the data (fitting.outcome) writes FIT.h5 with
+exits 3; a fit that finished without converging to the data (jaxplush.fitting.outcome) writes FIT.h5 with
 its status and exits 4. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130;
 ``--resume`` continues it.
 """
@@ -20,11 +20,11 @@ import sys
 import warnings
 
 from jaxplush.cliargs import attach_negative_values
-from jaxplush.io import check_output_path
+from jaxplush.io.trajectory import check_output_path
 
 EXIT_USAGE = 2
 EXIT_FAILED = 3
-EXIT_NOT_CONVERGED = 4     # the fit finished but did not converge to the data (fitting.outcome)
+EXIT_NOT_CONVERGED = 4     # the fit finished but did not converge to the data (jaxplush.fitting.outcome)
 EXIT_INTERRUPTED = 130
 
 
@@ -76,13 +76,13 @@ def _parser():
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "sweep":
-        from fitting.sweep_cli import main as sweep_main
+        from jaxplush.fitting.sweep_cli import main as sweep_main
         return sweep_main(argv[1:])
     try:
         args = _parser().parse_args(attach_negative_values(argv))
     except SystemExit as e:  # argparse has printed its usage message
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
-    from jaxplush.compiled import enable_persistent_cache
+    from jaxplush.stepping.compiled import enable_persistent_cache
     enable_persistent_cache()          # a second run of the same scene reuses this one's compiles
     from jaxplush.errors import JaxplushError
     try:
@@ -102,8 +102,8 @@ def _fit(args):
         import jax
         jax.config.update("jax_enable_x64", True)
     import jaxplush
-    from fitting import fitter as _fit_mod
-    from fitting.targets import load_target
+    from jaxplush.fitting import fitter as _fit_mod
+    from jaxplush.fitting.targets import load_target
 
     names = _fit_mod.canonical_names(args.params) if args.params is not None else None
     options = _options(args, names)
@@ -151,8 +151,8 @@ def _check_args(args):
 
 def _options(args, names):
     """The :class:`fitting.FitOptions` of the command line (--start and --bounds parsed and checked)."""
-    from fitting import fitter as _fit_mod
-    from fitting.options import CheckpointOptions, FitOptions, SearchOptions
+    from jaxplush.fitting import fitter as _fit_mod
+    from jaxplush.fitting.options import CheckpointOptions, FitOptions, SearchOptions
     start = parse_start(args.start) if args.start is not None else None
     bounds = _fit_mod.parse_bounds(args.bounds, names or _fit_mod.PARAM_NAMES) if args.bounds is not None else None
     return FitOptions(iterations=args.iterations, lr=args.lr, start=start, noise=args.noise,
@@ -225,7 +225,7 @@ def _report(args, result):
 def parse_start(spec):
     """``"k=800,nmol=0.002"`` -> {canonical name: float}; JaxplushError naming the bad part."""
     from jaxplush.errors import JaxplushError
-    from fitting.fitter import canonical_names
+    from jaxplush.fitting.fitter import canonical_names
     out = {}
     for part in (p.strip() for p in spec.split(",")):
         if not part:

@@ -1,16 +1,16 @@
 """Residuals of a fit at many parameter points at once, every point simulated stably.
 
-:class:`Evaluator` runs a :class:`fitting.fitter.Problem` at N points theta (log-parameters)
-and returns each point's residual vector (:func:`fitting.losses.make_residual`: sum(r²) is the
+:class:`Evaluator` runs a :class:`jaxplush.fitting.fitter.Problem` at N points theta (log-parameters)
+and returns each point's residual vector (:func:`jaxplush.fitting.losses.make_residual`: sum(r²) is the
 fit's loss), its loss and whether it ran. Points run in compiled batches of the batched
-simulator (:mod:`jaxplush.batched`, one compile per batch width and substep count) where the
+simulator (:mod:`jaxplush.fitting.batched`, one compile per batch width and substep count) where the
 scene allows it (Verlet, no soft-soft contact), otherwise one at a time.
 
 Stability: before a point runs, its explicit stability limit is predicted from the closed-form
-bound (:func:`jaxplush.stability.bound`, O(V) numpy), calibrated once against the power-iteration
+bound (:func:`jaxplush.stepping.stability.bound`, O(V) numpy), calibrated once against the power-iteration
 estimate at the start values; a point whose limit is below the target's dt runs with substeps
 (h = dt / n, n a power of two; the target grid does not change, and the report's per-step
-``damping`` keeps its meaning per dt, :func:`jaxplush.integrators.damping_keep`). A point that
+``damping`` keeps its meaning per dt, :func:`jaxplush.stepping.integrators.damping_keep`). A point that
 blows up anyway is run again with twice the substeps, up to :data:`MAX_SUBSTEPS`; only a point
 that fails even then is reported as failed (``ok`` False, loss inf), never as NaN residuals
 that an optimiser would read as data.
@@ -25,10 +25,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import batched, diagnostics, stability
+from jaxplush.fitting import batched
+from jaxplush.stepping import diagnostics
+from jaxplush.stepping import stability
 from jaxplush.types import Params
 
-from fitting import losses as _losses
+from jaxplush.fitting import losses as _losses
 
 #: Largest substep count a point may be run with.
 MAX_SUBSTEPS = 16
@@ -81,7 +83,7 @@ class Evaluator:
     """Evaluate a problem's residuals at many points (see the module docstring).
 
     Args:
-      prob: :class:`fitting.fitter.Problem`.
+      prob: :class:`jaxplush.fitting.fitter.Problem`.
       batch: points per batched call (static; default :data:`DEFAULT_BATCH`, half that above
         :data:`LARGE_MESH` vertices).
       calibrate: calibrate the closed-form stability bound against the power-iteration estimate
@@ -267,7 +269,7 @@ class Evaluator:
     def _single_fn(self, n):
         if n not in self._single:
             import jaxplush
-            from fitting.identifiability import frames_at_steps
+            from jaxplush.fitting.identifiability import frames_at_steps
             prob = self.prob
             sim = prob.sim if n == 1 else jaxplush.make_simulator(prob.scene, prob.target.dt, prob.sim.integrator,
                                                                    terms=prob.sim.terms, substeps=n)
@@ -301,8 +303,8 @@ class Evaluator:
         import dataclasses
         import warnings
         import jaxplush
-        from jaxplush import contact
-        from jaxplush.simulation import contact_capacity_needed
+        from jaxplush.model import contact
+        from jaxplush.stepping.simulation import contact_capacity_needed
         prob = self.prob
         if prob.sim.terms.contact is None:
             return False

@@ -1,29 +1,29 @@
 """Fit material parameters of a scene to a target.
 
 ``fit(scene, target, params=None, objects=None, *, optimizer="lm", options=None, callback=None,
-progress=False, **overrides)``, its options a :class:`fitting.options.FitOptions` (keywords
+progress=False, **overrides)``, its options a :class:`jaxplush.fitting.options.FitOptions` (keywords
 override single fields: ``fit(scene, target, iterations=40)``):
 
 * the fitted variables are theta = log(p) for the chosen parameters of the chosen objects
   (positivity for free); every other parameter stays at the scene's value. ``params=None``
   fits what the scene switches on (:func:`default_params`);
-* the loss is :func:`fitting.losses.make_loss` over the target's frames (noise- or
+* the loss is :func:`jaxplush.fitting.losses.make_loss` over the target's frames (noise- or
   motion-normalised; positions or point-to-surface distances);
-* the default optimiser, ``"lm"``, is global then local (:mod:`fitting.lmfit`,
-  :mod:`fitting.search`): a Sobol design over a box around the start run through the batched
+* the default optimiser, ``"lm"``, is global then local (:mod:`jaxplush.fitting.lmfit`,
+  :mod:`jaxplush.fitting.search`): a Sobol design over a box around the start run through the batched
   simulator, then Levenberg-Marquardt with central-difference Jacobians from the best
   candidates, over horizons of growing length, every evaluated point stable (substeps where
-  needed, :mod:`fitting.evaluate`);
+  needed, :mod:`jaxplush.fitting.evaluate`);
 * ``"adam"``, ``"lbfgs"`` and any optax transformation the caller passes descend the gradient
-  through the rollout (:func:`fitting.gradients.rollout_loss`) in one loop: a step whose
+  through the rollout (:func:`jaxplush.fitting.gradients.rollout_loss`) in one loop: a step whose
   rollout blows up (non-finite loss or gradient, an inverted object, damping < 1) is rejected
   and the step halved; a start that blows up, or too many rejections in a row, raise
   :class:`FitError`; they stop at ``iterations`` or at ``gtol``/``rtol``/``xtol``/``ftol``;
-* every fit's outcome is judged by :mod:`fitting.outcome` ("converged" only at the noise level
+* every fit's outcome is judged by :mod:`jaxplush.fitting.outcome` ("converged" only at the noise level
   and an optimum), recorded in the result and FIT.h5 and warned about otherwise;
 * checkpoints (``checkpoint_path``) hold the complete state, so ``resume=True`` continues an
   interrupted (Ctrl-C or killed) fit to the same answer; Ctrl-C saves before it exits;
-* afterwards: the identifiability report (:mod:`fitting.identifiability`) and a health check of
+* afterwards: the identifiability report (:mod:`jaxplush.fitting.identifiability`) and a health check of
   the fitted rollout.
 
 The result is a :class:`FitResult`.
@@ -42,16 +42,18 @@ import numpy as np
 import optax
 
 import jaxplush
-from jaxplush import diagnostics, model
+from jaxplush.stepping import diagnostics
+from jaxplush.model import forces as model
 from jaxplush.errors import JaxplushError
 from jaxplush.progress import Progress
 from jaxplush.types import PARAM_NAMES, Params
 
-from fitting import identifiability as _ident
-from fitting import losses as _losses
-from fitting import options as _options
-from fitting.options import CheckpointOptions, FitOptions, SearchOptions  # noqa: F401  (fitting.fitter.FitOptions)
-from fitting.targets import Target, load_target
+from jaxplush.fitting import identifiability as _ident
+from jaxplush.fitting import losses as _losses
+from jaxplush.fitting import options as _options
+from jaxplush.fitting.io import LoopState
+from jaxplush.fitting.options import CheckpointOptions, FitOptions, SearchOptions  # noqa: F401  (jaxplush.fitting.fitter.FitOptions)
+from jaxplush.fitting.targets import Target, load_target
 
 #: Accepted spellings of parameter names.
 ALIASES = {"k": "k_structural", "stiffness": "k_structural", "mass": "total_weight", "weight": "total_weight"}
@@ -107,8 +109,8 @@ class Problem:
       names: fitted parameter names (P_n,); objects: fitted object indices (O_f,).
       base: :class:`Params` (numpy float64) holding the start values (fitted) and fixed values.
       theta0: (P_n, O_f) float64 log start values.
-      loss: :class:`fitting.losses.Loss`.
-      method: gradient method of :func:`fitting.gradients.rollout_loss`.
+      loss: :class:`jaxplush.fitting.losses.Loss`.
+      method: gradient method of :func:`jaxplush.fitting.gradients.rollout_loss`.
     """
 
     scene: object
@@ -138,7 +140,7 @@ class Problem:
 
     def loss_fn(self, theta):
         """Normalised loss at log values theta (jax; differentiable)."""
-        from fitting.gradients import rollout_loss
+        from jaxplush.fitting.gradients import rollout_loss
         p = self.to_params(theta)
         lo = self.loss
         return rollout_loss(self.sim, p, self.sim.init_fn(p), lo.frame_steps, lo.loss_fn, lo.aux,
@@ -327,7 +329,7 @@ def _fit_target(scene, target, dt):
 
 def _fit_simulator(scene, fit_scene, target, method):
     """The simulator of the fit (the terms ``fit_scene`` switches on), the gradient ``method`` checked."""
-    from fitting.gradients import METHODS, adjoint_supported
+    from jaxplush.fitting.gradients import METHODS, adjoint_supported
     if method not in METHODS:
         raise JaxplushError(f"unknown gradient method {method!r}; expected one of {', '.join(METHODS)}")
     sim = jaxplush.make_simulator(fit_scene, target.dt, terms=model.Terms.for_scene(fit_scene))
@@ -351,39 +353,6 @@ def make_optimizer(name, lr=None, iterations=100):
     return optax.lbfgs(learning_rate=None if lr is None else float(lr))
 
 
-@dataclasses.dataclass
-class LoopState:
-    """The complete state of the optimisation loop (what a checkpoint holds).
-
-    ``theta`` is the next point to evaluate, with ``opt_state`` the optimiser state to use
-    there; ``anchor`` the last accepted point it was reached from (None before the first).
-    """
-
-    theta: np.ndarray
-    opt_state: object
-    anchor: np.ndarray | None = None
-    scale: float = 1.0
-    iteration: int = 0           # evaluations done (accepted + rejected)
-    rejected: int = 0
-    rejected_in_row: int = 0
-    stall: int = 0
-    best_theta: np.ndarray | None = None
-    best_loss: float = math.inf
-    done: bool = False
-    reason: str = ""
-    h_iter: list = dataclasses.field(default_factory=list)
-    h_loss: list = dataclasses.field(default_factory=list)
-    h_theta: list = dataclasses.field(default_factory=list)
-    h_gnorm: list = dataclasses.field(default_factory=list)
-    h_time: list = dataclasses.field(default_factory=list)
-    h_rejected: list = dataclasses.field(default_factory=list)
-    wall: float = 0.0
-
-    def snapshot(self):
-        """A copy that later iterations do not change (lists copied; arrays are never mutated)."""
-        return dataclasses.replace(self, **{f.name: list(getattr(self, f.name)) for f in dataclasses.fields(self)
-                                            if f.name.startswith("h_")})
-
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class FitResult:
@@ -393,13 +362,13 @@ class FitResult:
       params: full :class:`jaxplush.types.Params` (numpy float64) with the fitted values.
       names: fitted parameter names; objects: fitted object names.
       values: dict name -> (O_f,) fitted values; start: dict name -> (O_f,) start values.
-      loss: normalised loss at the fitted values (see :mod:`fitting.losses`); loss_start.
+      loss: normalised loss at the fitted values (see :mod:`jaxplush.fitting.losses`); loss_start.
       history: dict of arrays over accepted iterations: "iteration", "loss", "grad_norm",
         "time" (s), each fitted name (n, O_f); and "rejected" (iterations whose step was rejected).
       iterations: evaluations done; rejected: steps rejected (blow-ups).
       converged: the fit reached the data at an optimum (``status == "converged"``).
       reason: how it ended, in words (:attr:`outcome`'s message).
-      identifiability: :class:`fitting.identifiability.IdentifiabilityReport` (or None); its
+      identifiability: :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` (or None); its
         standard errors mean something only for a converged fit (:meth:`table` hides them otherwise).
       frames: (T, V, 3) simulated positions at the target frames with the fitted values.
       steps: (T,) their steps; dt.
@@ -436,12 +405,12 @@ class FitResult:
     loop: object = None     # the final LoopState / LMRun (for saving a resumable file)
     problem: object = None  # the Problem that was solved
     settings: dict = dataclasses.field(default_factory=dict)
-    outcome: object = None  # fitting.outcome.Outcome
+    outcome: object = None  # jaxplush.fitting.outcome.Outcome
     search: dict = dataclasses.field(default_factory=dict)   # the default fit's samples and paths
 
     @property
     def status(self):
-        """"converged", "poor_fit", "stalled", "iteration_limit" or "at_bound" (fitting.outcome)."""
+        """"converged", "poor_fit", "stalled", "iteration_limit" or "at_bound" (jaxplush.fitting.outcome)."""
         return self.outcome.status if self.outcome is not None else ("converged" if self.converged else "stalled")
 
     def table(self):
@@ -469,13 +438,13 @@ class FitResult:
         return "\n".join(rows)
 
     def save(self, path):
-        """Write FIT.h5 atomically (see :mod:`fitting.io`)."""
-        from fitting import io as _io
+        """Write FIT.h5 atomically (see :mod:`jaxplush.fitting.io`)."""
+        from jaxplush.fitting import io as _io
         return _io.save_fit(self, path)
 
     def write_scene(self, path):
         """Write the scene with the fitted values (extended OBJ), ready to simulate."""
-        from fitting import io as _io
+        from jaxplush.fitting import io as _io
         return _io.write_fitted_scene(self, path)
 
 
@@ -483,17 +452,17 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
         **overrides):
     """Fit parameters of ``scene`` to ``target``.
 
-    The default (``optimizer="lm"``) is global, then local (:mod:`fitting.search`): a Sobol
+    The default (``optimizer="lm"``) is global, then local (:mod:`jaxplush.fitting.search`): a Sobol
     design over a box around the start (each parameter from start/4 to start*4 in log space,
     or ``bounds``), run in compiled batches with every point stable (substeps where a point's
     explicit limit is below dt), then Levenberg-Marquardt with finite-difference Jacobians from
     the best candidates, keeping the best. The outcome is judged honestly
-    (:mod:`fitting.outcome`): ``converged`` only when the residual is at the noise level (or
+    (:mod:`jaxplush.fitting.outcome`): ``converged`` only when the residual is at the noise level (or
     small against the target's motion) and the gradient is small against the start's.
 
     Args:
-      scene: :class:`jaxplush.scene.Scene`; its values of the fitted parameters are the start.
-      target: :class:`fitting.targets.Target` or a path (loaded with :func:`load_target`).
+      scene: :class:`jaxplush.scene.parse.Scene`; its values of the fitted parameters are the start.
+      target: :class:`jaxplush.fitting.targets.Target` or a path (loaded with :func:`load_target`).
       params: names to fit (``k`` = ``k_structural``; also ``dashpot``, ``drag``; ``total_weight``
         only alone, with a warning, unless ``force``); default :func:`default_params`, the
         material parameters the scene switches on (with a warning naming them).
@@ -510,7 +479,7 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
       options: :class:`fitting.FitOptions` (default ``FitOptions()``): iterations, lr, dt, start
         values, noise, tolerances, gradient method, identifiability, the default fit's
         :class:`fitting.SearchOptions` (bounds, samples, starts, seed) and
-        :class:`fitting.CheckpointOptions` (path, every, resume); see :mod:`fitting.options`.
+        :class:`fitting.CheckpointOptions` (path, every, resume); see :mod:`jaxplush.fitting.options`.
       callback: called after every accepted iteration with a dict (iteration, loss, values,
         grad_norm); returning True stops the fit.
       progress: draw a progress bar (loss and parameters) on stderr.
@@ -555,7 +524,7 @@ def _iterations(opts, kind):
     """The iteration limit: ``opts.iterations``, or the default for the optimiser."""
     if opts.iterations is not None:
         return int(opts.iterations)
-    from fitting.lmfit import MAX_ITER
+    from jaxplush.fitting.lmfit import MAX_ITER
     return MAX_ITER if kind == "lm" else 200
 
 
@@ -573,7 +542,7 @@ def _problem(scene, target, params, objects, opts):
 
 
 def _common_settings(prob, opts, kind, iterations, lr):
-    """The settings every fit records (and a resume must match; :mod:`fitting.io`)."""
+    """The settings every fit records (and a resume must match; :mod:`jaxplush.fitting.io`)."""
     return dict(optimizer=kind, lr=lr, iterations=int(iterations), names=list(prob.names),
                 objects=[prob.scene.object_names[o] for o in prob.objects], dt=prob.target.dt,
                 noise_free=bool(opts.noise_free), noise=-1.0 if prob.noise is None else float(prob.noise),
@@ -629,14 +598,14 @@ class _GradientFit:
             self.save(loop, "interrupted")
             raise
         if self.opts.checkpoint.path is not None:
-            from fitting import io as _io
+            from jaxplush.fitting import io as _io
             _io.save_fit(result, self.opts.checkpoint.path)
         return result
 
     def initial_loop(self):
         """The :class:`LoopState` to start from: the checkpoint's (resume), or the start values."""
         if self.opts.checkpoint.resume:
-            from fitting import io as _io
+            from jaxplush.fitting import io as _io
             return _io.load_checkpoint(self.opts.checkpoint.path, self.prob, self.opt, self.settings)
         th0 = jnp.asarray(self.prob.theta0, self.prob.sim.dtype)
         loop = LoopState(theta=np.asarray(th0), opt_state=jax.jit(self.opt.init)(th0))
@@ -711,18 +680,18 @@ class _GradientFit:
 
     def save(self, state, status="running"):
         if self.opts.checkpoint.path is not None:
-            from fitting import io as _io
+            from jaxplush.fitting import io as _io
             _io.save_checkpoint(self.opts.checkpoint.path, self.prob, state, self.settings, status=status)
 
     def grow_contact_capacity(self, theta):
         """After a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
-        loss is NaN: :func:`fitting.gradients.rollout_loss`), rebuild the problem with a capacity
+        loss is NaN: :func:`jaxplush.fitting.gradients.rollout_loss`), rebuild the problem with a capacity
         that fits (warning) and return True."""
         prob = self.prob
         if prob.sim.terms.contact is None:
             return False
-        from jaxplush import contact
-        from jaxplush.simulation import contact_capacity_needed
+        from jaxplush.model import contact
+        from jaxplush.stepping.simulation import contact_capacity_needed
         # the loss's own check (a fresh search at every step) decides whether it was an overflow
         _, codes = prob.frames(theta)
         if not (np.asarray(codes) == diagnostics.CONTACT_OVERFLOW).any():
@@ -929,7 +898,7 @@ def _motion(prob):
 
 def _judge_loop(prob, loop):
     """The outcome of an Adam or L-BFGS loop: residual at the best point, exact gradients."""
-    from fitting import outcome as _outcome
+    from jaxplush.fitting import outcome as _outcome
     if not loop.h_loss:
         return _outcome.judge(rms=np.inf, noise=prob.noise, motion=_motion(prob), grad=np.inf, grad0=1.0,
                               stopped="iterations")
@@ -981,7 +950,7 @@ def parse_bounds(bounds, names):
 
 
 def _lm_box(prob, bounds):
-    from fitting import lmfit
+    from jaxplush.fitting import lmfit
     box = lmfit.default_box(prob, parse_bounds(bounds, prob.names))
     th0 = np.asarray(prob.theta0, np.float64)
     if not box.contains(th0):
@@ -994,7 +963,7 @@ def _lm_box(prob, bounds):
 
 def _lm_settings(prob, opts, box):
     """The default fit's settings (:func:`_common_settings`, its box and global design)."""
-    from fitting import lmfit
+    from jaxplush.fitting import lmfit
     s = opts.search
     settings = _common_settings(prob, opts, "lm", _iterations(opts, "lm"), None)
     settings.update(frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind,
@@ -1005,8 +974,8 @@ def _lm_settings(prob, opts, box):
 
 
 def _fit_lm(prob, opts, notes, t_start, *, progress, callback):
-    """The default fit (fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome."""
-    from fitting import io as _io, lmfit
+    """The default fit (jaxplush.fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome."""
+    from jaxplush.fitting import io as _io, lmfit
     box = _lm_box(prob, opts.search.bounds)
     settings = _lm_settings(prob, opts, box)
     checkpoint_path, want_ident = opts.checkpoint.path, opts.identifiability
@@ -1045,8 +1014,8 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback):
 
 def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability."""
-    from fitting import outcome as _outcome
-    from fitting.search import gauss_newton
+    from jaxplush.fitting import outcome as _outcome
+    from jaxplush.fitting.search import gauss_newton
     notes = list(notes) + list(ev.notes)
     prob = dataclasses.replace(prob, sim=ev.prob.sim)       # with a grown contact capacity, if any
     best = run.best
@@ -1114,7 +1083,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
 
 
 def identifiability_at(prob, theta):
-    """The :class:`fitting.identifiability.IdentifiabilityReport` of a problem at log values theta."""
+    """The :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` of a problem at log values theta."""
     frames, _, jac = _ident.frames_and_jacobian(prob.frames, jnp.asarray(theta, prob.sim.dtype))
     return _report(prob, frames, jac)
 
@@ -1152,7 +1121,7 @@ def recovery_scene_text(subdivisions=2, k_structural=50.0, damping=1000.0, nmol=
     (docs/model.md §8.5: n = k s (s - 1) sum L² / (3 R T)).
     """
     import trimesh
-    from jaxplush.scene_writer import format_scene
+    from jaxplush.scene.write import format_scene
     from jaxplush.types import GAS_CONSTANT
     mesh = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=radius)
     v = np.asarray(mesh.vertices, np.float64)
@@ -1206,6 +1175,6 @@ def synthetic_recovery(subdivisions=3, noise=0.0, point_cloud=False, progress=Tr
 
 
 def _make_recovery_target(scene, steps, dt, save_every, noise, point_cloud, n_points, seed):
-    from fitting.targets import make_target
+    from jaxplush.fitting.targets import make_target
     return make_target(scene, steps, dt, save_every, noise=noise, point_cloud=point_cloud,
                        n_points=n_points or (2 * scene.n_vertices if point_cloud else None), seed=seed)

@@ -25,7 +25,7 @@ Methods (all give the same value and gradient up to rounding; tests/test_gradien
 * ``"auto"``: ``"adjoint"`` where supported (:func:`adjoint_supported`), else ``"checkpoint"``.
 
 Soft-soft contact: the step searches its candidates afresh; a search that overflows the contact
-capacity gives a finite but inexact force (:mod:`jaxplush.contact`), so every method also checks
+capacity gives a finite but inexact force (:mod:`jaxplush.model.contact`), so every method also checks
 the positions each step starts from and returns a NaN loss when one overflowed (``nan_on_overflow``), which
 ``fitting.fit`` takes as the signal to raise the capacity.
 
@@ -43,7 +43,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import integrators, model
+from jaxplush.stepping import integrators
+from jaxplush.model import forces as model
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
 
 METHODS = ("auto", "plain", "checkpoint", "adjoint")
@@ -210,7 +211,7 @@ def _make_force_vjp(topo, terms, temperature):
     cotangent ``lam`` (3, V): J_x^T lam, J_u^T lam and the parameter cotangents as a
     :class:`_Dens` (``damp`` and ``drag`` None: they belong to the integrator).
 
-    Written in the one-ring form of :func:`jaxplush.model.make_force_fn`: every term is a
+    Written in the one-ring form of :func:`jaxplush.model.forces.make_force_fn`: every term is a
     gather of a neighbour's value minus the vertex's own, so the transpose needs gathers only,
     never a scatter-add. The springs, the gas (gradient of -nRT ln V) and the dashpot's
     velocity part have symmetric Jacobians (J^T lam = J lam, a directional derivative); the
@@ -234,7 +235,7 @@ def _make_force_vjp(topo, terms, temperature):
     rt = GAS_CONSTANT * temperature
     contact_force = None
     if terms.contact:
-        from jaxplush import contact as _contact
+        from jaxplush.model import contact as _contact
         contact_force = _contact.make_contact_force(topo, terms.contact)
 
     def gather(a):
@@ -273,7 +274,7 @@ def _make_force_vjp(topo, terms, temperature):
             jx = jx + jx_p + jx_dp
         p_extra = None
         if contact_force is not None:
-            # soft-soft contact (jaxplush.contact, -grad of a penalty energy on candidate lists):
+            # soft-soft contact (jaxplush.model.contact, -grad of a penalty energy on candidate lists):
             # its own VJP, parameters included.
             fc, vjp_c = jax.vjp(contact_force, params, x)
             p_extra, jxc = vjp_c(lam)
@@ -314,7 +315,7 @@ def _gas_vjp(topo, params, x, lam, d, dl, rt):
 
 
 def _object_volumes(topo, x, g):
-    """(O,) volumes V_o = 1/3 sum_i (x_i - r_o).g_i (as in jaxplush.model), x and g (3, V)."""
+    """(O,) volumes V_o = 1/3 sum_i (x_i - r_o).g_i (as in jaxplush.model.forces), x and g (3, V)."""
     if topo.n_objects == 1:
         return (jnp.sum((x - x[:, :1]) * g) / 3.0)[None]
     return jnp.stack([jnp.sum((x[:, a:b] - x[:, a:a + 1]) * g[:, a:b]) for a, b in topo.vertex_slices]) / 3.0
@@ -327,7 +328,7 @@ def _make_step_dens_vjp(sim):
     """``step_vjp(params, x, u, x_next, x_bar, u_bar) -> (x_bar, u_bar, dens)``: the VJP of
     ``sim.internal.step`` at the state (x, u) (internal (3, V) layout), given the positions
     ``x_next`` it produced, with the parameter cotangents as per-vertex densities
-    (:class:`_Dens`, reduced by :func:`_reduce_dens`). The step (jaxplush.step, verlet):
+    (:class:`_Dens`, reduced by :func:`_reduce_dens`). The step (jaxplush.stepping.step, verlet):
 
         a  = F(x, u)/m - drag u + g;   u' = (1 - f) u + a dt;   x' = x + u' dt;
         floor (y >= H): below = x'_y < H  ->  u'_y = (H - x_y)/dt, x'_y = H;  pins: x' = x0, u' = 0.
@@ -712,7 +713,7 @@ def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, me
         10,000-step horizon at 2562 vertices stays under 1 GiB in all with velocities stored too).
       nan_on_overflow: with soft-soft contact between objects, return a NaN loss when the fresh
         candidate search of some step (at the positions it starts from) overflows the contact
-        capacity (the steps were then inexact: :mod:`jaxplush.contact`); the forces and
+        capacity (the steps were then inexact: :mod:`jaxplush.model.contact`); the forces and
         the gradient stay finite, so only the value says it. ``fitting.fit`` rejects such a point
         and raises the capacity. False: the loss of the inexact run.
 

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import diagnostics
+from jaxplush.stepping import diagnostics
 
 #: Condition number of J^T J above which the weakest combination is reported.
 COND_WARN = 1e6
@@ -50,13 +50,13 @@ def frames_at_steps(sim, params, state0, steps):
     writes each frame into a (T, 3, V) buffer, so memory is O(T V), not O(steps V).
 
     Args:
-      sim: :class:`jaxplush.step.Simulator`.
+      sim: :class:`jaxplush.stepping.step.Simulator`.
       params: :class:`jaxplush.types.Params`.
       state0: public initial state (step 0).
       steps: static increasing step indices (>= 0).
 
     Returns:
-      (frames (T, V, 3), codes (T, O) int32 health codes, :mod:`jaxplush.diagnostics`). With
+      (frames (T, V, 3), codes (T, O) int32 health codes, :mod:`jaxplush.stepping.diagnostics`). With
       soft-soft contact, an object whose candidates overflowed their capacity in some step up to a
       frame (a fresh search's count at the positions each step starts from) has the code
       ``CONTACT_OVERFLOW`` there and at every later frame.

@@ -3,7 +3,7 @@
 Layout:
 
 * attributes: ``status`` ("running" while checkpointing, "interrupted" after Ctrl-C, and once
-  the fit ends its outcome, one of :data:`fitting.outcome.STATUSES`), ``outcome_*`` (its fields),
+  the fit ends its outcome, one of :data:`jaxplush.fitting.outcome.STATUSES`), ``outcome_*`` (its fields),
   ``loss``, ``loss_start``, ``iterations``, ``rejected``, ``converged``, ``reason``,
   ``optimizer``, ``lr`` (NaN: default), ``dt``, ``normalisation``, ``scale2``, ``noise`` (NaN:
   unknown), ``wall_time``, ``scene`` (the scene text, start values), ``scene_path``,
@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
-from jaxplush.io import atomic_path, open_hdf5
+from jaxplush.io.trajectory import atomic_path, open_hdf5
 from jaxplush.types import PARAM_NAMES
 
 #: Settings that must agree between a checkpoint and the fit resuming it.
@@ -157,8 +157,8 @@ def save_checkpoint(path, prob, loop, settings, status="running"):
 
 
 def save_fit(result, path):
-    """Write a :class:`fitting.fitter.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
-    fit's outcome (fitting.outcome: "converged", "poor_fit", "stalled", ...)."""
+    """Write a :class:`jaxplush.fitting.fitter.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
+    fit's outcome (jaxplush.fitting.outcome: "converged", "poor_fit", "stalled", ...)."""
     loop = result.loop
     prob = result.problem
     with atomic_path(path, ".h5") as tmp:
@@ -236,7 +236,7 @@ def save_fit(result, path):
 # --------------------------------------------------------------------------- the default fit (lm)
 
 def light_copy(run):
-    """A copy of a :class:`fitting.lmfit.LMRun` without the residuals and Jacobians (which a
+    """A copy of a :class:`jaxplush.fitting.lmfit.LMRun` without the residuals and Jacobians (which a
     resumed fit recomputes, identically): what a checkpoint holds."""
     import copy
     states = [dataclasses.replace(st, history=list(st.history), residual=None, jac=None) for st in run.states]
@@ -289,7 +289,7 @@ def _write_lm(f, prob, run, settings):
 
 
 def save_lm_checkpoint(path, prob, run, settings, status="running"):
-    """Write a default fit's state (:class:`fitting.lmfit.LMRun`) to ``path`` atomically."""
+    """Write a default fit's state (:class:`jaxplush.fitting.lmfit.LMRun`) to ``path`` atomically."""
     with atomic_path(path, ".h5") as tmp:
         with h5py.File(tmp, "w") as f:
             _common_attrs(f, prob, settings, status)
@@ -305,7 +305,7 @@ def save_lm_checkpoint(path, prob, run, settings, status="running"):
 
 
 def load_lm_checkpoint(path, prob, settings):
-    """The :class:`fitting.lmfit.LMRun` saved in ``path``, checked to belong to this fit."""
+    """The :class:`jaxplush.fitting.lmfit.LMRun` saved in ``path``, checked to belong to this fit."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise JaxplushError(f"{path}: no checkpoint to resume (the file does not exist); run without --resume")
@@ -321,8 +321,8 @@ def load_lm_checkpoint(path, prob, settings):
 
 
 def _read_lm(path, f, prob, settings):
-    from fitting.lmfit import LMRun
-    from fitting.search import GlobalResult, LMState
+    from jaxplush.fitting.lmfit import LMRun
+    from jaxplush.fitting.search import GlobalResult, LMState
     if "checkpoint" not in f:
         raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
     g = f["checkpoint"]
@@ -369,7 +369,7 @@ def _check_settings(path, g, prob, settings):
 
 
 def load_checkpoint(path, prob, opt, settings):
-    """The :class:`fitting.fitter.LoopState` saved in ``path``, checked to belong to this fit."""
+    """The :class:`LoopState` saved in ``path``, checked to belong to this fit."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise JaxplushError(f"{path}: no checkpoint to resume (the file does not exist); run without --resume")
@@ -384,8 +384,41 @@ def load_checkpoint(path, prob, opt, settings):
         raise TrajectoryError(path, f"cannot read the checkpoint ({e}); run without --resume to start over") from None
 
 
+@dataclasses.dataclass
+class LoopState:
+    """The complete state of the optimisation loop (what a checkpoint holds).
+
+    ``theta`` is the next point to evaluate, with ``opt_state`` the optimiser state to use
+    there; ``anchor`` the last accepted point it was reached from (None before the first).
+    """
+
+    theta: np.ndarray
+    opt_state: object
+    anchor: np.ndarray | None = None
+    scale: float = 1.0
+    iteration: int = 0           # evaluations done (accepted + rejected)
+    rejected: int = 0
+    rejected_in_row: int = 0
+    stall: int = 0
+    best_theta: np.ndarray | None = None
+    best_loss: float = math.inf
+    done: bool = False
+    reason: str = ""
+    h_iter: list = dataclasses.field(default_factory=list)
+    h_loss: list = dataclasses.field(default_factory=list)
+    h_theta: list = dataclasses.field(default_factory=list)
+    h_gnorm: list = dataclasses.field(default_factory=list)
+    h_time: list = dataclasses.field(default_factory=list)
+    h_rejected: list = dataclasses.field(default_factory=list)
+    wall: float = 0.0
+
+    def snapshot(self):
+        """A copy that later iterations do not change (lists copied; arrays are never mutated)."""
+        return dataclasses.replace(self, **{f.name: list(getattr(self, f.name)) for f in dataclasses.fields(self)
+                                            if f.name.startswith("h_")})
+
+
 def _read_checkpoint(path, f, prob, opt, settings):
-    from fitting.fitter import LoopState
     if "checkpoint" not in f:
         raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
     g = f["checkpoint"]
@@ -451,7 +484,7 @@ def _attr(v):
 
 def fitted_scene_text(result):
     """The scene text with the fitted values, in the extended OBJ format."""
-    from jaxplush.scene_writer import format_scene
+    from jaxplush.scene.write import format_scene
     scene = result.problem.scene
     objects = []
     p = result.params

@@ -1,6 +1,6 @@
 """The default fit's driver: continuation in time, a global stage, local Levenberg-Marquardt.
 
-:func:`run` takes a built :class:`fitting.fitter.Problem` and its search box and returns a
+:func:`run` takes a built :class:`jaxplush.fitting.fitter.Problem` and its search box and returns a
 :class:`LMRun`: the global samples, every local search, the best point, its residuals and
 finite-difference Jacobian, and the gradients the outcome is judged by.
 
@@ -14,7 +14,7 @@ local starts on the shortest, then each stage's best points start the next, long
 minimum lies close by (for an exact model, at the same parameters).
 
 Progress is shown per stage; the run's state is checkpointed after the global stage and after
-every local iteration (:func:`fitting.io.save_lm_checkpoint`), so ``resume`` continues an
+every local iteration (:func:`jaxplush.fitting.io.save_lm_checkpoint`), so ``resume`` continues an
 interrupted fit to the same answer (every evaluation is deterministic).
 """
 
@@ -28,8 +28,8 @@ import numpy as np
 
 from jaxplush.progress import Progress
 
-from fitting import search as _search
-from fitting.evaluate import Evaluator
+from jaxplush.fitting import search as _search
+from jaxplush.fitting.evaluate import Evaluator
 
 #: Defaults: Sobol points of the global stage, local starts screened, and kept after screening.
 GLOBAL_SAMPLES = 64
@@ -41,10 +41,10 @@ MAX_ITER = 40
 #: toward the full target's optimum, which the last stage resolves.
 MAX_ITER_CONTINUATION = 8
 #: ... and there a search stops once its Gauss-Newton step is within one standard error (the
-#: last stage resolves the optimum to :data:`fitting.search.NOISE_STOP` of it): a shorter
+#: last stage resolves the optimum to :data:`jaxplush.fitting.search.NOISE_STOP` of it): a shorter
 #: horizon's optimum lies about that far from the full target's anyway.
 NOISE_STOP_CONTINUATION = 1.0
-#: Restarts from an axis scan (:func:`fitting.search.rescue`) per search and stage.
+#: Restarts from an axis scan (:func:`jaxplush.fitting.search.rescue`) per search and stage.
 MAX_RESCUES = 2
 #: A kept start whose loss exceeds this many times the best one's is set aside (it cannot win).
 DROP_FACTOR = 30.0
@@ -67,15 +67,15 @@ class LMRun:
     Attributes:
       phase: "global", "local", "final" or "done".
       stage: index into ``horizons`` (frame counts) of the stage running.
-      global_result: :class:`fitting.search.GlobalResult` (None before the global stage).
-      states: list of :class:`fitting.search.LMState`, the local searches of this stage.
+      global_result: :class:`jaxplush.fitting.search.GlobalResult` (None before the global stage).
+      states: list of :class:`jaxplush.fitting.search.LMState`, the local searches of this stage.
       rounds: local iterations done in this stage.
       best: the best state once done; jac (n, P) its Jacobian at H_MIN; residual (n,);
       grad, grad0: loss gradients (log space) at the best point and at the start values;
       paths: per finished stage, the (loss, theta) paths of its searches and why each ended;
       loss0: the loss of the start values on the whole target;
       wall: seconds spent; evaluations: points simulated;
-      smoothed: the :class:`fitting.search.Smoothed` stage of a noisy target's fit (else None).
+      smoothed: the :class:`jaxplush.fitting.search.Smoothed` stage of a noisy target's fit (else None).
     """
 
     phase: str = "global"
@@ -129,7 +129,7 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
     the best point of the full problem.
 
     Args:
-      prob: :class:`fitting.fitter.Problem`; box: :class:`fitting.search.Box`.
+      prob: :class:`jaxplush.fitting.fitter.Problem`; box: :class:`jaxplush.fitting.search.Box`.
       samples: Sobol points of the global stage (plus the start itself).
       starts, keep: local starts screened for SCREEN_ROUNDS iterations, and kept afterwards.
       max_iter: Levenberg-Marquardt iterations per start and stage.
@@ -140,7 +140,7 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
       callback: ``callback(run)`` after every local iteration; returning True stops the search.
 
     Returns:
-      (:class:`LMRun` (phase "done"), the :class:`fitting.evaluate.Evaluator` of the full problem).
+      (:class:`LMRun` (phase "done"), the :class:`jaxplush.fitting.evaluate.Evaluator` of the full problem).
     """
     t0 = time.perf_counter()
     st = resume or LMRun(horizons=horizons(prob.target.n_frames))
@@ -178,7 +178,7 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
 
 
 class _Evaluators:
-    """One :class:`fitting.evaluate.Evaluator` per stage (the problem truncated to its horizon),
+    """One :class:`jaxplush.fitting.evaluate.Evaluator` per stage (the problem truncated to its horizon),
     made on first use: each shares the first one's compiled rollout (frames in chunks of the
     first horizon), its calibration, and a contact capacity grown in an earlier stage."""
 
@@ -209,7 +209,7 @@ class _Evaluators:
 
 
 def _global(prob, ev, box, st, samples, starts, seed, progress, label):
-    """The global stage (:func:`fitting.search.global_stage`) and the local searches it starts."""
+    """The global stage (:func:`jaxplush.fitting.search.global_stage`) and the local searches it starts."""
     th0 = np.asarray(prob.theta0, np.float64)
     with Progress(samples + 1, f"global search, {label}", enabled=progress, unit="points") as bar:
         st.global_result = _search.global_stage(ev, box, th0, samples, seed, progress=bar.update)
@@ -259,7 +259,7 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
     noise_stop = _search.NOISE_STOP
     if st.stage + 1 < len(st.horizons) or (prob.noise is not None and prob.noise > 0):
         # only the last stage of a noise-free fit resolves the optimum itself: with a noisy
-        # target, the smoothing stage (fitting.search.smooth) does, at the scale of the noise
+        # target, the smoothing stage (jaxplush.fitting.search.smooth) does, at the scale of the noise
         max_iter = min(max_iter, MAX_ITER_CONTINUATION)
         noise_stop = NOISE_STOP_CONTINUATION
     with Progress(max_iter, f"local search, {label}", enabled=progress, unit="it") as bar:
@@ -298,7 +298,7 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
 
 def _final(prob, ev, box, st, progress=False):
     """Jacobian at the best point (at H_MIN) and the gradients at it and at the start; for a noisy
-    target, the smoothing stage (:func:`fitting.search.smooth`) moves the best point to the
+    target, the smoothing stage (:func:`jaxplush.fitting.search.smooth`) moves the best point to the
     optimum of a regression model, whose slope and intercept then stand for the Jacobian and the
     residuals."""
     states = st.states

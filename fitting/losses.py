@@ -6,7 +6,7 @@
   surface, for ``points`` targets (a scan: M points with no correspondence to the V vertices).
 * :func:`chamfer`: the symmetric vertex-to-point Chamfer distance (used by sweeps).
 
-:func:`make_loss` builds the frame loss that :func:`fitting.gradients.rollout_loss` sums over
+:func:`make_loss` builds the frame loss that :func:`jaxplush.fitting.gradients.rollout_loss` sums over
 the target frames, and :func:`make_residual` the same loss as a vector of residuals r with
 sum(r²) = L (for Gauss-Newton and Levenberg-Marquardt). The loss is noise-aware:
 
@@ -98,7 +98,7 @@ def point_surface_distance2(x, p, faces, vfaces, near=None):
 def _candidate_faces(x, p, faces, vfaces, near):
     """(corners: 3 x (M, W, 3) positions of the faces around each point's nearest vertex,
     d2 (M, W): each point's squared distance to each of them)."""
-    from jaxplush.contact import closest_point_distance2
+    from jaxplush.model.contact import closest_point_distance2
     tri = jnp.asarray(faces)[jnp.asarray(vfaces)[near]]                 # (M, W, 3)
     corner = [x[tri[..., i]] for i in range(3)]                         # 3 x (M, W, 3)
     split = lambda a: tuple(a[..., c] for c in range(3))  # noqa: E731
@@ -141,7 +141,7 @@ def frame_distance(kind):
 
 
 class Loss(NamedTuple):
-    """A frame loss ready for :func:`fitting.gradients.rollout_loss`.
+    """A frame loss ready for :func:`jaxplush.fitting.gradients.rollout_loss`.
 
     Attributes:
       loss_fn: ``(x (V, 3), aux_j) -> scalar``: the frame's normalised contribution.
@@ -202,8 +202,8 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     """Build the normalised frame loss for a target.
 
     Args:
-      target: :class:`fitting.targets.Target`.
-      topology: the simulator's :class:`jaxplush.model.Topology` (rest shape, faces, objects).
+      target: :class:`jaxplush.fitting.targets.Target`.
+      topology: the simulator's :class:`jaxplush.model.forces.Topology` (rest shape, faces, objects).
       dtype: float dtype of the simulation.
       noise: measurement noise sigma per coordinate (m); default: the target's, if known.
       noise_free: treat the target as exact (normalise by its motion, ignore any noise value).
@@ -219,7 +219,7 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     inv = 1.0 / (n * scale2)
     volumes = None
     if check_volume:
-        from jaxplush.model import face_volumes
+        from jaxplush.model.forces import face_volumes
         volumes = lambda x: face_volumes(topology, x)  # noqa: E731
 
     def loss_fn(x, y):

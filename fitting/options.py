@@ -33,9 +33,9 @@ class SearchOptions:
       bounds: the search box {name: (lo, hi)} in parameter units (every fitted object), or
         "name=lo:hi,..." text; default each fitted parameter from start/4 to start*4. Refused
         with the other optimisers.
-      samples: Sobol points of the global stage (default :data:`fitting.lmfit.GLOBAL_SAMPLES`, 64).
+      samples: Sobol points of the global stage (default :data:`jaxplush.fitting.lmfit.GLOBAL_SAMPLES`, 64).
       starts: local Levenberg-Marquardt starts from its best candidates (default
-        :data:`fitting.lmfit.STARTS`, 5).
+        :data:`jaxplush.fitting.lmfit.STARTS`, 5).
       seed: the Sobol scrambling seed.
     """
 
@@ -78,7 +78,7 @@ class FitOptions:
       gtol, rtol, xtol, ftol, patience: when a gradient optimiser stops (max-norm of the
         gradient; relative loss change for ``patience`` accepted iterations; max-norm of the
         log-space step; the loss itself).
-      method: gradient method of :func:`fitting.gradients.rollout_loss`.
+      method: gradient method of :func:`jaxplush.fitting.gradients.rollout_loss`.
       force: allow fitting ``total_weight`` jointly with k/dashpot/nmol.
       identifiability: compute the identifiability report at the optimum.
       check_dt: warn when dt exceeds the estimated stability limit at the start values

@@ -63,7 +63,7 @@ def drop_scene_text(shape="ball", subdivisions=3, *, k_structural=420.0, damping
       floor_model: None (the scene default, projection) or a ``floor_model`` keyword value.
       name: object name (default: the shape).
     """
-    from jaxplush.scene_writer import format_scene
+    from jaxplush.scene.write import format_scene
     v, f = shape_mesh(shape, subdivisions)
     if tilt_deg:
         t = np.radians(tilt_deg)

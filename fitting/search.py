@@ -1,7 +1,7 @@
 """The default fit: a global stage over a box, Levenberg-Marquardt from the best candidates, smoothing.
 
 Both stages work in theta = log(parameters) and only ever *simulate* (batched forward runs,
-:class:`fitting.evaluate.Evaluator`); neither differentiates through the rollout.
+:class:`jaxplush.fitting.evaluate.Evaluator`); neither differentiates through the rollout.
 
 Why no autodiff here: a dropped plush excites vertex-level modes that ring for the whole target
 (hundreds to thousands of radians of phase), so the loss carries a ripple whose wavelength in
@@ -13,7 +13,7 @@ as the steps shrink near the optimum, so does the difference step, where the los
 
 Global stage (:func:`global_stage`): a scrambled Sobol design (scipy.stats.qmc) of ``n``
 points in the box, plus the start itself, all run in compiled batches; failed points (which
-even :data:`fitting.evaluate.MAX_SUBSTEPS` substeps cannot run) are kept with an infinite loss.
+even :data:`jaxplush.fitting.evaluate.MAX_SUBSTEPS` substeps cannot run) are kept with an infinite loss.
 
 Local stage (:func:`lm_round`): a box-constrained Levenberg-Marquardt on the residual
 vector r (sum(r²) = loss) with a trust radius in log space:
@@ -25,7 +25,7 @@ vector r (sum(r²) = loss) with a trust radius in log space:
   mu grows tenfold and the radius shrinks fourfold;
 * it stops when an accepted step changes theta by less than ``xtol`` or the loss by less than
   ``ftol`` (relative), when the radius falls below ``xtol`` without an accepted step (stalled),
-  or at ``max_iter`` iterations. The outcome is judged afterwards (fitting.fitter), not here.
+  or at ``max_iter`` iterations. The outcome is judged afterwards (jaxplush.fitting.fitter), not here.
 
 Smoothing stage (:func:`smooth`, noisy targets only): Gauss-Newton on an affine regression model
 of the residuals over a Sobol design at the scale of the standard errors, which averages out the
@@ -465,7 +465,7 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None):
     :data:`SMOOTH_ITER` iterations.
 
     Args:
-      evaluator: :class:`fitting.evaluate.Evaluator` of the full target; box: :class:`Box`;
+      evaluator: :class:`jaxplush.fitting.evaluate.Evaluator` of the full target; box: :class:`Box`;
       theta: the start (the local search's result); jac, residual: its Jacobian and residuals,
         which size the first design; progress: ``progress(1, extra=text)`` after each design.
     Returns:

@@ -8,7 +8,7 @@
 
 It reads like ``jax.vmap`` over parameter points: every point is an independent simulation of
 the scene with some parameters replaced. Under the hood the points run in chunks of a static
-batch size B through :mod:`jaxplush.batched` (the batch on the last axis, for throughput, which a
+batch size B through :mod:`jaxplush.fitting.batched` (the batch on the last axis, for throughput, which a
 plain ``vmap`` of the single-scene step does not give; see benchmarks/RESULTS.md, "Batch sweeps"),
 so a grid of any size compiles once. A sweep larger than B runs in equal batches of whole
 chunks (:func:`_outer_batch`); the last batch is padded by repeating its last point.
@@ -25,7 +25,7 @@ centroid height (y) and largest vertex displacement from the rest shape, the hea
     L = (1/T) sum_j d(x(t_j), y_j),
 
 d the mean squared vertex distance for a ``positions`` target or the symmetric Chamfer distance
-(:func:`fitting.losses.chamfer`) for a ``points`` target, in m² (not normalised). A point whose
+(:func:`jaxplush.fitting.losses.chamfer`) for a ``points`` target, in m² (not normalised). A point whose
 rollout blew up keeps its last healthy state as final positions (``final_step`` says which
 step), a NaN loss and summaries, and its failure is listed in ``fail_code``/``fail_step``; it is
 never silently returned as NaN positions.
@@ -44,7 +44,7 @@ O objects, V vertices, A swept axes:
     final_step            [P] step of final_positions (steps, or the last healthy step)
     summary/volume        [P, O] m³          summary/centroid_height   [P, O] m
     summary/max_displacement [P, O] m
-    failure/code          [P, O] int (jaxplush.diagnostics codes; 0 ok)  failure/step [P, O] (-1 none)
+    failure/code          [P, O] int (jaxplush.stepping.diagnostics codes; 0 ok)  failure/step [P, O] (-1 none)
     failure/warn_step     [P, O] first step with the volume clamp active (-1 none)
     failure/messages      [n_codes] the message of each code (index = code)
     loss                  [P] m² (only with a target; NaN where the point failed)
@@ -66,7 +66,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import batched, diagnostics
+from jaxplush.fitting import batched
+from jaxplush.stepping import diagnostics
 from jaxplush.errors import JaxplushError
 from jaxplush.progress import Progress
 from jaxplush.types import PARAM_NAMES, Params
@@ -202,9 +203,9 @@ def _normalise_points(points):
 # --------------------------------------------------------------------------- targets and frames
 
 def _load_target(target, scene, dt):
-    """A fitting.targets.Target on the dt grid (a path is loaded and validated against the scene)."""
+    """A jaxplush.fitting.targets.Target on the dt grid (a path is loaded and validated against the scene)."""
     if isinstance(target, (str, os.PathLike)):
-        from fitting.targets import load_target
+        from jaxplush.fitting.targets import load_target
         return load_target(target, scene, dt)
     if hasattr(target, "on_grid") and float(getattr(target, "dt", dt)) != float(dt):
         return target.on_grid(dt)
@@ -254,7 +255,7 @@ def _frame_period(steps, required):
 
 @lru_cache(maxsize=None)
 def _observer(kind, keep_positions):
-    """The static per-frame ``observe`` of :func:`jaxplush.batched.rollout` for a sweep: the
+    """The static per-frame ``observe`` of :func:`jaxplush.fitting.batched.rollout` for a sweep: the
     loss contribution of target frames (a ``lax.cond``: other frames cost nothing) and,
     optionally, the positions."""
 
@@ -277,7 +278,7 @@ def frame_loss(kind, x, y):
     mean squared vertex distance (y (V, 3)) or symmetric Chamfer distance (y (M, 3))."""
     if kind == "positions":
         return sum((x[c] - y[:, c][:, None]) ** 2 for c in range(3)).mean(axis=0)
-    from fitting.losses import chamfer
+    from jaxplush.fitting.losses import chamfer
     pts = jnp.stack(x, axis=-1).transpose(1, 0, 2)                    # (B, V, 3)
     return jax.lax.map(lambda xb: chamfer(xb, y), pts)
 
@@ -301,7 +302,7 @@ class SweepResult:
       final_step: (P,) int.
       volume, centroid_height, max_displacement: (P, O) at ``final_positions``: enclosed volume
         (m³), mean vertex height y (m), largest vertex distance from the rest shape (m).
-      fail_code, fail_step: (P, O) first failure (:mod:`jaxplush.diagnostics` code, exact step;
+      fail_code, fail_step: (P, O) first failure (:mod:`jaxplush.stepping.diagnostics` code, exact step;
         0 / -1 where none). ``failed`` (P,) is True where any object failed.
       warn_step: (P, O) first checked step with the volume clamp active (-1: none).
       loss: (P,) loss against the target (m²; NaN where failed), or None without a target.
@@ -418,7 +419,7 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
     """Simulate a scene at every point of a parameter grid, in compiled batches.
 
     Args:
-      scene: :class:`jaxplush.scene.Scene`.
+      scene: :class:`jaxplush.scene.parse.Scene`.
       grid: dict parameter label -> 1-D values; the sweep runs their cartesian product. Labels
         are :data:`jaxplush.types.PARAM_NAMES` (``k`` = ``k_structural``), applied to every
         object, or ``name@object`` for one object (name or index).
@@ -428,8 +429,8 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
       dt: time step, s.
       save_every: also keep every point's positions every ``save_every`` steps (and the last
         step) in ``frames`` (memory: T x P x V x 3).
-      target: a target file path (loaded with :func:`fitting.targets.load_target` on this dt)
-        or a :class:`fitting.targets.Target`; the loss of each point is computed against it.
+      target: a target file path (loaded with :func:`jaxplush.fitting.targets.load_target` on this dt)
+        or a :class:`jaxplush.fitting.targets.Target`; the loss of each point is computed against it.
       integrator: only "verlet" is batched.
       progress: draw a progress bar on stderr.
       batch: at most this many points simulated together (static; one compilation for any
@@ -704,7 +705,7 @@ def _save(res, path):
     import h5py
 
     from jaxplush import __version__
-    from jaxplush.io import atomic_path
+    from jaxplush.io.trajectory import atomic_path
     with atomic_path(path, ".h5") as tmp:
         with h5py.File(tmp, "w") as f:
             a = f.attrs
@@ -760,7 +761,7 @@ def load_sweep(path):
     import h5py
 
     from jaxplush.errors import TrajectoryError
-    from jaxplush.io import open_hdf5
+    from jaxplush.io.trajectory import open_hdf5
     path = os.fspath(path)
     with open_hdf5(path) as f:
         if f.attrs.get("format") != FORMAT:
@@ -851,7 +852,7 @@ def _plot(res, where, quantity, obj, log):
         return ax
     import matplotlib.pyplot as plt
 
-    from jaxplush.io import atomic_path
+    from jaxplush.io.trajectory import atomic_path
     try:
         with atomic_path(where) as tmp:
             fig.savefig(tmp, dpi=120, bbox_inches="tight", format=os.path.splitext(os.fspath(where))[1][1:] or None)

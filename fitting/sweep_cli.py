@@ -8,7 +8,7 @@ A grid spec is ``NAME=a:b:n`` (n values from a to b, linearly spaced; geometrica
 ``--log``) or ``NAME=v1,v2,...``; NAME is a parameter (``k`` = ``k_structural``), optionally
 ``NAME@OBJECT``. Every input is validated before anything runs; a bad one prints one message
 (no traceback), writes nothing and exits 2. The sweep file is written atomically (schema in
-:mod:`fitting.sweep`), and a summary table is printed at the end. Points that blow up are
+:mod:`jaxplush.fitting.sweep`), and a summary table is printed at the end. Points that blow up are
 recorded in the file (failure code and step) and listed; they do not stop the sweep.
 """
 
@@ -23,7 +23,7 @@ import warnings
 import numpy as np
 
 from jaxplush.cliargs import attach_negative_values
-from jaxplush.io import check_output_path
+from jaxplush.io.trajectory import check_output_path
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -99,7 +99,7 @@ def main(argv=None):
         args = _parser().parse_args(attach_negative_values(argv))
     except SystemExit as e:  # argparse has printed its message
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
-    from jaxplush.compiled import enable_persistent_cache
+    from jaxplush.stepping.compiled import enable_persistent_cache
     enable_persistent_cache()          # a second run of the same scene reuses this one's compiles
     from jaxplush.errors import JaxplushError
     try:
@@ -150,7 +150,7 @@ def _run(args):
         import jax
         jax.config.update("jax_enable_x64", True)
     import jaxplush
-    from fitting import sweep as _sweep
+    from jaxplush.fitting import sweep as _sweep
 
     scene = jaxplush.load_scene(args.scene)
     try:                                 # names, objects and values, before the target is read
@@ -160,7 +160,7 @@ def _run(args):
         raise JaxplushError(f"{args.scene}: {e}") from None
     target, dt = None, args.dt
     if args.target is not None:
-        from fitting.targets import load_target
+        from jaxplush.fitting.targets import load_target
         target = load_target(args.target, scene, args.dt)
         dt = float(target.dt)
         if int(np.max(target.steps)) > args.steps:

@@ -1,12 +1,12 @@
 """Fitting targets: read, validate and write target deformations (HDF5; numpy only, never traced).
 
-A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io`, so every
+A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io.trajectory`, so every
 ``jaxplush simulate`` output is one. It holds either
 
 * ``positions`` float [T, V, 3]: the scene's vertices, in the scene's order, at T frames; or
 * ``points`` float [T, M, 3]: a point cloud per frame (a scan; M unrelated to V, no
   correspondence), fitted by each point's distance to the simulated surface (sweeps: a
-  symmetric Chamfer distance; :mod:`fitting.losses`),
+  symmetric Chamfer distance; :mod:`jaxplush.fitting.losses`),
 
 and ``times`` float [T] (s, increasing). The frames may be any subset of the rollout (only the
 final shape, say) and may be noisy. Optional: attribute ``dt`` (the target's time step, used
@@ -31,7 +31,7 @@ import h5py
 import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
-from jaxplush.io import atomic_path, open_hdf5
+from jaxplush.io.trajectory import atomic_path, open_hdf5
 
 #: Times must lie within this fraction of dt of a multiple of dt (float32-written times included).
 GRID_TOLERANCE = 1e-3
@@ -124,7 +124,7 @@ def load_target(path, scene, dt=None, kind=None):
 
     Args:
       path: HDF5 file with ``positions`` [T, V, 3] or ``points`` [T, M, 3], and ``times`` [T].
-      scene: the :class:`jaxplush.scene.Scene` that will be fitted.
+      scene: the :class:`jaxplush.scene.parse.Scene` that will be fitted.
       dt: the fit's time step (s); default: the file's ``dt`` attribute. Every frame time must
         be a multiple of it.
       kind: "positions" or "points" to choose when a file holds both (default: positions).
@@ -347,7 +347,7 @@ def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise
     """Simulate a synthetic target with known parameters (for tests, notebooks and benchmarks).
 
     Args:
-      scene: :class:`jaxplush.scene.Scene`.
+      scene: :class:`jaxplush.scene.parse.Scene`.
       steps, dt, save_every: the rollout: ``steps`` steps of ``dt``, a frame every ``save_every``
         steps (and at the last step), frame 0 the initial state.
       params: :class:`jaxplush.types.Params` of the truth (default: the scene's).
@@ -365,9 +365,9 @@ def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise
     """
     import jax
     import jaxplush
-    from jaxplush import diagnostics
+    from jaxplush.stepping import diagnostics
     from jaxplush.errors import SimulationError
-    from fitting.identifiability import frames_at_steps
+    from jaxplush.fitting.identifiability import frames_at_steps
     steps, save_every = int(steps), int(save_every)
     if steps < 1 or save_every < 1:
         raise ValueError(f"steps and save_every must be >= 1, got {steps} and {save_every}")

@@ -22,12 +22,12 @@ Lower level: ``sim = make_simulator(scene, dt)``; ``params = sim.params()``;
 __version__ = "0.1.0"
 
 from jaxplush.errors import JaxplushError, SceneError, SimulationError, TrajectoryError
-from jaxplush.io import load_trajectory, save_trajectory
-from jaxplush.rollouts import Health, rollout
-from jaxplush.scene import Scene, load_scene, parse_scene
-from jaxplush.simulation import Trajectory, contact_capacity_needed, simulate
-from jaxplush.stability import estimate as estimate_stable_dt
-from jaxplush.step import INTEGRATORS, Simulator, make_simulator
+from jaxplush.io.trajectory import load_trajectory, save_trajectory
+from jaxplush.stepping.rollouts import Health, rollout
+from jaxplush.scene.parse import Scene, load_scene, parse_scene
+from jaxplush.stepping.simulation import Trajectory, contact_capacity_needed, simulate
+from jaxplush.stepping.stability import estimate as estimate_stable_dt
+from jaxplush.stepping.step import INTEGRATORS, Simulator, make_simulator
 from jaxplush.types import Params, State
 
 import os as _os
@@ -35,7 +35,7 @@ import os as _os
 if _os.environ.get("JAXPLUSH_CACHE_DIR"):
     # set explicitly: every process that imports jaxplush shares the persistent compilation cache
     # (the command-line tools turn it on themselves, in the default directory when this is unset)
-    from jaxplush.compiled import enable_persistent_cache as _enable_persistent_cache
+    from jaxplush.stepping.compiled import enable_persistent_cache as _enable_persistent_cache
     _enable_persistent_cache()
 
 __all__ = [

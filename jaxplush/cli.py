@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 
 from jaxplush.cliargs import attach_negative_values
-from jaxplush.io import check_output_path
+from jaxplush.io.trajectory import check_output_path
 
 EXIT_USAGE = 2
 EXIT_FAILED = 3
@@ -63,7 +63,7 @@ def _parser():
 
 def main(argv=None):
     args = _parser().parse_args(attach_negative_values(sys.argv[1:] if argv is None else argv))
-    from jaxplush.compiled import enable_persistent_cache
+    from jaxplush.stepping.compiled import enable_persistent_cache
     enable_persistent_cache()          # a second run of the same scene reuses this one's compiles
     from jaxplush.errors import JaxplushError
     try:
@@ -137,7 +137,7 @@ def _warn_if_long(scene, args):
     before the run, when ``--steps`` would take longer than LONG_RUN at that rate."""
     import jax
     import jaxplush
-    from jaxplush.model import Terms
+    from jaxplush.model.forces import Terms
     sim = jaxplush.make_simulator(scene, args.dt, args.integrator, terms=Terms.for_scene(scene),
                                   substeps=args.substeps)
     p = sim.params()
@@ -162,7 +162,7 @@ def _duration(seconds):
 
 
 def _render(args):
-    from jaxplush.render import render
+    from jaxplush.io.render import render
     t = time.perf_counter()
     out = render(args.trajectory, args.out, frame=args.frame, fps=args.fps, max_frames=args.max_frames,
                  report=print)
@@ -173,7 +173,7 @@ def _render(args):
 def _info(args):
     import jaxplush
     from jaxplush.errors import JaxplushError
-    from jaxplush import stability
+    from jaxplush.stepping import stability
     scene = jaxplush.load_scene(args.scene)
     if args.dt is not None and not (np.isfinite(args.dt) and args.dt > 0):
         raise JaxplushError(f"--dt must be a positive number, got {args.dt}")

@@ -12,7 +12,7 @@ Three kinds of data, kept apart on purpose:
   * ``Params``: per-object physical parameters, a pytree of (O,) arrays that gradients and
     ``vmap`` flow into.
   * ``State``: the integrator's carry (positions and a velocity).
-  * topology (:class:`jaxplush.model.Topology`): numpy index tables closed over by the
+  * topology (:class:`jaxplush.model.forces.Topology`): numpy index tables closed over by the
     compiled step, never traced.
 """
 

@@ -2,9 +2,9 @@
 """Build the example scenes in this folder: ``python scenes/make_scenes.py``.
 
 Writes ``ball_drop.obj``, ``bear.obj``, ``hanging.obj``, ``two_plushies.obj`` and ``plush_pile.obj`` next to
-this script (atomically, through :func:`jaxplush.scene_writer.write_scene`), prints a
+this script (atomically, through :func:`jaxplush.scene.write.write_scene`), prints a
 parameter table per scene, then re-reads every file it wrote and checks it (closed,
-consistently wound, positive volume with trimesh; then ``jaxplush.scene.load_scene``).
+consistently wound, positive volume with trimesh; then ``jaxplush.scene.parse.load_scene``).
 The output is deterministic: rerunning gives byte-identical files.
 
 Every number in the headers is computed here, not guessed (docs/model.md §4, §5, §8):
@@ -54,8 +54,8 @@ ROOT = HERE.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from jaxplush.mesh import superellipsoid  # noqa: E402
-from jaxplush.scene_writer import write_scene  # noqa: E402
+from jaxplush.model.mesh import superellipsoid  # noqa: E402
+from jaxplush.scene.write import write_scene  # noqa: E402
 
 R_GAS = 8.314  # J/(mol K), as jaxplush.types.GAS_CONSTANT
 TEMPERATURE = 293.15  # K, written into every scene explicitly
@@ -775,9 +775,9 @@ def verify(path):
     for name, x, faces in read_objects(path):
         check_mesh(f"{path.name}:{name}", x, faces)
     try:
-        import jaxplush.scene as scene_mod
+        import jaxplush.scene.parse as scene_mod
     except Exception as e:  # the parser may not exist (yet) in this checkout
-        return f"trimesh ok; jaxplush.scene not importable ({type(e).__name__}: {e})"
+        return f"trimesh ok; jaxplush.scene.parse not importable ({type(e).__name__}: {e})"
     scene = scene_mod.load_scene(path)
     return f"trimesh ok; load_scene ok ({scene.n_objects} object(s), {scene.n_vertices} vertices)"
 

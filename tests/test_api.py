@@ -17,7 +17,7 @@ from conftest import icosphere_scene
 
 def test_entry_module_names_do_not_shadow_modules():
     assert callable(jaxplush.simulate) and callable(jaxplush.contact_capacity_needed)
-    sim_module = importlib.import_module("jaxplush.simulation")
+    sim_module = importlib.import_module("jaxplush.stepping.simulation")
     assert sim_module.simulate is jaxplush.simulate
     assert sim_module.contact_capacity_needed is jaxplush.contact_capacity_needed
     for name in jaxplush.__all__:
@@ -60,7 +60,7 @@ def test_a_value_for_a_term_that_is_not_compiled_in_is_an_error(field, value, te
 
 
 def test_a_term_compiled_in_on_request_gets_a_gradient():
-    from jaxplush.model import Terms
+    from jaxplush.model.forces import Terms
     scene = icosphere_scene()
     p0 = scene.params._replace(drag=np.array([2.0]))
     sim = jaxplush.make_simulator(scene, 1e-4, terms=Terms.for_scene(scene, p0))
@@ -71,3 +71,17 @@ def test_a_term_compiled_in_on_request_gets_a_gradient():
         return jnp.mean(sim.rollout(p, sim.init_fn(p, None, v0), 1, 20)[1][-1, :, 1])
 
     assert float(jax.grad(height)(jnp.array([2.0]))[0]) < 0      # more drag, less rise
+
+
+def test_fitting_installs_as_a_jaxplush_subpackage(tmp_path):
+    """fitting/ installs as jaxplush.fitting: outside the checkout, no top-level `fitting` exists
+    (another distribution on the package index has that name), and the CLI entry point resolves."""
+    import subprocess
+    import sys
+    code = ("import importlib.util, jaxplush.fitting, jaxplush.fitting.cli; "
+            "assert importlib.util.find_spec('fitting') is None; "
+            "from importlib.metadata import entry_points; "
+            "(ep,) = [e for e in entry_points(group='console_scripts') if e.name == 'jaxplush-fit']; "
+            "assert ep.value == 'jaxplush.fitting.cli:main' and ep.load() is jaxplush.fitting.cli.main")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr

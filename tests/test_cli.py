@@ -113,7 +113,7 @@ def test_info_checks_a_given_dt(work):
 
 def test_info_compiles_nothing_without_exact(work, monkeypatch):
     """Plain ``info`` prints the closed-form bound: no power iteration (which compiles) is run."""
-    from jaxplush import stability
+    from jaxplush.stepping import stability
 
     def refuse(*a, **k):
         raise AssertionError("info ran the power iteration")
@@ -358,6 +358,7 @@ def test_progress_final_line_says_where_and_why_it_stopped():
     assert final.startswith("simulate [" + "#" * 30 + "] 40 steps in") and "eta" not in final
 
 
+@pytest.mark.heavy
 def test_a_run_that_would_take_hours_is_announced_before_it_starts(work, tmp_path):
     """--steps is checked against how long the run will take: a short compiled probe sets the rate,
     and a run of more than half an hour says so on stderr before it starts (here 2e9 steps; the

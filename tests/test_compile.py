@@ -1,4 +1,4 @@
-"""Compile once, run many (jaxplush.compiled): a second call with new values neither traces nor
+"""Compile once, run many (jaxplush.stepping.compiled): a second call with new values neither traces nor
 compiles; a simulator rebuilt for the same scene shares the program; the cache is bounded and
 frees what it drops; the command line keeps compiled programs across processes."""
 
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush import compiled
+from jaxplush.stepping import compiled
 from conftest import compiles
-from fitting.scenarios import drop_scene_text
+from jaxplush.fitting.scenarios import drop_scene_text
 
 DT = 2e-4
 

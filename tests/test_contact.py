@@ -1,6 +1,6 @@
 """Soft-soft contact, floor friction and restitution (issue 5; docs/model.md §6, §7, §8.2).
 
-Penetration is judged by an inside test written here independently of jaxplush.contact: the
+Penetration is judged by an inside test written here independently of jaxplush.model.contact: the
 generalised winding number of the other object's closed surface (solid angles, Van
 Oosterom-Strackee), and the depth of an inside vertex by brute-force point-triangle distance.
 """
@@ -18,7 +18,9 @@ import pytest
 import trimesh
 
 import jaxplush
-from jaxplush import contact, diagnostics, model
+from jaxplush.model import contact
+from jaxplush.stepping import diagnostics
+from jaxplush.model import forces as model
 from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -175,7 +177,7 @@ def test_contact_force_conserves_momentum_and_matches_both_assemblies(x64):
     assert f[:n, 0].sum() < 0 < f[n:, 0].sum()
     # It is -dU/dx of the contact energy.
     energy = contact.make_contact_energy(sim.topology, sim.terms.contact)
-    g = jax.grad(lambda y: energy(p, y.T)[0])(x)
+    g = jax.jit(jax.grad(lambda y: energy(p, y.T)[0]))(x)
     np.testing.assert_allclose(-np.asarray(g), f, atol=1e-10 * scale)
 
 
@@ -329,12 +331,12 @@ def test_contact_friction_resists_below_and_slides_above_the_friction_angle(tilt
 
 @pytest.mark.parametrize("restitution", [0.0, 0.8])
 def test_floor_restitution_reflects_each_impacting_vertex(restitution):
-    """``floor_restitution E`` acts per vertex (jaxplush.constraints): a vertex that reaches the floor
+    """``floor_restitution E`` acts per vertex (jaxplush.stepping.constraints): a vertex that reaches the floor
     much faster than v_rest = 2 |g| dt leaves it with E times its incoming normal speed, a slow one
     is only projected onto the floor (it lands, so resting vertices do not jitter), and a vertex
     above the floor is untouched. (A gas-filled body as a whole does not rebound measurably more with
     it, README "Contact and floor keywords": its springs and gas take the energy of the impact.)"""
-    from jaxplush.constraints import make_constrain
+    from jaxplush.stepping.constraints import make_constrain
     text = icosphere_text(subdivisions=0, radius=0.05, k=300.0, mass=0.05, floor=0.0, translate=(0, 0.2, 0))
     if restitution:
         text = f"floor_restitution {restitution!r}\n" + text
@@ -432,7 +434,7 @@ def test_capacity_overflow_is_detected_and_simulate_reruns_with_a_larger_capacit
 
 def test_capacity_overflow_that_cannot_be_fixed_is_a_clear_error(monkeypatch):
     import importlib
-    monkeypatch.setattr(importlib.import_module("jaxplush.simulation"), "MAX_CAPACITY_RETRIES", 0)
+    monkeypatch.setattr(importlib.import_module("jaxplush.stepping.simulation"), "MAX_CAPACITY_RETRIES", 0)
     scene, n = two_balls(sub=1, gap=-0.005, extra_scene="contact_capacity 4\n")
     with pytest.raises(jaxplush.SimulationError) as e:
         jaxplush.simulate(scene, steps=20, dt=1e-4, save_every=10, check_dt=False)
@@ -453,7 +455,8 @@ def _overflowing(coherent=True):
     return scene, n, sim
 
 
-@pytest.mark.parametrize("coherent", [True, False], ids=["carried-lists", "search-every-step"])
+@pytest.mark.parametrize("coherent", [True, pytest.param(False, marks=pytest.mark.heavy)],
+                         ids=["carried-lists", "search-every-step"])
 def test_an_overflowing_rollout_reports_the_object_and_stays_finite(coherent):
     scene, n, sim = _overflowing(coherent)
     p = sim.params()
@@ -469,7 +472,7 @@ def test_an_overflowing_rollout_reports_the_object_and_stays_finite(coherent):
     assert np.isfinite(f).all()
     assert np.linalg.norm(f.sum(axis=0)) <= 1e-5 * np.linalg.norm(f[:n].sum(axis=0))
     # the located failure is the first step, with the overflow's code
-    assert jaxplush.rollouts.locate_failure(sim, p, health) == (1, 0, diagnostics.CONTACT_OVERFLOW)
+    assert jaxplush.stepping.rollouts.locate_failure(sim, p, health) == (1, 0, diagnostics.CONTACT_OVERFLOW)
 
 
 def test_status_fn_reports_a_state_whose_candidates_overflow():
@@ -490,7 +493,7 @@ def test_status_fn_reports_a_state_whose_candidates_overflow():
 def test_gradients_through_an_overflowing_rollout_are_finite():
     """No NaN leaks from an overflow into values or gradients of a rollout; fitting's rollout loss
     is NaN (the fit's signal to raise the capacity), its gradient finite."""
-    from fitting.gradients import rollout_loss
+    from jaxplush.fitting.gradients import rollout_loss
     scene, n, sim = _overflowing()
     p = sim.params()
 
@@ -521,13 +524,13 @@ def test_self_collision_repels_a_folded_surface(x64):
     scene = jaxplush.parse_scene("self_collision on\n" + icosphere_text(subdivisions=2), "<s>")
     sim = jaxplush.make_simulator(scene, 1e-4)
     p = sim.params()
-    energy = contact.make_contact_energy(sim.topology, sim.terms.contact)
+    energy = jax.jit(contact.make_contact_energy(sim.topology, sim.terms.contact))
     x = np.asarray(scene.vertices)
     assert float(energy(p, jnp.asarray(x.T))[0]) < 1e-12      # a round ball does not touch itself
     flat = x * np.array([1.0, 0.03, 1.0])                      # squashed: top and bottom 6 mm apart
     u, overflow = energy(p, jnp.asarray(flat.T))
     assert float(u) > 0 and not bool(overflow)
-    f = -np.asarray(jax.grad(lambda y: energy(p, y)[0])(jnp.asarray(flat.T))).T
+    f = -np.asarray(jax.jit(jax.grad(lambda y: energy(p, y)[0]))(jnp.asarray(flat.T))).T
     top = flat[:, 1] > 0.002
     bottom = flat[:, 1] < -0.002
     assert f[top, 1].sum() > 0 > f[bottom, 1].sum()            # the two sheets are pushed apart
@@ -563,7 +566,7 @@ def test_an_overflow_between_saved_frames_is_not_lost(coherent):
     np.testing.assert_array_equal(np.asarray(health.code), [diagnostics.CONTACT_OVERFLOW] * 2)
     np.testing.assert_array_equal(np.asarray(health.bad_step), [300, 300])
     if not coherent:
-        from fitting.identifiability import frames_at_steps
+        from jaxplush.fitting.identifiability import frames_at_steps
         fr, codes = jax.jit(lambda q: frames_at_steps(sim, q, sim.init_fn(q, None, v0), (0, 300)))(p)
         np.testing.assert_array_equal(np.asarray(codes), [[diagnostics.OK] * 2, [diagnostics.CONTACT_OVERFLOW] * 2])
         assert np.linalg.norm(np.asarray(fr[-1] - final.x)) <= 1e-6 * np.linalg.norm(np.asarray(final.x))
@@ -710,8 +713,8 @@ def test_plush_pile_holds_and_comes_to_rest():
 def test_small_cushion_pile_holds_and_settles(tmp_path):
     """The pile scene at small size (162-vertex cushions, dt 2.5e-4, nmol calibrated by make_scenes for
     these meshes), 2 s: the stack keeps its order, settles, no NaN, no penetration beyond 1 mm."""
-    from jaxplush import scene_writer
-    from jaxplush.mesh import superellipsoid
+    from jaxplush.scene import write as scene_writer
+    from jaxplush.model.mesh import superellipsoid
     objs, y = [], 0.002
     for name, a, c, nmol in (("bottom", 0.12, 0.05, 5.586e-4), ("middle", 0.09, 0.04, 4.266e-4),
                              ("top", 0.065, 0.03, 2.622e-4)):

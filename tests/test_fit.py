@@ -1,4 +1,4 @@
-"""Fitting (fitting.fit, fitting.identifiability, fitting.io): synthetic recovery, finite-difference
+"""Fitting (fitting.fit, jaxplush.fitting.identifiability, jaxplush.fitting.io): synthetic recovery, finite-difference
 check of the fit's loss, identifiability flags, blow-up handling, Ctrl-C save and resume."""
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ import pytest
 
 import jaxplush
 from conftest import assert_gradient_matches_fd, icosphere_text
-from fitting import fitter as F
-from fitting.io import fitted_scene_text, load_fit
-from fitting.targets import Target, make_target
-from jaxplush import contact
+from jaxplush.fitting import fitter as F
+from jaxplush.fitting.io import fitted_scene_text, load_fit
+from jaxplush.fitting.targets import Target, make_target
+from jaxplush.model import contact
 from jaxplush.errors import JaxplushError
 
 NAMES = ("k_structural", "damping", "nmol")
@@ -67,7 +67,7 @@ def test_recovery_acceptance(noise, point_cloud, tol):
 
 # --------------------------------------------------------------------------- the loss and its gradient
 
-@pytest.mark.parametrize("kind", ["positions", "points"])
+@pytest.mark.parametrize("kind", [pytest.param("positions", marks=pytest.mark.heavy), "points"])
 def test_fit_loss_gradient_matches_finite_differences(x64, kind):
     truth = _hanging()
     p = truth.params
@@ -83,7 +83,7 @@ def test_fit_loss_gradient_matches_finite_differences(x64, kind):
     assert np.all(g != 0)
     assert_gradient_matches_fd(loss, np.asarray(theta), g, h=1e-4, rtol=1e-6)
     if kind == "positions":
-        # the loss is what fitting.losses says: the mean squared vertex distance over the frames / s²
+        # the loss is what jaxplush.fitting.losses says: the mean squared vertex distance over the frames / s²
         frames, _ = jax.jit(prob.frames)(theta)
         d = np.asarray(frames) - target.data
         assert float(value) == pytest.approx(np.mean(np.sum(d ** 2, -1)) / prob.loss.scale2, rel=1e-10)
@@ -103,6 +103,7 @@ def _free_ball():
     return jaxplush.parse_scene(text, "<free ball>")
 
 
+@pytest.mark.heavy
 def test_static_target_flags_damping_and_the_k_nmol_tradeoff():
     scene = _free_ball()
     frames = make_target(scene, 400, 1e-3, 10)
@@ -126,7 +127,7 @@ def test_static_target_flags_damping_and_the_k_nmol_tradeoff():
 
 
 def test_identifiability_wording():
-    from fitting.identifiability import analyse
+    from jaxplush.fitting.identifiability import analyse
     rng = np.random.default_rng(0)
     a = rng.normal(size=200)
     b = rng.normal(size=200)
@@ -148,6 +149,7 @@ def test_identifiability_wording():
 
 # --------------------------------------------------------------------------- blow-ups
 
+@pytest.mark.heavy
 def test_blown_up_step_is_rejected_and_the_step_halved():
     truth = _hanging()
     target = make_target(truth, 200, 3e-3, 20)
@@ -179,7 +181,7 @@ def _pressed_pair(k_a, capacity=None):
 def test_contact_capacity_overflow_is_grown_not_rejected():
     """A fit through soft-soft contact whose candidate lists are too short is rebuilt with a larger
     capacity (a warning names it) and goes on; the overflow is not taken for a blow-up."""
-    from jaxplush.simulation import contact_capacity_needed
+    from jaxplush.stepping.simulation import contact_capacity_needed
     dt = 2e-4
     truth = _pressed_pair(150.0)
     target = make_target(truth, 100, dt, 25)
@@ -207,8 +209,8 @@ def test_evaluator_grows_the_contact_capacity_on_an_overflow_code():
     """The default fit's evaluator (one point at a time with contact) reads the health code
     CONTACT_OVERFLOW of its rollout, raises the capacity (a warning names it) and runs the point
     again; the frames it returns are those of the grown capacity."""
-    from fitting.evaluate import Evaluator
-    from fitting.identifiability import frames_at_steps
+    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.identifiability import frames_at_steps
     dt = 2e-4
     target = make_target(_pressed_pair(150.0), 100, dt, 25)
     small = _pressed_pair(300.0, capacity=2)
@@ -216,7 +218,7 @@ def test_evaluator_grows_the_contact_capacity_on_an_overflow_code():
     p = prob.sim.params(prob.params_at(prob.theta0))
     frames, codes = jax.jit(lambda q: frames_at_steps(prob.sim, q, prob.sim.init_fn(q), prob.loss.frame_steps))(p)
     assert np.isfinite(np.asarray(frames)).all()
-    assert (np.asarray(codes) == jaxplush.diagnostics.CONTACT_OVERFLOW).all()     # from the first frame on
+    assert (np.asarray(codes) == jaxplush.stepping.diagnostics.CONTACT_OVERFLOW).all()     # from the first frame on
     ev = Evaluator(prob)
     assert not ev.batched
     with pytest.warns(UserWarning, match=r"contact candidates overflowed \(capacity 2\).*contact_capacity"):
@@ -225,7 +227,7 @@ def test_evaluator_grows_the_contact_capacity_on_an_overflow_code():
     sim = ev.prob.sim
     assert max(sim.terms.contact.capacity) > 2
     ref, codes = jax.jit(lambda q: frames_at_steps(sim, q, sim.init_fn(q), prob.loss.frame_steps))(p)
-    assert (np.asarray(codes) == jaxplush.diagnostics.OK).all()
+    assert (np.asarray(codes) == jaxplush.stepping.diagnostics.OK).all()
     ref = np.asarray(ref, np.float64)
     assert np.linalg.norm(e.frames[0] - ref) <= 1e-6 * np.linalg.norm(ref)
 
@@ -369,7 +371,7 @@ def test_fit_options_and_keywords_are_checked_before_anything_is_built():
     """Keywords are FitOptions fields (or its groups' flat names); an unknown one is an error naming
     it and the valid ones, raised before the scene or target is looked at (None here)."""
     import optax
-    from fitting import CheckpointOptions, FitOptions, SearchOptions
+    from jaxplush.fitting import CheckpointOptions, FitOptions, SearchOptions
     opts = FitOptions().replace(iterations=7, samples=16, checkpoint_path="FIT.h5", resume=True)
     assert opts == FitOptions(iterations=7, search=SearchOptions(samples=16),
                               checkpoint=CheckpointOptions(path="FIT.h5", resume=True))
@@ -394,13 +396,14 @@ def test_fit_options_and_keywords_are_checked_before_anything_is_built():
             F.fit(None, None, **kw)
 
 
+@pytest.mark.heavy
 def test_user_optax_optimizer_and_options_object(small, tmp_path):
     """A user's optax transformation runs through the fit's loop: the options object and the same
     keywords give the identical fit, the loss falls from the start, the checkpoint records the
     transformation's state structure (a different one is refused on resume); optax.lbfgs() passed
     in runs exactly as optimizer="lbfgs" (its line search chooses the step)."""
     import optax
-    from fitting import FitOptions
+    from jaxplush.fitting import FitOptions
     _, start, target = small
     names = ("k_structural",)
     opts = FitOptions(iterations=6, noise_free=True, identifiability=False, check_dt=False)

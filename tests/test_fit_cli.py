@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 import jaxplush
-from fitting import cli
-from fitting import fitter as F
-from fitting.targets import make_target
+from jaxplush.fitting import cli
+from jaxplush.fitting import fitter as F
+from jaxplush.fitting.targets import make_target
 from test_targets import BAD, _copy_with
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -169,7 +169,7 @@ def test_sigkill_then_resume_reaches_the_same_answer(files, tmp_path):
     args = [files["scene"], files["target"], "--optimizer", "adam", "--iterations", "40", "--checkpoint-every", "2",
             "--out", str(out), "--quiet"]
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, "-m", "fitting.cli"] + args, cwd=REPO, env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "jaxplush.fitting.cli"] + args, cwd=REPO, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     killed_at = None
     try:
@@ -251,8 +251,8 @@ def test_an_output_through_a_symlink_must_not_overwrite_an_input(files, tmp_path
 
 def test_sweep_is_dispatched(monkeypatch):
     seen = []
-    fake = types.ModuleType("fitting.sweep_cli")
+    fake = types.ModuleType("jaxplush.fitting.sweep_cli")
     fake.main = lambda argv: seen.append(argv) or 7
-    monkeypatch.setitem(sys.modules, "fitting.sweep_cli", fake)
+    monkeypatch.setitem(sys.modules, "jaxplush.fitting.sweep_cli", fake)
     assert cli.main(["sweep", "scene.obj", "--steps", "3"]) == 7
     assert seen == [["scene.obj", "--steps", "3"]]

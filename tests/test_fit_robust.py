@@ -1,4 +1,4 @@
-"""The default fit (fitting.search, fitting.lmfit, fitting.evaluate, fitting.outcome): recovery from
+"""The default fit (jaxplush.fitting.search, jaxplush.fitting.lmfit, jaxplush.fitting.evaluate, jaxplush.fitting.outcome): recovery from
 far starts on floor-contact scenes, honest outcomes, every evaluated point stable, defaults that
 follow the scene, resume. Small versions of benchmarks/bench_recovery.py (162-vertex drops)."""
 
@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 import jaxplush
-from fitting import fitter as F
-from fitting import outcome
-from fitting.evaluate import Evaluator
-from fitting.io import load_fit
-from fitting.scenarios import drop_scene_text
-from fitting.targets import make_target
+from jaxplush.fitting import fitter as F
+from jaxplush.fitting import outcome
+from jaxplush.fitting.evaluate import Evaluator
+from jaxplush.fitting.io import load_fit
+from jaxplush.fitting.scenarios import drop_scene_text
+from jaxplush.fitting.targets import make_target
 from jaxplush.errors import JaxplushError
 
 DT, STEPS, EVERY = 4e-4, 1000, 25          # 0.4 s, 40 frames; a 162-vertex ball is stable at dt 4e-4
@@ -85,6 +85,7 @@ def test_a_fit_that_cannot_reach_the_data_is_not_called_converged(drop):
     assert "standard errors: not meaningful" in res.table()
 
 
+@pytest.mark.heavy
 def test_every_evaluated_point_runs_stably_with_substeps():
     """Points whose explicit stability limit is below the target's dt run with substeps (h = dt/n)
     instead of blowing up; the report's damping keeps its meaning per dt, so a substepped run of the
@@ -173,7 +174,7 @@ class _SteppedLoss:
         return np.ones(len(thetas), int)
 
     def __call__(self, thetas, substeps=None):
-        from fitting.evaluate import Evaluation
+        from jaxplush.fitting.evaluate import Evaluation
         t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)[:, :1]
         r = (t - 1.0) - 0.5 * ((t >= 0.2) & (t < 0.6))
         n = len(thetas)
@@ -181,7 +182,7 @@ class _SteppedLoss:
 
 
 def test_a_search_stalled_on_a_jump_restarts_from_an_axis_scan():
-    from fitting import search as S
+    from jaxplush.fitting import search as S
     ev, box = _SteppedLoss(), S.Box(np.array([[-2.0]]), np.array([[2.0]]))
     states = S.start_states(ev, np.array([[[0.2 - 1e-5]]]))
     while not all(st.done for st in states):
@@ -209,7 +210,7 @@ class _RippledResiduals:
         n = 4000
 
     def __init__(self, sigma=0.01, amp=0.2, seed=0):
-        from fitting import search as S
+        from jaxplush.fitting import search as S
         rng = np.random.default_rng(seed)
         n = self.residual.n
         self.e = rng.normal(0.0, 1.0 / np.sqrt(n), n)
@@ -226,7 +227,7 @@ class _RippledResiduals:
         return np.ones(len(thetas), int)
 
     def __call__(self, thetas, substeps=None):
-        from fitting.evaluate import Evaluation
+        from jaxplush.fitting.evaluate import Evaluation
         t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)
         ripple = np.sin(2 * np.pi * t[:, :1] / self.lam) * np.cos(2 * np.pi * t[:, 1:2] / self.lam)
         r = (t - self.t) @ self.a.T + self.e + ripple * self.q
@@ -242,7 +243,7 @@ def test_the_smoothing_stage_averages_a_ripple_out(offset, narrow, amp):
     ripple within one standard error, and its standard errors are the model's to 25%. A first
     design sized by a Jacobian 10x too steep (the ripple's slope) is widened, not trusted, even
     where its step would already be within the standard errors (half a standard error off)."""
-    from fitting import search as S
+    from jaxplush.fitting import search as S
     ev = _RippledResiduals(amp=amp)
     box = S.Box(np.full((2, 1), -2.0), np.full((2, 1), 2.0))
     th = (ev.opt + np.array(offset) * ev.sigma)[:, None]
@@ -262,6 +263,7 @@ def test_the_smoothing_stage_averages_a_ripple_out(offset, narrow, amp):
     np.testing.assert_allclose(a, ev.e, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.heavy
 def test_interrupted_default_fit_resumes_to_the_same_answer(tmp_path, ctrl_c):
     """Ctrl-C during the local search saves the state; --resume continues to exactly the values of an
     uninterrupted fit (every evaluation is deterministic)."""
@@ -298,7 +300,7 @@ def test_point_residuals_are_signed_distances_to_the_surface():
     nearest vertex that brute force finds."""
     import jax.numpy as jnp
     import trimesh
-    from fitting import losses as L
+    from jaxplush.fitting import losses as L
     m = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
     x = jnp.asarray(m.vertices, jnp.float32)
     faces = np.asarray(m.faces)
@@ -307,7 +309,7 @@ def test_point_residuals_are_signed_distances_to_the_surface():
     u = rng.normal(size=(200, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     coarse = L.coarse_vertices(np.asarray(x), len(x) // 8)
-    from jaxplush import mesh
+    from jaxplush.model import mesh
     ring = mesh.ring_tables(faces, len(x))[0]
     for radius, sign in ((0.103, 1.0), (0.097, -1.0)):
         p = jnp.asarray(u * radius, jnp.float32)

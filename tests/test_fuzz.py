@@ -24,7 +24,7 @@ from jaxplush import cli
 from jaxplush.errors import SceneError, TrajectoryError
 from conftest import icosphere_text
 
-from fitting.targets import load_target, make_target
+from jaxplush.fitting.targets import load_target, make_target
 
 DEFAULT_EXAMPLES = 60
 MANY = int(os.environ.get("JAXPLUSH_FUZZ_EXAMPLES", "2000"))
@@ -75,7 +75,7 @@ def _mutate(muts):
 
 
 def _check_invariants(scene):
-    """What an accepted scene promises (jaxplush.scene): closed outward meshes with volume,
+    """What an accepted scene promises (jaxplush.scene.parse): closed outward meshes with volume,
     finite coordinates, in-range indices and valid parameter values."""
     assert scene.n_objects >= 1 and np.isfinite(scene.vertices).all()
     assert scene.faces.min() >= 0 and scene.faces.max() < scene.n_vertices

@@ -22,7 +22,8 @@ import pytest
 import trimesh
 
 import jaxplush
-from jaxplush import model, stability
+from jaxplush.model import forces as model
+from jaxplush.stepping import stability
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 from conftest import icosphere_scene
 
@@ -179,7 +180,8 @@ def test_explicit_limit_0_9_and_1_1(x64, name):
     assert (outcome[0.9], outcome[1.1]) == expect
 
 
-@pytest.mark.parametrize("name", ALL)
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.heavy) if n in ("implicit_euler", "mesit") else n
+                                  for n in ALL])
 def test_stiff_springs_642_vertices(name):
     """k = 1e5 N/m on a 642-vertex plush dropped onto the floor, at 0.9x its explicit limit
     (implicit Euler also at 10x)."""

@@ -15,12 +15,13 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush import cli, stability
+from jaxplush import cli
+from jaxplush.stepping import stability
 from jaxplush.errors import JaxplushError, SceneError, TrajectoryError
-from jaxplush.io import atomic_path, check_output_path
+from jaxplush.io.trajectory import atomic_path, check_output_path
 from conftest import icosphere_text
 
-from fitting.targets import load_target, make_target
+from jaxplush.fitting.targets import load_target, make_target
 
 
 def test_a_huge_face_index_is_a_scene_error():

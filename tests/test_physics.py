@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush import diagnostics, model, stability
+from jaxplush.stepping import diagnostics
+from jaxplush.model import forces as model
+from jaxplush.stepping import stability
 from jaxplush.types import GAS_CONSTANT
 from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 

@@ -1,4 +1,4 @@
-"""Tests for jaxplush.render on small synthetic trajectory files."""
+"""Tests for jaxplush.io.render on small synthetic trajectory files."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import trimesh
 from PIL import Image
 
 from jaxplush.errors import JaxplushError, TrajectoryError
-from jaxplush.render import render
+from jaxplush.io.render import render
 
 N_FRAMES = 6
 FLOOR = 0.0
@@ -230,7 +230,7 @@ def test_malformed_files(tmp_path, kwargs, message):
 
 
 def test_failed_write_leaves_nothing(traj, tmp_path, monkeypatch):
-    import jaxplush.render as mod
+    import jaxplush.io.render as mod
 
     def boom(*args, **kwargs):
         raise RuntimeError("disk on fire")

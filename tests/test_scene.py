@@ -1,6 +1,6 @@
-"""Tests for the extended-OBJ scene parser (jaxplush.scene): every documented error names
+"""Tests for the extended-OBJ scene parser (jaxplush.scene.parse): every documented error names
 file, line and problem; every accepted form parses to the intended geometry and parameters;
-the shipped scenes round-trip through jaxplush.scene_writer.format_scene."""
+the shipped scenes round-trip through jaxplush.scene.write.format_scene."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import trimesh
 
 import jaxplush
 from jaxplush.errors import SceneError
-from jaxplush.scene import DEFAULT_GRAVITY, DEFAULT_TEMPERATURE, DEFAULTS
-from jaxplush.scene_writer import format_scene
+from jaxplush.scene.parse import DEFAULT_GRAVITY, DEFAULT_TEMPERATURE, DEFAULTS
+from jaxplush.scene.write import format_scene
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENES = sorted(glob.glob(os.path.join(REPO, "scenes", "*.obj")))
@@ -698,7 +698,7 @@ def test_parse_scene_accepts_str_and_bytes():
 # ------------------------------------------------------------------------------ round trip
 
 def scene_to_objects(scene):
-    """Object dicts for :func:`jaxplush.scene_writer.format_scene` that reproduce ``scene``.
+    """Object dicts for :func:`jaxplush.scene.write.format_scene` that reproduce ``scene``.
 
     The geometry is written as loaded (already scaled and translated), so no scale/translate;
     faces and fixed indices become 0-based local; nmol 0 (no gas) is left out.
@@ -814,10 +814,10 @@ def _two_sphere_text():
                                   (50, "v 1_0 2 3"), (400, "f 1 2"), (420, "f 1 -2 3"), (440, "f 1/1 2/2 3/3"),
                                   (460, "f 1 2 99999999999999999999"), (470, "f 1 2 3 4"), (480, "f 0 1 2")])
 def test_blocks_of_v_and_f_lines_read_as_line_by_line(monkeypatch, edit):
-    """Long runs of 'v'/'f' lines are read in bulk (jaxplush.scene._Parser.bulk); the scene, or the
+    """Long runs of 'v'/'f' lines are read in bulk (jaxplush.scene.parse._Parser.bulk); the scene, or the
     error with its line, is exactly what the line-by-line reading gives, for good input and for any
     odd or bad line inside a block."""
-    from jaxplush import scene as S
+    from jaxplush.scene import parse as S
     lines = _two_sphere_text()
     if edit is not None:
         i, text = edit
@@ -846,7 +846,7 @@ def test_blocks_of_v_and_f_lines_read_as_line_by_line(monkeypatch, edit):
 
 
 def _test_meshes():
-    from jaxplush import mesh
+    from jaxplush.model import mesh
     out = []
     for sub in (0, 1, 2):
         m = trimesh.creation.icosphere(subdivisions=sub, radius=0.1)
@@ -858,11 +858,11 @@ def _test_meshes():
 
 
 def test_vectorised_rings_and_orientation_match_the_reference_checks():
-    """The scene parser's vectorised mesh code (jaxplush.mesh.ring_tables, orient_all) gives what the
+    """The scene parser's vectorised mesh code (jaxplush.model.mesh.ring_tables, orient_all) gives what the
     per-vertex / per-object reference code gives (ring_table(one_rings(...)), check_and_orient): the
     same ordered one-rings, the same outward winding of randomly flipped faces, several objects at
     once; and it flags an object with a hole, leaving the others oriented."""
-    from jaxplush import mesh
+    from jaxplush.model import mesh
     rng = np.random.default_rng(0)
     xs, fs, fo, expect, off = [], [], [], [], 0
     for i, (x, f) in enumerate(_test_meshes()):

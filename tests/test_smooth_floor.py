@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush import batched, model, stability
-from jaxplush.scene_writer import format_scene
+from jaxplush.fitting import batched
+from jaxplush.model import forces as model
+from jaxplush.stepping import stability
+from jaxplush.scene.write import format_scene
 from conftest import assert_gradient_matches_fd, icosphere_text
 
 
@@ -69,7 +71,7 @@ def test_force_is_minus_the_gradient_of_its_energy(x64):
 
 
 def _bounce_energy_error(scene, dt, duration=0.4):
-    from jaxplush import diagnostics
+    from jaxplush.stepping import diagnostics
     sim = jaxplush.make_simulator(scene, dt)
     p = sim.params()
     state = sim.init_fn(p)

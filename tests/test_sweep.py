@@ -1,4 +1,4 @@
-"""Batched simulation (jaxplush.batched) and parameter sweeps (fitting.sweep, jaxplush-fit sweep).
+"""Batched simulation (jaxplush.fitting.batched) and parameter sweeps (jaxplush.fitting.sweep, jaxplush-fit sweep).
 
 The batched step must be the single-scene step, point for point: it is checked against separate
 ``jaxplush.simulate`` runs in float32 and float64, with every term compiled in, on two objects.
@@ -17,12 +17,13 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush import batched, model
+from jaxplush.fitting import batched
+from jaxplush.model import forces as model
 from conftest import icosphere_scene, icosphere_text
 
-from fitting import sweep as sweep_mod
-from fitting.sweep import SweepError, load_sweep, sweep
-from fitting.sweep_cli import main as sweep_main, parse_grid_spec
+from jaxplush.fitting import sweep as sweep_mod
+from jaxplush.fitting.sweep import SweepError, load_sweep, sweep
+from jaxplush.fitting.sweep_cli import main as sweep_main, parse_grid_spec
 
 DT = 2e-4
 TRUE_K, TRUE_NMOL = 300.0, 2e-3
@@ -80,6 +81,7 @@ def test_batched_matches_separate_simulate_runs_float32():
     _check_against_simulate(scene, [_point_params(scene, **v) for v in POINTS], 300, 100, 1e-5)
 
 
+@pytest.mark.heavy
 def test_batched_matches_separate_simulate_runs_float64(x64):
     scene = _two_object_scene()
     _check_against_simulate(scene, [_point_params(scene, **v) for v in POINTS], 300, 100, 1e-12)
@@ -92,6 +94,7 @@ def test_batched_floor_friction_and_restitution_match_simulate():
     _check_against_simulate(scene, [_point_params(scene, k_structural=[k]) for k in (150.0, 300.0)], 400, 100, 1e-5)
 
 
+@pytest.mark.heavy
 def test_blow_up_is_located_per_point_at_simulates_step():
     scene = _ball()
     ks = [200.0, 1e5, 300.0]                       # the middle point is far beyond the stable dt
@@ -105,7 +108,7 @@ def test_blow_up_is_located_per_point_at_simulates_step():
     # the same blow-up, located to the step: the batched and the single-scene kernels sum in different
     # orders, so on an instability that grows by orders of magnitude per step they may part by a step or two
     assert abs(int(step[0, 1]) - e.value.step) <= 3 and 0 < step[0, 1] < 50
-    assert jaxplush.diagnostics.MESSAGES[int(code[0, 1])] == e.value.reason
+    assert jaxplush.stepping.diagnostics.MESSAGES[int(code[0, 1])] == e.value.reason
     assert step[0, 0] == step[0, 2] == -1
     # the last healthy state of the failed point is finite and earlier than the failure
     good = batched.positions(health.good_state)
@@ -260,7 +263,7 @@ def test_chunks_compile_once_and_match_one_batch():
 
 @pytest.fixture(scope="module")
 def truth_target():
-    from fitting.targets import make_target
+    from jaxplush.fitting.targets import make_target
     scene = _ball()
     return scene, make_target(scene, 400, DT, 100, frames=[0, 2, 4],
                               params=_point_params(scene, k_structural=[TRUE_K], nmol=[TRUE_NMOL]))
@@ -283,7 +286,7 @@ def test_loss_landscape_has_its_minimum_at_the_true_parameters(truth_target):
 
 
 def test_point_cloud_target_uses_the_chamfer_distance(truth_target):
-    from fitting.targets import Target
+    from jaxplush.fitting.targets import Target
     scene, target = truth_target
     # a correspondence-free cloud: the true vertices, shuffled (Chamfer distance 0 at the truth)
     rng = np.random.default_rng(0)
@@ -311,7 +314,7 @@ def test_failed_points_are_reported_not_nan(truth_target):
     np.testing.assert_array_equal(res.failed, [False, True, False])
     assert np.isnan(res.loss[1]) and np.all(np.isfinite(res.loss[[0, 2]]))
     assert np.all(np.isfinite(res.final_positions)) and res.final_step[1] < res.fail_step[1, 0] <= 400
-    assert res.fail_code[1, 0] >= jaxplush.diagnostics.ERROR and res.fail_step[0, 0] == -1
+    assert res.fail_code[1, 0] >= jaxplush.stepping.diagnostics.ERROR and res.fail_step[0, 0] == -1
     assert "1 point(s) failed" in res.table() and "step" in res.table()
 
 
@@ -425,6 +428,7 @@ def test_heat_map_sorts_axes_given_in_any_order():
             assert z[i, j] == pytest.approx(q[p], rel=1e-6)
 
 
+@pytest.mark.heavy
 def test_large_sweeps_pad_less_than_one_chunk_per_batch(monkeypatch):
     # 49 points with batch 48 ran as two batches of 48 (47 copies of the last point); now two
     # equal batches of 32 (two 16-point chunks each), the same results as one 49-point batch
@@ -477,7 +481,7 @@ def test_cli_rejects_unplottable_grids_contact_scenes_and_empty_ranges(tmp_path,
 def test_target_frames_must_be_strictly_increasing(truth_target):
     # two frames at one step would share one slot of the per-frame loss table (one frame's loss
     # lost, yet counted in the mean): refused before anything runs
-    from fitting.targets import Target
+    from jaxplush.fitting.targets import Target
     scene, target = truth_target
     dup = Target(positions=target.positions[[1, 1, 2]], points=None, steps=target.steps[[1, 1, 2]],
                  times=target.times[[1, 1, 2]], dt=DT, path="<memory>")

@@ -1,4 +1,4 @@
-"""Fitting targets (fitting.targets): any simulate output loads as a target; every mismatch with the
+"""Fitting targets (jaxplush.fitting.targets): any simulate output loads as a target; every mismatch with the
 scene is a clear TrajectoryError naming the file, raised before anything is traced."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 
 import jaxplush
 from conftest import icosphere_scene, icosphere_text
-from fitting.losses import chamfer as _chamfer, squared_distance as _squared_distance
-from fitting.targets import Target, load_target, make_target, sample_surface
+from jaxplush.fitting.losses import chamfer as _chamfer, squared_distance as _squared_distance
+from jaxplush.fitting.targets import Target, load_target, make_target, sample_surface
 from jaxplush.errors import TrajectoryError
 
 DT = 1e-3

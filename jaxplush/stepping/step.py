@@ -4,12 +4,12 @@ The step is built for its scene: topology is closed over as
 constants, and only the terms the scene needs are traced (``Simulator.terms``). Parameters
 (:class:`jaxplush.types.Params`) are the traced, differentiable inputs.
 
-Integrators (:mod:`jaxplush.integrators`, chosen by name): ``verlet`` (default, the report's
+Integrators (:mod:`jaxplush.stepping.integrators`, chosen by name): ``verlet`` (default, the report's
 damped Verlet carried as a half-step velocity), ``euler``, ``symplectic_euler``, ``rk4``,
 ``mesit`` (the report's unsound "simplified implicit" update, kept for comparison) and
 ``implicit_euler`` (Baraff-Witkin, matrix-free CG). Each runs ``substeps`` steps of
 h = dt / substeps per call, on the internal component-major (3, V) state, and applies the
-shared floor/pin hook (:mod:`jaxplush.constraints`) after every (sub)step.
+shared floor/pin hook (:mod:`jaxplush.stepping.constraints`) after every (sub)step.
 """
 
 from __future__ import annotations
@@ -22,7 +22,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import compiled, constraints, diagnostics, integrators, model
+from jaxplush.stepping import compiled
+from jaxplush.stepping import constraints
+from jaxplush.stepping import diagnostics
+from jaxplush.stepping import integrators
+from jaxplush.model import forces as model
 from jaxplush.types import Params
 
 INTEGRATORS = integrators.INTEGRATORS
@@ -45,7 +49,7 @@ class Simulator:
       topology, terms, dt, integrator, substeps, scene, dtype: how it was built.
       internal: :class:`Internal`, the step on the internal layout (for rollouts, sweeps and
         gradients inside jaxplush; not needed to use a simulator).
-      key: what the compiled program depends on (:mod:`jaxplush.compiled`): simulators with
+      key: what the compiled program depends on (:mod:`jaxplush.stepping.compiled`): simulators with
         equal keys compare equal, so they share compiled code. Build variants with
         :func:`make_simulator`, not ``dataclasses.replace``, which would keep the key.
 
@@ -84,7 +88,7 @@ class Simulator:
 
     def rollout(self, params, state, n_frames, save_every=1, checkpoint=False):
         """``jaxplush.rollout(self, ...)``: (final state, frames (n_frames, V, 3), health)."""
-        from jaxplush.rollouts import rollout
+        from jaxplush.stepping.rollouts import rollout
         return rollout(self, params, state, n_frames, save_every, checkpoint=checkpoint)
 
     def params(self, scene_params=None):
@@ -106,7 +110,7 @@ class Internal(NamedTuple):
     :class:`CoherentStep` (the step with the contact candidate lists carried from step to step,
     which rollouts scan instead), None otherwise; overflow: for scenes with soft-soft contact
     between objects, ``overflow(x) -> (O,) bool`` at internal positions x (3, V), the objects whose
-    candidates a fresh search there would overflow (:func:`jaxplush.contact.make_overflow_check`;
+    candidates a fresh search there would overflow (:func:`jaxplush.model.contact.make_overflow_check`;
     for paths that carry no candidate cache), None otherwise.
     """
 
@@ -122,7 +126,7 @@ class CoherentStep(NamedTuple):
 
     ``init(x) -> cache`` searches the candidate lists at internal positions x (3, V);
     ``step(params, state, cache) -> (state, cache)`` advances one step with the cached lists and
-    updates them after every substep (:func:`jaxplush.contact.make_contact`: rebuilt once a vertex
+    updates them after every substep (:func:`jaxplush.model.contact.make_contact`: rebuilt once a vertex
     has moved half the skin, otherwise each query's nearest vertex is walked along the mesh).
     """
 
@@ -135,12 +139,12 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     """Build the step for a scene.
 
     Args:
-      scene: :class:`jaxplush.scene.Scene`.
+      scene: :class:`jaxplush.scene.parse.Scene`.
       dt: time step, s (static: a new dt builds a new step).
-      integrator: one of :data:`INTEGRATORS` (see :mod:`jaxplush.integrators` for order,
+      integrator: one of :data:`INTEGRATORS` (see :mod:`jaxplush.stepping.integrators` for order,
         stability and damping of each).
-      assembly: force assembly, "ring" (default) or "segment" (see :mod:`jaxplush.model`).
-      terms: override the automatic :class:`jaxplush.model.Terms` selection (e.g. to keep a
+      assembly: force assembly, "ring" (default) or "segment" (see :mod:`jaxplush.model.forces`).
+      terms: override the automatic :class:`jaxplush.model.forces.Terms` selection (e.g. to keep a
         term compiled in while sweeping its parameter through zero).
       substeps: integrator steps per ``step_fn`` call, each of length h = dt / substeps (static).
         The floor and pins are applied after every substep; the report's damping D keeps its
@@ -179,7 +183,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
 
     overflow = None
     if terms.contact:
-        from jaxplush import contact as _contact
+        from jaxplush.model import contact as _contact
         overflow = _contact.make_overflow_check(topo, terms.contact)
     fns = _public_fns(topo, terms, dtype, scheme, internal_step, kernel, overflow)
 

@@ -1,6 +1,6 @@
 """Compiled functions, cached per program: compile once, run many.
 
-A :class:`jaxplush.step.Simulator` compares equal to another exactly when both would compile to
+A :class:`jaxplush.stepping.step.Simulator` compares equal to another exactly when both would compile to
 the same program: the same geometry and topology, terms, dt, integrator, substeps, dtype and
 step options (``Simulator.key``). Scene values (k, damping, nmol, ...) and initial states are
 never part of the key: they are traced inputs. :func:`get` keeps the jitted functions of the
@@ -58,11 +58,11 @@ _TOPOLOGY: "collections.OrderedDict" = collections.OrderedDict()
 
 
 def topology(scene):
-    """``jaxplush.model.build_topology(scene)``, shared by scenes of equal
-    :attr:`jaxplush.scene.Scene.fingerprint` at one precision (the last :data:`SIZE`), so a rebuilt
+    """``jaxplush.model.forces.build_topology(scene)``, shared by scenes of equal
+    :attr:`jaxplush.scene.parse.Scene.fingerprint` at one precision (the last :data:`SIZE`), so a rebuilt
     simulator does not redo the ring tables, nor the stability bound its rest geometry."""
     import jax.numpy as jnp
-    from jaxplush import model
+    from jaxplush.model import forces as model
     # per precision too: JAX caches the conversion of a closed-over numpy constant, so one
     # topology's arrays must not be traced in both float32 and float64 (the second would get
     # the first's dtype)

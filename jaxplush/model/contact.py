@@ -79,8 +79,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import model as _model
-from jaxplush.model import _sum_rows
+from jaxplush.model.layout import sum_rows as _sum_rows, vertex_mass
 
 #: kappa of the default stiffness k_c = kappa * 2 * n_max * min(k_A, k_B).
 STIFFNESS_FACTOR = 0.1
@@ -101,7 +100,7 @@ SKIN_FACTOR = 0.5
 
 @dataclasses.dataclass(frozen=True)
 class ContactConfig:
-    """Static soft-soft contact settings (hashable; part of :class:`jaxplush.model.Terms`).
+    """Static soft-soft contact settings (hashable; part of :class:`jaxplush.model.forces.Terms`).
 
     Attributes:
       pairs: ((A, B), ...) object pairs with A < B that may touch.
@@ -543,7 +542,7 @@ def make_contact(topo, cfg, h=None):
         dtype = x.dtype
         if friction > 0 and v is None:
             raise ValueError("contact friction needs the velocities")
-        mass = _model.vertex_mass(topo, params) if friction > 0 else None
+        mass = vertex_mass(topo, params) if friction > 0 else None
         tiny = jnp.asarray(tiny_len ** 2, dtype)
         f = jnp.zeros((3, n_v), dtype) if base is None else base
         if cfg.pairs:
@@ -808,7 +807,7 @@ def make_overflow_check(topo, cfg):
     only, O(V) per pair: no distance table), or None when ``cfg`` has no object pairs.
 
     For the paths that carry no :class:`ContactCache`: ``Simulator.status_fn``, rollouts built with
-    ``coherent_contact=False`` and :func:`fitting.identifiability.frames_at_steps`."""
+    ``coherent_contact=False`` and :func:`jaxplush.fitting.identifiability.frames_at_steps`."""
     if not cfg or not cfg.pairs:
         return None
     slices = topo.vertex_slices

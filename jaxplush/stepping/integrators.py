@@ -8,10 +8,10 @@ Every integrator is a :class:`Scheme` of three pure functions built for one scen
 * ``velocity(params, state) -> v``: the velocity (3, V) at the state's time (for energies).
 
 States are NamedTuples whose first field is the positions ``x`` (3, V) and whose every field is
-a (3, V) array, so :func:`jaxplush.step.to_public` transposes any of them to (V, 3), and
+a (3, V) array, so :func:`jaxplush.stepping.step.to_public` transposes any of them to (V, 3), and
 rollouts, health checks, ``vmap`` and ``grad`` treat them alike. Every step ends with exactly
 one call of the shared floor/pin hook ``constrain(x_old, x_new, v_new)``
-(:func:`jaxplush.constraints.make_constrain`) on the velocity the scheme carries.
+(:func:`jaxplush.stepping.constraints.make_constrain`) on the velocity the scheme carries.
 
 =================  =====  ===================  ============================  ===================
 name               order  state                stable (undamped, per step)   effect on damping
@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import model
+from jaxplush.model import forces as model
 from jaxplush.types import State, VOLUME_EPS
 
 INTEGRATORS = ("euler", "symplectic_euler", "rk4", "verlet", "mesit", "implicit_euler")
@@ -78,8 +78,8 @@ class System:
     """What every integrator needs of a scene (all static; closed over by the compiled step).
 
     Attributes:
-      topo: :class:`jaxplush.model.Topology`.
-      terms: :class:`jaxplush.model.Terms`.
+      topo: :class:`jaxplush.model.forces.Topology`.
+      terms: :class:`jaxplush.model.forces.Terms`.
       kernel: internal force kernel ``(params, x (3, V), v (3, V)) -> (f (3, V), volume (O,) | None)``.
       gravity: (3, 1) numpy gravity, m/s².
       constrain: ``(x_old, x_new, v_new) -> (x, v)``, the floor/pin hook for steps of length ``h``.

@@ -2,9 +2,9 @@
 
 ``rollout`` is jit-compiled once per (program, n_frames, save_every, checkpoint): a simulator
 rebuilt for the same scene and settings compares equal to the first (``Simulator.key``) and
-reuses its compiled code (:mod:`jaxplush.compiled`), as do new parameter values and initial
+reuses its compiled code (:mod:`jaxplush.stepping.compiled`), as do new parameter values and initial
 states. Health is checked at every saved
-frame and carried as data (:mod:`jaxplush.diagnostics`); the carry also keeps the last healthy
+frame and carried as data (:mod:`jaxplush.stepping.diagnostics`); the carry also keeps the last healthy
 state so a failure can be located to the exact step afterwards, outside ``jit``. A soft-soft
 contact overflow at any step (the candidate cache's sticky per-object flag, or with
 ``coherent_contact=False`` a flag of the same check carried from step to step) becomes the
@@ -20,7 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import compiled, diagnostics, model
+from jaxplush.stepping import compiled
+from jaxplush.stepping import diagnostics
+from jaxplush.model import forces as model
 from jaxplush.types import State
 
 
@@ -130,7 +132,7 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
     Differentiable with respect to ``params`` and ``state`` (reverse and forward mode).
 
     Args:
-      sim: :class:`jaxplush.step.Simulator`.
+      sim: :class:`jaxplush.stepping.step.Simulator`.
       params: :class:`jaxplush.types.Params` pytree.
       state: initial :class:`jaxplush.types.State` (from ``sim.init_fn``).
       n_frames: number of saved frames (static).
@@ -145,7 +147,7 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
 
     Raises:
       ValueError: ``params`` (concrete, outside jit) gives a value above 0 to a term the
-        simulator leaves out (:func:`jaxplush.model.check_params`).
+        simulator leaves out (:func:`jaxplush.model.forces.check_params`).
     """
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")

@@ -24,14 +24,14 @@ Scene level (anywhere, at most once each):
   ``floor_restitution E``   floor restitution (0 <= E <= 1; default 0: vertices stop on impact)
   ``floor_model M``         ``projection`` (default: vertices are put back on the floor, an exact
                             non-penetration constraint with kinks) or ``smooth`` (a smooth
-                            penalty energy, see jaxplush.model; the floor for fitting)
+                            penalty energy, see jaxplush.model.forces; the floor for fitting)
   ``floor_stiffness K``     smooth floor's penalty stiffness per vertex, N/m (> 0; default
                             0.1 x 2 n_max k_structural of the object, scaling with k and mass)
   ``contact on|off``        soft-soft contact between objects (default on when there are several)
   ``self_collision on|off`` each object against its own faces (default off; O(N²), small meshes)
   ``contact_friction MU``   Coulomb friction between objects in contact (>= 0; default 0: none)
   ``contact_stiffness K``   contact penalty stiffness, N/m (> 0; default 0.1 x 2 n_max min(k_A, k_B),
-                            which scales with the objects' stiffness and mass, see jaxplush.contact)
+                            which scales with the objects' stiffness and mass, see jaxplush.model.contact)
   ``contact_thickness D``   contact thickness, m (> 0; default half the finer mean edge length)
   ``contact_capacity N``    candidate vertices per object and pair (integer >= 1; default
                             max(96, n/12)); jaxplush.simulate reruns with a larger one if needed
@@ -56,7 +56,7 @@ import warnings
 
 import numpy as np
 
-from jaxplush import mesh as _mesh
+from jaxplush.model import mesh as _mesh
 from jaxplush.errors import SceneError
 from jaxplush.types import GAS_CONSTANT, Params
 
@@ -145,8 +145,8 @@ class Scene:
       floor_friction, floor_restitution: floor Coulomb coefficient and restitution (0: none).
       contact, self_collision: soft-soft contact between objects / of each object with itself.
       contact_stiffness (N/m), contact_thickness (m), contact_capacity: None for the defaults
-        of :mod:`jaxplush.contact`; contact_friction: Coulomb coefficient between objects (0: none).
-      floor_model: "projection" (default) or "smooth" (a penalty force, :mod:`jaxplush.model`);
+        of :mod:`jaxplush.model.contact`; contact_friction: Coulomb coefficient between objects (0: none).
+      floor_model: "projection" (default) or "smooth" (a penalty force, :mod:`jaxplush.model.forces`);
       floor_stiffness: the smooth floor's stiffness per vertex (N/m), None for the default.
     """
 
@@ -217,7 +217,7 @@ class Scene:
     def fingerprint(self):
         """Hex digest of everything a compiled step takes from the scene: geometry, topology,
         pins, gas, floor, contact and gravity settings; not the parameter values, names, path
-        or text (:mod:`jaxplush.compiled`)."""
+        or text (:mod:`jaxplush.stepping.compiled`)."""
         h = hashlib.sha1()
         for a in (self.vertices, self.faces):
             a = np.ascontiguousarray(a)
@@ -623,8 +623,8 @@ class _Parser:
 
     def check_meshes(self, xs, faces, lines, objs):
         """Every object closed, manifold, orientable, one piece, with volume: all objects at once
-        (:func:`jaxplush.mesh.orient_all`); an object with a defect is checked again on its own
-        (:func:`jaxplush.mesh.check_and_orient`) for the exact face, line and message. Returns
+        (:func:`jaxplush.model.mesh.orient_all`); an object with a defect is checked again on its own
+        (:func:`jaxplush.model.mesh.check_and_orient`) for the exact face, line and message. Returns
         the (F, 3) global faces wound outward."""
         x = np.concatenate(xs)
         f = np.concatenate(faces)

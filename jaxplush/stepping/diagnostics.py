@@ -5,7 +5,7 @@ the run, outside ``jit``, :func:`first_failure` finds the first failing frame, a
 ``jaxplush.simulate`` turns it into a :class:`jaxplush.errors.SimulationError` naming step, object
 and cause.
 
-A soft-soft contact candidate list that overflows its capacity (:mod:`jaxplush.contact`) is a code
+A soft-soft contact candidate list that overflows its capacity (:mod:`jaxplush.model.contact`) is a code
 of its own, CONTACT_OVERFLOW, not a NaN: the contact force then uses the candidates that fit (the
 step is inexact, and the code says so), and ``jaxplush.simulate`` and ``fitting.fit`` read it and
 rerun with a larger capacity.
@@ -17,7 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import compiled, model
+from jaxplush.stepping import compiled
+from jaxplush.model import forces as model
 from jaxplush.types import VOLUME_EPS
 
 OK = 0

@@ -57,7 +57,7 @@ from matplotlib.ticker import FuncFormatter, MaxNLocator
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from jaxplush.errors import JaxplushError, TrajectoryError
-from jaxplush.io import open_hdf5
+from jaxplush.io.trajectory import open_hdf5
 
 __all__ = ["render", "STILL_EXTENSIONS", "ANIMATION_EXTENSIONS"]
 

@@ -12,7 +12,7 @@ The format (read by :func:`jaxplush.load_scene`; reference: docs/formats.md §2)
   and the floor and contact keywords ``floor_model projection|smooth``, ``floor_stiffness K``,
   ``floor_friction MU``, ``floor_restitution E``, ``contact on|off``,
   ``self_collision on|off``, ``contact_stiffness K``, ``contact_thickness D``,
-  ``contact_capacity N``, ``contact_friction MU`` (see :mod:`jaxplush.scene`).
+  ``contact_capacity N``, ``contact_friction MU`` (see :mod:`jaxplush.scene.parse`).
 
 Objects are given in their own coordinates with 0-based *local* face and fixed indices;
 :func:`format_scene` offsets them to 1-based global indices. Every float is written with
@@ -40,7 +40,7 @@ import numpy as np
 __all__ = ["format_scene", "write_scene", "OBJECT_KEYS"]
 
 # Scalar per-object parameters in the order they are written, with the admissible range the
-# parser (jaxplush.scene) enforces: (key, check, message).
+# parser (jaxplush.scene.parse) enforces: (key, check, message).
 _SCALAR_PARAMS: tuple[tuple[str, object, str], ...] = (
     ("total_weight", lambda v: v > 0, "> 0"),
     ("k_structural", lambda v: v >= 0, ">= 0"),

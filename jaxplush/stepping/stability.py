@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import compiled, model
+from jaxplush.stepping import compiled
+from jaxplush.model import forces as model
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 
@@ -71,7 +72,7 @@ def inflated(sim, params, x):
 
 def _runner(sim, iters, seed):
     """jit(params, x) -> (lambda_max(M^-1 K), lambda_max(M^-1 C)) for ``sim``, compiled once per
-    program (:mod:`jaxplush.compiled`), so repeated estimates (simulate's dt check, its failure
+    program (:mod:`jaxplush.stepping.compiled`), so repeated estimates (simulate's dt check, its failure
     hint, a rebuilt simulator of the same scene) compile once."""
     return compiled.get(sim, ("estimate", iters, seed), lambda: _build_runner(sim, iters, seed))
 
@@ -107,7 +108,7 @@ def estimate(sim, params, x=None, iters=100, seed=0):
     """Estimate the stable explicit dt of ``sim`` at positions ``x`` (default: rest).
 
     Args:
-      sim: :class:`jaxplush.step.Simulator`.
+      sim: :class:`jaxplush.stepping.step.Simulator`.
       params: :class:`jaxplush.types.Params`.
       x: (V, 3) positions at which to linearise.
       iters: power iterations.
@@ -292,7 +293,7 @@ def bound(sim, params, x=None):
     The rest-shape geometry is computed once per topology; each call is then O(V) numpy.
 
     Args:
-      sim: :class:`jaxplush.step.Simulator` (its topology, terms, step and temperature).
+      sim: :class:`jaxplush.stepping.step.Simulator` (its topology, terms, step and temperature).
       params: :class:`jaxplush.types.Params`; x: (V, 3) positions (default: rest).
 
     Returns:

@@ -9,11 +9,14 @@ import warnings
 import jax
 import numpy as np
 
-from jaxplush import compiled, diagnostics, rollouts as _rollout, stability
+from jaxplush.stepping import compiled
+from jaxplush.stepping import diagnostics
+from jaxplush.stepping import rollouts as _rollout
+from jaxplush.stepping import stability
 from jaxplush.errors import SimulationError
-from jaxplush.model import Terms
+from jaxplush.model.forces import Terms
 from jaxplush.progress import Progress
-from jaxplush.step import make_simulator
+from jaxplush.stepping.step import make_simulator
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -53,7 +56,7 @@ class Trajectory:
     substeps: int = 1
 
     def save(self, path):
-        from jaxplush.io import save_trajectory
+        from jaxplush.io.trajectory import save_trajectory
         return save_trajectory(self, path)
 
 
@@ -62,17 +65,17 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
     """Simulate a scene and return its saved frames.
 
     Args:
-      scene: :class:`jaxplush.scene.Scene` (from :func:`jaxplush.load_scene`).
+      scene: :class:`jaxplush.scene.parse.Scene` (from :func:`jaxplush.load_scene`).
       steps: number of time steps.
       dt: time step, s.
       save_every: steps between saved frames (default: about 100 frames in all). The last
         step is always saved.
-      integrator: integrator name (see :data:`jaxplush.step.INTEGRATORS`).
+      integrator: integrator name (see :data:`jaxplush.stepping.step.INTEGRATORS`).
       params: :class:`jaxplush.types.Params` overriding the scene's values.
       x0, v0: (V, 3) initial positions/velocities (default: the scene's, at rest).
       progress: draw a progress bar on stderr.
       check_dt: warn when dt / substeps exceeds the integrator's estimated stability limit.
-      sim: a prebuilt :class:`jaxplush.step.Simulator` to reuse (must match scene and dt; its
+      sim: a prebuilt :class:`jaxplush.stepping.step.Simulator` to reuse (must match scene and dt; its
         integrator and substeps are used).
       substeps: integrator steps of dt / substeps per time step (the floor and pins act after
         each).
@@ -80,7 +83,7 @@ def simulate(scene, steps, dt, save_every=None, integrator="verlet", params=None
     Returns:
       :class:`Trajectory`.
 
-    Soft-soft contact keeps fixed-capacity candidate lists (:mod:`jaxplush.contact`); if a pair
+    Soft-soft contact keeps fixed-capacity candidate lists (:mod:`jaxplush.model.contact`); if a pair
     overflows them (the rollout's health code ``diagnostics.CONTACT_OVERFLOW``), the run is
     repeated with a larger capacity (up to :data:`MAX_CAPACITY_RETRIES` times), with a warning
     naming the capacity to set in the scene.
@@ -109,7 +112,7 @@ def _growing_capacity(scene, sim, run, warn):
         except _CapacityOverflow as e:
             # The candidate lists of soft-soft contact were too short: the step cannot be exact.
             # The result does not depend on the capacity, so rerun with a larger one.
-            from jaxplush import contact
+            from jaxplush.model import contact
             need = contact.grown_capacity(e.need)
             msg = (f"contact candidates overflowed at step {e.step} ({e.need} needed, capacity "
                    f"{max(sim.terms.contact.capacity)}); reran with contact_capacity {need} "
@@ -133,9 +136,9 @@ def contact_capacity_needed(scene, steps, dt, params=None, sim=None):
     and its losses as NaN).
 
     Args:
-      scene: :class:`jaxplush.scene.Scene`; steps: number of time steps; dt: time step, s.
+      scene: :class:`jaxplush.scene.parse.Scene`; steps: number of time steps; dt: time step, s.
       params: :class:`jaxplush.types.Params` overriding the scene's values.
-      sim: the :class:`jaxplush.step.Simulator` whose capacity is in question (default: built
+      sim: the :class:`jaxplush.stepping.step.Simulator` whose capacity is in question (default: built
         from the scene and dt).
     """
     sim = sim or make_simulator(scene, dt, terms=Terms.for_scene(scene, params))
@@ -241,11 +244,11 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
 def _overflow_need(sim, health, rerun, step, obj, code, first, codes):
     """(step, object, capacity needed, report) of a contact overflow the rollout's health reports.
 
-    The candidate counts are those of a fresh search (:func:`jaxplush.contact.needed_capacity`) at
+    The candidate counts are those of a fresh search (:func:`jaxplush.model.contact.needed_capacity`) at
     every state from the last healthy one to the failure (the step-by-step re-run of
-    :func:`jaxplush.rollouts.rerun_from_good`); the capacity needed is at least one above the
+    :func:`jaxplush.stepping.rollouts.rerun_from_good`); the capacity needed is at least one above the
     current, so a rerun always grows it."""
-    from jaxplush import contact
+    from jaxplush.model import contact
     start, frames, _ = rerun
     if code != diagnostics.CONTACT_OVERFLOW:
         # the re-run's freshly built lists did not overflow first: report the saved frame's record

@@ -27,11 +27,11 @@ floats (:func:`_folded`: at 16 points a row, XLA:CPU leaves the small in-place p
 scalar; folded, it vectorises it; see benchmarks/RESULTS.md). Points are independent, so
 chunking changes the results only by rounding (chunks of another width vectorise differently).
 
-Only the Verlet integrator is batched. A scene whose :class:`jaxplush.model.Terms` selects
+Only the Verlet integrator is batched. A scene whose :class:`jaxplush.model.forces.Terms` selects
 something this module does not implement (soft-soft contact, or a Terms field added later)
 raises ``NotImplementedError`` before anything is traced.
 
-Health is tracked per batch point and object exactly as in :mod:`jaxplush.rollouts`: the
+Health is tracked per batch point and object exactly as in :mod:`jaxplush.stepping.rollouts`: the
 rollout carries (O, B) status codes, the step at which each failure was seen and the last
 healthy state of every point; :func:`locate_failures` then finds the exact failing step of each
 failed point. One point blowing up never touches the others (nothing is reduced across B).
@@ -50,10 +50,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import compiled, constraints, diagnostics, integrators, model
+from jaxplush.stepping import compiled
+from jaxplush.stepping import constraints
+from jaxplush.stepping import diagnostics
+from jaxplush.stepping import integrators
+from jaxplush.model import forces as model
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
 
-#: Terms fields this module implements. Any other field of :class:`jaxplush.model.Terms` that is
+#: Terms fields this module implements. Any other field of :class:`jaxplush.model.forces.Terms` that is
 #: switched on raises ``NotImplementedError`` (a term added to the single-scene step later must
 #: not be silently dropped here).
 SUPPORTED_TERMS = frozenset({"spring", "dashpot", "drag", "gas", "gravity", "floor", "fixed",
@@ -64,7 +68,7 @@ MAX_CHUNK = 16
 
 
 class BatchedHealth(NamedTuple):
-    """Carried health record of a batched rollout (cf. :class:`jaxplush.rollouts.Health`).
+    """Carried health record of a batched rollout (cf. :class:`jaxplush.stepping.rollouts.Health`).
 
     Attributes:
       code: (O, B) int32 first failure code per object and point (diagnostics.OK if none).
@@ -94,7 +98,7 @@ class BatchedSimulator:
       init_fn: (params, x0=None, v0=None) -> internal State; params leaves (O, B); x0, v0 (V, 3)
         shared or (B, V, 3) per point; defaults: rest positions, zero velocity.
       step_fn: (params, state) -> state, one time step of every point (internal layout).
-      status_fn: (params, x) -> (O, B) int32 health codes (:mod:`jaxplush.diagnostics`).
+      status_fn: (params, x) -> (O, B) int32 health codes (:mod:`jaxplush.stepping.diagnostics`).
       force_fn: (params, x, v) -> (f, volume): internal forces (tuple of 3 (V, B)), volumes
         (O, B) or None without gas.
       topology, terms, dt, substeps, batch, scene, dtype: how it was built.
@@ -165,7 +169,7 @@ def check_terms(terms):
 
 
 def terms_for(scene, params=None):
-    """The :class:`jaxplush.model.Terms` a batch of parameters needs (``Terms.for_scene(scene,
+    """The :class:`jaxplush.model.forces.Terms` a batch of parameters needs (``Terms.for_scene(scene,
     params)``): the scene's selection, plus the dashpot, drag and Verlet damping wherever any
     point of ``params`` (a Params of (O, B) arrays) switches them on."""
     return model.Terms.for_scene(scene, params)
@@ -175,11 +179,11 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     """Build the batched step for a scene.
 
     Args:
-      scene: :class:`jaxplush.scene.Scene`.
+      scene: :class:`jaxplush.scene.parse.Scene`.
       dt: time step, s (static).
       batch: number of parameter points B advanced together (static).
       integrator: only "verlet" is batched.
-      terms: the :class:`jaxplush.model.Terms` to compile (default: :func:`terms_for` the scene).
+      terms: the :class:`jaxplush.model.forces.Terms` to compile (default: :func:`terms_for` the scene).
       substeps: Verlet steps of dt / substeps per ``step_fn`` call (as in make_simulator).
       chunk: points per compiled rollout call (:func:`rollout` runs the batch as independent
         chunks, concurrently on the CPU's cores); default :func:`default_chunk` (16).
@@ -298,7 +302,7 @@ def _n_cores():
 
 
 def _make_floor(topo, terms, scene, h):
-    """The floor projection of :mod:`jaxplush.constraints` on component tuples.
+    """The floor projection of :mod:`jaxplush.stepping.constraints` on component tuples.
 
     The plain projection (y >= H, vertical velocity set to the one that lands the vertex on the
     floor) is written out on the (V, B) y-component. With floor friction or restitution the
@@ -472,7 +476,7 @@ def face_volumes(topo, x):
 
 
 def _status(topo, terms, x):
-    """(O, B) int32 status codes, as :func:`jaxplush.diagnostics.object_status` per point."""
+    """(O, B) int32 status codes, as :func:`jaxplush.stepping.diagnostics.object_status` per point."""
     finite = jnp.isfinite(x[0]) & jnp.isfinite(x[1]) & jnp.isfinite(x[2])
     finite = _per_object_sum(topo, finite.astype(jnp.int32)) == jnp.asarray(topo.count, jnp.int32)[:, None]
     code = jnp.where(finite, diagnostics.OK, diagnostics.NON_FINITE)

@@ -23,7 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush import mesh as _mesh
+from jaxplush.model import contact as _contact
+from jaxplush.model import mesh as _mesh
+from jaxplush.model.layout import per_object_sum, per_vertex, sum_rows as _sum_rows, vertex_mass
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 #: Softening of edge lengths, relative to the shortest rest edge: l = sqrt(|d|² + eps²) keeps
@@ -67,7 +69,7 @@ class Topology:
 
 
 def build_topology(scene):
-    """Build the static :class:`Topology` of a :class:`jaxplush.scene.Scene`."""
+    """Build the static :class:`Topology` of a :class:`jaxplush.scene.parse.Scene`."""
     x0 = scene.vertices
     faces = scene.faces
     edges = _mesh.unique_edges(faces).astype(np.int32)
@@ -88,7 +90,7 @@ def build_topology(scene):
 
 
 #: Default smooth-floor stiffness: k_f = FLOOR_KAPPA * 2 n_max k_structural per vertex (the same rule
-#: as the soft-soft contact's default, jaxplush.contact): it raises omega_max² by about 10% at most.
+#: as the soft-soft contact's default, jaxplush.model.contact): it raises omega_max² by about 10% at most.
 FLOOR_KAPPA = 0.1
 #: The smooth floor's softplus sharpness: beta = FLOOR_SHARPNESS / delta, delta half the object's mean
 #: rest edge length (as soft-soft contact's beta = 10 / thickness).
@@ -205,7 +207,7 @@ class Terms:
     floor: bool = False
     fixed: bool = False
     verlet_damping: bool = False
-    #: soft-soft contact (:class:`jaxplush.contact.ContactConfig`), None: not compiled in
+    #: soft-soft contact (:class:`jaxplush.model.contact.ContactConfig`), None: not compiled in
     contact: object = None
     #: floor Coulomb friction coefficient mu and restitution e (0: not compiled in)
     floor_friction: float = 0.0
@@ -218,7 +220,6 @@ class Terms:
         """The terms ``scene`` needs; with ``params`` (a Params of arrays, e.g. a run's override or
         a sweep's (O, B) batch) also the dashpot, drag and Verlet damping wherever any of its
         values switches them on (a term compiled in with a zero coefficient changes nothing)."""
-        from jaxplush import contact as _contact
 
         def on(key):
             return bool(np.any(np.asarray(getattr(scene.params, key)) > 0)) or (
@@ -267,25 +268,6 @@ def check_params(terms, params):
                              f"{term} term compiled in; {how}")
 
 
-def per_vertex(topo, values):
-    """Spread an (O,) per-object array to (V,) (a broadcast for single-object scenes)."""
-    if topo.n_objects == 1:
-        return jnp.broadcast_to(values[0], (topo.n_vertices,))
-    return values[topo.vertex_object]
-
-
-def per_object_sum(topo, values):
-    """(O, ...) sums of a (V, ...) array over each object's contiguous vertex range."""
-    if topo.n_objects == 1:
-        return jnp.sum(values, axis=0)[None]
-    return jnp.stack([jnp.sum(values[a:b], axis=0) for a, b in topo.vertex_slices])
-
-
-def vertex_mass(topo, params):
-    """(V,) vertex masses, kg."""
-    return per_vertex(topo, params.total_weight / topo.count)
-
-
 def _dot(a, b):
     return jnp.sum(a * b, axis=-1)
 
@@ -301,22 +283,22 @@ def make_force_fn(topo, terms, temperature, assembly="ring", h=None, with_cache=
 
     The kernel works on (3, V) arrays (x, y, z rows): every gather then moves single floats
     through a 1-D index table, which XLA's CPU backend runs faster than gathering (V, 3) rows
-    (see benchmarks/RESULTS.md). :func:`jaxplush.step.make_simulator` keeps its state in
+    (see benchmarks/RESULTS.md). :func:`jaxplush.stepping.step.make_simulator` keeps its state in
     this layout and exposes (V, 3) views to users.
 
     Args:
       topo: :class:`Topology`.
       terms: :class:`Terms`; only the selected terms are traced. Gravity, the floor, pinned
         vertices and the report's Verlet damping belong to the integrator, not here. Soft-soft
-        contact (``terms.contact``, :mod:`jaxplush.contact`) is added to the internal force.
+        contact (``terms.contact``, :mod:`jaxplush.model.contact`) is added to the internal force.
       temperature: gas temperature (K), a Python float.
       assembly: "ring" (per-vertex one-ring gathers, default) or "segment" (per-edge and
         per-face terms scattered with ``segment_sum``).
       h: the integrator's step, s; needed only by contact friction (which at most stops the
         relative sliding within one step).
-      with_cache: also return the soft-soft contact's :class:`jaxplush.contact.CacheOps` (None
+      with_cache: also return the soft-soft contact's :class:`jaxplush.model.contact.CacheOps` (None
         without contact); the kernel then takes an optional ``cache`` (a
-        :class:`jaxplush.contact.ContactCache`) as a fourth argument.
+        :class:`jaxplush.model.contact.ContactCache`) as a fourth argument.
 
     Returns:
       force_fn: (params, x (3, V), v (3, V)) -> (f (3, V) internal forces in N, volume (O,) or
@@ -330,7 +312,6 @@ def make_force_fn(topo, terms, temperature, assembly="ring", h=None, with_cache=
         raise ValueError(f"unknown assembly {assembly!r}; expected 'ring' or 'segment'")
     if not terms.contact:
         return (kernel, None) if with_cache else kernel
-    from jaxplush import contact as _contact
     contact_force, cache_ops = _contact.make_contact(topo, terms.contact, h)
 
     def force_fn(params, x, v, cache=None):
@@ -350,18 +331,6 @@ def _object_volumes_soa(topo, x, g):
         r = jnp.repeat(jnp.stack([x[:, a] for a, _ in topo.vertex_slices], axis=1),
                        np.asarray(topo.count, np.int64), axis=1, total_repeat_length=topo.n_vertices)
     return per_object_sum(topo, jnp.sum((x - r) * g, axis=0)) / 3.0
-
-
-def _sum_rows(ops):
-    """Sums over axis 0 of several equal-shape (K, V) arrays as ONE variadic reduction.
-
-    XLA then emits a single loop over V that evaluates every operand per neighbour slot and
-    keeps the K-sums in registers, instead of one reduction (and one pass over the gathered
-    table) per output component.
-    """
-    zero = jnp.zeros((), ops[0].dtype)
-    return jax.lax.reduce(tuple(ops), (zero,) * len(ops),
-                          lambda a, b: tuple(ai + bi for ai, bi in zip(a, b)), (0,))
 
 
 def _ring_force_fn(topo, terms, temperature):

@@ -85,7 +85,7 @@ def open_hdf5(path):
 
 
 def save_trajectory(traj, path):
-    """Write a :class:`jaxplush.simulation.Trajectory` to ``path`` atomically."""
+    """Write a :class:`jaxplush.stepping.simulation.Trajectory` to ``path`` atomically."""
     from jaxplush import __version__
     with atomic_path(path, ".h5") as tmp:
         with h5py.File(tmp, "w") as f:
