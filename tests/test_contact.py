@@ -306,7 +306,8 @@ def _settled_cushions(mu, dt):
     return jaxplush.simulate(settle, steps=2000, dt=dt, save_every=2000, check_dt=False).positions[-1], n
 
 
-@pytest.mark.parametrize("tilt, sticks", [pytest.param(15.0, True, marks=pytest.mark.heavy), (40.0, False)])
+@pytest.mark.heavy
+@pytest.mark.parametrize("tilt, sticks", [(15.0, True), (40.0, False)])
 def test_contact_friction_resists_below_and_slides_above_the_friction_angle(tilt, sticks):
     """Soft-soft friction is explicit and velocity level: below the friction angle it does not
     hold exactly (the jiggling cushions creep), but it removes most of the sliding; above it the
