@@ -7,7 +7,14 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import sys
 import tempfile
+
+# `python -m pytest` puts the checkout's root on sys.path, where `fitting/` would import as a
+# top-level package; drop it, so that imports resolve as for a user (the installed jaxplush and
+# jaxplush.fitting) and a stray `import fitting` in a test, README block or docstring fails.
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _ROOT]
 
 os.environ.setdefault("JAXPLUSH_CACHE_DIR", os.path.join(tempfile.gettempdir(), f"jaxplush-tests-xla-{os.getuid()}"))
 
