@@ -44,7 +44,7 @@ import functools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -54,6 +54,7 @@ from jaxplush.stepping import compiled
 from jaxplush.stepping import constraints
 from jaxplush.stepping import diagnostics
 from jaxplush.stepping import integrators
+from jaxplush.stepping.rollouts import Health
 from jaxplush.model import forces as model
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
 
@@ -65,29 +66,6 @@ SUPPORTED_TERMS = frozenset({"spring", "dashpot", "drag", "gas", "gravity", "flo
 
 #: Points per compiled rollout call of a larger batch (:func:`default_chunk`).
 MAX_CHUNK = 16
-
-
-class BatchedHealth(NamedTuple):
-    """Carried health record of a batched rollout (cf. :class:`jaxplush.stepping.rollouts.Health`).
-
-    Attributes:
-      code: (O, B) int32 first failure code per object and point (diagnostics.OK if none).
-      bad_step: (O, B) int32 step at whose checked frame the failure was seen (-1: none).
-      warn_step: (O, B) int32 first checked step with the volume clamp active (-1: none).
-      good_state: internal state: the last checked state at which the point was healthy.
-      good_step: (B,) int32 step number of each point's ``good_state``.
-    """
-
-    code: jax.Array
-    bad_step: jax.Array
-    warn_step: jax.Array
-    good_state: State
-    good_step: jax.Array
-
-    @property
-    def failed(self):
-        """(B,) bool: points with a failure in any object."""
-        return np.asarray(self.bad_step).max(axis=0) >= 0
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -491,16 +469,11 @@ def _status(topo, terms, x):
 # --------------------------------------------------------------------------- rollout
 
 def initial_health(bsim, state, step0=0):
-    """A fresh :class:`BatchedHealth` for ``state`` (internal) at step ``step0`` (scalar or (B,))."""
+    """A fresh :class:`jaxplush.stepping.rollouts.Health` (batched) for ``state`` (internal) at step ``step0`` (scalar or (B,))."""
     shape = (bsim.topology.n_objects, bsim.batch)
     neg = jnp.full(shape, -1, jnp.int32)
     good_step = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (bsim.batch,))
-    return BatchedHealth(jnp.zeros(shape, jnp.int32), neg, neg, state, good_step)
-
-
-def _select(pred, a, b):
-    """Per batch point: a where pred (B,) else b, over an internal state."""
-    return jax.tree_util.tree_map(lambda p, q: jnp.where(pred, p, q), a, b)
+    return Health(jnp.zeros(shape, jnp.int32), neg, neg, state, good_step)
 
 
 def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe):
@@ -521,15 +494,7 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
         s = steps(s)
         step = step0 + (i + 1) * save_every                                  # (B,)
         code = bsim.status_fn(params, s.x)
-        new_bad = (code >= diagnostics.ERROR) & (h.bad_step < 0)
-        new_warn = (code == diagnostics.VOLUME_CLAMPED) & (h.warn_step < 0)
-        healthy = jnp.all(code < diagnostics.ERROR, axis=0) & jnp.all(h.bad_step < 0, axis=0)
-        h = BatchedHealth(
-            code=jnp.where(new_bad, code, h.code),
-            bad_step=jnp.where(new_bad, step, h.bad_step),
-            warn_step=jnp.where(new_warn, step, h.warn_step),
-            good_state=_select(healthy, s, h.good_state),
-            good_step=jnp.where(healthy, step, h.good_step))
+        h = h.advance(code, step, s)
         out = None if observe is None else observe(params, i, s.x, aux)
         return (s, h), out
 
@@ -624,7 +589,7 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
       params: Params of (O, B) arrays (:meth:`BatchedSimulator.params`).
       state: internal state (from ``bsim.init_fn`` or a previous rollout).
       n_frames, save_every: number of frames and steps per frame (static).
-      health: a :class:`BatchedHealth` to continue; default fresh.
+      health: a :class:`jaxplush.stepping.rollouts.Health` (batched) to continue; default fresh.
       step0: step number of ``state`` (scalar or (B,)), for chunked runs.
       observe: optional static ``observe(params, i, x, aux) -> pytree`` evaluated after frame i
         (0-based within this call) on the internal positions x; its outputs are stacked over

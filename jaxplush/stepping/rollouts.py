@@ -27,14 +27,15 @@ from jaxplush.types import State
 
 
 class Health(NamedTuple):
-    """Carried health record of a rollout.
+    """Carried health record of a rollout; a batched rollout (:mod:`jaxplush.fitting.batched`)
+    carries the same record with a trailing batch axis B on every field.
 
     Attributes:
-      code: (O,) int32 first failure code per object (diagnostics.OK if none).
-      bad_step: (O,) int32 step at whose saved frame the failure was seen (-1: none).
-      warn_step: (O,) int32 first saved step with the volume clamp active (-1: none).
-      good_state: the last saved state at which every object was healthy.
-      good_step: int32 step number of ``good_state``.
+      code: (O,) or (O, B) int32 first failure code per object (diagnostics.OK if none).
+      bad_step: (O,) or (O, B) int32 step at whose saved frame the failure was seen (-1: none).
+      warn_step: (O,) or (O, B) int32 first saved step with the volume clamp active (-1: none).
+      good_state: the last saved state at which every object was healthy (per point).
+      good_step: () or (B,) int32 step number of ``good_state``.
     """
 
     code: jax.Array
@@ -45,7 +46,22 @@ class Health(NamedTuple):
 
     @property
     def failed(self):
-        return bool(np.any(np.asarray(self.bad_step) >= 0))
+        """bool (or (B,) bool, batched): a failure in any object."""
+        f = np.asarray(self.bad_step).max(axis=0) >= 0
+        return bool(f) if f.ndim == 0 else f
+
+    def advance(self, code, step, state):
+        """The record after a checked frame at ``step`` (scalar or (B,)) with codes ``code`` ((O,)
+        or (O, B)) and ``state`` (any pytree whose leaves broadcast against the batch axis)."""
+        new_bad = (code >= diagnostics.ERROR) & (self.bad_step < 0)
+        new_warn = (code == diagnostics.VOLUME_CLAMPED) & (self.warn_step < 0)
+        healthy = jnp.all(code < diagnostics.ERROR, axis=0) & jnp.all(self.bad_step < 0, axis=0)
+        return Health(
+            code=jnp.where(new_bad, code, self.code),
+            bad_step=jnp.where(new_bad, step, self.bad_step),
+            warn_step=jnp.where(new_warn, step, self.warn_step),
+            good_state=jax.tree_util.tree_map(lambda a, b: jnp.where(healthy, a, b), state, self.good_state),
+            good_step=jnp.where(healthy, step, self.good_step))
 
 
 def initial_health(sim, state, step=0):
@@ -102,17 +118,7 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
         else:
             # a contact overflow since the start of this rollout is the object's code
             code = diagnostics.with_overflow(diagnostics.object_status(sim.topology, sim.terms, s.x.T), overflow(c))
-        new_bad = (code >= diagnostics.ERROR) & (h.bad_step < 0)
-        new_warn = (code == diagnostics.VOLUME_CLAMPED) & (h.warn_step < 0)
-        healthy = jnp.all(code < diagnostics.ERROR) & jnp.all(h.bad_step < 0)
-        h = Health(
-            code=jnp.where(new_bad, code, h.code),
-            bad_step=jnp.where(new_bad, step, h.bad_step),
-            warn_step=jnp.where(new_warn, step, h.warn_step),
-            good_state=jax.tree_util.tree_map(lambda a, b: jnp.where(healthy, a, b), s, h.good_state),
-            good_step=jnp.where(healthy, step, h.good_step),
-        )
-        return (c, h), s.x
+        return (c, h.advance(code, step, s)), s.x
 
     (carry, health), frames = jax.lax.scan(frame, (carry0, health), jnp.arange(n_frames, dtype=jnp.int32))
     state = carry[0]
