@@ -456,8 +456,8 @@ def _overflowing(coherent=True):
     return scene, n, sim
 
 
-@pytest.mark.parametrize("coherent", [True, pytest.param(False, marks=pytest.mark.heavy)],
-                         ids=["carried-lists", "search-every-step"])
+@pytest.mark.heavy
+@pytest.mark.parametrize("coherent", [True, False], ids=["carried-lists", "search-every-step"])
 def test_an_overflowing_rollout_reports_the_object_and_stays_finite(coherent):
     scene, n, sim = _overflowing(coherent)
     p = sim.params()
