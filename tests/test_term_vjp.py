@@ -108,8 +108,10 @@ def _check(on):
     rng = np.random.default_rng(sum(1 << i for i, t in enumerate(TOGGLES) if t in on))
     n = sim.topology.n_vertices
     x = jnp.asarray(sim.topology.x0.T) + 2e-3 * rng.standard_normal((3, n))
-    x = x.at[1].add(-4e-3)                                    # some vertices land below the floor
+    low = np.flatnonzero(sim.topology.x0[:, 1] < -0.08)       # each object's two lowest vertices
+    x = x.at[1].add(-4e-3).at[1, low].set(FLOOR - 1e-3)       # these (and maybe more) below the floor
     u = jnp.asarray(0.3 * rng.standard_normal(x.shape)).at[1].add(-1.0).at[0, :N_VERTS].add(0.2)
+    u = u.at[1, low].set(-1.0)                                # and moving down: projected
     x_bar, u_bar = (jnp.asarray(rng.standard_normal(x.shape)) for _ in range(2))
     contact_force = contact.make_contact_force(sim.topology, sim.terms.contact) if sim.terms.contact else None
 
