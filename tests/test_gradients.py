@@ -280,6 +280,7 @@ def test_generic_fallback_for_other_integrators(x64):
         _loss(sim, aux, "adjoint")(p)
 
 
+@pytest.mark.heavy
 def test_step_vjp_with_contact(x64):
     """Soft-soft contact (on by default between objects) is part of the fused adjoint: two balls
     pressed together, one step's VJP against autodiff."""
