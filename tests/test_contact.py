@@ -433,6 +433,7 @@ def test_capacity_overflow_is_detected_and_simulate_reruns_with_a_larger_capacit
     np.testing.assert_allclose(traj.positions, ref.positions, rtol=0, atol=1e-6)   # capacity does not change it
 
 
+@pytest.mark.heavy
 def test_capacity_overflow_that_cannot_be_fixed_is_a_clear_error(monkeypatch):
     import importlib
     monkeypatch.setattr(importlib.import_module("jaxplush.stepping.simulation"), "MAX_CAPACITY_RETRIES", 0)
@@ -631,6 +632,7 @@ def test_contact_cache_is_rebuilt_past_half_the_skin_and_walks_otherwise():
         np.testing.assert_array_equal(np.asarray(update(flagged, x_new).overflow), [False, True])
 
 
+@pytest.mark.heavy
 def test_carried_lists_hold_every_vertex_in_reach():
     """The skin argument: at every step of a collision, each vertex within the force's reach of the
     other object (the broad phase without the skin) is among the carried candidates."""

@@ -198,7 +198,7 @@ def test_stiff_springs_642_vertices(name):
         assert traj.positions[:, :, 1].min() == 0.0          # it hit the floor at 10x the limit
 
 
-@pytest.mark.parametrize("name", ALL)
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.heavy) if n == "euler" else n for n in ALL])
 def test_squashed_impact_and_inverted_faces(name):
     """One plush, three starts: squashed to 1% of its rest volume (the clamp activates and the
     volume never changes sign), thrown at the floor at 10 m/s, and with a cap of faces turned

@@ -141,6 +141,7 @@ def _ringing_energy(name, factor, steps):
     return (energy(final) - e_eq) / e0 if not health.failed else np.inf
 
 
+@pytest.mark.heavy
 def test_mesit_pumps_energy_where_symplectic_euler_is_bounded(x64):
     """The evidence for the docs: at a quarter of the explicit limit, 2000 steps of an undamped
     pressurised 162-vertex ball. Symplectic Euler keeps the ringing energy within a few percent;

@@ -77,6 +77,7 @@ def test_internal_forces_sum_to_zero_and_pressure_is_a_gradient(x64, assembly):
     assert jnp.abs(f0 + g).max() / jnp.abs(g).max() < 1e-10
 
 
+@pytest.mark.heavy
 def test_ring_and_segment_assemblies_agree(x64):
     text = (icosphere_text(subdivisions=1, nmol=1e-3, dashpot=0.02)
             + icosphere_text(subdivisions=2, k=50.0, nmol=3e-3, translate=(1, 0, 0), name="b2", offset=42,

@@ -114,6 +114,7 @@ def test_batched_matches_the_single_scene_step(x64):
     np.testing.assert_allclose(np.asarray(obs)[:, 0], traj.positions[1:], atol=1e-12)
 
 
+@pytest.mark.heavy
 def test_loss_through_the_smooth_floor_is_smooth(x64):
     """A dashpot-damped ball dropped onto the smooth floor, its loss against a target along log k:
     central differences at steps 1e-4 and 1e-5 agree with each other and with the gradient (through

@@ -183,6 +183,7 @@ def test_nmol_cannot_be_swept_on_an_object_without_gas():
         sweep(_ball(nmol=None), {"nmol": [1e-3]}, steps=10, dt=DT, progress=False)
 
 
+@pytest.mark.heavy
 def test_rollout_in_concurrent_chunks_matches_one_call():
     # batch 7 in chunks of 3 (the last one padded), run concurrently from a thread pool: the
     # same frames, final state and health (with a blow-up in one chunk) as one 7-point call
