@@ -56,13 +56,14 @@ from jaxplush.stepping import diagnostics
 from jaxplush.stepping import integrators
 from jaxplush.stepping.rollouts import Health
 from jaxplush.model import forces as model
-from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
+from jaxplush.model import terms as T
+from jaxplush.model.layout import per_vertex, vertex_mass
+from jaxplush.types import Params, State
 
-#: Terms fields this module implements. Any other field of :class:`jaxplush.model.forces.Terms` that is
-#: switched on raises ``NotImplementedError`` (a term added to the single-scene step later must
-#: not be silently dropped here).
-SUPPORTED_TERMS = frozenset({"spring", "dashpot", "drag", "gas", "gravity", "floor", "fixed",
-                             "verlet_damping", "floor_friction", "floor_restitution", "floor_smooth"})
+#: Terms this module implements (:data:`jaxplush.model.terms.REGISTRY`, ``batched``). Any other
+#: term switched on raises ``NotImplementedError`` (a term added to the single-scene step later
+#: must not be silently dropped here).
+SUPPORTED_TERMS = T.supported("batched")
 
 #: Points per compiled rollout call of a larger batch (:func:`default_chunk`).
 MAX_CHUNK = 16
@@ -134,8 +135,7 @@ def _to_soa(a, batch, dtype):
 
 def check_terms(terms):
     """Raise NotImplementedError if ``terms`` selects anything this module does not implement."""
-    extra = [f.name for f in dataclasses.fields(terms)
-             if f.name not in SUPPORTED_TERMS and getattr(terms, f.name)]
+    extra = T.unsupported(terms, "batched")
     if extra:
         hint = ""
         if "contact" in extra:
@@ -184,7 +184,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     init_fn, step_fn = _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype)
 
     def status_fn(params, x):
-        return _status(topo, terms, x)
+        return diagnostics.status_codes(topo, terms, x)
 
     return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=kernel,
                             topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
@@ -218,7 +218,7 @@ def _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype):
 
     def accel(params, x, v):
         f, volume = kernel(params, x, v)
-        inv_m = 1.0 / _vertex_mass(topo, params)
+        inv_m = 1.0 / vertex_mass(topo, params)
         a = tuple(fc * inv_m for fc in f)
         if terms.gravity:
             with jax.named_scope("gravity"):
@@ -244,7 +244,7 @@ def _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype):
         a, _ = accel(params, x, u)
         if terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
-                keep = _per_vertex(topo, integrators.damping_keep(params.damping, substeps))
+                keep = per_vertex(topo, integrators.damping_keep(params.damping, substeps))
                 u_new = tuple(keep * uc + ac * h for uc, ac in zip(u, a))
         else:
             u_new = tuple(uc + ac * h for uc, ac in zip(u, a))
@@ -303,7 +303,7 @@ def _make_floor(topo, terms, scene, h):
             # below = x[1] < height, written out: x[1] is computed on the folded view (_folded),
             # and reading it here made XLA copy the projected velocity every step.
             below = x_old[1] + v[1] * h < height
-            vy = jnp.where(below, (height - x_old[1]) / h, v[1])
+            vy = jnp.where(below, constraints.landing_velocity(x_old[1], height, h), v[1])
             # y from the projected velocity, not from x[1]: then the (expensive) unprojected
             # velocity has one consumer and XLA does not compute the forces twice. Identical
             # where the vertex is above the floor; on it, max(.) returns the floor up to 1 ulp.
@@ -340,33 +340,18 @@ def _folded(fn, *arrays):
     return fn(*(a.reshape(v // r, r * b) for a in arrays)).reshape(v, b)
 
 
-def _per_vertex(topo, values):
-    """(O, B) per-object values -> (V, B), or (1, B) for a single object (broadcasts)."""
-    if topo.n_objects == 1:
-        return values[:1]
-    return values[topo.vertex_object]
-
-
-def _per_object_sum(topo, values):
-    """(O, B) sums over each object's contiguous vertex range of a (V, B) array."""
-    if topo.n_objects == 1:
-        return jnp.sum(values, axis=0)[None]
-    return jnp.stack([jnp.sum(values[a:b], axis=0) for a, b in topo.vertex_slices])
-
-
-def _vertex_mass(topo, params):
-    return _per_vertex(topo, params.total_weight / jnp.asarray(topo.count, params.total_weight.dtype)[:, None])
-
-
 def _make_force_fn(topo, terms, temperature):
-    """Batched ring force kernel: (params, x, v) -> (f, volume) with x, v, f tuples of 3 (V, B)."""
+    """Batched ring force kernel: (params, x, v) -> (f, volume) with x, v, f tuples of 3 (V, B).
+
+    The single-scene ring kernel's assembly (:func:`jaxplush.model.forces.make_force_fn`) on the
+    batch-last layout: the same term functions (:mod:`jaxplush.model.terms`) on (V, B) arrays,
+    one ring slot at a time."""
     ring = np.ascontiguousarray(topo.ring.T)                            # (K, V)
     mask = np.ascontiguousarray(topo.ring_mask.T)
     rest = np.ascontiguousarray(topo.ring_rest.T)
     n_ring = ring.shape[0]
     flat = ring.reshape(-1)
     full = [bool(mask[k].all()) for k in range(n_ring)]
-    rt = GAS_CONSTANT * temperature
 
     def neighbours(a):
         """K x C x (V, B): component c of a (C (V, B) arrays) at every vertex's k-th ring neighbour.
@@ -382,88 +367,40 @@ def _make_force_fn(topo, terms, temperature):
         eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
         with jax.named_scope("spring"):
             d = [[n[c] - x[c] for c in range(3)] for n in neighbours(x)]            # K x 3 x (V, B)
-            k_v = _per_vertex(topo, params.k_structural)
+            k_v = per_vertex(topo, params.k_structural)
             if terms.dashpot:
-                c_v = _per_vertex(topo, params.dashpot)
+                c_v = per_vertex(topo, params.dashpot)
                 vn = neighbours(v)
             f = [0.0, 0.0, 0.0]
             for k in range(n_ring):
-                dx, dy, dz = d[k]
-                inv_l = jax.lax.rsqrt(dx * dx + dy * dy + dz * dz + eps2)
-                w = k_v * (1.0 - jnp.asarray(rest[k], dtype)[:, None] * inv_l)          # T / l
+                inv_l = T.inv_length(d[k], eps2)
+                w = T.spring_weight(k_v, jnp.asarray(rest[k], dtype)[:, None], inv_l)
                 if terms.dashpot:
                     with jax.named_scope("dashpot"):
-                        dv = [vn[k][c] - v[c] for c in range(3)]
-                        w = w + c_v * (dv[0] * dx + dv[1] * dy + dv[2] * dz) * inv_l * inv_l
+                        w = w + T.dashpot_weight(c_v, [vn[k][c] - v[c] for c in range(3)], d[k], inv_l)
                 if not full[k]:
                     w = jnp.where(mask[k][:, None], w, 0.0)
-                f = [f[0] + w * dx, f[1] + w * dy, f[2] + w * dz]
+                f = [fc + w * dc for fc, dc in zip(f, d[k])]
         if terms.drag:
             with jax.named_scope("drag"):
-                dm = _per_vertex(topo, params.drag) * _vertex_mass(topo, params)
-                f = [fc - dm * vc for fc, vc in zip(f, v)]
+                gamma, m = per_vertex(topo, params.drag), vertex_mass(topo, params)
+                f = [fc + T.drag_force(gamma, m, vc) for fc, vc in zip(f, v)]
         if terms.floor_smooth:
             with jax.named_scope("floor_smooth"):
-                cfg = terms.floor_smooth
-                k_f = _per_vertex(topo, model.smooth_floor_stiffness(cfg, params.k_structural))
-                beta = _per_vertex(topo, jnp.asarray(cfg.beta, dtype)[:, None])
-                f[1] = f[1] + model.smooth_floor_push(x[1], jnp.asarray(cfg.height, dtype), k_f, beta)
+                f[1] = f[1] + T.smooth_floor_force(topo, terms.floor_smooth, params, x[1])
         volume = None
         if terms.gas:
             with jax.named_scope("gas"):
-                # dV/dx_i = 1/6 sum_k d_k x d_{k+1} over the ordered ring (model._ring_force_fn).
-                g = [0.0, 0.0, 0.0]
+                fans = [0.0, 0.0, 0.0]
                 for k in range(n_ring):
-                    (ax, ay, az), (bx, by, bz) = d[k], d[(k + 1) % n_ring]
-                    g = [g[0] + (ay * bz - az * by), g[1] + (az * bx - ax * bz), g[2] + (ax * by - ay * bx)]
-                g = [gc / 6.0 for gc in g]
-                volume = _ring_volumes(topo, x, g)
-                v0 = jnp.asarray(topo.rest_volume, dtype)[:, None]
-                p = params.nmol * rt / jnp.maximum(volume, VOLUME_EPS * v0)          # (O, B)
-                p_v = _per_vertex(topo, p)
+                    fans = [s + a for s, a in zip(fans, T.fan(d[k], d[(k + 1) % n_ring]))]
+                g = T.volume_gradient(fans)
+                volume = T.object_volumes(topo, x, g)
+                p_v = per_vertex(topo, T.pressure(topo, params, volume, temperature))
                 f = [fc + p_v * gc for fc, gc in zip(f, g)]
         return tuple(f), volume
 
     return force_fn
-
-
-def _ring_volumes(topo, x, g):
-    """(O, B) volumes 1/3 sum_i (x_i - r_o).dV/dx_i, r_o the object's first vertex (homogeneity)."""
-    if topo.n_objects == 1:
-        s = sum((x[c] - x[c][:1]) * g[c] for c in range(3))
-    else:
-        counts = np.asarray(topo.count, np.int64)
-        s = 0.0
-        for c in range(3):
-            r = jnp.repeat(jnp.stack([x[c][a] for a, _ in topo.vertex_slices]), counts, axis=0,
-                           total_repeat_length=topo.n_vertices)
-            s = s + (x[c] - r) * g[c]
-    return _per_object_sum(topo, s) / 3.0
-
-
-def face_volumes(topo, x):
-    """(O, B) signed volumes from faces about each object's centroid (as diagnostics uses)."""
-    out = []
-    for (a, b), (fa, fb) in zip(topo.vertex_slices, topo.face_slices):
-        faces = topo.faces[fa:fb]
-        rel = [x[c] - jnp.mean(x[c][a:b], axis=0) for c in range(3)]
-        p, q, r = ([rel[c][faces[:, i]] for c in range(3)] for i in range(3))
-        cross = (q[1] * r[2] - q[2] * r[1], q[2] * r[0] - q[0] * r[2], q[0] * r[1] - q[1] * r[0])
-        out.append(jnp.sum(p[0] * cross[0] + p[1] * cross[1] + p[2] * cross[2], axis=0) / 6.0)
-    return jnp.stack(out)
-
-
-def _status(topo, terms, x):
-    """(O, B) int32 status codes, as :func:`jaxplush.stepping.diagnostics.object_status` per point."""
-    finite = jnp.isfinite(x[0]) & jnp.isfinite(x[1]) & jnp.isfinite(x[2])
-    finite = _per_object_sum(topo, finite.astype(jnp.int32)) == jnp.asarray(topo.count, jnp.int32)[:, None]
-    code = jnp.where(finite, diagnostics.OK, diagnostics.NON_FINITE)
-    if terms.gas:
-        vol = face_volumes(topo, x)
-        v0 = jnp.asarray(topo.rest_volume, x[0].dtype)[:, None]
-        code = jnp.where(finite & (vol <= 0), diagnostics.INVERTED, code)
-        code = jnp.where(finite & (vol > 0) & (vol < VOLUME_EPS * v0), diagnostics.VOLUME_CLAMPED, code)
-    return code.astype(jnp.int32)
 
 
 # --------------------------------------------------------------------------- rollout

@@ -45,7 +45,8 @@ import numpy as np
 
 from jaxplush.stepping import integrators
 from jaxplush.model import forces as model
-from jaxplush.types import GAS_CONSTANT, VOLUME_EPS, Params, State
+from jaxplush.model import terms as T
+from jaxplush.types import Params, State
 
 METHODS = ("auto", "plain", "checkpoint", "adjoint")
 
@@ -161,12 +162,8 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
 
 # --------------------------------------------------------------------------- fused adjoint (Verlet)
 
-_ADJOINT_TERMS = frozenset(("spring", "dashpot", "drag", "gas", "gravity", "floor", "fixed", "verlet_damping",
-                            "contact"))
-
-
-def _cross(a, b):
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+#: Terms the fused adjoint implements (:data:`jaxplush.model.terms.REGISTRY`, ``adjoint``).
+_ADJOINT_TERMS = T.supported("adjoint")
 
 
 def _ring_sum(a):
@@ -179,11 +176,12 @@ def _ring_sum(a):
     return out
 
 
-def _fan(a, b):
-    """sum_k a_k x b_{k+1} around the ring (wrapping), for a, b lists of three (K, V) arrays:
-    static row slices rather than a materialised ``jnp.roll``."""
-    inner = _cross([v[:-1] for v in a], [v[1:] for v in b])
-    wrap = _cross([v[-1] for v in a], [v[0] for v in b])
+def _around(term, *vectors):
+    """sum_k term(a_k, b_{k+1}, ...) around the ring (wrapping) for ``vectors`` (a, b, ...) given as
+    (this slot, next slot) pairs of lists of three (K, V) arrays: static row slices rather than
+    a materialised ``jnp.roll``. ``term`` is :func:`jaxplush.model.terms.fan` or its tangent."""
+    inner = term(*([v[:-1] for v in a] if i % 2 == 0 else [v[1:] for v in a] for i, a in enumerate(vectors)))
+    wrap = term(*([v[-1] for v in a] if i % 2 == 0 else [v[0] for v in a] for i, a in enumerate(vectors)))
     return [_ring_sum(p) + q for p, q in zip(inner, wrap)]
 
 
@@ -191,7 +189,8 @@ class _Dens(NamedTuple):
     """One backward step's parameter cotangents, kept per vertex where they are sums over vertices of
     per-vertex terms (reduced once, at the end of the backward pass): ``k`` (V,) with
     k_bar = per_object_sum(k); ``c`` (V,) the dashpot's; ``damp`` (V,) sum of u.u_bar (the damping
-    factor's cotangent is minus its per-object sum); ``drag`` (V,) likewise; ``nmol`` (O,) the
+    factor's cotangent is minus its per-object sum); ``drag`` (V,) the drag's density -u.a_bar
+    (:func:`jaxplush.model.terms.drag_vjp`); ``nmol`` (O,) the
     gas's nmol cotangent; ``f_gas`` (O,) the gas's and contact's share of sum F.lam (for the mass
     cotangent; the springs' and dashpot's shares are k k_bar and c c_bar); ``extra`` contact's
     Params or None."""
@@ -211,28 +210,19 @@ def _make_force_vjp(topo, terms, temperature):
     cotangent ``lam`` (3, V): J_x^T lam, J_u^T lam and the parameter cotangents as a
     :class:`_Dens` (``damp`` and ``drag`` None: they belong to the integrator).
 
-    Written in the one-ring form of :func:`jaxplush.model.forces.make_force_fn`: every term is a
-    gather of a neighbour's value minus the vertex's own, so the transpose needs gathers only,
-    never a scatter-add. The springs, the gas (gradient of -nRT ln V) and the dashpot's
-    velocity part have symmetric Jacobians (J^T lam = J lam, a directional derivative); the
-    dashpot's position Jacobian is not, and its transpose is written out. Per ring entry
-    (i, j), with d = x_j - x_i, delta = lam_j - lam_i, t = d.delta, 1/l² = 1/(d.d + eps²):
-
-      springs   J_x^T lam_i = sum_j k (1 - L/l) delta + k L/l³ t d
-      dashpot   J_x^T lam_i = sum_j c/l² [(dv.d) delta + t dv - 2 (dv.d) t d / l²]
-                J_u^T lam_i = sum_j c/l² t d
-      gas       J_x^T lam   = P H_V lam + P'(V) (g.lam) g,   g = dV/dx = 1/6 sum_k d_k x d_{k+1},
-                H_V lam = 1/6 sum_k (delta_k x d_{k+1} + d_k x delta_{k+1})
-
-    The forces are linear in k, c and nmol, so their cotangents are sums the pass computes
-    anyway: sum_i lam_i.f_i^spring = k sum_{ij} (1 - L/l)(lam_i.d) = -k/2 sum_{ij} (1 - L/l) t
-    (each edge seen from both ends); ``dens.k`` keeps the per-vertex -1/2 sum_j (1 - L/l) t.
+    Assembled in the one-ring form of :func:`jaxplush.model.forces.make_force_fn` from each
+    term's transpose, written beside its forward in :mod:`jaxplush.model.terms`
+    (:func:`~jaxplush.model.terms.spring_vjp`, :func:`~jaxplush.model.terms.dashpot_vjp`,
+    :func:`~jaxplush.model.terms.fan_tangent` and :func:`~jaxplush.model.terms.pressure_slopes`
+    for the gas: J_x^T lam = P H_V lam + P'(V) (g.lam) g). Every term is a gather of a
+    neighbour's value minus the vertex's own, so the transpose needs gathers only, never a
+    scatter-add. The forces are linear in k, c and nmol, so their cotangents are sums the pass
+    computes anyway (the terms' densities, reduced per object at the end of the backward pass).
     """
     ring = np.ascontiguousarray(topo.ring.T)                  # (K, V), neighbour-major
     mask = np.ascontiguousarray(topo.ring_mask.T)
     ring_rest = np.ascontiguousarray(topo.ring_rest.T)
     all_real = bool(mask.all())
-    rt = GAS_CONSTANT * temperature
     contact_force = None
     if terms.contact:
         from jaxplush.model import contact as _contact
@@ -249,28 +239,25 @@ def _make_force_vjp(topo, terms, temperature):
         rest = jnp.asarray(ring_rest, dtype)
         d = [gather(x[c]) - x[c] for c in range(3)]                      # 3 x (K, V)
         dl = [gather(lam[c]) - lam[c] for c in range(3)]
-        inv_l = jax.lax.rsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + topo.length_eps ** 2)
-        s = 1.0 - rest * inv_l
-        t = d[0] * dl[0] + d[1] * dl[1] + d[2] * dl[2]
-        t, s = masked(t), masked(s)
-        k = model.per_vertex(topo, params.k_structural)
-        w = k * s                                                        # spring tension / l
-        coef = k * rest * inv_l * inv_l * inv_l                          # of t d
-        dens_k = -0.5 * _ring_sum(s * t)                                 # (V,)
+        inv_l = T.inv_length(d, topo.length_eps ** 2)
+        t = masked(T.dot(d, dl))
+        w, coef, dens = T.spring_vjp(model.per_vertex(topo, params.k_structural), rest, inv_l, t)
+        dens_k = _ring_sum(dens)                                         # (V,)
         zero = jnp.zeros((topo.n_objects,), dtype)
-        dens_c = None
+        dens_c = extra = None
         n_bar = f_gas = zero
         ju = jnp.zeros_like(x)
-        extra = None
         if terms.dashpot:
-            cq, coef_c, ju, extra, dens_c = _dashpot_vjp(topo, params, [gather(u[c]) - u[c] for c in range(3)],
-                                                         d, inv_l, t, masked)
-            w = w + cq
-            coef = coef - coef_c
+            dv = [gather(u[c]) - u[c] for c in range(3)]
+            w_c, coef_c, ct, dens = T.dashpot_vjp(model.per_vertex(topo, params.dashpot), dv, d, inv_l, t)
+            w, coef, dens_c = w + w_c, coef + coef_c, _ring_sum(dens)
+            ju = jnp.stack([_ring_sum(ct * d[i]) for i in range(3)])
+            extra = [ct * dv[i] for i in range(3)]
+        w = masked(w)
         ctt = coef * t
         jx = jnp.stack([_ring_sum(w * dl[i] + ctt * d[i] + (extra[i] if extra else 0.0)) for i in range(3)])
         if terms.gas:
-            jx_p, jx_dp, n_bar, f_gas = _gas_vjp(topo, params, x, lam, d, dl, rt)
+            jx_p, jx_dp, n_bar, f_gas = _gas_vjp(topo, params, x, lam, d, dl, temperature)
             jx = jx + jx_p + jx_dp
         p_extra = None
         if contact_force is not None:
@@ -285,40 +272,15 @@ def _make_force_vjp(topo, terms, temperature):
     return force_vjp
 
 
-def _dashpot_vjp(topo, params, dv, d, inv_l, t, masked):
-    """The dashpot's share of :func:`_make_force_vjp` for ring velocity differences ``dv``: (its
-    term c q of the tension, its term 2 c q / l² of the t d coefficient, J_u^T lam, its extra
-    J_x^T lam rows c t dv / l², its cotangent density)."""
-    inv_l2 = inv_l * inv_l
-    q = masked((dv[0] * d[0] + dv[1] * d[1] + dv[2] * d[2]) * inv_l2)
-    c = model.per_vertex(topo, params.dashpot)
-    ct = c * inv_l2 * t
-    ju = jnp.stack([_ring_sum(ct * d[i]) for i in range(3)])
-    extra = [ct * dv[i] for i in range(3)]
-    return c * q, 2.0 * c * q * inv_l2, ju, extra, -0.5 * _ring_sum(q * t)
-
-
-def _gas_vjp(topo, params, x, lam, d, dl, rt):
+def _gas_vjp(topo, params, x, lam, d, dl, temperature):
     """The gas's share of :func:`_make_force_vjp`: J_x^T lam as its two terms P H_V lam and
     P'(V) (g.lam) g, the nmol cotangent and the gas's share of sum F.lam per object."""
-    g = jnp.stack(_fan(d, d)) / 6.0
-    h = jnp.stack([a + b for a, b in zip(_fan(dl, d), _fan(d, dl))]) / 6.0
-    volume = _object_volumes(topo, x, g)
-    v_clamp = VOLUME_EPS * jnp.asarray(topo.rest_volume, x.dtype)
-    v_safe = jnp.maximum(volume, v_clamp)
-    p = params.nmol * rt / v_safe
-    # dP/dV, 0 on the clamp (and halved at a tie, as jnp.maximum's derivative)
-    dp = jnp.where(volume > v_clamp, -p / v_safe, jnp.where(volume == v_clamp, -0.5 * p / v_safe, 0.0))
+    g = jnp.stack(T.volume_gradient(_around(T.fan, d, d)))
+    h = jnp.stack(T.volume_gradient(_around(T.fan_tangent, d, d, dl, dl)))
+    volume = T.object_volumes(topo, x, g)
+    p, dp, dp_dn = T.pressure_slopes(topo, params, volume, temperature)
     g_lam = model.per_object_sum(topo, jnp.sum(g * lam, axis=0))  # dV.lam per object
-    return (model.per_vertex(topo, p) * h, model.per_vertex(topo, dp * g_lam) * g, g_lam * rt / v_safe,
-            p * g_lam)
-
-
-def _object_volumes(topo, x, g):
-    """(O,) volumes V_o = 1/3 sum_i (x_i - r_o).g_i (as in jaxplush.model.forces), x and g (3, V)."""
-    if topo.n_objects == 1:
-        return (jnp.sum((x - x[:, :1]) * g) / 3.0)[None]
-    return jnp.stack([jnp.sum((x[:, a:b] - x[:, a:a + 1]) * g[:, a:b]) for a, b in topo.vertex_slices]) / 3.0
+    return (model.per_vertex(topo, p) * h, model.per_vertex(topo, dp * g_lam) * g, g_lam * dp_dn, p * g_lam)
 
 
 _Y_ROW = np.arange(3)[:, None] == 1                # (3, 1): the vertical component
@@ -367,8 +329,9 @@ def _make_step_dens_vjp(sim):
         else:
             u_out = ut + ju
         if terms.drag:
-            u_out = u_out - model.per_vertex(topo, params.drag) * a_bar
-            dens = dens._replace(drag=jnp.sum(u * a_bar, axis=0))
+            u_drag, drag_density = T.drag_vjp(model.per_vertex(topo, params.drag), u, a_bar)
+            u_out = u_out + u_drag
+            dens = dens._replace(drag=drag_density)
         return x_out + jx, u_out, dens
 
     return step_vjp
@@ -386,7 +349,7 @@ def _reduce_dens(topo, params, dens):
     if dens.damp is not None:
         d_bar = jax.vjp(_damping_factor, params.damping)[1](-obj(dens.damp))[0]
     f_dot = params.k_structural * k_bar + params.dashpot * c_bar + dens.f_gas
-    p_bar = Params(k_structural=k_bar, damping=d_bar, dashpot=c_bar, drag=-obj(dens.drag), nmol=dens.nmol,
+    p_bar = Params(k_structural=k_bar, damping=d_bar, dashpot=c_bar, drag=obj(dens.drag), nmol=dens.nmol,
                    total_weight=-f_dot / params.total_weight)
     if dens.extra is not None:
         p_bar = jax.tree_util.tree_map(jnp.add, p_bar, dens.extra)

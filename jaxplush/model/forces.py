@@ -1,18 +1,21 @@
-"""The physical model: static topology, forces and energies (docs/model.md §1, §5).
+"""The physical model: static topology, which terms a scene compiles, the force kernel and the
+energies (docs/model.md §1, §5).
 
-Forces are assembled per vertex from its ordered one-ring, with no scatter:
+The terms themselves (spring, dashpot, gas, drag, smooth floor) are defined once in
+:mod:`jaxplush.model.terms`; this module assembles them into the single-scene force kernel,
+per vertex from its ordered one-ring, with no scatter:
 
-* spring (Hooke, every unique edge, seen from both ends):
-  f_i = sum_j k (l_ij - L_ij) d_ij / l_ij, d_ij = x_j - x_i, l = sqrt(|d|² + eps²);
-* edge dashpot: f_i = sum_j c ((v_j - v_i).d^) d^;
-* gas: f_i = P_o dV/dx_i with dV/dx_i = 1/6 sum_k (x_{n_k} - x_i) x (x_{n_{k+1}} - x_i) over the
-  ordered ring (equal to sum over incident faces of A_f n_f / 3, docs/model.md §1), and
-  V_o = 1/3 sum_{i in o} (x_i - r_o).dV/dx_i (V is homogeneous of degree 3), P_o = nRT/max(V, eps V0);
-* air drag: f_i = -gamma m_i v_i.
+* spring and dashpot: f_i = sum_j w_ij d_ij, d_ij = x_j - x_i, w from
+  :func:`~jaxplush.model.terms.spring_weight` and :func:`~jaxplush.model.terms.dashpot_weight`;
+* gas: f_i = P_o dV/dx_i, dV/dx_i = 1/6 sum_k d_k x d_{k+1} around the ordered ring
+  (:func:`~jaxplush.model.terms.fan`), V_o from :func:`~jaxplush.model.terms.object_volumes`;
+* air drag and the smooth floor, per vertex.
 
 Every term is built only when the scene needs it and wrapped in a ``jax.named_scope`` so a
 test can see that absent terms are not compiled. An alternative assembly by ``segment_sum``
-over edges and faces (``assembly="segment"``) is kept for benchmarks and cross-checks.
+over edges and faces (``assembly="segment"``) is kept for benchmarks and cross-checks; it calls
+the same term functions. :func:`potential_energy` is written independently, per edge and per
+face, so that tests can check f = -dU/dx.
 """
 
 from __future__ import annotations
@@ -25,7 +28,10 @@ import numpy as np
 
 from jaxplush.model import contact as _contact
 from jaxplush.model import mesh as _mesh
-from jaxplush.model.layout import per_object_sum, per_vertex, sum_rows as _sum_rows, vertex_mass
+from jaxplush.model import terms as T
+from jaxplush.model.layout import per_object_sum, per_vertex, sum_rows as _sum_rows, vertex_mass  # noqa: F401
+from jaxplush.model.terms import (  # noqa: F401  (the terms' public names, also reachable from here)
+    FLOOR_KAPPA, pressure, smooth_floor_energy, smooth_floor_force, smooth_floor_push, smooth_floor_stiffness)
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 #: Softening of edge lengths, relative to the shortest rest edge: l = sqrt(|d|² + eps²) keeps
@@ -89,9 +95,6 @@ def build_topology(scene):
         length_eps=float(LENGTH_EPS * rest.min()))
 
 
-#: Default smooth-floor stiffness: k_f = FLOOR_KAPPA * 2 n_max k_structural per vertex (the same rule
-#: as the soft-soft contact's default, jaxplush.model.contact): it raises omega_max² by about 10% at most.
-FLOOR_KAPPA = 0.1
 #: The smooth floor's softplus sharpness: beta = FLOOR_SHARPNESS / delta, delta half the object's mean
 #: rest edge length (as soft-soft contact's beta = 10 / thickness).
 FLOOR_SHARPNESS = 10.0
@@ -135,39 +138,6 @@ def smooth_floor_for_scene(scene, topo=None):
         n_max.append(int(mask[a:b].sum(axis=1).max()))
     return SmoothFloor(height=float(scene.floor), beta=tuple(beta), stiffness=scene.floor_stiffness,
                        n_max=tuple(n_max))
-
-
-def smooth_floor_stiffness(cfg, k_structural):
-    """k_f of every object (N/m per vertex): the fixed ``floor_stiffness`` or FLOOR_KAPPA 2 n_max k.
-
-    ``k_structural`` is (O,) or (O, B) (a batch of parameter points); the result has its shape."""
-    k = jnp.asarray(k_structural)
-    if cfg.stiffness is not None:
-        return jnp.full_like(k, cfg.stiffness)
-    factor = jnp.asarray([FLOOR_KAPPA * 2.0 * n for n in cfg.n_max], k.dtype).reshape((-1,) + (1,) * (k.ndim - 1))
-    return factor * k
-
-
-def smooth_floor_push(y, height, k_f, beta):
-    """Upward force (N) of the smooth floor on vertices at heights y: k_f phi sigmoid(-beta s),
-    phi = softplus(-beta s) / beta, s = y - height (elementwise; any matching shapes)."""
-    z = -beta * (y - height)
-    return k_f * (jax.nn.softplus(z) / beta) * jax.nn.sigmoid(z)
-
-
-def smooth_floor_force(topo, cfg, params, y):
-    """(V,) upward force of the smooth floor on every vertex at heights y (V,), N."""
-    beta = per_vertex(topo, jnp.asarray(cfg.beta, y.dtype))
-    k_f = per_vertex(topo, smooth_floor_stiffness(cfg, params.k_structural))
-    return smooth_floor_push(y, jnp.asarray(cfg.height, y.dtype), k_f, beta)
-
-
-def smooth_floor_energy(topo, cfg, params, y):
-    """Total energy (J) of the smooth floor at heights y (V,): sum of k_f/2 (softplus(-beta s)/beta)²."""
-    beta = per_vertex(topo, jnp.asarray(cfg.beta, y.dtype))
-    phi = jax.nn.softplus(-beta * (y - jnp.asarray(cfg.height, y.dtype))) / beta
-    k_f = per_vertex(topo, smooth_floor_stiffness(cfg, params.k_structural))
-    return jnp.sum(0.5 * k_f * phi * phi)
 
 
 #: The simulation's position resolution must be this fine against the shortest rest edge.
@@ -272,12 +242,6 @@ def _dot(a, b):
     return jnp.sum(a * b, axis=-1)
 
 
-def pressure(topo, params, volume, temperature):
-    """(O,) gas pressure nRT / max(V, eps V0) (docs/model.md §1: a C¹, conservative continuation)."""
-    v0 = jnp.asarray(topo.rest_volume, volume.dtype)
-    return params.nmol * (GAS_CONSTANT * temperature) / jnp.maximum(volume, VOLUME_EPS * v0)
-
-
 def make_force_fn(topo, terms, temperature, assembly="ring", h=None, with_cache=False):
     """Build the force kernel ``force_fn(params, x, v) -> (f, volume)`` on component-major arrays.
 
@@ -323,16 +287,6 @@ def make_force_fn(topo, terms, temperature, assembly="ring", h=None, with_cache=
     return (force_fn, cache_ops) if with_cache else force_fn
 
 
-def _object_volumes_soa(topo, x, g):
-    """(O,) volumes V_o = 1/3 sum_i (x_i - r_o).g_i, r_o the object's first vertex; x, g (3, V)."""
-    if topo.n_objects == 1:
-        r = x[:, :1]
-    else:
-        r = jnp.repeat(jnp.stack([x[:, a] for a, _ in topo.vertex_slices], axis=1),
-                       np.asarray(topo.count, np.int64), axis=1, total_repeat_length=topo.n_vertices)
-    return per_object_sum(topo, jnp.sum((x - r) * g, axis=0)) / 3.0
-
-
 def _ring_force_fn(topo, terms, temperature):
     # Neighbour-major tables: row j of the (K+1, V) index table holds every vertex's j-th ring
     # neighbour and row K repeats row 0, so "the next neighbour" of slot j is row j+1. One
@@ -358,44 +312,45 @@ def _ring_force_fn(topo, terms, temperature):
             t = src.at[:, table].get(mode="promise_in_bounds")          # indices valid by construction
             de = [t[c] - x[c] for c in range(3)]                        # 3 x (K(+1), V)
             d = [dc[:n_slots] for dc in de]                             # 3 x (K, V)
-            inv_l = jax.lax.rsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + eps2)
-            k = per_vertex(topo, params.k_structural)
-            w = k * (1.0 - rest * inv_l)                                # T / l
+            inv_l = T.inv_length(d, eps2)
+            w = T.spring_weight(per_vertex(topo, params.k_structural), rest, inv_l)
             if terms.dashpot:
                 with jax.named_scope("dashpot"):
                     dv = [t[3 + c, :n_slots] - v[c] for c in range(3)]
-                    c_ = per_vertex(topo, params.dashpot)
-                    w = w + c_ * (dv[0] * d[0] + dv[1] * d[1] + dv[2] * d[2]) * inv_l * inv_l
+                    w = w + T.dashpot_weight(per_vertex(topo, params.dashpot), dv, d, inv_l)
             if not all_real:
                 w = jnp.where(mask, w, 0.0)
             fs = [w * d[c] for c in range(3)]
             f = jnp.stack(_sum_rows(fs) if terms.gas else _sum_rows(fs[:2]) + _sum_rows(fs[2:]))
-        if terms.drag:
-            with jax.named_scope("drag"):
-                f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params)) * v
-        if terms.floor_smooth:
-            with jax.named_scope("floor_smooth"):
-                f = f.at[1].add(smooth_floor_force(topo, terms.floor_smooth, params, x[1]))
-        volume = None
-        if terms.gas:
-            with jax.named_scope("gas"):
-                n = [dc[1:] for dc in de]                               # next neighbour in the ring
-                g = jnp.stack(_sum_rows([d[1] * n[2] - d[2] * n[1],
-                                         d[2] * n[0] - d[0] * n[2],
-                                         d[0] * n[1] - d[1] * n[0]])) / 6.0
-                volume = _object_volumes_soa(topo, x, g)
-                p = pressure(topo, params, volume, temperature)
-                f = f + per_vertex(topo, p) * g
-        return f, volume
+        return _vertex_terms(topo, terms, temperature, params, x, v, f,
+                             lambda: _sum_rows(T.fan(d, [dc[1:] for dc in de])))
 
     return force_fn
+
+
+def _vertex_terms(topo, terms, temperature, params, x, v, f, fan_sums):
+    """Add the per-vertex terms (drag, smooth floor, gas) to the edge forces ``f`` (3, V) of a
+    single-scene kernel; ``fan_sums()`` gives the ring sums of :func:`jaxplush.model.terms.fan`
+    (traced only with gas). Returns (f, volume (O,) or None)."""
+    if terms.drag:
+        with jax.named_scope("drag"):
+            f = f + T.drag_force(per_vertex(topo, params.drag), vertex_mass(topo, params), v)
+    if terms.floor_smooth:
+        with jax.named_scope("floor_smooth"):
+            f = f.at[1].add(T.smooth_floor_force(topo, terms.floor_smooth, params, x[1]))
+    volume = None
+    if terms.gas:
+        with jax.named_scope("gas"):
+            g = jnp.stack(T.volume_gradient(fan_sums()))
+            volume = T.object_volumes(topo, x, g)
+            f = f + per_vertex(topo, T.pressure(topo, params, volume, temperature)) * g
+    return f, volume
 
 
 def _segment_force_fn(topo, terms, temperature):
     e0, e1 = topo.edges[:, 0], topo.edges[:, 1]
     n = topo.n_vertices
     faces = topo.faces
-    face_object = topo.vertex_object[faces[:, 0]]
 
     def scatter(vals, idx):
         return jax.ops.segment_sum(vals, idx, num_segments=n)
@@ -408,37 +363,22 @@ def _segment_force_fn(topo, terms, temperature):
         rest = jnp.asarray(topo.rest_length, dtype)
         with jax.named_scope("spring"):
             d = x[:, e1] - x[:, e0]                                     # (3, E)
-            inv_l = jax.lax.rsqrt(jnp.sum(d * d, axis=0) + topo.length_eps ** 2)
-            w = per_edge(params.k_structural) * (1.0 - rest * inv_l)
+            inv_l = T.inv_length(d, jnp.asarray(topo.length_eps ** 2, dtype))
+            w = T.spring_weight(per_edge(params.k_structural), rest, inv_l)
             if terms.dashpot:
                 with jax.named_scope("dashpot"):
-                    w = w + per_edge(params.dashpot) * jnp.sum((v[:, e1] - v[:, e0]) * d, axis=0) * inv_l * inv_l
+                    w = w + T.dashpot_weight(per_edge(params.dashpot), v[:, e1] - v[:, e0], d, inv_l)
             fe = w * d
             f = jnp.stack([scatter(fe[c], e0) - scatter(fe[c], e1) for c in range(3)])
-        if terms.drag:
-            with jax.named_scope("drag"):
-                f = f - (per_vertex(topo, params.drag) * vertex_mass(topo, params)) * v
-        if terms.floor_smooth:
-            with jax.named_scope("floor_smooth"):
-                f = f.at[1].add(smooth_floor_force(topo, terms.floor_smooth, params, x[1]))
-        volume = None
-        if terms.gas:
-            with jax.named_scope("gas"):
-                a, b, c3 = x[:, faces[:, 0]], x[:, faces[:, 1]], x[:, faces[:, 2]]
-                u, w2 = b - a, c3 - a
-                an = jnp.stack([u[1] * w2[2] - u[2] * w2[1], u[2] * w2[0] - u[0] * w2[2],
-                                u[0] * w2[1] - u[1] * w2[0]])           # 2 A n, (3, F)
-                if topo.n_objects == 1:
-                    volume = jnp.sum((a - x[:, :1]) * an)[None] / 6.0
-                else:
-                    r = jnp.stack([x[:, s] for s, _ in topo.vertex_slices], axis=1)[:, face_object]
-                    volume = jax.ops.segment_sum(jnp.sum((a - r) * an, axis=0), face_object,
-                                                 num_segments=topo.n_objects) / 6.0
-                p = pressure(topo, params, volume, temperature)
-                pf = (p[face_object] if topo.n_objects > 1 else p[0]) * an / 6.0
-                f = f + jnp.stack([scatter(pf[c], faces[:, 0]) + scatter(pf[c], faces[:, 1])
-                                   + scatter(pf[c], faces[:, 2]) for c in range(3)])
-        return f, volume
+
+        def fan_sums():
+            # per face: 2 A n = (b - a) x (c - a), a third of it to each corner (the ring's fan
+            # sums, face by face: docs/model.md §1)
+            corners = [x[:, faces[:, i]] for i in range(3)]
+            an = T.cross(corners[1] - corners[0], corners[2] - corners[0])
+            return [scatter(a, faces[:, 0]) + scatter(a, faces[:, 1]) + scatter(a, faces[:, 2]) for a in an]
+
+        return _vertex_terms(topo, terms, temperature, params, x, v, f, fan_sums)
 
     return force_fn
 
@@ -473,13 +413,19 @@ def gas_energy(topo, params, x, temperature):
 
 
 def face_volumes(topo, x):
-    """(O,) signed volumes from faces (sum of signed tetrahedra about each object's centroid)."""
+    """(O,) signed volumes from faces (sum of signed tetrahedra about each object's centroid), x (V, 3)."""
+    return object_face_volumes(topo, x.T)
+
+
+def object_face_volumes(topo, xs):
+    """(O, ...) signed volumes from faces, as :func:`face_volumes`, of component-major positions:
+    ``xs`` three (V, ...) arrays, say a (3, V) array or the batched engine's three (V, B)."""
     out = []
     for (a, b), (fa, fb) in zip(topo.vertex_slices, topo.face_slices):
-        c = jnp.mean(x[a:b], axis=0)
-        f = topo.faces[fa:fb]
-        p, q, r = x[f[:, 0]] - c, x[f[:, 1]] - c, x[f[:, 2]] - c
-        out.append(jnp.sum(_dot(p, jnp.cross(q, r))) / 6.0)
+        faces = topo.faces[fa:fb]
+        rel = [xs[c] - jnp.mean(xs[c][a:b], axis=0) for c in range(3)]
+        p, q, r = ([rel[c][faces[:, i]] for c in range(3)] for i in range(3))
+        out.append(jnp.sum(T.dot(p, T.cross(q, r)), axis=0) / 6.0)
     return jnp.stack(out)
 
 

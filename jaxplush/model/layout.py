@@ -1,5 +1,7 @@
 """Layout helpers shared by the model's terms: per-object values spread to vertices, per-object
-sums, vertex masses, and sums over a ring table's rows. Shapes follow :mod:`jaxplush.types`."""
+sums, vertex masses, and sums over a ring table's rows. Shapes follow :mod:`jaxplush.types`;
+per-object arrays are (O,), or (O, B) for a batch of B parameter points (the batched engine's
+layout, batch last), and the per-vertex results are then (V,) or (V, B)."""
 
 from __future__ import annotations
 
@@ -8,9 +10,13 @@ import jax.numpy as jnp
 
 
 def per_vertex(topo, values):
-    """Spread an (O,) per-object array to (V,) (a broadcast for single-object scenes)."""
+    """Spread an (O,) per-object array to (V,), or an (O, B) one to (V, B). A single object's
+    values broadcast instead: (V,) from (1,), and (1, B) from (1, B), which broadcasts against
+    (V, B) without being materialised."""
     if topo.n_objects == 1:
-        return jnp.broadcast_to(values[0], (topo.n_vertices,))
+        if values.ndim == 1:
+            return jnp.broadcast_to(values[0], (topo.n_vertices,))
+        return values[:1]
     return values[topo.vertex_object]
 
 
@@ -22,8 +28,11 @@ def per_object_sum(topo, values):
 
 
 def vertex_mass(topo, params):
-    """(V,) vertex masses, kg."""
-    return per_vertex(topo, params.total_weight / topo.count)
+    """(V,) vertex masses, kg (per :func:`per_vertex` for batched (O, B) parameters)."""
+    w = params.total_weight
+    if w.ndim == 1:
+        return per_vertex(topo, w / topo.count)
+    return per_vertex(topo, w / jnp.asarray(topo.count, w.dtype).reshape((-1,) + (1,) * (w.ndim - 1)))
 
 
 def sum_rows(ops):

@@ -28,6 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def landing_velocity(y_old, height, h):
+    """The floor projection's vertical velocity (H - y_old) / h: the one that lands a vertex that
+    starts the step at height y_old exactly on the floor H after a step of h. Every engine's
+    projection (this module's hook, the batched engine's written-out plain floor) uses it; the
+    fused adjoint's floor mask is its transpose (d/dy_old = -1/h)."""
+    return (height - y_old) / h
+
+
 def make_constrain(topo, terms, scene, dt):
     """Build ``constrain(x_old, x_new, v_new) -> (x, v)`` for a scene (only needed parts traced)."""
     fixed = topo.fixed
@@ -42,7 +50,7 @@ def make_constrain(topo, terms, scene, dt):
             with jax.named_scope("floor"):
                 below = x[1] < floor
                 vy_in = v[1]
-                vy = (floor - x_old[1]) / dt
+                vy = landing_velocity(x_old[1], floor, dt)
                 if restitution:
                     with jax.named_scope("floor_restitution"):
                         speed = -vy_in

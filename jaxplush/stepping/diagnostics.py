@@ -40,12 +40,19 @@ MESSAGES = {
 
 def object_status(topo, terms, x):
     """(O,) int32 status code of every object at positions x (V, 3)."""
-    finite = model.per_object_sum(topo, jnp.isfinite(x).all(axis=1).astype(jnp.int32)) == jnp.asarray(
-        topo.count, jnp.int32)
+    return status_codes(topo, terms, x.T)
+
+
+def status_codes(topo, terms, xs):
+    """(O, ...) int32 status codes at component-major positions ``xs``: three (V, ...) arrays, say
+    a (3, V) array, or the batched engine's three (V, B) (codes (O, B), one per point)."""
+    finite = jnp.isfinite(xs[0]) & jnp.isfinite(xs[1]) & jnp.isfinite(xs[2])
+    count = jnp.asarray(topo.count, jnp.int32).reshape((-1,) + (1,) * (finite.ndim - 1))
+    finite = model.per_object_sum(topo, finite.astype(jnp.int32)) == count
     code = jnp.where(finite, OK, NON_FINITE)
     if terms.gas:
-        vol = model.face_volumes(topo, x)
-        v0 = jnp.asarray(topo.rest_volume, x.dtype)
+        vol = model.object_face_volumes(topo, xs)
+        v0 = jnp.asarray(topo.rest_volume, vol.dtype).reshape(count.shape)
         code = jnp.where(finite & (vol <= 0), INVERTED, code)
         code = jnp.where(finite & (vol > 0) & (vol < VOLUME_EPS * v0), VOLUME_CLAMPED, code)
     return code.astype(jnp.int32)

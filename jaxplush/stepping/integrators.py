@@ -46,7 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush.model import forces as model
-from jaxplush.types import State, VOLUME_EPS
+from jaxplush.model import terms as T
+from jaxplush.types import State
 
 INTEGRATORS = ("euler", "symplectic_euler", "rk4", "verlet", "mesit", "implicit_euler")
 DEFAULT = "verlet"
@@ -433,11 +434,9 @@ def _jacobians(topo, terms, params, x, volume, temperature, gather, ring_rest, m
     m = model.vertex_mass(topo, params)
     rest = jnp.asarray(ring_rest, dtype)
     d = [gather(x[c]) - x[c] for c in range(3)]                             # 3 x (K, V)
-    inv_l = jax.lax.rsqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + jnp.asarray(topo.length_eps ** 2, dtype))
+    inv_l = T.inv_length(d, jnp.asarray(topo.length_eps ** 2, dtype))
     dh = [dc * inv_l for dc in d]
-    k = model.per_vertex(topo, params.k_structural)
-    transverse = k * jnp.maximum(1.0 - rest * inv_l, 0.0)                    # k max(0, 1 - L/l)
-    axial = k - transverse                                                   # K_e = tr I + ax d d^T
+    transverse, axial = T.spring_jacobian(model.per_vertex(topo, params.k_structural), rest, inv_l)
     if not all_real:
         transverse = jnp.where(mask, transverse, 0.0)
         axial = jnp.where(mask, axial, 0.0)
@@ -455,15 +454,9 @@ def _jacobians(topo, terms, params, x, volume, temperature, gather, ring_rest, m
     gas = None
     if terms.gas:
         nxt = [jnp.roll(dc, -1, axis=0) for dc in d]
-        g = jnp.stack([jnp.sum(d[1] * nxt[2] - d[2] * nxt[1], axis=0),
-                       jnp.sum(d[2] * nxt[0] - d[0] * nxt[2], axis=0),
-                       jnp.sum(d[0] * nxt[1] - d[1] * nxt[0], axis=0)]) / 6.0  # dV/dx (3, V)
-        p = model.pressure(topo, params, volume, temperature)
-        v0 = jnp.asarray(topo.rest_volume, dtype)
-        unclamped = volume > VOLUME_EPS * v0
-        # d P / d V = -P/V while unclamped; the clamp holds P fixed below eps V0.
-        coef = jnp.where(unclamped, p / jnp.where(unclamped, volume, 1.0), 0.0)
-        gas = (g, coef)
+        g = jnp.stack(T.volume_gradient([jnp.sum(a, axis=0) for a in T.fan(d, nxt)]))  # dV/dx (3, V)
+        # -dP/dV = P/V while unclamped; the clamp holds P fixed below eps V0.
+        gas = (g, -T.pressure_slopes(topo, params, volume, temperature)[1])
 
     def dfdx(u):
         du = [gather(u[c]) - u[c] for c in range(3)]

@@ -1,0 +1,190 @@
+"""The three hot paths side by side for two checkouts: forward step, batched sweep, gradient.
+
+A refactor of the force model must not slow the code that runs it. This script times, for each
+of two source trees (say the commit before a change and the working tree after it):
+
+* ``step``: ``jaxplush.rollout`` of one scene, simulated steps/s (1000 steps, one compiled scan);
+* ``sweep``: ``jaxplush.fitting.batched.rollout`` of B parameter points (chunks of 16, run
+  concurrently, as ``sweep`` does), total point-steps/s;
+* ``gradient``: the jitted ``jax.value_and_grad`` of a 500-step squared-distance loss with the
+  fused adjoint (``rollout_loss(..., method="adjoint")``), gradients/s;
+
+on the ball-drop plush of bench_step.py (642 vertices: springs, gas, gravity, a floor) and on
+the same ball with every term that the three paths share switched on (edge dashpot, air drag,
+the report's Verlet damping). Each measurement runs in a fresh process that imports jaxplush
+from the tree it is given; the trees alternate (A B A B ...) so that slow changes in machine
+load hit both, and the table reports the best of the rounds and the ratio after / before.
+
+Usage:
+  python benchmarks/bench_hotpaths.py --before REV [--after PATH|REV] [--rounds 3]
+  python benchmarks/bench_hotpaths.py --root PATH --case step:plain   (one measurement, JSON)
+
+``--before``/``--after`` take a git revision (checked out into a temporary worktree) or a path
+to a source tree; ``--after`` defaults to this checkout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(HERE)
+CASES = ("step:plain", "step:full", "sweep:plain", "sweep:full", "gradient:plain", "gradient:full")
+UNITS = {"step": "steps/s", "sweep": "point-steps/s", "gradient": "gradients/s"}
+
+
+# --------------------------------------------------------------------------- one measurement
+
+def _scene(jaxplush, full):
+    import trimesh
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    lines = ["floor 0", "o ball", "k_structural 500", "total_weight 0.1", "nmol 0.0005"]
+    if full:
+        lines += ["dashpot 0.005", "drag 0.5", "damping 200"]
+    lines += ["translate 0 0.3 0"]
+    lines += [f"v {float(a)!r} {float(b)!r} {float(c)!r}" for a, b, c in m.vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces]
+    return jaxplush.parse_scene("\n".join(lines) + "\n", "<icosphere 3>")
+
+
+def _best(fn, repeats):
+    import jax
+    jax.block_until_ready(fn())                                    # compile
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def measure(case, repeats=5, dt=2e-4):
+    """One case's throughput (see the module docstring) in this process."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    import jaxplush
+    kind, variant = case.split(":")
+    scene = _scene(jaxplush, variant == "full")
+    if kind == "step":
+        sim = jaxplush.make_simulator(scene, dt)
+        p = sim.params()
+        s = sim.init_fn(p)
+        steps = 1000
+        return steps / _best(lambda: jaxplush.rollout(sim, p, s, 1, steps), repeats)
+    if kind == "sweep":
+        from jaxplush.fitting import batched
+        b, steps = 64, 500
+        bsim = batched.make_batched_simulator(scene, dt, b)
+        bp = bsim.params()
+        bp = bp._replace(k_structural=jnp.asarray(np.linspace(400.0, 600.0, b)[None, :], bsim.dtype))
+        bs = bsim.init_fn(bp)
+        return b * steps / _best(lambda: batched.rollout(bsim, bp, bs, 1, steps), repeats)
+    if kind == "gradient":
+        from jaxplush.fitting import gradients
+        sim = jaxplush.make_simulator(scene, dt)
+        p = sim.params()
+        steps = 500
+        frames = tuple(range(50, steps + 1, 50))
+        _, traj, _ = jaxplush.rollout(sim, p, sim.init_fn(p), len(frames), 50)
+        target = jnp.asarray(traj) + 1e-3
+
+        def loss(q):
+            return gradients.rollout_loss(sim, q, sim.init_fn(q), frames,
+                                          lambda x, t: jnp.sum((x - t) ** 2), target, method="adjoint")
+        vg = jax.jit(jax.value_and_grad(loss))
+        return 1.0 / _best(lambda: vg(p), repeats)
+    raise ValueError(f"unknown case {case!r}")
+
+
+# --------------------------------------------------------------------------- side by side
+
+def _tree(spec, tmp, name):
+    """A source tree for ``spec``: a path as it is, or a git revision checked out in ``tmp``."""
+    if os.path.isdir(spec):
+        return os.path.abspath(spec)
+    path = os.path.join(tmp, name)
+    subprocess.run(["git", "-C", REPO, "worktree", "add", "--detach", "-q", path, spec], check=True)
+    return path
+
+
+def _run_child(root, case, repeats):
+    env = dict(os.environ, JAX_ENABLE_X64="0", JAX_COMPILATION_CACHE_DIR="")
+    out = subprocess.run([sys.executable, os.path.abspath(__file__), "--root", root, "--case", case,
+                          "--repeats", str(repeats)], capture_output=True, text=True, env=env, cwd=root)
+    if out.returncode:
+        raise SystemExit(f"{case} in {root} failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])["value"]
+
+
+def compare(before, after, cases, rounds, repeats):
+    tmp = tempfile.mkdtemp(prefix="jaxplush-hotpaths-")
+    made = []
+    try:
+        trees = {}
+        for name, spec in (("before", before), ("after", after)):
+            trees[name] = _tree(spec, tmp, name)
+            if not os.path.isdir(spec):
+                made.append(trees[name])
+        rows = []
+        for case in cases:
+            got = {"before": [], "after": []}
+            for r in range(rounds):
+                order = ("before", "after") if r % 2 == 0 else ("after", "before")
+                for name in order:
+                    got[name].append(_run_child(trees[name], case, repeats))
+                    print(f"  {case:15s} {name:6s} round {r + 1}: {got[name][-1]:.4g}", file=sys.stderr, flush=True)
+            b, a = max(got["before"]), max(got["after"])
+            rows.append((case, b, a, a / b, statistics.median(x / y for x, y in zip(got["after"], got["before"]))))
+        return rows
+    finally:
+        for path in made:
+            subprocess.run(["git", "-C", REPO, "worktree", "remove", "--force", path], check=False)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--before", help="git revision or source tree of the baseline")
+    ap.add_argument("--after", default=REPO, help="git revision or source tree (default: this checkout)")
+    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--root", help=argparse.SUPPRESS)
+    ap.add_argument("--case", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.case:
+        sys.path.insert(0, args.root)
+        import jaxplush
+        # The tree's fitting/ folder installs as jaxplush.fitting; found here from the source tree.
+        jaxplush.__path__.append(args.root)
+        print(json.dumps({"case": args.case, "value": measure(args.case, args.repeats)}))
+        return 0
+    if not args.before:
+        ap.error("--before is required")
+    cases = [c for c in args.cases.split(",") if c]
+    unknown = sorted(set(cases) - set(CASES))
+    if unknown:
+        ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(CASES)}")
+    rows = compare(args.before, args.after, cases, args.rounds, args.repeats)
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; best of {args.rounds} rounds "
+          f"x {args.repeats} repeats; before = {args.before}, after = {args.after}")
+    print(f"| {'case':15s} | unit          | {'before':>10s} | {'after':>10s} | after/before (best) | "
+          f"(median of rounds) |")
+    print(f"|{'-' * 17}|---------------|{'-' * 12}|{'-' * 12}|---------------------|--------------------|")
+    for case, b, a, ratio, med in rows:
+        print(f"| {case:15s} | {UNITS[case.split(':')[0]]:13s} | {b:10.4g} | {a:10.4g} | {ratio:19.3f} | {med:18.3f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
