@@ -275,8 +275,9 @@ def _make_force_vjp(topo, terms, temperature):
 def _gas_vjp(topo, params, x, lam, d, dl, temperature):
     """The gas's share of :func:`_make_force_vjp`: J_x^T lam as its two terms P H_V lam and
     P'(V) (g.lam) g, the nmol cotangent and the gas's share of sum F.lam per object."""
-    g = jnp.stack(T.volume_gradient(_around(T.fan, d, d)))
-    h = jnp.stack(T.volume_gradient(_around(T.fan_tangent, d, d, dl, dl)))
+    # stacked, then scaled: one fusion (scaling the three rows apart is measurably slower)
+    g = T.volume_gradient(jnp.stack(_around(T.fan, d, d)))
+    h = T.volume_gradient(jnp.stack(_around(T.fan_tangent, d, d, dl, dl)))
     volume = T.object_volumes(topo, x, g)
     p, dp, dp_dn = T.pressure_slopes(topo, params, volume, temperature)
     g_lam = model.per_object_sum(topo, jnp.sum(g * lam, axis=0))  # dV.lam per object

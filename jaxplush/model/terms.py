@@ -134,8 +134,11 @@ def fan_tangent(d, d_next, delta, delta_next):
 
 
 def volume_gradient(fan_sums):
-    """dV/dx from the ring sums of :func:`fan` (or :func:`fan_tangent`): a sixth of each."""
-    return [s / 6.0 for s in fan_sums]
+    """dV/dx from the ring sums of :func:`fan` (or :func:`fan_tangent`): a sixth of them (a
+    (3, ...) array, or a list of three components)."""
+    if isinstance(fan_sums, (list, tuple)):
+        return [s / 6.0 for s in fan_sums]
+    return fan_sums / 6.0
 
 
 def object_volumes(topo, x, g):
