@@ -9,14 +9,15 @@ of two source trees (say the commit before a change and the working tree after i
 * ``gradient``: the jitted ``jax.value_and_grad`` of a 500-step squared-distance loss with the
   fused adjoint (``rollout_loss(..., method="adjoint")``), gradients/s;
 
-on the ball-drop plush of bench_step.py (642 vertices: springs, gas, gravity, a floor) and on
+on the ball-drop plush of bench_step.py (642 vertices by default: springs, gas, gravity, a
+floor; dt = 2e-4 s, halved per further subdivision) and on
 the same ball with every term that the three paths share switched on (edge dashpot, air drag,
 the report's Verlet damping). Each measurement runs in a fresh process that imports jaxplush
 from the tree it is given; the trees alternate (A B A B ...) so that slow changes in machine
 load hit both, and the table reports the best of the rounds and the ratio after / before.
 
 Usage:
-  python benchmarks/bench_hotpaths.py --before REV [--after PATH|REV] [--rounds 3]
+  python benchmarks/bench_hotpaths.py --before REV [--after PATH|REV] [--rounds 3] [--subdivisions 3]
   python benchmarks/bench_hotpaths.py --root PATH --case step:plain   (one measurement, JSON)
 
 ``--before``/``--after`` take a git revision (checked out into a temporary worktree) or a path
@@ -44,16 +45,16 @@ UNITS = {"step": "steps/s", "sweep": "point-steps/s", "gradient": "gradients/s"}
 
 # --------------------------------------------------------------------------- one measurement
 
-def _scene(jaxplush, full):
+def _scene(jaxplush, full, subdivisions=3):
     import trimesh
-    m = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.1)
     lines = ["floor 0", "o ball", "k_structural 500", "total_weight 0.1", "nmol 0.0005"]
     if full:
         lines += ["dashpot 0.005", "drag 0.5", "damping 200"]
     lines += ["translate 0 0.3 0"]
     lines += [f"v {float(a)!r} {float(b)!r} {float(c)!r}" for a, b, c in m.vertices]
     lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces]
-    return jaxplush.parse_scene("\n".join(lines) + "\n", "<icosphere 3>")
+    return jaxplush.parse_scene("\n".join(lines) + "\n", f"<icosphere {subdivisions}>")
 
 
 def _best(fn, repeats):
@@ -67,14 +68,16 @@ def _best(fn, repeats):
     return min(times)
 
 
-def measure(case, repeats=5, dt=2e-4):
-    """One case's throughput (see the module docstring) in this process."""
+def measure(case, repeats=5, subdivisions=3):
+    """One case's throughput (see the module docstring) in this process. The step is 2e-4 s at
+    642 vertices, halved with each further subdivision (the stable limit halves)."""
     import jax
     import jax.numpy as jnp
     import numpy as np
     import jaxplush
     kind, variant = case.split(":")
-    scene = _scene(jaxplush, variant == "full")
+    scene = _scene(jaxplush, variant == "full", subdivisions)
+    dt = 2e-4 * 0.5 ** (subdivisions - 3)
     if kind == "step":
         sim = jaxplush.make_simulator(scene, dt)
         p = sim.params()
@@ -117,16 +120,17 @@ def _tree(spec, tmp, name):
     return path
 
 
-def _run_child(root, case, repeats):
+def _run_child(root, case, repeats, subdivisions):
     env = dict(os.environ, JAX_ENABLE_X64="0", JAX_COMPILATION_CACHE_DIR="")
     out = subprocess.run([sys.executable, os.path.abspath(__file__), "--root", root, "--case", case,
-                          "--repeats", str(repeats)], capture_output=True, text=True, env=env, cwd=root)
+                          "--repeats", str(repeats), "--subdivisions", str(subdivisions)],
+                         capture_output=True, text=True, env=env, cwd=root)
     if out.returncode:
         raise SystemExit(f"{case} in {root} failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])["value"]
 
 
-def compare(before, after, cases, rounds, repeats):
+def compare(before, after, cases, rounds, repeats, subdivisions=3):
     tmp = tempfile.mkdtemp(prefix="jaxplush-hotpaths-")
     made = []
     try:
@@ -141,7 +145,7 @@ def compare(before, after, cases, rounds, repeats):
             for r in range(rounds):
                 order = ("before", "after") if r % 2 == 0 else ("after", "before")
                 for name in order:
-                    got[name].append(_run_child(trees[name], case, repeats))
+                    got[name].append(_run_child(trees[name], case, repeats, subdivisions))
                     print(f"  {case:15s} {name:6s} round {r + 1}: {got[name][-1]:.4g}", file=sys.stderr, flush=True)
             b, a = max(got["before"]), max(got["after"])
             rows.append((case, b, a, a / b, statistics.median(x / y for x, y in zip(got["after"], got["before"]))))
@@ -159,6 +163,7 @@ def main(argv=None):
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--subdivisions", type=int, default=3, help="icosphere subdivisions (3: 642 vertices, 4: 2562)")
     ap.add_argument("--root", help=argparse.SUPPRESS)
     ap.add_argument("--case", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -167,7 +172,7 @@ def main(argv=None):
         import jaxplush
         # The tree's fitting/ folder installs as jaxplush.fitting; found here from the source tree.
         jaxplush.__path__.append(args.root)
-        print(json.dumps({"case": args.case, "value": measure(args.case, args.repeats)}))
+        print(json.dumps({"case": args.case, "value": measure(args.case, args.repeats, args.subdivisions)}))
         return 0
     if not args.before:
         ap.error("--before is required")
@@ -175,8 +180,10 @@ def main(argv=None):
     unknown = sorted(set(cases) - set(CASES))
     if unknown:
         ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(CASES)}")
-    rows = compare(args.before, args.after, cases, args.rounds, args.repeats)
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; best of {args.rounds} rounds "
+    rows = compare(args.before, args.after, cases, args.rounds, args.repeats, args.subdivisions)
+    n_vertices = 10 * 4 ** args.subdivisions + 2
+    print(f"# {n_vertices} vertices; {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+          f"best of {args.rounds} rounds "
           f"x {args.repeats} repeats; before = {args.before}, after = {args.after}")
     print(f"| {'case':15s} | unit          | {'before':>10s} | {'after':>10s} | after/before (best) | "
           f"(median of rounds) |")

@@ -236,19 +236,18 @@ def _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype):
         x = _to_soa(topo.x0 if x0 is None else x0, batch, dtype)
         v = tuple(jnp.zeros_like(c) for c in x) if v0 is None else _to_soa(v0, batch, dtype)
         a0, _ = accel(params, x, v)
-        u = tuple(vc - (0.5 * h) * ac for vc, ac in zip(v, a0))
+        u = tuple(integrators.verlet_start(vc, ac, h) for vc, ac in zip(v, a0))
         return State(x, pin(u))
 
     def substep(params, state):
         x, u = state
         a, _ = accel(params, x, u)
+        keep = None
         if terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
                 keep = per_vertex(topo, integrators.damping_keep(params.damping, substeps))
-                u_new = tuple(keep * uc + ac * h for uc, ac in zip(u, a))
-        else:
-            u_new = tuple(uc + ac * h for uc, ac in zip(u, a))
-        x_new = tuple(_folded(lambda xc, uc: xc + uc * h, xc, uc) for xc, uc in zip(x, u_new))
+        u_new = tuple(integrators.verlet_kick(uc, ac, h, keep) for uc, ac in zip(u, a))
+        x_new = tuple(_folded(lambda xc, uc: integrators.verlet_drift(xc, uc, h), xc, uc) for xc, uc in zip(x, u_new))
         if terms.floor:
             x_new, u_new = floor(x, x_new, u_new)
         return State(pin(x_new, x0_fixed), pin(u_new))

@@ -152,6 +152,22 @@ def damping_keep(damping, substeps=1):
     return jnp.exp(jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / substeps)
 
 
+def verlet_start(v, a, h):
+    """Verlet's first half-step velocity u_0 = v_0 - a_0 h/2 (makes free fall exact)."""
+    return v - (0.5 * h) * a
+
+
+def verlet_kick(u, a, h, keep=None):
+    """Verlet's half-step velocity update u' = keep u + a h, with ``keep`` = 1 - 1/D the report's
+    damping factor (:func:`damping_keep`; None: undamped)."""
+    return (u if keep is None else keep * u) + a * h
+
+
+def verlet_drift(x, u, h):
+    """Verlet's position update x' = x + u' h from the new half-step velocity u'."""
+    return x + u * h
+
+
 def build(name, system, cg_tol=None, cg_maxiter=CG_MAXITER):
     """Build integrator ``name`` (one of :data:`INTEGRATORS`) for ``system``.
 
@@ -200,7 +216,7 @@ def verlet(system):
 
     def init(params, x, v):
         a0, _ = system.accel(params, x, v)
-        u = v - 0.5 * h * a0
+        u = verlet_start(v, a0, h)
         if terms.fixed:
             u = u.at[:, fixed].set(0.0)
         return State(x, u)
@@ -223,9 +239,9 @@ def verlet(system):
             if terms.gravity:
                 with jax.named_scope("gravity"):
                     a = a + jnp.asarray(gravity[c], x.dtype)
-            uc = (u[c] if keep is None else keep * u[c]) + a * h
+            uc = verlet_kick(u[c], a, h, keep)
             us.append(uc)
-            xs.append(x[c] + uc * h)
+            xs.append(verlet_drift(x[c], uc, h))
         x_new, u_new = system.constrain(x, jnp.stack(xs), jnp.stack(us))
         return State(x_new, u_new)
 
