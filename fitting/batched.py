@@ -380,23 +380,14 @@ def _make_force_fn(topo, terms, temperature):
                 if not full[k]:
                     w = jnp.where(mask[k][:, None], w, 0.0)
                 f = [fc + w * dc for fc, dc in zip(f, d[k])]
-        if terms.drag:
-            with jax.named_scope("drag"):
-                gamma, m = per_vertex(topo, params.drag), vertex_mass(topo, params)
-                f = [fc + T.drag_force(gamma, m, vc) for fc, vc in zip(f, v)]
-        if terms.floor_smooth:
-            with jax.named_scope("floor_smooth"):
-                f[1] = f[1] + T.smooth_floor_force(topo, terms.floor_smooth, params, x[1])
-        volume = None
-        if terms.gas:
-            with jax.named_scope("gas"):
-                fans = [0.0, 0.0, 0.0]
-                for k in range(n_ring):
-                    fans = [s + a for s, a in zip(fans, T.fan(d[k], d[(k + 1) % n_ring]))]
-                g = T.volume_gradient(fans)
-                volume = T.object_volumes(topo, x, g)
-                p_v = per_vertex(topo, T.pressure(topo, params, volume, temperature))
-                f = [fc + p_v * gc for fc, gc in zip(f, g)]
+
+        def fan_sums():
+            fans = [0.0, 0.0, 0.0]
+            for k in range(n_ring):
+                fans = [s + a for s, a in zip(fans, T.fan(d[k], d[(k + 1) % n_ring]))]
+            return fans
+
+        f, volume = model.vertex_terms(topo, terms, temperature, params, x, v, f, fan_sums)
         return tuple(f), volume
 
     return force_fn

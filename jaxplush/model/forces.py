@@ -321,29 +321,44 @@ def _ring_force_fn(topo, terms, temperature):
             if not all_real:
                 w = jnp.where(mask, w, 0.0)
             fs = [w * d[c] for c in range(3)]
-            f = jnp.stack(_sum_rows(fs) if terms.gas else _sum_rows(fs[:2]) + _sum_rows(fs[2:]))
-        return _vertex_terms(topo, terms, temperature, params, x, v, f,
-                             lambda: _sum_rows(T.fan(d, [dc[1:] for dc in de])))
+            f = _sum_rows(fs) if terms.gas else _sum_rows(fs[:2]) + _sum_rows(fs[2:])
+        f, volume = vertex_terms(topo, terms, temperature, params, x, v, f,
+                                 lambda: _sum_rows(T.fan(d, [dc[1:] for dc in de])))
+        return jnp.stack(f), volume
 
     return force_fn
 
 
-def _vertex_terms(topo, terms, temperature, params, x, v, f, fan_sums):
-    """Add the per-vertex terms (drag, smooth floor, gas) to the edge forces ``f`` (3, V) of a
-    single-scene kernel; ``fan_sums()`` gives the ring sums of :func:`jaxplush.model.terms.fan`
-    (traced only with gas). Returns (f, volume (O,) or None)."""
+def vertex_terms(topo, terms, temperature, params, x, v, f, fan_sums):
+    """Add the per-vertex terms (air drag, the smooth floor, the gas) to the edge forces ``f``.
+
+    Every force kernel ends with this: the single-scene ring and segment assemblies (on (V,)
+    components) and the batched engine (on (V, B) components, with (O, B) parameters).
+
+    Args:
+      x, v, f: positions, velocities and the edge forces so far, each three components (x, y, z)
+        of shape (V,) or (V, B) (a (3, V) array works for x and v).
+      fan_sums: ``() -> [3 arrays]`` the ring sums of :func:`jaxplush.model.terms.fan` at every
+        vertex (called only when the scene has gas).
+
+    Returns:
+      (f as a list of three components, volume (O,) or (O, B), or None without gas).
+    """
+    f = list(f)
     if terms.drag:
         with jax.named_scope("drag"):
-            f = f + T.drag_force(per_vertex(topo, params.drag), vertex_mass(topo, params), v)
+            gamma, m = per_vertex(topo, params.drag), vertex_mass(topo, params)
+            f = [fc + T.drag_force(gamma, m, v[c]) for c, fc in enumerate(f)]
     if terms.floor_smooth:
         with jax.named_scope("floor_smooth"):
-            f = f.at[1].add(T.smooth_floor_force(topo, terms.floor_smooth, params, x[1]))
+            f[1] = f[1] + T.smooth_floor_force(topo, terms.floor_smooth, params, x[1])
     volume = None
     if terms.gas:
         with jax.named_scope("gas"):
-            g = jnp.stack(T.volume_gradient(fan_sums()))
+            g = T.volume_gradient(fan_sums())
             volume = T.object_volumes(topo, x, g)
-            f = f + per_vertex(topo, T.pressure(topo, params, volume, temperature)) * g
+            p = per_vertex(topo, T.pressure(topo, params, volume, temperature))
+            f = [fc + p * gc for fc, gc in zip(f, g)]
     return f, volume
 
 
@@ -369,7 +384,7 @@ def _segment_force_fn(topo, terms, temperature):
                 with jax.named_scope("dashpot"):
                     w = w + T.dashpot_weight(per_edge(params.dashpot), v[:, e1] - v[:, e0], d, inv_l)
             fe = w * d
-            f = jnp.stack([scatter(fe[c], e0) - scatter(fe[c], e1) for c in range(3)])
+            f = [scatter(fe[c], e0) - scatter(fe[c], e1) for c in range(3)]
 
         def fan_sums():
             # per face: 2 A n = (b - a) x (c - a), a third of it to each corner (the ring's fan
@@ -378,7 +393,8 @@ def _segment_force_fn(topo, terms, temperature):
             an = T.cross(corners[1] - corners[0], corners[2] - corners[0])
             return [scatter(a, faces[:, 0]) + scatter(a, faces[:, 1]) + scatter(a, faces[:, 2]) for a in an]
 
-        return _vertex_terms(topo, terms, temperature, params, x, v, f, fan_sums)
+        f, volume = vertex_terms(topo, terms, temperature, params, x, v, f, fan_sums)
+        return jnp.stack(f), volume
 
     return force_fn
 
