@@ -355,7 +355,7 @@ def _make_force_fn(topo, terms, temperature):
     def neighbours(a):
         """K x C x (V, B): component c of a (C (V, B) arrays) at every vertex's k-th ring neighbour.
         One row gather over the flattened (K V,) table from the components side by side (rows of
-        C B contiguous floats): one XLA op instead of C K (each op costs ~1 us of dispatch in
+        C B contiguous floats): one XLA op instead of C K (each op costs a dispatch in
         XLA:CPU's while loop, as much as a gather's own work at small B)."""
         b, n_c = a[0].shape[1], len(a)
         g = jnp.concatenate(a, axis=1).at[flat].get(mode="promise_in_bounds").reshape(n_ring, -1, n_c * b)

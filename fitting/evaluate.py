@@ -222,7 +222,7 @@ class Evaluator:
         key = (n, b, self.prob.sim.terms, self.prob.target.dt)
         if key not in self._bsims:
             # two chunks, one per core; the dashpot gathers velocities too, and a chunk of 16 points
-            # then outgrows the caches: chunks of 8 run it about 20% faster (benchmarks/RESULTS.md)
+            # then outgrows the caches: chunks of 8 run it faster (benchmarks/RESULTS.md)
             chunk = max(1, min(b // 2, 8 if self.prob.sim.terms.dashpot else 16))
             bsim = batched.make_batched_simulator(self.prob.scene, self.prob.target.dt, b,
                                                   terms=self.prob.sim.terms, substeps=n, chunk=chunk)

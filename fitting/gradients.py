@@ -129,7 +129,7 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
     if checkpoint:
         # Two levels: segments are recomputed from their first state, and inside a segment
         # only each step's input state is kept (residuals of a whole segment of steps cost
-        # more memory traffic than recomputing one step: 2x faster here).
+        # more memory traffic than recomputing one step; benchmarks/RESULTS.md).
         step = jax.checkpoint(step)
 
     def one_step(carry, n):

@@ -293,7 +293,7 @@ def _ring_force_fn(topo, terms, temperature):
     # gather -> (3 or 6, K(+1), V) (velocities stacked under positions for the dashpot) feeds
     # variadic reductions over the rows (_sum_rows), each one fused, vectorised loop over V
     # that reads the gathered table. XLA fuses a gather with a single consumer into it, and a
-    # reduction with a fused gather is not vectorised (2x slower), so the table always has two
+    # reduction with a fused gather is not vectorised (much slower), so the table always has two
     # consumers: the spring and gas reductions, or, without gas, the spring force split into
     # (x, y) and (z) reductions (benchmarks/RESULTS.md).
     ring = np.ascontiguousarray(topo.ring.T)                            # (K, V)
