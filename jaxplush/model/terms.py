@@ -33,7 +33,8 @@ floor (smooth)         :func:`smooth_floor_force`                  none (autodif
 gravity                ``stepping.integrators.System.accel``       constant: no cotangent
 floor (projection)     ``stepping.constraints``                    ``fitting.gradients`` (mask)
 pins                   ``stepping.constraints``                    ``fitting.gradients`` (mask)
-Verlet damping         ``stepping.integrators.damping_keep``       ``fitting.gradients``
+Verlet damping         ``stepping.integrators.damping_keep``,      ``fitting.gradients``
+                       ``verlet_kick``
 soft-soft contact      ``model.contact``                           ``jax.vjp`` of its forward
 =====================  ==========================================  ============================
 
@@ -47,8 +48,9 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from jaxplush.model.layout import per_vertex
+from jaxplush.model.layout import per_object_sum, per_vertex
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 
@@ -144,8 +146,6 @@ def volume_gradient(fan_sums):
 def object_volumes(topo, x, g):
     """(O, ...) object volumes V_o = 1/3 sum_i (x_i - r_o).g_i, with g = dV/dx (a vector of (V, ...)
     arrays) and r_o the object's first vertex: V is homogeneous of degree 3 in x - r_o."""
-    import numpy as np
-    from jaxplush.model.layout import per_object_sum
     if topo.n_objects == 1:
         rel = [x[c] - x[c][:1] for c in range(3)]
     else:
