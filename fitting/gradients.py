@@ -177,9 +177,10 @@ def _ring_sum(a):
 
 
 def _around(term, *vectors):
-    """sum_k term(a_k, b_{k+1}, ...) around the ring (wrapping) for ``vectors`` (a, b, ...) given as
-    (this slot, next slot) pairs of lists of three (K, V) arrays: static row slices rather than
-    a materialised ``jnp.roll``. ``term`` is :func:`jaxplush.model.terms.fan` or its tangent."""
+    """sum_k term(a_k, b_{k+1}, c_k, d_{k+1}, ...) around the ring (wrapping): ``vectors`` are lists
+    of three (K, V) arrays, taken at slot k in even positions and at the next slot k + 1 in odd
+    ones, by static row slices rather than a materialised ``jnp.roll``. ``term`` is
+    :func:`jaxplush.model.terms.fan` (a, b) or :func:`jaxplush.model.terms.fan_tangent` (d, d, delta, delta)."""
     inner = term(*([v[:-1] for v in a] if i % 2 == 0 else [v[1:] for v in a] for i, a in enumerate(vectors)))
     wrap = term(*([v[-1] for v in a] if i % 2 == 0 else [v[0] for v in a] for i, a in enumerate(vectors)))
     return [_ring_sum(p) + q for p, q in zip(inner, wrap)]
