@@ -4,6 +4,10 @@
         [--optimizer lm|adam|lbfgs] [--bounds NAME=LO:HI,...] [--iterations N] [--lr LR] [--dt DT]
         [--noise SIGMA | --noise-free] --out FIT.h5 [--out-scene FITTED.obj] [--resume]
 
+Before fitting it prints the predictability of the start values over the target (stderr): how
+long the positions stay predictable and the model's own reproducibility floor (the result table
+repeats it; a fit whose residual lies at that floor ends ``at_floor``, not ``poor_fit``).
+
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
 exits 3; a fit that finished without converging to the data (jaxplush.fitting.outcome) writes FIT.h5 with
@@ -110,10 +114,15 @@ def _fit(args):
     scene = jaxplush.load_scene(args.scene)
     target = load_target(args.target, scene, args.dt)
     result = _run(args, lambda: _fit_mod.fit(scene, target, names, args.objects, optimizer=args.optimizer,
-                                             options=options, progress=not args.quiet))
+                                             options=options, progress=not args.quiet, report=_note))
     if result is None:
         return EXIT_INTERRUPTED
     return _report(args, result)
+
+
+def _note(line):
+    """A line about the fit before it starts (the predictability of the start values), on stderr."""
+    print(line, file=sys.stderr, flush=True)
 
 
 def _check_args(args):

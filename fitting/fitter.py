@@ -19,6 +19,9 @@ override single fields: ``fit(scene, target, iterations=40)``):
   rollout blows up (non-finite loss or gradient, an inverted object, damping < 1) is rejected
   and the step halved; a start that blows up, or too many rejections in a row, raise
   :class:`FitError`; they stop at ``iterations`` or at ``gtol``/``rtol``/``xtol``/``ftol``;
+* before fitting, the predictability of the start values over the target is measured
+  (:func:`jaxplush.predictability`: two runs that differ only by rounding); its reproducibility
+  floor is the residual no parameters can go below, which the outcome tells from a poor fit;
 * every fit's outcome is judged by :mod:`jaxplush.fitting.outcome` ("converged" only at the noise level
   and an optimum), recorded in the result and FIT.h5 and warned about otherwise;
 * checkpoints (``checkpoint_path``) hold the complete state, so ``resume=True`` continues an
@@ -111,6 +114,9 @@ class Problem:
       theta0: (P_n, O_f) float64 log start values.
       loss: :class:`jaxplush.fitting.losses.Loss`.
       method: gradient method of :func:`jaxplush.fitting.gradients.rollout_loss`.
+      noise: the noise sigma of the normalisation (m), or None.
+      predictability: :class:`jaxplush.Predictability` of the start values over the target
+        (:func:`measure_predictability`), or None (not measured, or the start run blew up).
     """
 
     scene: object
@@ -123,6 +129,7 @@ class Problem:
     loss: _losses.Loss
     method: str
     noise: float | None
+    predictability: object = None
 
     @property
     def labels(self):
@@ -374,6 +381,9 @@ class FitResult:
       steps: (T,) their steps; dt.
       optimizer, lr, normalisation ("noise"/"motion"), scale2 (m²), noise.
       scene_text, scene_path, target_path, wall_time (s), warnings.
+      predictability: :class:`jaxplush.Predictability` of the start values over the target,
+        measured before fitting (None: not measured); the outcome's ``floor`` is the
+        reproducibility floor it was judged against.
     """
 
     params: Params
@@ -407,15 +417,17 @@ class FitResult:
     settings: dict = dataclasses.field(default_factory=dict)
     outcome: object = None  # jaxplush.fitting.outcome.Outcome
     search: dict = dataclasses.field(default_factory=dict)   # the default fit's samples and paths
+    predictability: object = None  # jaxplush.Predictability of the start values
 
     @property
     def status(self):
-        """"converged", "poor_fit", "stalled", "iteration_limit" or "at_bound" (jaxplush.fitting.outcome)."""
+        """"converged", "poor_fit", "stalled", "iteration_limit", "at_bound" or "at_floor"
+        (jaxplush.fitting.outcome)."""
         return self.outcome.status if self.outcome is not None else ("converged" if self.converged else "stalled")
 
     def table(self):
         """The fitted values as a text table: start, fitted value and, for a converged fit only,
-        the approximate standard error; then the outcome."""
+        the approximate standard error; then the predictability and the outcome."""
         rep = self.identifiability
         se = {} if rep is None else dict(zip(rep.labels, rep.stderr))
         rows = [f"{'parameter':<14} {'object':<14} {'start':>12} {'fitted':>12} {'std. error':>11}"]
@@ -432,6 +444,8 @@ class FitResult:
         rows.append(f"loss {self.loss_start:.4g} -> {self.loss:.4g} ({self.normalisation}-normalised) after "
                     f"{self.iterations} {'evaluations' if self.optimizer == 'lm' else 'iterations'} "
                     f"({self.rejected} rejected), {self.wall_time:.1f} s")
+        if self.predictability is not None:
+            rows.append(f"predictability: {self.predictability.text()}")
         rows.append(f"outcome: {self.reason}")
         if rep is not None and not self.converged:
             rows.append("standard errors: not meaningful, the fit did not converge to the data")
@@ -449,7 +463,7 @@ class FitResult:
 
 
 def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=None, callback=None, progress=False,
-        **overrides):
+        report=None, **overrides):
     """Fit parameters of ``scene`` to ``target``.
 
     The default (``optimizer="lm"``) is global, then local (:mod:`jaxplush.fitting.search`): a Sobol
@@ -483,6 +497,8 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
       callback: called after every accepted iteration with a dict (iteration, loss, values,
         grad_norm); returning True stops the fit.
       progress: draw a progress bar (loss and parameters) on stderr.
+      report: called with a line of text for a person before the fit starts (the
+        predictability of the start values; the command line prints it to stderr).
       **overrides: changes to ``options`` by field name, e.g. ``iterations=40``,
         ``noise_free=True``; the group fields by their flat names ``bounds``, ``samples``,
         ``starts``, ``seed``, ``checkpoint_path``, ``checkpoint_every``, ``resume``
@@ -506,8 +522,9 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
     _options.validate(opts, kind)
     prob, notes = _problem(scene, target, params, objects, opts)
     if kind == "lm":
-        return _fit_lm(prob, opts, notes, t_start, progress=progress, callback=callback)
-    return _GradientFit(prob, optimizer, opts, notes, progress=progress, callback=callback).run(t_start)
+        return _fit_lm(prob, opts, notes, t_start, progress=progress, callback=callback, report=report)
+    return _GradientFit(prob, optimizer, opts, notes, progress=progress, callback=callback,
+                        report=report).run(t_start)
 
 
 def optimizer_kind(optimizer):
@@ -559,12 +576,12 @@ class _GradientFit:
     a contact-candidate overflow grows the capacity and evaluates the point again; checkpoints,
     Ctrl-C saves, callbacks and the progress bar; then :func:`_finish`."""
 
-    def __init__(self, prob, optimizer, opts, notes, *, progress, callback):
+    def __init__(self, prob, optimizer, opts, notes, *, progress, callback, report=None):
         self.kind = optimizer_kind(optimizer)
         self.iterations = _iterations(opts, self.kind)
         self.opt = optimizer if self.kind == "optax" else make_optimizer(self.kind, opts.lr, self.iterations)
         self.prob, self.opts, self.notes = prob, opts, notes
-        self.progress, self.callback = progress, callback
+        self.progress, self.callback, self.note = progress, callback, report
         shape = jax.eval_shape(self.opt.init, jax.ShapeDtypeStruct(np.shape(prob.theta0), prob.sim.dtype))
         self.linesearch = uses_linesearch(shape)
         self.settings = _common_settings(prob, opts, self.kind, self.iterations, opts.lr)
@@ -580,6 +597,8 @@ class _GradientFit:
     def run(self, t_start):
         """The whole fit: the loop (from a checkpoint with ``resume``), its result, FIT.h5."""
         loop = self.initial_loop()
+        if self.opts.predictability:        # every input checked (a resumed checkpoint too)
+            self.prob = measure_predictability(self.prob, self.note)
         self.warn_dt(loop)
         wall_before = loop.wall
         self.bar = Progress(self.iterations, "fit", enabled=self.progress, unit="it")
@@ -884,7 +903,7 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
         normalisation=prob.loss.normalisation, scale2=prob.loss.scale2, noise=prob.noise,
         scene_text=prob.scene.text, scene_path=prob.scene.path, target_path=prob.target.path,
         wall_time=float(wall), warnings=tuple(notes), loop=loop, problem=prob,
-        settings=settings)
+        settings=settings, predictability=prob.predictability)
 
 
 def _motion(prob):
@@ -894,6 +913,60 @@ def _motion(prob):
         return _losses.rms_metres(1.0, scale2, kind)
     rest = _losses.rest_distance(prob.target, prob.sim.topology.x0, prob.sim.topology.faces)
     return float(np.sqrt(rest / _losses.COMPONENTS[kind]))
+
+
+#: Most frames the predictability measurement saves per target frame (a target on an irregular
+#: grid is measured on an even grid of about as many frames instead).
+_PREDICTABILITY_FRAMES = 4
+
+
+def _predictability_grid(target):
+    """(steps, save_every) of the predictability measurement over a target: its last step, and
+    the largest step that divides every frame's step (or, where that saves too many frames, an
+    even grid with about as many frames as the target)."""
+    steps = int(target.steps[-1])
+    every = int(np.gcd.reduce(np.asarray(target.steps, np.int64)))
+    if steps // every > _PREDICTABILITY_FRAMES * target.n_frames + 100:
+        every = max(1, steps // target.n_frames)
+    return steps, every
+
+
+def _predictability_at(prob, theta=None):
+    """:func:`jaxplush.predictability` of the problem's scene over its target at log values theta
+    (default: the start values); None when a run blows up."""
+    steps, every = _predictability_grid(prob.target)
+    params = None if theta is None else prob.params_at(theta)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # a volume clamp or grown capacity: the fit reports its own
+            return jaxplush.predictability(prob.scene, steps, prob.target.dt, every, params=params, sim=prob.sim,
+                                           noise=prob.noise, motion=_motion(prob))
+    except jaxplush.SimulationError:
+        return None
+
+
+def measure_predictability(prob, report=None):
+    """The problem with :attr:`Problem.predictability` measured at the start values; ``report``
+    (if given) gets the line that describes it."""
+    pred = _predictability_at(prob)
+    if report is not None:
+        report("predictability: " + (pred.text() if pred is not None else
+                                     "not measured (the rollout at the start values blows up)"))
+    return dataclasses.replace(prob, predictability=pred)
+
+
+def _judge(prob, theta, **kw):
+    """:func:`jaxplush.fitting.outcome.judge` of a fit ending at log values theta, with the
+    reproducibility floor of :attr:`Problem.predictability`; for a fit that does not reach the
+    data the floor is measured again at theta (the start's may be far from the result's)."""
+    from jaxplush.fitting import outcome as _outcome
+    pred = prob.predictability
+    start = (None, None) if pred is None else (pred.floor, pred.horizon_time)
+    out = _outcome.judge(**kw, floor=start[0], horizon=start[1])
+    if out.reached or pred is None:
+        return out
+    pred = _predictability_at(prob, theta) or pred
+    return _outcome.judge(**kw, floor=pred.floor, horizon=pred.horizon_time)
 
 
 def _judge_loop(prob, loop):
@@ -909,9 +982,10 @@ def _judge_loop(prob, loop):
         stopped = "callback"
     else:
         stopped = "step"
-    return _outcome.judge(rms=_losses.rms_metres(loop.h_loss[best], prob.loss.scale2, prob.target.kind),
-                          noise=prob.noise, motion=_motion(prob), grad=loop.h_gnorm[best], grad0=loop.h_gnorm[0],
-                          stopped=stopped)
+    return _judge(prob, loop.h_theta[best], rms=_losses.rms_metres(loop.h_loss[best], prob.loss.scale2,
+                                                                   prob.target.kind),
+                  noise=prob.noise, motion=_motion(prob), grad=loop.h_gnorm[best], grad0=loop.h_gnorm[0],
+                  stopped=stopped)
 
 
 def parse_bounds(bounds, names):
@@ -973,13 +1047,15 @@ def _lm_settings(prob, opts, box):
     return settings
 
 
-def _fit_lm(prob, opts, notes, t_start, *, progress, callback):
+def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
     """The default fit (jaxplush.fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome."""
     from jaxplush.fitting import io as _io, lmfit
     box = _lm_box(prob, opts.search.bounds)
     settings = _lm_settings(prob, opts, box)
     checkpoint_path, want_ident = opts.checkpoint.path, opts.identifiability
     prior = _io.load_lm_checkpoint(checkpoint_path, prob, settings) if opts.checkpoint.resume else None
+    if opts.predictability:                 # every input checked (a resumed checkpoint too)
+        prob = measure_predictability(prob, report)
     last = [prior]
 
     def save(run, status="running"):
@@ -1014,7 +1090,6 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback):
 
 def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability."""
-    from jaxplush.fitting import outcome as _outcome
     from jaxplush.fitting.search import gauss_newton
     notes = list(notes) + list(ev.notes)
     prob = dataclasses.replace(prob, sim=ev.prob.sim)       # with a grown contact capacity, if any
@@ -1040,8 +1115,8 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     at_bound = tuple(f"{labels[i]} at its {'lower' if lo_edge[i] else 'upper'} bound "
                      f"{math.exp((box.lo if lo_edge[i] else box.hi).ravel()[i]):.4g}" for i in np.nonzero(edge)[0])
     gn_step, stderr = gauss_newton(run.jac, run.residual)
-    out = _outcome.judge(rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
-                         stopped=best.stopped, at_bound=at_bound, gn_step=gn_step, stderr=stderr)
+    out = _judge(prob, best.theta, rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
+                 stopped=best.stopped, at_bound=at_bound, gn_step=gn_step, stderr=stderr)
     if not out.converged:
         warnings.warn(out.text, stacklevel=3)
         notes.append(out.text)
@@ -1079,7 +1154,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
         dt=prob.target.dt, optimizer="lm", lr=None, normalisation=prob.loss.normalisation, scale2=scale2,
         noise=prob.noise, scene_text=prob.scene.text, scene_path=prob.scene.path, target_path=prob.target.path,
         wall_time=float(wall), warnings=tuple(notes), loop=run, problem=prob,
-        settings=settings, outcome=out, search=search)
+        settings=settings, outcome=out, search=search, predictability=prob.predictability)
 
 
 def identifiability_at(prob, theta):

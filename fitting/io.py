@@ -21,6 +21,10 @@ Layout:
   target frames;
 * ``search/`` (the default fit): ``global/<name>`` and ``global/loss`` of every global sample,
   ``local/NNN/`` the path of each local search;
+* ``predictability/`` (when measured, :func:`jaxplush.predictability` at the start values):
+  ``times``, ``steps``, ``drift_rms``, ``motion_rms`` datasets; attributes ``horizon_time``
+  (inf: never), ``horizon_frame`` (-1: never), ``floor_rms``, ``threshold``, ``threshold_kind``,
+  ``motion``, ``perturbation``, ``method``, ``dtype``, ``duration``, ``text``;
 * ``checkpoint/``: the optimisation loop's complete state (log values, optimiser state leaves,
   history, counters, RNG-free), enough for ``--resume`` to continue to the same answer.
 
@@ -202,6 +206,8 @@ def save_fit(result, path):
                     if k not in ("status", "message"):
                         a[f"outcome_{k}"] = json.dumps(list(v)) if isinstance(v, tuple) else v
             a["status"] = result.status
+            if getattr(result, "predictability", None) is not None:
+                _write_predictability(f.create_group("predictability"), result.predictability)
             if result.search:
                 sg = f.create_group("search")
                 srch = result.search
@@ -231,6 +237,21 @@ def save_fit(result, path):
                 else:
                     _write_loop(f, prob, loop, result.settings)
     return os.fspath(path)
+
+
+def _write_predictability(g, pred):
+    """The ``predictability`` group of FIT.h5 (a :class:`jaxplush.Predictability`)."""
+    for k in ("times", "drift_rms", "motion_rms"):
+        g.create_dataset(k, data=np.asarray(getattr(pred, k), np.float64))
+    g.create_dataset("steps", data=np.asarray(pred.steps, np.int64))
+    g.attrs["horizon_time"] = float(pred.horizon_time)
+    g.attrs["horizon_frame"] = -1 if pred.horizon_frame is None else int(pred.horizon_frame)
+    g.attrs["floor_rms"] = float(pred.floor)
+    for k in ("threshold", "motion", "perturbation", "duration"):
+        g.attrs[k] = float(getattr(pred, k))
+    for k in ("threshold_kind", "method", "dtype"):
+        g.attrs[k] = str(getattr(pred, k))
+    g.attrs["text"] = pred.text()
 
 
 # --------------------------------------------------------------------------- the default fit (lm)
@@ -462,12 +483,13 @@ def _norm(v):
 
 
 def load_fit(path):
-    """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, fitted."""
+    """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, fitted,
+    predictability (each group present: its datasets, and its attributes under "<group>_attrs")."""
     path = os.fspath(path)
     out = {}
     with open_hdf5(path) as f:
         out["attrs"] = {k: _attr(f.attrs[k]) for k in f.attrs}
-        for grp in ("params", "start", "history", "identifiability", "fitted"):
+        for grp in ("params", "start", "history", "identifiability", "fitted", "predictability"):
             if grp in f:
                 out[grp] = {k: f[grp][k][()] for k in f[grp].keys()}
                 out[grp + "_attrs"] = {k: _attr(f[grp].attrs[k]) for k in f[grp].attrs}

@@ -83,6 +83,9 @@ class FitOptions:
       identifiability: compute the identifiability report at the optimum.
       check_dt: warn when dt exceeds the estimated stability limit at the start values
         (gradient optimisers; the default fit substeps such points instead).
+      predictability: measure the predictability of the start values over the target before
+        fitting (:func:`jaxplush.predictability`, two or three rollouts), reported in the result
+        and FIT.h5; its reproducibility floor lets the outcome say ``at_floor``.
       search: :class:`SearchOptions` of the default fit's global stage.
       checkpoint: :class:`CheckpointOptions`.
     """
@@ -102,6 +105,7 @@ class FitOptions:
     force: bool = False
     identifiability: bool = True
     check_dt: bool = True
+    predictability: bool = True
     search: SearchOptions = dataclasses.field(default_factory=SearchOptions)
     checkpoint: CheckpointOptions = dataclasses.field(default_factory=CheckpointOptions)
 
@@ -180,6 +184,8 @@ def validate(opts, optimizer):
         val = getattr(opts, name)
         if not (isinstance(val, numbers.Real) and val >= 0):
             raise JaxplushError(f"{name} must be a number >= 0, got {val!r}")
+    if opts.predictability not in (True, False):
+        raise JaxplushError(f"predictability must be True or False, got {opts.predictability!r}")
     if not _is_whole(opts.patience) or opts.patience < 1:
         raise JaxplushError(f"patience must be an integer >= 1, got {opts.patience!r}")
 

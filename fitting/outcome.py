@@ -21,14 +21,26 @@ its regression model's slope and intercept stand for the Jacobian and the residu
 gradient, the Gauss-Newton step and the standard errors above are the model's.
 
 Otherwise the status says what happened, in this order: ``at_bound`` (a parameter ended on the
-edge of the search box), ``iteration_limit``, ``stalled`` (no step lowers the loss, yet the
-gradient is not small), ``poor_fit`` (an optimum that does not reach the data: residual RMS X
-against noise Y). The CLI exits with :data:`EXIT_NOT_CONVERGED` for any of them.
+edge of the search box), ``at_floor`` (the residual does not reach the data but lies at the
+model's own reproducibility floor, see below), ``iteration_limit``, ``stalled`` (no step lowers
+the loss, yet the gradient is not small), ``poor_fit`` (an optimum that does not reach the data:
+residual RMS X against noise Y). The CLI exits with :data:`EXIT_NOT_CONVERGED` for any of them.
+
+The reproducibility floor (:func:`jaxplush.predictability`, measured by the fit at the start
+values before fitting) is the residual RMS a fit at the exact parameters would have, because
+two runs that differ only by rounding drift apart (a tumbling bean, a torus bouncing with the
+report's damping). A fit whose residual RMS is within :data:`FLOOR_FACTOR` of it (of
+sqrt(noise² + floor²) for a noisy target) cannot be told from a fit at the truth, so it is
+``at_floor`` rather than ``poor_fit``, ``stalled`` or ``iteration_limit`` (more iterations cannot
+go below the floor), provided the floor is an obstacle at all: at least 1/:data:`FLOOR_FACTOR`
+of the residual the data asks for (:data:`NOISE_FACTOR` x noise, or :data:`MOTION_FRACTION` x
+motion). It is not converged: the positions are not predictable over the whole target.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -41,7 +53,10 @@ GRAD_RATIO = 1e-2
 #: Largest Gauss-Newton step (log space, every parameter) still counted as first-order optimal
 #: for a noise-free target.
 STEP_TOL = 1e-3
-STATUSES = ("converged", "poor_fit", "stalled", "iteration_limit", "at_bound")
+#: Residual RMS allowed above the reproducibility floor (with the noise in quadrature) for
+#: ``at_floor``; also how small against the data's demand the floor may be and still count.
+FLOOR_FACTOR = 2.0
+STATUSES = ("converged", "poor_fit", "stalled", "iteration_limit", "at_bound", "at_floor")
 #: The honest statuses of a fit that did not converge; which one a fit near a limit ends with can
 #: depend on rounding (and so on the CPU), the exit code (:data:`EXIT_NOT_CONVERGED`) does not.
 NOT_CONVERGED = tuple(s for s in STATUSES if s != "converged")
@@ -63,6 +78,10 @@ class Outcome:
       optimal: the gradient is small against the start's.
       grad_ratio: |gradient|_max / |start gradient|_max (log space).
       at_bound: labels of parameters that ended on the search box's edge.
+      floor: the model's reproducibility floor (residual RMS at the exact parameters), m; NaN:
+        not measured.
+      horizon: time after which the positions are not predictable to the threshold of the
+        measurement, s (inf: never within the target; NaN: not measured).
     """
 
     status: str
@@ -74,6 +93,8 @@ class Outcome:
     optimal: bool
     grad_ratio: float
     at_bound: tuple = ()
+    floor: float = math.nan
+    horizon: float = math.nan
 
     @property
     def converged(self):
@@ -92,7 +113,8 @@ def _mm(x):
     return f"{1e3 * x:.3g} mm"
 
 
-def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None, stderr=None):
+def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None, stderr=None, floor=None,
+          horizon=None):
     """The :class:`Outcome` of a fit.
 
     Args:
@@ -103,6 +125,8 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
         "screened" or other text;
       at_bound: labels of parameters on the search box's edge.
       gn_step, stderr: the Gauss-Newton step at the result and the standard errors (log space).
+      floor: the model's reproducibility floor, m (:func:`jaxplush.predictability`), or None;
+      horizon: the time after which the positions are not predictable, s (for the message).
     """
     g = float(np.max(np.abs(grad))) if np.size(grad) else 0.0
     g0 = float(np.max(np.abs(grad0))) if np.size(grad0) else 0.0
@@ -127,6 +151,8 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
     elif ratio > GRAD_RATIO and small_step:
         grad_text += (f" (the Gauss-Newton step it implies is {float(np.max(np.abs(np.asarray(gn_step)))):.2g} "
                       f"in log space, <= {STEP_TOL:g})")
+    floor_msg = _at_floor(rms, noise if noisy else None, ref * (NOISE_FACTOR if noisy else MOTION_FRACTION),
+                          floor, horizon) if not reached else None
     if at_bound:
         status = "at_bound"
         msg = (f"stopped at the edge of the search box ({', '.join(at_bound)}); widen it (--bounds) and fit "
@@ -134,6 +160,9 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
     elif reached and optimal:
         status = "converged"
         msg = f"{versus}, {grad_text}"
+    elif floor_msg is not None:
+        status = "at_floor"
+        msg = floor_msg
     elif stopped == "iterations":
         status = "iteration_limit"
         msg = f"the iteration limit came before convergence: {versus}, {grad_text}"
@@ -144,4 +173,27 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
         status = "poor_fit"
         msg = f"the fit stopped at an optimum that does not reach the data: {versus}"
     return Outcome(status=status, message=msg, rms=float(rms), reference=ref, reference_kind=kind,
-                   reached=reached, optimal=optimal, grad_ratio=float(ratio), at_bound=tuple(at_bound))
+                   reached=reached, optimal=optimal, grad_ratio=float(ratio), at_bound=tuple(at_bound),
+                   floor=math.nan if floor is None else float(floor),
+                   horizon=math.nan if horizon is None else float(horizon))
+
+
+def _at_floor(rms, noise, demand, floor, horizon):
+    """The ``at_floor`` message when a residual RMS that does not reach the data (``demand``, m:
+    the largest residual that would) lies within :data:`FLOOR_FACTOR` of the reproducibility
+    floor (with the noise in quadrature) and the floor is an obstacle at all; else None."""
+    if floor is None or not (np.isfinite(floor) and floor > 0) or FLOOR_FACTOR * floor < demand:
+        return None
+    expected = math.hypot(noise or 0.0, floor)
+    if not rms <= FLOOR_FACTOR * expected:
+        return None
+    at = f"residual RMS {_mm(rms)} against the floor {_mm(floor)}"
+    if noise:
+        at += f" and noise {_mm(noise)} (together {_mm(expected)})"
+    beyond = ""
+    if horizon is not None and np.isfinite(horizon):
+        beyond = f"; the motion is not predictable beyond {horizon:.3g} s at this precision"
+    return (f"the fit reached the model's own reproducibility floor, not the data: {at}{beyond}. Not "
+            "converged: two runs that differ only by rounding drift apart by as much, so no parameters do "
+            "better; fit a shorter target (up to the predictable horizon), use multiple shooting when "
+            "available, or model the damping with a dashpot")

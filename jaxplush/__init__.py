@@ -25,6 +25,7 @@ from jaxplush.errors import JaxplushError, SceneError, SimulationError, Trajecto
 from jaxplush.io.trajectory import load_trajectory, save_trajectory
 from jaxplush.stepping.rollouts import Health, rollout
 from jaxplush.scene.parse import Scene, load_scene, parse_scene
+from jaxplush.stepping.predictability import Predictability, predictability
 from jaxplush.stepping.simulation import Trajectory, contact_capacity_needed, simulate
 from jaxplush.stepping.stability import estimate as estimate_stable_dt
 from jaxplush.stepping.step import INTEGRATORS, Simulator, make_simulator
@@ -39,7 +40,7 @@ if _os.environ.get("JAXPLUSH_CACHE_DIR"):
     _enable_persistent_cache()
 
 __all__ = [
-    "Health", "INTEGRATORS", "JaxplushError", "Params", "Scene", "SceneError", "SimulationError",
+    "Health", "INTEGRATORS", "JaxplushError", "Params", "Predictability", "Scene", "SceneError", "SimulationError",
     "Simulator", "State", "Trajectory", "TrajectoryError", "contact_capacity_needed", "estimate_stable_dt", "load_scene",
-    "load_trajectory", "make_simulator", "parse_scene", "rollout", "save_trajectory", "simulate",
+    "load_trajectory", "make_simulator", "parse_scene", "predictability", "rollout", "save_trajectory", "simulate",
 ]

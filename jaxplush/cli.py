@@ -52,9 +52,17 @@ def _parser():
                    help="most frames drawn (default 200); a longer trajectory is subsampled evenly, keeping the "
                         "first and last frame, and the command says how many it drew")
 
-    i = sub.add_parser("info", help="describe a scene: counts, parameters, volume, pressure, stable dt")
+    i = sub.add_parser("info", help="describe a scene: counts, parameters, volume, pressure, stable dt; with --dt "
+                                    "and --steps also how predictable its motion is")
     i.add_argument("scene", help="extended-OBJ scene file")
     i.add_argument("--dt", type=float, default=None, help="check this dt against the stability limit")
+    i.add_argument("--steps", type=int, default=None,
+                   help="with --dt: also run the scene for this many steps, twice (once from start positions "
+                        "perturbed by a relative 1e-7) and once in float64, and report the predictable horizon "
+                        "(when the runs drift apart by more than 0.1%% of the motion) and the reproducibility floor "
+                        "(the RMS of that drift: the residual a fit at the exact parameters would have)")
+    i.add_argument("--save-every", type=int, default=None,
+                   help="with --steps: steps between the compared frames (default: steps/100)")
     i.add_argument("--exact", action="store_true",
                    help="also estimate the exact explicit limit by power iteration (compiles; a few seconds) "
                         "instead of only the closed-form safe bound")
@@ -177,6 +185,7 @@ def _info(args):
     scene = jaxplush.load_scene(args.scene)
     if args.dt is not None and not (np.isfinite(args.dt) and args.dt > 0):
         raise JaxplushError(f"--dt must be a positive number, got {args.dt}")
+    _check_predictability_args(args)
     sim = jaxplush.make_simulator(scene, args.dt or 1e-4)
     p = sim.params()
     topo = sim.topology
@@ -215,7 +224,42 @@ def _info(args):
         else:
             verdict = "ABOVE the estimated limit" if args.exact else "above the safe bound (use --exact to decide)"
         print(f"  dt {args.dt:g} s is {verdict}; real time needs >= {1 / args.dt:,.0f} steps/s")
+    if args.steps is not None:
+        _info_predictability(scene, args)
     return 0
+
+
+def _check_predictability_args(args):
+    """--steps and --save-every of ``info``: in range, and each with what it needs."""
+    from jaxplush.errors import JaxplushError
+    if args.steps is not None:
+        if args.dt is None:
+            raise JaxplushError("--steps needs --dt (the predictability is measured over steps of dt)")
+        if not 1 <= args.steps <= MAX_STEPS:
+            raise JaxplushError(f"--steps must be between 1 and {MAX_STEPS:,}, got {args.steps}")
+    if args.save_every is not None:
+        if args.steps is None:
+            raise JaxplushError("--save-every needs --steps")
+        if args.save_every < 1:
+            raise JaxplushError(f"--save-every must be >= 1, got {args.save_every}")
+
+
+def _info_predictability(scene, args):
+    """Print the predictable horizon and the reproducibility floor of ``args.steps`` steps of dt."""
+    import jaxplush
+    from jaxplush.stepping.predictability import MOTION_FRACTION
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")         # a volume clamp or a grown capacity: simulate reports them
+        pred = jaxplush.predictability(scene, args.steps, args.dt, args.save_every)
+    frac = f"{100 * MOTION_FRACTION:g}% of the motion"
+    if pred.predictable:
+        horizon = (f"beyond the run's {pred.duration:.4g} s (the drift of two runs that differ by rounding stays "
+                   f"within {frac})")
+    else:
+        horizon = (f"{pred.horizon_time:.4g} s (drift of two runs that differ by rounding exceeds {frac} at "
+                   f"{pred.horizon_time:.4g} s)")
+    print(f"  predictable horizon: {horizon}; reproducibility floor {1e3 * pred.floor:.3g} mm over {args.steps} "
+          f"steps ({pred.wall_time:.1f} s to measure)")
 
 
 if __name__ == "__main__":

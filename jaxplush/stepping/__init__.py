@@ -8,4 +8,6 @@
   :mod:`jaxplush.stepping.stability`: the stable-dt bound and the dt check.
 - :mod:`jaxplush.stepping.simulation`: ``simulate``, the driver; :mod:`jaxplush.stepping.compiled`:
   the per-program cache of compiled functions and the persistent compilation cache.
+- :mod:`jaxplush.stepping.predictability`: ``predictability``, how far two runs that differ only by
+  rounding drift apart (the predictable horizon and the reproducibility floor).
 """
