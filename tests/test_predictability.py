@@ -208,11 +208,16 @@ def test_the_default_fit_of_a_tumbling_bean_ends_at_the_floor(bean_target):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = F.fit(start, target, ("k_structural",), noise_free=True, identifiability=False)
-    assert res.status == "at_floor" and not res.converged, res.reason
     assert res.values["k_structural"][0] == pytest.approx(p.k_structural[0], rel=0.02)
+    assert "predictability:" in res.table()
+    # never "poor fit": the residual lies at the floor (here it sits near 1.7 mm, 0.9x the floor,
+    # above 1% of the motion), or, where a CPU's rounding happens to leave less drift, it reaches
+    # the data; the floor is one sample of the drift, so which of the two is the CPU's business
     o = res.outcome
-    assert o.rms <= outcome.FLOOR_FACTOR * o.floor and o.rms > outcome.MOTION_FRACTION * o.reference
-    assert "predictability:" in res.table() and "reproducibility floor" in res.reason
+    assert res.status in ("at_floor", "converged"), res.reason
+    if res.status == "at_floor":
+        assert o.rms <= outcome.FLOOR_FACTOR * o.floor and o.rms > outcome.MOTION_FRACTION * o.reference
+        assert not res.converged and "reproducibility floor" in res.reason
 
 
 def test_jaxplush_fit_prints_the_predictability_before_fitting(bean_target, tmp_path, capsys):
