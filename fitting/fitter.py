@@ -55,6 +55,7 @@ from jaxplush.fitting import identifiability as _ident
 from jaxplush.fitting import losses as _losses
 from jaxplush.fitting import options as _options
 from jaxplush.fitting.io import LoopState
+from jaxplush.fitting.outcome import Status, Stop
 from jaxplush.fitting.options import CheckpointOptions, FitOptions, SearchOptions  # noqa: F401  (jaxplush.fitting.fitter.FitOptions)
 from jaxplush.fitting.targets import Target, load_target
 
@@ -421,9 +422,11 @@ class FitResult:
 
     @property
     def status(self):
-        """"converged", "poor_fit", "stalled", "iteration_limit", "at_bound" or "at_floor"
-        (jaxplush.fitting.outcome)."""
-        return self.outcome.status if self.outcome is not None else ("converged" if self.converged else "stalled")
+        """The :class:`jaxplush.fitting.outcome.Status`: "converged", "poor_fit", "stalled", "iteration_limit",
+        "at_bound" or "at_floor" (equal to those strings)."""
+        if self.outcome is not None:
+            return self.outcome.status
+        return Status.CONVERGED if self.converged else Status.STALLED
 
     def table(self):
         """The fitted values as a text table: start, fitted value and, for a converged fit only,
@@ -606,7 +609,7 @@ class _GradientFit:
         t_loop = time.perf_counter() - loop.wall
         loop = self.loop(loop, t_loop)
         if not loop.done:
-            loop.reason = f"reached the iteration limit ({self.iterations})"
+            loop.reason, loop.stopped = f"reached the iteration limit ({self.iterations})", Stop.ITERATIONS
         loop.wall = time.perf_counter() - t_loop
         try:
             result = _finish(self.prob, loop, self.settings, self.notes, self.opts.identifiability,
@@ -693,7 +696,7 @@ class _GradientFit:
                 stop = self.callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1], values=vals,
                                           grad_norm=loop.h_gnorm[-1]))
                 if stop is True and not loop.done:
-                    loop.done, loop.reason = True, "stopped by the callback"
+                    loop.done, loop.reason, loop.stopped = True, "stopped by the callback", Stop.CALLBACK
         else:
             self.bar.update(1, extra="step rejected (rollout blew up); halving the step")
 
@@ -835,21 +838,23 @@ def _reject(prob, opt, linesearch, loop, it):
 
 
 def _check_convergence(loop, loss, prev, gnorm, step, opts):
-    """Set ``loop.done`` and its reason when an accepted point meets a criterion of ``opts``."""
+    """Set ``loop.done``, its reason and its :class:`Stop` when an accepted point meets a criterion of ``opts``."""
     rtol, patience = opts.rtol, int(opts.patience)
     if prev is not None and abs(prev - loss) <= rtol * max(abs(loss), 1e-300):
         loop.stall += 1
     else:
         loop.stall = 0
     if loss <= opts.ftol:
-        loop.done, loop.reason = True, f"converged: loss {loss:.3g} <= ftol {opts.ftol:g}"
+        loop.done, loop.stopped, loop.reason = True, Stop.LOSS, f"converged: loss {loss:.3g} <= ftol {opts.ftol:g}"
     elif gnorm <= opts.gtol:
-        loop.done, loop.reason = True, f"converged: gradient max-norm {gnorm:.3g} <= gtol {opts.gtol:g}"
+        loop.done, loop.stopped = True, Stop.GRADIENT
+        loop.reason = f"converged: gradient max-norm {gnorm:.3g} <= gtol {opts.gtol:g}"
     elif loop.stall >= patience:
-        loop.done, loop.reason = True, f"converged: relative loss change <= rtol {rtol:g} for {patience} iterations"
+        loop.done, loop.stopped = True, Stop.LOSS
+        loop.reason = f"converged: relative loss change <= rtol {rtol:g} for {patience} iterations"
     elif float(np.max(np.abs(step))) <= opts.xtol:
-        loop.done, loop.reason = True, (f"converged: step {float(np.max(np.abs(step))):.3g} <= xtol {opts.xtol:g} "
-                                        "(log space)")
+        loop.done, loop.stopped = True, Stop.STEP
+        loop.reason = f"converged: step {float(np.max(np.abs(step))):.3g} <= xtol {opts.xtol:g} (log space)"
 
 
 def _finish(prob, loop, settings, notes, want_ident, wall):
@@ -974,18 +979,12 @@ def _judge_loop(prob, loop):
     from jaxplush.fitting import outcome as _outcome
     if not loop.h_loss:
         return _outcome.judge(rms=np.inf, noise=prob.noise, motion=_motion(prob), grad=np.inf, grad0=1.0,
-                              stopped="iterations")
+                              stopped=Stop.ITERATIONS)
     best = int(np.argmin(loop.h_loss))
-    if loop.reason.startswith("reached the iteration limit"):
-        stopped = "iterations"
-    elif loop.reason.startswith("stopped by"):
-        stopped = "callback"
-    else:
-        stopped = "step"
     return _judge(prob, loop.h_theta[best], rms=_losses.rms_metres(loop.h_loss[best], prob.loss.scale2,
                                                                    prob.target.kind),
                   noise=prob.noise, motion=_motion(prob), grad=loop.h_gnorm[best], grad0=loop.h_gnorm[0],
-                  stopped=stopped)
+                  stopped=loop.stopped)
 
 
 def parse_bounds(bounds, names):

@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.fitting.outcome import Status, Stop
 from jaxplush.io.trajectory import atomic_path, open_hdf5
 from jaxplush.types import PARAM_NAMES
 
@@ -100,6 +101,7 @@ def _write_loop(f, prob, loop, settings):
         g.attrs[key] = int(getattr(loop, key))
     g.attrs["done"] = bool(loop.done)
     g.attrs["reason"] = loop.reason
+    g.attrs["stopped"] = Stop(loop.stopped).value
     g.attrs["settings"] = json.dumps(_settings(prob, settings))
     leaves = jax.tree_util.tree_leaves(loop.opt_state)
     og = g.create_group("opt_state")
@@ -205,7 +207,7 @@ def save_fit(result, path):
                 for k, v in result.outcome.as_dict().items():
                     if k not in ("status", "message"):
                         a[f"outcome_{k}"] = json.dumps(list(v)) if isinstance(v, tuple) else v
-            a["status"] = result.status
+            a["status"] = Status(result.status).value
             if getattr(result, "predictability", None) is not None:
                 _write_predictability(f.create_group("predictability"), result.predictability)
             if result.search:
@@ -302,7 +304,7 @@ def _write_lm(f, prob, run, settings):
             sg.attrs[k] = int(getattr(st, k))
         sg.attrs["done"] = bool(st.done)
         sg.attrs["reason"] = st.reason
-        sg.attrs["stopped"] = st.stopped
+        sg.attrs["stopped"] = Stop(st.stopped).value
         sg.create_dataset("history_loss", data=np.asarray([l for l, _ in st.history], np.float64))
         sg.create_dataset("history_theta", data=np.asarray([t for _, t in st.history], np.float64).reshape(
             (len(st.history),) + np.shape(st.theta)))
@@ -370,7 +372,7 @@ def _read_lm(path, f, prob, settings):
         run.states.append(LMState(
             theta=np.asarray(sg["theta"][()]), loss=float(sg.attrs["loss"]), mu=float(sg.attrs["mu"]),
             radius=float(sg.attrs["radius"]), iteration=int(sg.attrs["iteration"]), done=bool(sg.attrs["done"]),
-            reason=str(sg.attrs["reason"]), stopped=str(sg.attrs["stopped"]),
+            reason=str(sg.attrs["reason"]), stopped=Stop(str(sg.attrs["stopped"])),
             history=[(float(a), np.asarray(b)) for a, b in zip(hl, ht)], jac_h=float(sg.attrs["jac_h"]),
             substeps=int(sg.attrs["substeps"]), evaluations=int(sg.attrs["evaluations"]),
             rescues=int(sg.attrs.get("rescues", 0))))
@@ -424,7 +426,8 @@ class LoopState:
     best_theta: np.ndarray | None = None
     best_loss: float = math.inf
     done: bool = False
-    reason: str = ""
+    reason: str = ""             # why it stopped, in words for a person
+    stopped: Stop = Stop.NONE    # ... and as a :class:`jaxplush.fitting.outcome.Stop`
     h_iter: list = dataclasses.field(default_factory=list)
     h_loss: list = dataclasses.field(default_factory=list)
     h_theta: list = dataclasses.field(default_factory=list)
@@ -469,12 +472,23 @@ def _read_checkpoint(path, f, prob, opt, settings):
         scale=float(g.attrs["scale"]), iteration=int(g.attrs["iteration"]), rejected=int(g.attrs["rejected"]),
         rejected_in_row=int(g.attrs["rejected_in_row"]), stall=int(g.attrs["stall"]),
         best_theta=np.asarray(g["best_theta"][()]), best_loss=float(g.attrs["best_loss"]),
-        done=bool(g.attrs["done"]), reason=str(g.attrs["reason"]),
+        done=bool(g.attrs["done"]), reason=str(g.attrs["reason"]), stopped=_stopped(g.attrs),
         h_iter=[int(i) for i in hg["iteration"][()]], h_loss=[float(x) for x in hg["loss"][()]],
         h_theta=[t.reshape(shape) for t in np.asarray(hg["theta"][()]).reshape(-1, n_p)],
         h_gnorm=[float(x) for x in hg["grad_norm"][()]], h_time=[float(x) for x in hg["time"][()]],
         h_rejected=[int(i) for i in hg["rejected"][()]], wall=float(g.attrs["wall"]))
     return loop
+
+
+def _stopped(attrs):
+    """The :class:`Stop` of a gradient loop's checkpoint (a file written before it was stored: from
+    the reason's words, as those versions judged it)."""
+    if "stopped" in attrs:
+        return Stop(str(attrs["stopped"]))
+    reason = str(attrs["reason"])
+    if reason.startswith("reached the iteration limit"):
+        return Stop.ITERATIONS
+    return Stop.CALLBACK if reason.startswith("stopped by") else Stop.NONE
 
 
 def _norm(v):

@@ -30,6 +30,7 @@ from jaxplush.progress import Progress
 
 from jaxplush.fitting import search as _search
 from jaxplush.fitting.evaluate import Evaluator
+from jaxplush.fitting.outcome import Stop
 
 #: Defaults: Sobol points of the global stage, local starts screened, and kept after screening.
 GLOBAL_SAMPLES = 64
@@ -162,7 +163,7 @@ def run(prob, box, *, samples=GLOBAL_SAMPLES, starts=STARTS, keep=KEEP, max_iter
                 save(st)
         _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, label)
         st.paths.append([(list(s.history), s.reason) for s in st.states])
-        if st.stage + 1 < n_stages and not any(s.stopped == "callback" for s in st.states):
+        if st.stage + 1 < n_stages and not any(s.stopped == Stop.CALLBACK for s in st.states):
             _next_stage(st, keep)
             tick()
             if save is not None:
@@ -272,13 +273,13 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
             if screen and st.rounds == SCREEN_ROUNDS:
                 for i in _order(states)[keep:]:
                     if not states[i].done:
-                        states[i].done, states[i].stopped = True, "screened"
+                        states[i].done, states[i].stopped = True, Stop.SCREENED
                         states[i].reason = f"set aside after {SCREEN_ROUNDS} iterations (loss {states[i].loss:.4g})"
             if st.rounds >= SCREEN_ROUNDS or not screen:
                 best = min(s.loss for s in states)
                 for s in states:
                     if not s.done and s.loss > DROP_FACTOR * best:
-                        s.done, s.stopped = True, "screened"
+                        s.done, s.stopped = True, Stop.SCREENED
                         s.reason = f"set aside: its loss {s.loss:.4g} is {s.loss / best:.3g}x the best search's"
             b = states[_order(states)[0]]
             vals = prob.values(b.theta)
@@ -290,7 +291,7 @@ def _local(prob, ev, box, st, keep, max_iter, progress, tick, save, callback, la
             if stop is True:
                 for s in states:
                     if not s.done:
-                        s.done, s.stopped, s.reason = True, "callback", "stopped by the callback"
+                        s.done, s.stopped, s.reason = True, Stop.CALLBACK, "stopped by the callback"
             if save is not None and any(not s.done for s in states):
                 save(st)
         bar.finish(states[_order(states)[0]].reason)
@@ -310,7 +311,7 @@ def _final(prob, ev, box, st, progress=False):
     st.loss0 = float(centre.loss[1])
     n_sub = max(int(centre.substeps[0]), b.substeps)
     st.jac = _search.jacobian(ev, box, b.theta, _search.H_MIN, n_sub)
-    if prob.noise is not None and prob.noise > 0 and b.stopped != "callback":
+    if prob.noise is not None and prob.noise > 0 and b.stopped != Stop.CALLBACK:
         with Progress(_search.SMOOTH_ITER, "smoothing (regression designs)", enabled=progress, unit="designs") as bar:
             sm = _search.smooth(ev, box, b.theta, st.jac, st.residual, progress=bar.update)
             bar.finish("skipped: singular Jacobian" if sm is None else

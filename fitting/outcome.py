@@ -40,6 +40,7 @@ motion). It is not converged: the positions are not predictable over the whole t
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 
 import numpy as np
@@ -56,10 +57,59 @@ STEP_TOL = 1e-3
 #: Residual RMS allowed above the reproducibility floor (with the noise in quadrature) for
 #: ``at_floor``; also how small against the data's demand the floor may be and still count.
 FLOOR_FACTOR = 2.0
-STATUSES = ("converged", "poor_fit", "stalled", "iteration_limit", "at_bound", "at_floor")
+
+
+class _StrEnum(str, enum.Enum):
+    """A str-valued enum that compares, hashes, prints, formats and shows (repr) as its value (so
+    comparisons with plain strings, dict keys, f-strings, JSON, HDF5 attributes and printed
+    results see the text, as before these were enums)."""
+
+    def __str__(self):
+        return self.value
+
+    def __repr__(self):
+        return repr(self.value)
+
+    def __format__(self, spec):
+        return format(self.value, spec)
+
+    def __hash__(self):
+        return str.__hash__(self)
+
+
+class Status(_StrEnum):
+    """How a fit ended (:attr:`Outcome.status`; FIT.h5's ``status`` attribute holds the value)."""
+
+    CONVERGED = "converged"
+    POOR_FIT = "poor_fit"
+    STALLED = "stalled"
+    ITERATION_LIMIT = "iteration_limit"
+    AT_BOUND = "at_bound"
+    AT_FLOOR = "at_floor"
+
+
+class Stop(_StrEnum):
+    """Why a local search or an optimiser stopped (``LMState.stopped``, ``LoopState.stopped``;
+    checkpoints hold the value). ``NONE``: it has not stopped (or was restarted)."""
+
+    NONE = ""
+    STEP = "step"                   # an accepted step below xtol
+    LOSS = "loss"                   # the (relative) loss change below its tolerance
+    GRADIENT = "gradient"           # the gradient below gtol (gradient optimisers)
+    EXACT = "exact"                 # the residuals are exactly zero
+    STALLED = "stalled"             # no step down to xtol lowers the loss
+    ITERATIONS = "iterations"       # the iteration limit
+    SCREENED = "screened"           # set aside by the driver (it cannot win)
+    NOISE = "noise"                 # the Gauss-Newton step is within the standard errors
+    PREDICTED = "predicted"         # the Gauss-Newton model predicts a negligible decrease
+    FAILED = "failed"               # the start does not run
+    CALLBACK = "callback"           # the user's callback asked to stop
+
+
+STATUSES = tuple(Status)
 #: The honest statuses of a fit that did not converge; which one a fit near a limit ends with can
 #: depend on rounding (and so on the CPU), the exit code (:data:`EXIT_NOT_CONVERGED`) does not.
-NOT_CONVERGED = tuple(s for s in STATUSES if s != "converged")
+NOT_CONVERGED = tuple(s for s in Status if s is not Status.CONVERGED)
 #: jaxplush-fit's exit code for a fit that did not reach the data or did not converge.
 EXIT_NOT_CONVERGED = 4
 
@@ -69,7 +119,7 @@ class Outcome:
     """How a fit ended.
 
     Attributes:
-      status: one of :data:`STATUSES`.
+      status: a :class:`Status` (one of :data:`STATUSES`; equal to its string value).
       message: one line for a person.
       rms: residual RMS, m (per coordinate for positions, per point distance for points).
       reference: the noise sigma (m) or, noise-free, the target's RMS motion (m).
@@ -98,7 +148,7 @@ class Outcome:
 
     @property
     def converged(self):
-        return self.status == "converged"
+        return self.status == Status.CONVERGED
 
     @property
     def text(self):
@@ -121,8 +171,8 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
       rms: residual RMS at the result, m; noise: stated noise sigma (m) or None (noise-free);
       motion: the target's RMS motion from the rest shape, m (same measure as ``rms``);
       grad, grad0: loss gradients (log space) at the result and at the start values;
-      stopped: why the optimiser stopped: "step", "loss", "exact", "stalled", "iterations",
-        "screened" or other text;
+      stopped: why the optimiser stopped, a :class:`Stop` (or its value): only ``Stop.EXACT``
+        (optimal outright) and ``Stop.ITERATIONS`` (the status ``iteration_limit``) matter here;
       at_bound: labels of parameters on the search box's edge.
       gn_step, stderr: the Gauss-Newton step at the result and the standard errors (log space).
       floor: the model's reproducibility floor, m (:func:`jaxplush.predictability`), or None;
@@ -136,7 +186,8 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
     within_noise = (has_step and stderr is not None
                     and bool(np.all(np.abs(np.asarray(gn_step)) <= np.asarray(stderr))))
     small_step = not noisy and has_step and float(np.max(np.abs(np.asarray(gn_step)))) <= STEP_TOL
-    optimal = bool(g <= GRAD_RATIO * g0 or g <= 1e-12 or stopped == "exact" or within_noise or small_step)
+    stopped = Stop(stopped)
+    optimal = bool(g <= GRAD_RATIO * g0 or g <= 1e-12 or stopped == Stop.EXACT or within_noise or small_step)
     if noisy:
         reached = bool(rms <= NOISE_FACTOR * noise)
         ref, kind = float(noise), "noise"
@@ -154,23 +205,23 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
     floor_msg = _at_floor(rms, noise if noisy else None, ref * (NOISE_FACTOR if noisy else MOTION_FRACTION),
                           floor, horizon) if not reached else None
     if at_bound:
-        status = "at_bound"
+        status = Status.AT_BOUND
         msg = (f"stopped at the edge of the search box ({', '.join(at_bound)}); widen it (--bounds) and fit "
                f"again; {versus}")
     elif reached and optimal:
-        status = "converged"
+        status = Status.CONVERGED
         msg = f"{versus}, {grad_text}"
     elif floor_msg is not None:
-        status = "at_floor"
+        status = Status.AT_FLOOR
         msg = floor_msg
-    elif stopped == "iterations":
-        status = "iteration_limit"
+    elif stopped == Stop.ITERATIONS:
+        status = Status.ITERATION_LIMIT
         msg = f"the iteration limit came before convergence: {versus}, {grad_text}"
     elif not optimal:
-        status = "stalled"
+        status = Status.STALLED
         msg = f"no step lowers the loss, yet the {grad_text}; {versus}"
     else:
-        status = "poor_fit"
+        status = Status.POOR_FIT
         msg = f"the fit stopped at an optimum that does not reach the data: {versus}"
     return Outcome(status=status, message=msg, rms=float(rms), reference=ref, reference_kind=kind,
                    reached=reached, optimal=optimal, grad_ratio=float(ratio), at_bound=tuple(at_bound),

@@ -39,6 +39,8 @@ import math
 
 import numpy as np
 
+from jaxplush.fitting.outcome import Stop
+
 #: Smallest and largest central-difference step of the Jacobian, in log space.
 H_MIN = 1e-3
 H_MAX = 0.05
@@ -113,7 +115,8 @@ class LMState:
     """One Levenberg-Marquardt run (everything a checkpoint needs to continue it).
 
     theta: current point (shape of theta); loss: its loss; mu: damping; radius: trust radius;
-    iteration: iterations done; done, reason: whether and why it stopped; history: list of
+    iteration: iterations done; done, reason: whether and why it stopped (``reason`` in words for
+    a person, ``stopped`` a :class:`jaxplush.fitting.outcome.Stop`); history: list of
     (loss, theta) of accepted points (the first is the start); evaluations: simulated points.
     """
 
@@ -124,7 +127,7 @@ class LMState:
     iteration: int = 0
     done: bool = False
     reason: str = ""
-    stopped: str = ""             # "step", "loss", "stalled", "iterations", "exact"
+    stopped: Stop = Stop.NONE     # why it stopped (:class:`jaxplush.fitting.outcome.Stop`)
     history: list = dataclasses.field(default_factory=list)
     jac: np.ndarray | None = None     # (n, P) at theta, if computed there
     jac_h: float = H_MAX
@@ -241,7 +244,7 @@ def rescue(evaluator, box, states, limit=2):
     there with the scan's spacing as its trust radius (the jump goes into its history). A search
     is restarted at most ``limit`` times, and is not scanned again once a scan found nothing
     lower. Returns the states restarted."""
-    states = [st for st in states if st.stopped == "stalled" and st.rescues < limit]
+    states = [st for st in states if st.stopped == Stop.STALLED and st.rescues < limit]
     if not states:
         return []
     pts, owner, spacing = [], [], []
@@ -269,7 +272,7 @@ def rescue(evaluator, box, states, limit=2):
         st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
         st.jac, st.mu = None, MU0
         st.radius = float(np.max(spacing[i]))
-        st.done, st.stopped = False, ""
+        st.done, st.stopped = False, Stop.NONE
         st.reason = f"restarted from an axis scan (loss {old:.4g} -> {st.loss:.4g})"
         st.history.append((st.loss, st.theta.copy()))
         restarted.append(st)
@@ -285,7 +288,7 @@ def start_states(evaluator, thetas, losses=None):
         st = LMState(theta=th.copy(), loss=float(ev.loss[i]), residual=ev.residuals[i],
                      substeps=int(ev.substeps[i]), evaluations=1)
         if not ev.ok[i]:
-            st.done, st.stopped = True, "failed"
+            st.done, st.stopped = True, Stop.FAILED
             st.reason = "the start of the local search does not run (blows up at every substep count)"
         else:
             st.history.append((st.loss, st.theta.copy()))
@@ -336,10 +339,10 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol
         if st.done:
             continue
         if st.iteration >= max_iter:
-            st.done, st.stopped = True, "iterations"
+            st.done, st.stopped = True, Stop.ITERATIONS
             st.reason = f"reached the iteration limit ({max_iter})"
         elif st.loss == 0.0:
-            st.done, st.stopped = True, "exact"
+            st.done, st.stopped = True, Stop.EXACT
             st.reason = "the residuals are exactly zero"
         else:
             active.append(st)
@@ -352,14 +355,14 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol
     for i, st in enumerate(active):
         within = _gn_within_noise(st.jac, st.residual) if st.jac_h <= NOISE_STOP_H else None
         if within is not None and within <= noise_stop:
-            st.done, st.stopped = True, "noise"
+            st.done, st.stopped = True, Stop.NOISE
             st.reason = (f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors (<= {noise_stop:g}): "
                          "the optimum is resolved to the noise")
             continue
         t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
         best_pred = max(x[2] for x in t)
         if best_pred <= pred_tol * st.loss and st.jac_h <= H_MIN * (1 + 1e-9):
-            st.done, st.stopped = True, "predicted"
+            st.done, st.stopped = True, Stop.PREDICTED
             st.reason = (f"the Gauss-Newton model predicts a decrease of at most {best_pred / st.loss:.2g} of the "
                          f"loss {st.loss:.4g} (<= {pred_tol:g})")
             continue
@@ -392,16 +395,16 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol
                 st.radius = max(size / 2.0, xtol / 2)
             st.history.append((st.loss, st.theta.copy()))
             if size <= xtol:
-                st.done, st.stopped = True, "step"
+                st.done, st.stopped = True, Stop.STEP
                 st.reason = f"step {size:.2g} <= xtol {xtol:g} (log space)"
             elif rel <= ftol:
-                st.done, st.stopped = True, "loss"
+                st.done, st.stopped = True, Stop.LOSS
                 st.reason = f"relative loss change {rel:.2g} <= ftol {ftol:g}"
         else:
             st.mu = max(mu, st.mu) * 10.0
             st.radius = (size if size > 0 else st.radius) / 4.0
             if st.radius < xtol:
-                st.done, st.stopped = True, "stalled"
+                st.done, st.stopped = True, Stop.STALLED
                 st.reason = (f"stalled: no step down to {st.radius:.2g} (log space) lowers the loss "
                              f"{st.loss:.4g}")
 
