@@ -39,7 +39,7 @@ _EXPORTS = {
     "SearchOptions": "jaxplush.fitting.options",
     "CheckpointOptions": "jaxplush.fitting.options",
     "FitResult": "jaxplush.fitting.fitter",
-    "FitError": "jaxplush.fitting.fitter",
+    "FitError": "jaxplush.fitting.errors",
     "synthetic_recovery": "jaxplush.fitting.fitter",
     "identifiability": "jaxplush.fitting.identifiability",
     "load_fit": "jaxplush.fitting.io",

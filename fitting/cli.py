@@ -92,12 +92,19 @@ def main(argv=None):
     try:
         return _fit(args)
     except JaxplushError as e:
-        code = EXIT_FAILED if type(e).__name__ in ("FitError", "SimulationError") else EXIT_USAGE
+        code = EXIT_FAILED if _failed(e) else EXIT_USAGE
         print(f"jaxplush-fit: error: {e}", file=sys.stderr)
         return code
     except KeyboardInterrupt:  # before or after the fit itself (loading, compiling, writing --out-scene)
         print("jaxplush-fit: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def _failed(error):
+    """Whether ``error`` says the fit or a simulation failed (exit :data:`EXIT_FAILED`), not bad input."""
+    from jaxplush.errors import SimulationError
+    from jaxplush.fitting.errors import FitError
+    return isinstance(error, (FitError, SimulationError))
 
 
 def _fit(args):
@@ -195,7 +202,7 @@ def _run(args, run_fit):
             try:
                 result = run_fit()
             except JaxplushError as e:
-                if type(e).__name__ in ("FitError", "SimulationError"):
+                if _failed(e):
                     show(caught)              # e.g. the dt warning that explains a blow-up
                 raise                         # bad input: its one message alone
             except BaseException:

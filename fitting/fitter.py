@@ -54,6 +54,7 @@ from jaxplush.types import PARAM_NAMES, Params
 from jaxplush.fitting import identifiability as _ident
 from jaxplush.fitting import losses as _losses
 from jaxplush.fitting import options as _options
+from jaxplush.fitting.errors import FitError  # noqa: F401  (jaxplush.fitting.fitter.FitError)
 from jaxplush.fitting.io import LoopState
 from jaxplush.fitting.outcome import Status, Stop
 from jaxplush.fitting.options import CheckpointOptions, FitOptions, SearchOptions  # noqa: F401  (jaxplush.fitting.fitter.FitOptions)
@@ -67,10 +68,6 @@ OPTIMIZERS = ("lm", "adam", "lbfgs")
 #: Default learning rates (log space) per optimiser (L-BFGS: none, the line search sets the step).
 DEFAULT_LR = {"adam": 0.05, "lbfgs": None, "lm": None}
 MAX_REJECTIONS = 30
-
-
-class FitError(JaxplushError):
-    """A fit that cannot proceed (the rollout blows up at the start or for every step tried)."""
 
 
 def canonical_names(names):

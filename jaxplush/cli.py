@@ -73,7 +73,7 @@ def main(argv=None):
     args = _parser().parse_args(attach_negative_values(sys.argv[1:] if argv is None else argv))
     from jaxplush.stepping.compiled import enable_persistent_cache
     enable_persistent_cache()          # a second run of the same scene reuses this one's compiles
-    from jaxplush.errors import JaxplushError
+    from jaxplush.errors import JaxplushError, SimulationError
     try:
         if args.cmd == "simulate":
             return _simulate(args)
@@ -82,7 +82,7 @@ def main(argv=None):
         return _info(args)
     except JaxplushError as e:
         print(f"jaxplush {args.cmd}: error: {e}", file=sys.stderr)
-        return EXIT_FAILED if e.__class__.__name__ == "SimulationError" else EXIT_USAGE
+        return EXIT_FAILED if isinstance(e, SimulationError) else EXIT_USAGE
     except KeyboardInterrupt:
         print(f"jaxplush {args.cmd}: interrupted; nothing written", file=sys.stderr)
         return 130
