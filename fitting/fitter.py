@@ -492,8 +492,10 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
         is run as "lbfgs" is: its step is never rescaled, and a rejected step restarts its state.
       options: :class:`fitting.FitOptions` (default ``FitOptions()``): iterations, lr, dt, start
         values, noise, tolerances, gradient method, identifiability, the default fit's
-        :class:`fitting.SearchOptions` (bounds, samples, starts, seed) and
-        :class:`fitting.CheckpointOptions` (path, every, resume); see :mod:`jaxplush.fitting.options`.
+        :class:`fitting.SearchOptions` (bounds, samples, starts, seed), its tuning knobs
+        (:class:`fitting.LocalOptions`, :class:`fitting.ContinuationOptions`,
+        :class:`fitting.SmoothingOptions`) and :class:`fitting.CheckpointOptions` (path, every,
+        resume); see :mod:`jaxplush.fitting.options`.
       callback: called after every accepted iteration with a dict (iteration, loss, values,
         grad_norm); returning True stops the fit.
       progress: draw a progress bar (loss and parameters) on stderr.
@@ -501,8 +503,9 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
         predictability of the start values; the command line prints it to stderr).
       **overrides: changes to ``options`` by field name, e.g. ``iterations=40``,
         ``noise_free=True``; the group fields by their flat names ``bounds``, ``samples``,
-        ``starts``, ``seed``, ``checkpoint_path``, ``checkpoint_every``, ``resume``
-        (:meth:`fitting.FitOptions.replace`). An unknown name raises :class:`JaxplushError`.
+        ``starts``, ``seed``, ``checkpoint_path``, ``checkpoint_every``, ``resume``, and the
+        tuning knobs (``keep``, ``local_xtol``, ``horizons``, ``smooth_points``, ...;
+        :data:`jaxplush.fitting.options.SHORTCUTS`) (:meth:`fitting.FitOptions.replace`). An unknown name raises :class:`JaxplushError`.
 
     Returns:
       :class:`FitResult`.
@@ -539,10 +542,7 @@ def optimizer_kind(optimizer):
 
 def _iterations(opts, kind):
     """The iteration limit: ``opts.iterations``, or the default for the optimiser."""
-    if opts.iterations is not None:
-        return int(opts.iterations)
-    from jaxplush.fitting.lmfit import MAX_ITER
-    return MAX_ITER if kind == "lm" else 200
+    return opts.iteration_limit(kind)
 
 
 def _problem(scene, target, params, objects, opts):
@@ -1032,14 +1032,13 @@ def _lm_box(prob, bounds):
 
 
 def _lm_settings(prob, opts, box):
-    """The default fit's settings (:func:`_common_settings`, its box and global design)."""
-    from jaxplush.fitting import lmfit
+    """The default fit's settings (:func:`_common_settings`, its box, global design and tuning knobs)."""
     s = opts.search
     settings = _common_settings(prob, opts, "lm", _iterations(opts, "lm"), None)
     settings.update(frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind,
                     box_lo=box.lo.ravel().tolist(), box_hi=box.hi.ravel().tolist(),
-                    samples=int(lmfit.GLOBAL_SAMPLES if s.samples is None else s.samples),
-                    starts=int(lmfit.STARTS if s.starts is None else s.starts), seed=int(s.seed))
+                    samples=s.n_samples, starts=s.n_starts, seed=int(s.seed))
+    settings.update({group: dataclasses.asdict(getattr(opts, group)) for group in _options.TUNING})
     return settings
 
 
@@ -1065,9 +1064,7 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
             b = min(run.states, key=lambda st: st.loss)
             return callback(dict(iteration=run.rounds, loss=b.loss, values=prob.values(b.theta), grad_norm=np.nan))
     try:
-        run, ev = lmfit.run(prob, box, samples=settings["samples"], starts=settings["starts"],
-                            max_iter=settings["iterations"], seed=settings["seed"], progress=progress,
-                            resume=prior, save=save, callback=user_cb)
+        run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, callback=user_cb)
     except KeyboardInterrupt:
         if last[0] is not None and checkpoint_path is not None:
             _io.save_lm_checkpoint(checkpoint_path, prob, last[0], settings, "interrupted")

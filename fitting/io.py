@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.fitting.options import TUNING
 from jaxplush.fitting.outcome import Status, Stop
 from jaxplush.io.trajectory import atomic_path, open_hdf5
 from jaxplush.types import PARAM_NAMES
@@ -55,8 +56,10 @@ _RESUME_KEYS = ("optimizer", "lr", "names", "objects", "dt", "noise_free", "nois
                 "patience", "optax_state")
 #: ... and for Adam, whose cosine learning-rate schedule spans the iterations, also these.
 _RESUME_KEYS_ADAM = ("iterations",)
-#: ... and for the default fit, its search box and global design.
-_RESUME_KEYS_LM = ("box_lo", "box_hi", "samples", "starts", "seed")
+#: ... and for the default fit, its search box, global design and tuning knobs.
+_RESUME_KEYS_LM = ("box_lo", "box_hi", "samples", "starts", "seed", "local", "continuation", "smoothing")
+#: Settings a checkpoint written before they were recorded ran with (the defaults of the time).
+_RESUME_DEFAULTS = {group: dataclasses.asdict(cls()) for group, cls in TUNING.items()}
 _RESUME_HINTS = {"iterations": "; Adam's learning-rate schedule spans all the iterations",
                  "dtype": "; give --x64 as the checkpointed fit did, or leave it out likewise"}
 
@@ -385,7 +388,7 @@ def _check_settings(path, g, prob, settings):
     keys = _RESUME_KEYS + (_RESUME_KEYS_ADAM if mine.get("optimizer") == "adam" else ()) + (
         _RESUME_KEYS_LM if mine.get("optimizer") == "lm" else ())
     for k in keys:
-        if _norm(saved.get(k)) != _norm(mine.get(k)):
+        if _norm(saved.get(k, _RESUME_DEFAULTS.get(k))) != _norm(mine.get(k)):
             raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "
                                 f"{saved.get(k)!r}, now {mine.get(k)!r}{_RESUME_HINTS.get(k, '')}); "
                                 "run without --resume to start over")

@@ -9,8 +9,15 @@
 Keywords given to ``fit`` beyond its own are :meth:`FitOptions.replace` changes: a field of
 :class:`FitOptions`, or a field of one of its groups under a flat name (``bounds``,
 ``samples``, ``starts``, ``seed`` of :class:`SearchOptions`; ``checkpoint_path``,
-``checkpoint_every``, ``resume`` of :class:`CheckpointOptions`). Anything else is an error
-that names the keyword and lists the valid ones.
+``checkpoint_every``, ``resume`` of :class:`CheckpointOptions`; the default fit's tuning knobs
+of :class:`LocalOptions`, :class:`ContinuationOptions` and :class:`SmoothingOptions` by their
+field names, or the names :data:`SHORTCUTS` lists where a field's name alone would be
+ambiguous, e.g. ``local_xtol``, ``continuation_iterations``, ``smooth_points``). Anything else
+is an error that names the keyword and lists the valid ones.
+
+The tuning knobs have the defaults the default fit was tuned with (benchmarks/RESULTS.md);
+changing one changes the fit's result, so a checkpoint records them and a resume with others
+is refused.
 
 This module imports no jax: the command line builds its options before choosing the dtype.
 """
@@ -25,6 +32,14 @@ import numbers
 from jaxplush.errors import JaxplushError
 
 
+#: The default fit's global design and local starts when :class:`SearchOptions` leaves them None.
+DEFAULT_SAMPLES = 64
+DEFAULT_STARTS = 5
+#: Iteration limits when ``FitOptions.iterations`` is None: Levenberg-Marquardt iterations per
+#: search and stage (the default fit), and iterations of the gradient optimisers.
+DEFAULT_ITERATIONS = {"lm": 40, "gradient": 200}
+
+
 @dataclasses.dataclass(frozen=True)
 class SearchOptions:
     """The default fit's global stage (``optimizer="lm"`` only).
@@ -33,9 +48,9 @@ class SearchOptions:
       bounds: the search box {name: (lo, hi)} in parameter units (every fitted object), or
         "name=lo:hi,..." text; default each fitted parameter from start/4 to start*4. Refused
         with the other optimisers.
-      samples: Sobol points of the global stage (default :data:`jaxplush.fitting.lmfit.GLOBAL_SAMPLES`, 64).
+      samples: Sobol points of the global stage (default :data:`DEFAULT_SAMPLES`, 64).
       starts: local Levenberg-Marquardt starts from its best candidates (default
-        :data:`jaxplush.fitting.lmfit.STARTS`, 5).
+        :data:`DEFAULT_STARTS`, 5).
       seed: the Sobol scrambling seed.
     """
 
@@ -43,6 +58,111 @@ class SearchOptions:
     samples: int | None = None
     starts: int | None = None
     seed: int = 0
+
+    @property
+    def n_samples(self):
+        """``samples``, or :data:`DEFAULT_SAMPLES`."""
+        return int(DEFAULT_SAMPLES if self.samples is None else self.samples)
+
+    @property
+    def n_starts(self):
+        """``starts``, or :data:`DEFAULT_STARTS`."""
+        return int(DEFAULT_STARTS if self.starts is None else self.starts)
+
+
+@dataclasses.dataclass(frozen=True)
+class LocalOptions:
+    """The default fit's local Levenberg-Marquardt searches (:func:`jaxplush.fitting.search.lm_round`),
+    their screening and their rescue (``optimizer="lm"`` only). Everything is in log space.
+
+    Attributes:
+      keep: searches kept after screening (of ``starts``).
+      screen_rounds: iterations of the first stage after which all but the best ``keep`` are set aside.
+      drop_factor: a search whose loss exceeds this many times the best one's is set aside.
+      start_distance: the global stage's candidates that start searches lie at least this
+        fraction of the box's widest side apart (max-norm).
+      max_rescues: restarts from an axis scan (:func:`jaxplush.fitting.search.rescue`) per search and stage.
+      scan_points: points of an axis scan, in all (at least 4 per parameter).
+      rescue_gain: a scan point must lower the loss by this fraction to restart a search there.
+      h_min, h_max: smallest and largest central-difference step of the Jacobian (the step is
+        the trust radius / 4, clipped to them).
+      radius0, mu0: trust radius and Levenberg-Marquardt damping of a fresh search.
+      xtol: a search stops when an accepted step is at most this (max-norm), and stalls when the
+        trust radius falls below it without one (flat name ``local_xtol``).
+      ftol: ... or when the relative loss change of an accepted step is at most this (``local_ftol``).
+      pred_tol: ... or when the Gauss-Newton model promises less than this fraction of the loss
+        (at a noisy target's optimum the loss sits at the noise level), judged at step ``h_min``.
+      noise_stop: ... or when the Gauss-Newton step is at most this fraction of every parameter's
+        standard error (residual variance x (JᵀJ)⁻¹): further steps move the result by less than its noise;
+      noise_stop_h: ... judged only with a difference step at most this small (a local Jacobian).
+    """
+
+    keep: int = 2
+    screen_rounds: int = 3
+    drop_factor: float = 30.0
+    start_distance: float = 0.1
+    max_rescues: int = 2
+    scan_points: int = 30
+    rescue_gain: float = 1e-3
+    h_min: float = 1e-3
+    h_max: float = 0.05
+    radius0: float = 0.5
+    mu0: float = 1e-3
+    xtol: float = dataclasses.field(default=1e-4, metadata={"flat": "local_xtol"})
+    ftol: float = dataclasses.field(default=1e-7, metadata={"flat": "local_ftol"})
+    pred_tol: float = 1e-4
+    noise_stop: float = 0.1
+    noise_stop_h: float = 0.02
+
+
+@dataclasses.dataclass(frozen=True)
+class ContinuationOptions:
+    """The default fit's continuation in time (:mod:`jaxplush.fitting.lmfit`): stages over the
+    target's first frames, each starting from the previous stage's best points (``optimizer="lm"`` only).
+
+    Attributes:
+      horizons: the stages' horizons as fractions of the target's frames, increasing (the last
+        is always all of them).
+      min_frames: targets with fewer frames are fitted in one stage (``min_frames_for_stages``).
+      iterations: iterations per search in a stage before the last (and, for a noisy target, in
+        the last, which the smoothing stage resolves): those stages only carry the searches on
+        toward the full target's optimum (``continuation_iterations``).
+      noise_stop: ... and there a search stops once its Gauss-Newton step is within this many
+        standard errors: a shorter horizon's optimum lies about that far from the full target's
+        anyway (``continuation_noise_stop``).
+      carry_factor: a search whose loss ended above this many times the best one's does not go
+        on to the next stage.
+      same_point: searches that ended within this distance (max-norm, log space) continue as one.
+      next_radius: the trust radius (log space) with which a later stage starts.
+    """
+
+    horizons: tuple = (0.25, 0.5, 1.0)
+    min_frames: int = dataclasses.field(default=8, metadata={"flat": "min_frames_for_stages"})
+    iterations: int = dataclasses.field(default=8, metadata={"flat": "continuation_iterations"})
+    noise_stop: float = dataclasses.field(default=1.0, metadata={"flat": "continuation_noise_stop"})
+    carry_factor: float = 3.0
+    same_point: float = 0.02
+    next_radius: float = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class SmoothingOptions:
+    """The default fit's smoothing stage for a noisy target (:func:`jaxplush.fitting.search.smooth`):
+    Gauss-Newton on a regression model of the residuals over Sobol designs (``optimizer="lm"`` only).
+
+    Attributes:
+      points: design points per iteration (plus the centre: one batch) (``smooth_points``).
+      width: the design's half-width, in standard errors (``smooth_width``).
+      iterations: designs at most (``smooth_iterations``).
+      stop: it stops once the smoothed Gauss-Newton step is within this many standard errors (``smooth_stop``).
+      sigma: (lo, hi) bounds on a standard error used to size the design, log space (``smooth_sigma``).
+    """
+
+    points: int = dataclasses.field(default=31, metadata={"flat": "smooth_points"})
+    width: float = dataclasses.field(default=6.0, metadata={"flat": "smooth_width"})
+    iterations: int = dataclasses.field(default=5, metadata={"flat": "smooth_iterations"})
+    stop: float = dataclasses.field(default=1.0, metadata={"flat": "smooth_stop"})
+    sigma: tuple = dataclasses.field(default=(1e-4, 0.05), metadata={"flat": "smooth_sigma"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,6 +207,8 @@ class FitOptions:
         fitting (:func:`jaxplush.predictability`, two or three rollouts), reported in the result
         and FIT.h5; its reproducibility floor lets the outcome say ``at_floor``.
       search: :class:`SearchOptions` of the default fit's global stage.
+      local: :class:`LocalOptions` of its local searches; continuation: :class:`ContinuationOptions`
+        of its stages in time; smoothing: :class:`SmoothingOptions` of its smoothing stage.
       checkpoint: :class:`CheckpointOptions`.
     """
 
@@ -107,6 +229,9 @@ class FitOptions:
     check_dt: bool = True
     predictability: bool = True
     search: SearchOptions = dataclasses.field(default_factory=SearchOptions)
+    local: LocalOptions = dataclasses.field(default_factory=LocalOptions)
+    continuation: ContinuationOptions = dataclasses.field(default_factory=ContinuationOptions)
+    smoothing: SmoothingOptions = dataclasses.field(default_factory=SmoothingOptions)
     checkpoint: CheckpointOptions = dataclasses.field(default_factory=CheckpointOptions)
 
     def replace(self, **changes):
@@ -126,11 +251,29 @@ class FitOptions:
             out = dataclasses.replace(out, **{group: dataclasses.replace(getattr(out, group), **kw)})
         return out
 
+    def iteration_limit(self, kind):
+        """``iterations``, or the default of optimiser ``kind`` ("lm", else a gradient
+        optimiser; :data:`DEFAULT_ITERATIONS`)."""
+        if self.iterations is not None:
+            return int(self.iterations)
+        return DEFAULT_ITERATIONS["lm" if kind == "lm" else "gradient"]
+
+
+#: The groups of the default fit's tuning knobs: FitOptions field -> class.
+TUNING = {"local": LocalOptions, "continuation": ContinuationOptions, "smoothing": SmoothingOptions}
+
+
+def _tuning_shortcuts():
+    """Flat keyword -> (group, field) of every tuning knob (its field name, or its ``flat`` name)."""
+    return {f.metadata.get("flat", f.name): (group, f.name)
+            for group, cls in TUNING.items() for f in dataclasses.fields(cls)}
+
 
 #: Flat keyword -> (group, field) for the fields of FitOptions' groups.
 SHORTCUTS = {"bounds": ("search", "bounds"), "samples": ("search", "samples"), "starts": ("search", "starts"),
              "seed": ("search", "seed"), "checkpoint_path": ("checkpoint", "path"),
-             "checkpoint_every": ("checkpoint", "every"), "resume": ("checkpoint", "resume")}
+             "checkpoint_every": ("checkpoint", "every"), "resume": ("checkpoint", "resume"),
+             **_tuning_shortcuts()}
 
 
 def option_names():
@@ -161,6 +304,7 @@ def validate(opts, optimizer):
         raise JaxplushError(f"search must be a fitting.SearchOptions, got {type(opts.search).__name__}")
     if not isinstance(opts.checkpoint, CheckpointOptions):
         raise JaxplushError(f"checkpoint must be a fitting.CheckpointOptions, got {type(opts.checkpoint).__name__}")
+    _validate_tuning(opts, optimizer)
     if opts.iterations is not None and (not _is_whole(opts.iterations) or int(opts.iterations) < 1):
         raise JaxplushError(f"iterations must be >= 1, got {opts.iterations}")
     s = opts.search
@@ -188,6 +332,37 @@ def validate(opts, optimizer):
         raise JaxplushError(f"predictability must be True or False, got {opts.predictability!r}")
     if not _is_whole(opts.patience) or opts.patience < 1:
         raise JaxplushError(f"patience must be an integer >= 1, got {opts.patience!r}")
+
+
+def _validate_tuning(opts, optimizer):
+    """The tuning groups: of their classes, every number valid, and left alone unless ``optimizer`` is "lm"."""
+    for group, cls in TUNING.items():
+        val = getattr(opts, group)
+        if not isinstance(val, cls):
+            raise JaxplushError(f"{group} must be a fitting.{cls.__name__}, got {type(val).__name__}")
+        if optimizer != "lm" and val != cls():
+            raise JaxplushError(f"{group} options apply to the default fit (optimizer 'lm'), not to {optimizer}")
+        for f in dataclasses.fields(cls):
+            name, v = f.metadata.get("flat", f.name), getattr(val, f.name)
+            if isinstance(f.default, tuple):
+                ok = (isinstance(v, (tuple, list)) and len(v) > 0 and all(_is_positive(x) for x in v)
+                      and all(a < b for a, b in zip(v, v[1:])))
+                if ok and group == "continuation":
+                    ok = v[-1] <= 1.0
+                if not ok or (group == "smoothing" and len(v) != 2):
+                    raise JaxplushError(f"{name} must be increasing positive numbers, got {v!r}")
+            elif isinstance(f.default, int):
+                if not _is_whole(v) or v < (0 if name in ("max_rescues",) else 1):
+                    raise JaxplushError(f"{name} must be a whole number >= {0 if name == 'max_rescues' else 1}, "
+                                        f"got {v!r}")
+            elif not (_is_positive(v) or (v == 0 and name in ("local_xtol", "local_ftol", "pred_tol", "noise_stop",
+                                                             "continuation_noise_stop", "rescue_gain"))):
+                raise JaxplushError(f"{name} must be a number > 0, got {v!r}")
+
+
+def _is_positive(v):
+    """A finite number > 0 (not a bool)."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) and v > 0
 
 
 def _is_whole(v):

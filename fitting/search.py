@@ -8,7 +8,8 @@ Why no autodiff here: a dropped plush excites vertex-level modes that ring for t
 log k is about 1e-3 on top of a smooth bowl (benchmarks/RESULTS.md, "roughness"). The exact
 gradient and the JVP Jacobian are the derivatives of that ripple, so a gradient line search
 (L-BFGS) can stall far from the truth and report convergence. Central differences taken at
-the scale of the step (the trust radius, between :data:`H_MIN` and :data:`H_MAX`) see the bowl;
+the scale of the step (the trust radius, between ``h_min`` and ``h_max`` of
+:class:`jaxplush.fitting.options.LocalOptions`) see the bowl;
 as the steps shrink near the optimum, so does the difference step, where the loss is smooth.
 
 Global stage (:func:`global_stage`): a scrambled Sobol design (scipy.stats.qmc) of ``n``
@@ -18,7 +19,7 @@ even :data:`jaxplush.fitting.evaluate.MAX_SUBSTEPS` substeps cannot run) are kep
 Local stage (:func:`lm_round`): a box-constrained Levenberg-Marquardt on the residual
 vector r (sum(r²) = loss) with a trust radius in log space:
 
-* J by central differences at step h = clip(radius / 4, H_MIN, H_MAX) (2 P runs, one batch);
+* J by central differences at step h = clip(radius / 4, h_min, h_max) (2 P runs, one batch);
 * three trial steps (JᵀJ + mu diag(JᵀJ)) delta = -Jᵀ r for mu/10, mu and 10 mu, each cut to the
   trust radius and projected into the box, run together; the best one is accepted if it
   lowers the loss (mu and the radius follow the ratio of actual to predicted decrease), else
@@ -30,6 +31,9 @@ vector r (sum(r²) = loss) with a trust radius in log space:
 Smoothing stage (:func:`smooth`, noisy targets only): Gauss-Newton on an affine regression model
 of the residuals over a Sobol design at the scale of the standard errors, which averages out the
 ripple that a single difference stencil sees.
+
+Every tuning constant comes from the options (:class:`jaxplush.fitting.options.LocalOptions`,
+:class:`jaxplush.fitting.options.SmoothingOptions`), passed down to each function (None: the defaults).
 """
 
 from __future__ import annotations
@@ -39,14 +43,15 @@ import math
 
 import numpy as np
 
+from jaxplush.fitting.options import LocalOptions, SmoothingOptions
 from jaxplush.fitting.outcome import Stop
 
-#: Smallest and largest central-difference step of the Jacobian, in log space.
-H_MIN = 1e-3
-H_MAX = 0.05
-#: Trust radius at the start (log space: x1.65 per parameter).
-RADIUS0 = 0.5
-MU0 = 1e-3
+#: The default options (what None stands for).
+_LOCAL, _SMOOTHING = LocalOptions(), SmoothingOptions()
+#: Aliases of two defaults (``LocalOptions().h_min``, ``SmoothingOptions().points``), read by
+#: nothing here: the smallest difference step of the Jacobian, and the smoothing design's points.
+H_MIN = _LOCAL.h_min
+SMOOTH_POINTS = _SMOOTHING.points
 
 
 @dataclasses.dataclass
@@ -122,23 +127,26 @@ class LMState:
 
     theta: np.ndarray
     loss: float
-    mu: float = MU0
-    radius: float = RADIUS0
+    mu: float = _LOCAL.mu0          # a search's options set these (:func:`start_states`)
+    radius: float = _LOCAL.radius0
     iteration: int = 0
     done: bool = False
     reason: str = ""
     stopped: Stop = Stop.NONE     # why it stopped (:class:`jaxplush.fitting.outcome.Stop`)
     history: list = dataclasses.field(default_factory=list)
     jac: np.ndarray | None = None     # (n, P) at theta, if computed there
-    jac_h: float = H_MAX
+    jac_h: float = _LOCAL.h_max
     residual: np.ndarray | None = None
     substeps: int = 1
     evaluations: int = 0
     rescues: int = 0              # axis scans (:func:`rescue`) done in this stage
 
 
-def fd_step(radius):
-    return float(min(max(radius / 4.0, H_MIN), H_MAX))
+def fd_step(radius, options=None):
+    """The central-difference step at trust radius ``radius``: radius / 4 clipped to
+    [``h_min``, ``h_max``] of ``options`` (:class:`LocalOptions`)."""
+    o = options or _LOCAL
+    return float(min(max(radius / 4.0, o.h_min), o.h_max))
 
 
 def _stencil(box, theta, h):
@@ -154,13 +162,13 @@ def _stencil(box, theta, h):
     return pts, spans
 
 
-def _jacobians(evaluator, box, states):
+def _jacobians(evaluator, box, states, options=None):
     """Central-difference Jacobians (n, P) of every state at its own step h, all stencils run in
     one evaluation; a stencil runs at the substeps its points need (at least its centre's).
     Columns whose stencil fails are zero."""
     pts, owner, spans, subs = [], [], [], []
     for i, st in enumerate(states):
-        h = fd_step(st.radius)
+        h = fd_step(st.radius, options)
         p, sp = _stencil(box, st.theta, h)
         n = max(int(evaluator.substeps_for(np.asarray(p)).max()), st.substeps)
         pts += p
@@ -182,10 +190,11 @@ def _jacobians(evaluator, box, states):
         k += 2 * p
 
 
-def jacobian(evaluator, box, theta, h, substeps=1):
-    """(n, P) central-difference Jacobian of the residuals at theta with step h (log space)."""
+def jacobian(evaluator, box, theta, h, substeps=1, options=None):
+    """(n, P) central-difference Jacobian of the residuals at theta with step h (log space; clipped
+    to [``h_min``, ``h_max``] of ``options``)."""
     st = LMState(theta=np.asarray(theta, np.float64), loss=np.nan, radius=4.0 * h, substeps=substeps)
-    _jacobians(evaluator, box, [st])
+    _jacobians(evaluator, box, [st], options)
     return st.jac
 
 
@@ -211,15 +220,10 @@ def _steps(jac, r, mus, radius, box, theta):
     return out
 
 
-#: Points of an axis scan, in all (split evenly over the parameters; one batch of the evaluator).
-SCAN_POINTS = 30
-#: A scan point must lower the loss by at least this fraction to restart a search from it.
-RESCUE_GAIN = 1e-3
-
-
-def scan_points(box, theta, n_total=SCAN_POINTS):
+def scan_points(box, theta, n_total=_LOCAL.scan_points):
     """Points on lines through theta along each parameter's axis across the whole box:
-    (points (M, *theta.shape), spacing per axis (P,)), at least 4 per axis."""
+    (points (M, *theta.shape), spacing per axis (P,)), ``n_total`` in all (split evenly over the
+    parameters; one batch of the evaluator), at least 4 per axis."""
     flat = np.asarray(theta, np.float64).ravel()
     lo, hi = box.lo.ravel(), box.hi.ravel()
     per = max(4, n_total // flat.size)
@@ -233,23 +237,25 @@ def scan_points(box, theta, n_total=SCAN_POINTS):
     return np.asarray(pts), np.asarray(spacing)
 
 
-def rescue(evaluator, box, states, limit=2):
+def rescue(evaluator, box, states, limit=2, options=None):
     """Restart stalled searches from the lowest point of an axis scan through them.
 
     A search stalls when no step down to ``xtol`` lowers the loss although the gradient is not
     small: the loss of a body in hard floor contact jumps where a contact event moves by a step,
     and the search stands on such a jump, not at an optimum. Every stalled state gets one scan
     across the box along each parameter's axis (:func:`scan_points`, all states in one
-    evaluation); where a scan point is lower by more than :data:`RESCUE_GAIN`, the search restarts
+    evaluation); where a scan point is lower by more than ``rescue_gain`` of ``options``
+    (:class:`LocalOptions`; its ``scan_points`` size the scan), the search restarts
     there with the scan's spacing as its trust radius (the jump goes into its history). A search
     is restarted at most ``limit`` times, and is not scanned again once a scan found nothing
     lower. Returns the states restarted."""
+    o = options or _LOCAL
     states = [st for st in states if st.stopped == Stop.STALLED and st.rescues < limit]
     if not states:
         return []
     pts, owner, spacing = [], [], []
     for i, st in enumerate(states):
-        p, sp = scan_points(box, st.theta)
+        p, sp = scan_points(box, st.theta, o.scan_points)
         pts.append(p)
         owner += [i] * len(p)
         spacing.append(sp)
@@ -263,14 +269,14 @@ def rescue(evaluator, box, states, limit=2):
         st.rescues += 1
         loss = np.where(ev.ok[idx], ev.loss[idx], np.inf)
         j = int(idx[np.argmin(loss)])
-        if not (ev.loss[j] < (1.0 - RESCUE_GAIN) * st.loss):
+        if not (ev.loss[j] < (1.0 - o.rescue_gain) * st.loss):
             st.reason += "; an axis scan across the box found nothing lower"
             st.rescues = limit
             continue
         old = st.loss
         st.theta = pts[j].copy()
         st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
-        st.jac, st.mu = None, MU0
+        st.jac, st.mu = None, o.mu0
         st.radius = float(np.max(spacing[i]))
         st.done, st.stopped = False, Stop.NONE
         st.reason = f"restarted from an axis scan (loss {old:.4g} -> {st.loss:.4g})"
@@ -279,14 +285,16 @@ def rescue(evaluator, box, states, limit=2):
     return restarted
 
 
-def start_states(evaluator, thetas, losses=None):
-    """:class:`LMState` s at the given points, their residuals evaluated (one evaluation)."""
+def start_states(evaluator, thetas, losses=None, options=None):
+    """:class:`LMState` s at the given points, their residuals evaluated (one evaluation); their
+    trust radius and damping are ``radius0`` and ``mu0`` of ``options`` (:class:`LocalOptions`)."""
+    o = options or _LOCAL
     thetas = np.asarray(thetas, np.float64)
     ev = evaluator(thetas)
     out = []
     for i, th in enumerate(thetas):
         st = LMState(theta=th.copy(), loss=float(ev.loss[i]), residual=ev.residuals[i],
-                     substeps=int(ev.substeps[i]), evaluations=1)
+                     substeps=int(ev.substeps[i]), evaluations=1, mu=o.mu0, radius=o.radius0)
         if not ev.ok[i]:
             st.done, st.stopped = True, Stop.FAILED
             st.reason = "the start of the local search does not run (blows up at every substep count)"
@@ -294,16 +302,6 @@ def start_states(evaluator, thetas, losses=None):
             st.history.append((st.loss, st.theta.copy()))
         out.append(st)
     return out
-
-
-#: Stop when the Gauss-Newton model promises less than this fraction of the loss (at a noisy
-#: target's optimum the loss sits at the noise level and no step can lower it further).
-PRED_TOL = 1e-4
-#: Stop when the full Gauss-Newton step is at most this fraction of every parameter's standard
-#: error (residual variance x (JᵀJ)⁻¹): further steps move the result by less than its noise.
-NOISE_STOP = 0.1
-#: ... judged only with a difference step at most this small (a local Jacobian).
-NOISE_STOP_H = 0.02
 
 
 def gauss_newton(jac, residual):
@@ -330,10 +328,14 @@ def _gn_within_noise(jac, r):
     return float(np.max(np.abs(step) / se))
 
 
-def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol=PRED_TOL, noise_stop=NOISE_STOP):
+def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=None):
     """One Levenberg-Marquardt iteration of every unfinished state (two evaluations in all: the
-    Jacobians that are missing, then three trial steps per state). A state stops once its
-    Gauss-Newton step is at most ``noise_stop`` of every parameter's standard error."""
+    Jacobians that are missing, then three trial steps per state). ``options``
+    (:class:`LocalOptions`, None: the defaults) hold the stopping rules; a state stops once its
+    Gauss-Newton step is at most ``noise_stop`` (default ``options.noise_stop``) of every
+    parameter's standard error."""
+    o = options or _LOCAL
+    noise_stop = o.noise_stop if noise_stop is None else noise_stop
     active = []
     for st in states:
         if st.done:
@@ -348,12 +350,12 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol
             active.append(st)
     if not active:
         return
-    need = [st for st in active if st.jac is None or st.jac_h != fd_step(st.radius)]
+    need = [st for st in active if st.jac is None or st.jac_h != fd_step(st.radius, o)]
     if need:
-        _jacobians(evaluator, box, need)
+        _jacobians(evaluator, box, need, o)
     trials, owner = [], []
     for i, st in enumerate(active):
-        within = _gn_within_noise(st.jac, st.residual) if st.jac_h <= NOISE_STOP_H else None
+        within = _gn_within_noise(st.jac, st.residual) if st.jac_h <= o.noise_stop_h else None
         if within is not None and within <= noise_stop:
             st.done, st.stopped = True, Stop.NOISE
             st.reason = (f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors (<= {noise_stop:g}): "
@@ -361,10 +363,10 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol
             continue
         t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
         best_pred = max(x[2] for x in t)
-        if best_pred <= pred_tol * st.loss and st.jac_h <= H_MIN * (1 + 1e-9):
+        if best_pred <= o.pred_tol * st.loss and st.jac_h <= o.h_min * (1 + 1e-9):
             st.done, st.stopped = True, Stop.PREDICTED
             st.reason = (f"the Gauss-Newton model predicts a decrease of at most {best_pred / st.loss:.2g} of the "
-                         f"loss {st.loss:.4g} (<= {pred_tol:g})")
+                         f"loss {st.loss:.4g} (<= {o.pred_tol:g})")
             continue
         trials += t
         owner += [i] * len(t)
@@ -374,50 +376,45 @@ def lm_round(evaluator, box, states, max_iter=40, xtol=1e-4, ftol=1e-7, pred_tol
     owner = np.asarray(owner)
     for i, st in enumerate(active):
         idx = np.nonzero(owner == i)[0]
-        if not idx.size:
-            continue
-        st.evaluations += len(idx)
-        st.iteration += 1
-        best = int(idx[np.argmin(np.where(ev.ok[idx], ev.loss[idx], np.inf))])
-        trial, step, pred, mu = trials[best]
-        new = float(ev.loss[best])
-        size = float(np.max(np.abs(step))) if step.size else 0.0
-        if ev.ok[best] and new < st.loss:
-            rho = (st.loss - new) / pred if pred > 0 else 0.0
-            rel = (st.loss - new) / max(st.loss, 1e-300)
-            st.theta, st.loss = trial, new
-            st.residual, st.substeps = ev.residuals[best], int(ev.substeps[best])
-            st.jac = None
-            st.mu = mu * (1 / 3 if rho > 0.75 else (1.0 if rho > 0.25 else 2.0))
-            if rho > 0.75:
-                st.radius = max(st.radius, 2.0 * size)
-            elif rho < 0.25:
-                st.radius = max(size / 2.0, xtol / 2)
-            st.history.append((st.loss, st.theta.copy()))
-            if size <= xtol:
-                st.done, st.stopped = True, Stop.STEP
-                st.reason = f"step {size:.2g} <= xtol {xtol:g} (log space)"
-            elif rel <= ftol:
-                st.done, st.stopped = True, Stop.LOSS
-                st.reason = f"relative loss change {rel:.2g} <= ftol {ftol:g}"
-        else:
-            st.mu = max(mu, st.mu) * 10.0
-            st.radius = (size if size > 0 else st.radius) / 4.0
-            if st.radius < xtol:
-                st.done, st.stopped = True, Stop.STALLED
-                st.reason = (f"stalled: no step down to {st.radius:.2g} (log space) lowers the loss "
-                             f"{st.loss:.4g}")
+        if idx.size:
+            _take_step(st, ev, idx, trials, o.xtol, o.ftol)
 
 
-#: The smoothing stage (:func:`smooth`, noisy targets): design points per iteration (plus the
-#: centre: one batch of the evaluator), their half-width in standard errors, iterations, and the
-#: stop: the smoothed Gauss-Newton step within this many standard errors.
-SMOOTH_POINTS = 31
-SMOOTH_WIDTH = 6.0
-SMOOTH_ITER = 5
-SMOOTH_STOP = 1.0
-#: Bounds on a standard error used to size the design (log space).
-SMOOTH_SIGMA = (1e-4, 0.05)
+def _take_step(st, ev, idx, trials, xtol, ftol):
+    """Accept the best of a state's evaluated trial steps (rows ``idx`` of ``ev`` and ``trials``) if
+    it lowers the loss, adapting mu and the trust radius, else shrink the radius; sets the stops
+    on ``xtol`` (step), ``ftol`` (relative loss change) and a radius below ``xtol`` (stalled)."""
+    st.evaluations += len(idx)
+    st.iteration += 1
+    best = int(idx[np.argmin(np.where(ev.ok[idx], ev.loss[idx], np.inf))])
+    trial, step, pred, mu = trials[best]
+    new = float(ev.loss[best])
+    size = float(np.max(np.abs(step))) if step.size else 0.0
+    if ev.ok[best] and new < st.loss:
+        rho = (st.loss - new) / pred if pred > 0 else 0.0
+        rel = (st.loss - new) / max(st.loss, 1e-300)
+        st.theta, st.loss = trial, new
+        st.residual, st.substeps = ev.residuals[best], int(ev.substeps[best])
+        st.jac = None
+        st.mu = mu * (1 / 3 if rho > 0.75 else (1.0 if rho > 0.25 else 2.0))
+        if rho > 0.75:
+            st.radius = max(st.radius, 2.0 * size)
+        elif rho < 0.25:
+            st.radius = max(size / 2.0, xtol / 2)
+        st.history.append((st.loss, st.theta.copy()))
+        if size <= xtol:
+            st.done, st.stopped = True, Stop.STEP
+            st.reason = f"step {size:.2g} <= xtol {xtol:g} (log space)"
+        elif rel <= ftol:
+            st.done, st.stopped = True, Stop.LOSS
+            st.reason = f"relative loss change {rel:.2g} <= ftol {ftol:g}"
+    else:
+        st.mu = max(mu, st.mu) * 10.0
+        st.radius = (size if size > 0 else st.radius) / 4.0
+        if st.radius < xtol:
+            st.done, st.stopped = True, Stop.STALLED
+            st.reason = (f"stalled: no step down to {st.radius:.2g} (log space) lowers the loss "
+                         f"{st.loss:.4g}")
 
 
 @dataclasses.dataclass
@@ -428,7 +425,8 @@ class Smoothed:
       theta: the smoothed optimum (shape of theta): the last design's centre plus its step;
       centre: that centre; jac (n, P), residual (n,): the regression's slope and intercept there;
       step (P,): the smoothed Gauss-Newton step at the centre; stderr (P,): standard errors from
-      the regression (log space); converged: the step is within :data:`SMOOTH_STOP` of them;
+      the regression (log space); converged: the step is within ``stop`` standard errors
+      (:class:`SmoothingOptions`);
       path: [(loss at the centre, centre)] per iteration; evaluations: points simulated.
     """
 
@@ -452,7 +450,7 @@ def regression(thetas, residuals, centre):
     return coef[0], coef[1:].T
 
 
-def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None):
+def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=None):
     """Gauss-Newton on a regression model of the residuals at the scale of the standard errors.
 
     With a noisy target, the loss of a body in floor contact carries a ripple (contact events
@@ -460,33 +458,36 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None):
     bowl beneath it, and a local search stops in whichever dip it reaches, so far starts end
     several standard errors apart (benchmarks/RESULTS.md, "Fitting from far starts").
     A central difference only sees the ripple's slope. This stage instead samples
-    :data:`SMOOTH_POINTS` scrambled Sobol points within ±:data:`SMOOTH_WIDTH` standard errors of
-    the centre (one batch), fits an affine model of the residual vector over them (:func:`regression`),
+    ``points`` scrambled Sobol points within ±``width`` standard errors of the centre (one batch;
+    the fields of ``options``, :class:`SmoothingOptions`), fits an affine model of the residual vector over them (:func:`regression`),
     which averages the ripple out, and steps to that model's Gauss-Newton optimum (cut to the
     design's half-width, kept in the box). The standard errors come from the model and size the
-    next design. It stops once the step is within :data:`SMOOTH_STOP` standard errors, or after
-    :data:`SMOOTH_ITER` iterations.
+    next design. It stops once the step is within ``stop`` standard errors, or after
+    ``iterations`` designs.
 
     Args:
       evaluator: :class:`jaxplush.fitting.evaluate.Evaluator` of the full target; box: :class:`Box`;
       theta: the start (the local search's result); jac, residual: its Jacobian and residuals,
-        which size the first design; progress: ``progress(1, extra=text)`` after each design.
+        which size the first design; progress: ``progress(1, extra=text)`` after each design;
+      options: :class:`SmoothingOptions` (None: the defaults).
     Returns:
       :class:`Smoothed`, or None when the first design cannot be sized (singular Jacobian).
     """
     from scipy.stats import qmc
+    o = options or _SMOOTHING
+    sigma_range = tuple(o.sigma)
     shape = np.shape(theta)
     x = np.asarray(theta, np.float64).ravel().copy()
     sigma = gauss_newton(jac, residual)[1]
     if sigma is None:
         return None
-    m = max(int(math.ceil(math.log2(SMOOTH_POINTS))), 1)
-    u = qmc.Sobol(x.size, scramble=True, seed=seed).random_base2(m)[:SMOOTH_POINTS] * 2.0 - 1.0
+    m = max(int(math.ceil(math.log2(o.points))), 1)
+    u = qmc.Sobol(x.size, scramble=True, seed=seed).random_base2(m)[:o.points] * 2.0 - 1.0
     u = np.vstack([np.zeros((1, x.size)), u])
     lo, hi = box.lo.ravel(), box.hi.ravel()
     path, evaluations, out = [], 0, None
-    for _ in range(SMOOTH_ITER):
-        half = SMOOTH_WIDTH * np.clip(sigma, *SMOOTH_SIGMA)
+    for _ in range(o.iterations):
+        half = o.width * np.clip(sigma, *sigma_range)
         pts = np.clip(x[None] + u * half[None], lo, hi)
         ev = evaluator(pts.reshape((-1,) + shape))
         evaluations += len(pts)
@@ -501,8 +502,8 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None):
         # converged: the step is within the standard errors, and the design that measured them
         # spanned at least half its intended width in them (a design sized by a Jacobian that saw
         # the ripple's slope is too narrow to average it out)
-        sized = bool(np.all(half >= 0.5 * SMOOTH_WIDTH * np.clip(sig, *SMOOTH_SIGMA)))
-        converged = sized and bool(np.all(np.abs(step) <= SMOOTH_STOP * sig))
+        sized = bool(np.all(half >= 0.5 * o.width * np.clip(sig, *sigma_range)))
+        converged = sized and bool(np.all(np.abs(step) <= o.stop * sig))
         cut = np.clip(x + np.clip(step, -half, half), lo, hi)
         out = Smoothed(theta=cut.reshape(shape), centre=x.reshape(shape).copy(), jac=b, residual=a,
                        step=step, stderr=sig, converged=converged, path=path, evaluations=evaluations)

@@ -3,6 +3,7 @@ check of the fit's loss, identifiability flags, blow-up handling, Ctrl-C save an
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -394,6 +395,39 @@ def test_fit_options_and_keywords_are_checked_before_anything_is_built():
     for kw, msg in bad:
         with pytest.raises(JaxplushError, match=re.escape(msg)):
             F.fit(None, None, **kw)
+
+
+def test_the_default_fits_tuning_knobs_are_options_that_a_resume_checks(small, tmp_path):
+    """The default fit's tuning constants are fields of FitOptions' groups (LocalOptions,
+    ContinuationOptions, SmoothingOptions) with flat keywords, checked before anything is built,
+    refused with a gradient optimiser; a knob changes the search, and a checkpoint records the
+    knobs: a resume with another is refused, and one that predates them resumes with the defaults."""
+    import h5py
+    from jaxplush.fitting import ContinuationOptions, FitOptions, LocalOptions, SmoothingOptions
+    opts = FitOptions().replace(keep=1, local_xtol=1e-5, horizons=(0.5, 1.0), smooth_points=15)
+    assert opts.local == LocalOptions(keep=1, xtol=1e-5) and opts.continuation == ContinuationOptions(
+        horizons=(0.5, 1.0)) and opts.smoothing == SmoothingOptions(points=15)
+    for kw, msg in [(dict(keep=0), "keep must be a whole number >= 1"), (dict(h_min=-1.0), "h_min must be a number > 0"),
+                    (dict(horizons=(0.5, 0.25)), "horizons must be increasing"),
+                    (dict(optimizer="adam", smooth_points=15), "smoothing options apply to the default fit"),
+                    (dict(local=dict(keep=1)), "local must be a fitting.LocalOptions")]:
+        with pytest.raises(JaxplushError, match=re.escape(msg)):
+            F.fit(None, None, **kw)
+    _, start, target = small
+    out = tmp_path / "FIT.h5"
+    kw = dict(noise_free=True, identifiability=False, predictability=False, samples=4, starts=1, iterations=2)
+    ref = F.fit(start, target, NAMES, checkpoint_path=out, **kw)
+    assert list(ref.search["horizons"]) == [3, 5, 10]
+    assert list(F.fit(start, target, NAMES, horizons=(0.5, 1.0), **kw).search["horizons"]) == [5, 10]
+    with pytest.raises(JaxplushError, match="different fit \\(continuation: checkpoint"):
+        F.fit(start, target, NAMES, checkpoint_path=out, resume=True, horizons=(0.5, 1.0), **kw)
+    with h5py.File(out, "a") as f:       # a checkpoint written before the knobs were recorded
+        g = f["checkpoint"]
+        g.attrs["settings"] = json.dumps({k: v for k, v in json.loads(g.attrs["settings"]).items()
+                                          if k not in ("local", "continuation", "smoothing")})
+    res = F.fit(start, target, NAMES, checkpoint_path=out, resume=True, **kw)
+    for n in NAMES:
+        np.testing.assert_array_equal(res.values[n], ref.values[n])
 
 
 @pytest.mark.heavy
