@@ -875,37 +875,55 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
                f"at step {prob.loss.frame_steps[t]} of the fitted rollout")
         warnings.warn(msg, stacklevel=4)
         notes.append(msg)
-    report = None
-    if want_ident:
-        report = _report(prob, frames, jac)
+    report = _report(prob, frames, jac) if want_ident else None
+    hist = _history(prob, loop.h_theta, iteration=np.asarray(loop.h_iter, np.int64),
+                    loss=np.asarray(loop.h_loss, np.float64), grad_norm=np.asarray(loop.h_gnorm, np.float64),
+                    time=np.asarray(loop.h_time, np.float64), rejected=np.asarray(loop.h_rejected, np.int64))
+    out = _judge_loop(prob, loop)
+    return _result(prob, best, frames=frames, history=hist, outcome=out, report=report, warn_report=True,
+                   notes=notes, settings=settings, loop=loop, wall=wall, stacklevel=4,
+                   loss=float(loop.best_loss if loop.h_loss else np.nan),
+                   loss_start=float(loop.h_loss[0]) if loop.h_loss else float("nan"),
+                   iterations=loop.iteration, rejected=loop.rejected,
+                   reason=f"{out.text} (the optimiser stopped: {loop.reason})", lr=settings["lr"])
+
+
+def _history(prob, thetas, **arrays):
+    """A :attr:`FitResult.history`: ``arrays`` (iteration, loss, grad_norm, time, rejected) and each
+    fitted parameter's values (n, O_f) at the log values ``thetas`` (n, P_n, O_f)."""
+    hist = dict(arrays)
+    th = np.asarray(thetas, np.float64).reshape(-1, len(prob.names), len(prob.objects))
+    for i, n in enumerate(prob.names):
+        hist[n] = np.exp(th[:, i])
+    return hist
+
+
+def _result(prob, theta, *, frames, history, outcome, report, warn_report, notes, settings, loop, wall, stacklevel,
+            **fields):
+    """The :class:`FitResult` of every fit (the default fit and the gradient optimisers) ending at
+    log values ``theta``: the full parameters, the identifiability ``report`` (its warnings issued
+    when ``warn_report``), the ``outcome`` (warned and noted unless converged), and ``fields``
+    particular to the optimiser (loss, loss_start, iterations, rejected, reason, lr, search).
+    ``stacklevel``: that of the caller's own warnings (its caller's caller is the user's code)."""
+    notes = list(notes)
+    if report is not None and warn_report:
         for w in report.warnings:
-            warnings.warn(w, stacklevel=4)
-    vals = prob.values(best)
+            warnings.warn(w, stacklevel=stacklevel + 1)
+    if not outcome.converged:
+        warnings.warn(outcome.text, stacklevel=stacklevel + 1)
+        notes.append(outcome.text)
+    vals = prob.values(theta)
     full = {n: np.array(getattr(prob.base, n), np.float64) for n in PARAM_NAMES}
     for n in prob.names:
         full[n][list(prob.objects)] = vals[n]
-    hist = dict(iteration=np.asarray(loop.h_iter, np.int64), loss=np.asarray(loop.h_loss, np.float64),
-                grad_norm=np.asarray(loop.h_gnorm, np.float64), time=np.asarray(loop.h_time, np.float64),
-                rejected=np.asarray(loop.h_rejected, np.int64))
-    th = np.asarray(loop.h_theta, np.float64).reshape(-1, len(prob.names), len(prob.objects))
-    for i, n in enumerate(prob.names):
-        hist[n] = np.exp(th[:, i])
-    out = _judge_loop(prob, loop)
-    if not out.converged:
-        warnings.warn(out.text, stacklevel=4)
-        notes.append(out.text)
     return FitResult(
         params=Params(**full), names=prob.names, objects=tuple(prob.scene.object_names[o] for o in prob.objects),
-        values=vals, start=prob.start, loss=float(loop.best_loss if loop.h_loss else np.nan),
-        loss_start=float(loop.h_loss[0]) if loop.h_loss else float("nan"), history=hist,
-        iterations=loop.iteration, rejected=loop.rejected, converged=out.converged,
-        reason=f"{out.text} (the optimiser stopped: {loop.reason})", outcome=out,
+        values=vals, start=prob.start, history=history, converged=outcome.converged, outcome=outcome,
         identifiability=report, frames=frames, steps=np.asarray(prob.loss.frame_steps, np.int64),
-        dt=prob.target.dt, optimizer=settings["optimizer"], lr=settings["lr"],
-        normalisation=prob.loss.normalisation, scale2=prob.loss.scale2, noise=prob.noise,
-        scene_text=prob.scene.text, scene_path=prob.scene.path, target_path=prob.target.path,
-        wall_time=float(wall), warnings=tuple(notes), loop=loop, problem=prob,
-        settings=settings, predictability=prob.predictability)
+        dt=prob.target.dt, optimizer=settings["optimizer"], normalisation=prob.loss.normalisation,
+        scale2=prob.loss.scale2, noise=prob.noise, scene_text=prob.scene.text, scene_path=prob.scene.path,
+        target_path=prob.target.path, wall_time=float(wall), warnings=tuple(notes), loop=loop, problem=prob,
+        settings=settings, predictability=prob.predictability, **fields)
 
 
 def _motion(prob):
@@ -1110,27 +1128,14 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     gn_step, stderr = gauss_newton(run.jac, run.residual)
     out = _judge(prob, best.theta, rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
                  stopped=best.stopped, at_bound=at_bound, gn_step=gn_step, stderr=stderr)
-    if not out.converged:
-        warnings.warn(out.text, stacklevel=3)
-        notes.append(out.text)
     report = None
     if want_ident:
         factor = math.sqrt(prob.target.n_frames * prob.target.data.shape[1] * scale2)
         report = _ident.analyse(run.jac * factor, np.nan_to_num(run.residual) * factor, labels, noise=prob.noise)
-        if out.converged:
-            for w in report.warnings:
-                warnings.warn(w, stacklevel=3)
-    vals = prob.values(best.theta)
-    full = {n: np.array(getattr(prob.base, n), np.float64) for n in PARAM_NAMES}
-    for n in prob.names:
-        full[n][list(prob.objects)] = vals[n]
     path = best.history
-    th = np.asarray([t for _, t in path], np.float64).reshape(-1, len(prob.names), len(prob.objects))
-    hist = dict(iteration=np.arange(len(path), dtype=np.int64), loss=np.asarray([l for l, _ in path], np.float64),
-                grad_norm=np.full(len(path), np.nan), time=np.full(len(path), np.nan),
-                rejected=np.zeros(0, np.int64))
-    for i, n in enumerate(prob.names):
-        hist[n] = np.exp(th[:, i])
+    hist = _history(prob, [t for _, t in path], iteration=np.arange(len(path), dtype=np.int64),
+                    loss=np.asarray([l for l, _ in path], np.float64), grad_norm=np.full(len(path), np.nan),
+                    time=np.full(len(path), np.nan), rejected=np.zeros(0, np.int64))
     g = run.global_result
     paths = [(stage, hist, reason) for stage, stage_paths in enumerate(run.paths) for hist, reason in stage_paths]
     search = dict(global_thetas=g.thetas, global_loss=g.loss, global_ok=g.ok, global_substeps=g.substeps,
@@ -1138,16 +1143,11 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
                   local_losses=[np.asarray([l for l, _ in h]) for _, h, _ in paths],
                   local_reasons=[r for _, _, r in paths], local_stages=[s for s, _, _ in paths],
                   horizons=run.horizons, box_lo=box.lo, box_hi=box.hi, grad=run.grad, grad0=run.grad0)
-    loss_start = float(run.loss0)
-    return FitResult(
-        params=Params(**full), names=prob.names, objects=tuple(prob.scene.object_names[o] for o in prob.objects),
-        values=vals, start=prob.start, loss=float(best.loss), loss_start=loss_start, history=hist,
-        iterations=int(run.evaluations), rejected=int((~g.ok).sum()), converged=out.converged, reason=out.text,
-        identifiability=report, frames=frames, steps=np.asarray(prob.loss.frame_steps, np.int64),
-        dt=prob.target.dt, optimizer="lm", lr=None, normalisation=prob.loss.normalisation, scale2=scale2,
-        noise=prob.noise, scene_text=prob.scene.text, scene_path=prob.scene.path, target_path=prob.target.path,
-        wall_time=float(wall), warnings=tuple(notes), loop=run, problem=prob,
-        settings=settings, outcome=out, search=search, predictability=prob.predictability)
+    # the identifiability warnings only for a converged fit (whose standard errors mean something)
+    return _result(prob, best.theta, frames=frames, history=hist, outcome=out, report=report,
+                   warn_report=out.converged, notes=notes, settings=settings, loop=run, wall=wall, stacklevel=3,
+                   loss=float(best.loss), loss_start=float(run.loss0), iterations=int(run.evaluations),
+                   rejected=int((~g.ok).sum()), reason=out.text, lr=None, search=search)
 
 
 def identifiability_at(prob, theta):
