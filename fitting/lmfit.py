@@ -18,7 +18,10 @@ Progress is shown per stage; the run's state is checkpointed after the global st
 every local iteration (:func:`jaxplush.fitting.io.save_lm_checkpoint`), so ``resume`` continues an
 interrupted fit to the same answer (every evaluation is deterministic).
 
-Every tuning constant is a field of the :class:`jaxplush.fitting.options.FitOptions` that
+The run is built from the stages of :mod:`jaxplush.fitting.stages` (:class:`~jaxplush.fitting.stages.GlobalStage`,
+:class:`~jaxplush.fitting.stages.LocalLM` per horizon, :class:`~jaxplush.fitting.stages.Smoothing`);
+this module adds the phases a checkpoint records, progress bars, the callback and the final
+Jacobian and gradients. Every tuning constant is a field of the :class:`jaxplush.fitting.options.FitOptions` that
 :func:`run` takes (its ``search``, ``local``, ``continuation`` and ``smoothing`` groups).
 """
 
@@ -33,9 +36,10 @@ import numpy as np
 from jaxplush.progress import Progress
 
 from jaxplush.fitting import search as _search
-from jaxplush.fitting.evaluate import Evaluator
-from jaxplush.fitting.options import ContinuationOptions, FitOptions
+from jaxplush.fitting import stages as _stages
+from jaxplush.fitting.options import FitOptions
 from jaxplush.fitting.outcome import Stop
+from jaxplush.fitting.stages import horizons  # noqa: F401  (jaxplush.fitting.lmfit.horizons)
 
 @dataclasses.dataclass
 class LMRun:
@@ -73,16 +77,6 @@ class LMRun:
     smoothed: object = None
 
 
-def horizons(n_frames, continuation=None):
-    """Frame counts of the stages (increasing, the last ``n_frames``) under ``continuation``
-    (:class:`jaxplush.fitting.options.ContinuationOptions`, None: the defaults)."""
-    c = continuation or ContinuationOptions()
-    if n_frames < c.min_frames:
-        return (int(n_frames),)
-    out = sorted({max(2, int(math.ceil(f * n_frames))) for f in c.horizons})
-    return tuple(out[:-1]) + (int(n_frames),) if out[-1] != n_frames else tuple(out)
-
-
 def default_box(prob, bounds=None, factor=4.0):
     """The search box in log space: each fitted parameter from start/factor to start*factor, or
     ``bounds`` {name: (lo, hi)} (absolute values, every fitted object); damping stays >= 1."""
@@ -97,8 +91,7 @@ def default_box(prob, bounds=None, factor=4.0):
     return _search.Box(lo, hi)
 
 
-def _order(states):
-    return sorted(range(len(states)), key=lambda i: states[i].loss)
+_order = _stages.order
 
 
 def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None):
@@ -124,22 +117,22 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     t0 = time.perf_counter()
     st = resume or LMRun(horizons=horizons(prob.target.n_frames, opts.continuation))
     wall0, evals0 = st.wall, st.evaluations
-    evaluators = _Evaluators(prob, st.horizons)
+    objectives = _stages.Horizons(prob, box, st.horizons)
 
     def tick():
         st.wall = wall0 + time.perf_counter() - t0
-        st.evaluations = evals0 + evaluators.evaluations()
+        st.evaluations = evals0 + objectives.evaluations()
 
     n_stages = len(st.horizons)
     while st.phase in ("global", "local"):
-        ev = evaluators(st.stage)
+        obj = objectives(st.stage)
         label = f"stage {st.stage + 1}/{n_stages} ({st.horizons[st.stage]} of {st.horizons[-1]} frames)"
         if st.phase == "global":
-            _global(prob, ev, box, st, opts, progress, label)
+            _global(prob, obj, st, opts, progress, label)
             tick()
             if save is not None:
                 save(st)
-        _local(prob, ev, box, st, opts, progress, tick, save, callback, label)
+        _local(prob, obj, st, opts, progress, tick, save, callback, label)
         st.paths.append([(list(s.history), s.reason) for s in st.states])
         if st.stage + 1 < n_stages and not any(s.stopped == Stop.CALLBACK for s in st.states):
             _next_stage(st, opts.local.keep, opts.continuation)
@@ -148,7 +141,7 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
                 save(st)
         else:
             st.phase = "final"
-    ev = evaluators.last()
+    ev = objectives.last()
     if st.phase == "final":
         _final(prob, ev, box, st, opts, progress)
         st.phase = "done"
@@ -156,94 +149,41 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     return st, ev
 
 
-class _Evaluators:
-    """One :class:`jaxplush.fitting.evaluate.Evaluator` per stage (the problem truncated to its horizon),
-    made on first use: each shares the first one's compiled rollout (frames in chunks of the
-    first horizon), its calibration, and a contact capacity grown in an earlier stage."""
-
-    def __init__(self, prob, horizons):
-        self.prob, self.horizons, self.by_stage = prob, horizons, {}
-
-    def __call__(self, stage):
-        evaluators = self.by_stage
-        if stage not in evaluators:
-            sub = self.prob.truncated(self.horizons[stage])
-            calibration = next((e.calibration() for e in evaluators.values()), None)
-            if evaluators:              # a contact capacity grown in an earlier stage carries over
-                sub = dataclasses.replace(sub, sim=evaluators[max(evaluators)].prob.sim)
-            share = evaluators[min(evaluators)] if evaluators else None
-            # frames in chunks of the first horizon: every stage runs the same compiled rollout
-            evaluators[stage] = Evaluator(sub, calibration=calibration, share=share, chunk_frames=self.horizons[0])
-        return evaluators[stage]
-
-    def evaluations(self):
-        return sum(e.evaluations for e in self.by_stage.values())
-
-    def last(self):
-        """The full problem's evaluator, holding the earlier stages' notes first."""
-        last = len(self.horizons) - 1
-        ev = self(last)
-        ev.notes[:0] = [m for k, e in sorted(self.by_stage.items()) if k != last for m in e.notes]
-        return ev
-
-
-def _global(prob, ev, box, st, opts, progress, label):
-    """The global stage (:func:`jaxplush.fitting.search.global_stage`) and the local searches it starts."""
-    samples, local = opts.search.n_samples, opts.local
-    th0 = np.asarray(prob.theta0, np.float64)
+def _global(prob, obj, st, opts, progress, label):
+    """The global stage (:class:`jaxplush.fitting.stages.GlobalStage`) and the local searches it starts."""
+    samples = opts.search.n_samples
     with Progress(samples + 1, f"global search, {label}", enabled=progress, unit="points") as bar:
-        st.global_result = _search.global_stage(ev, box, th0, samples, opts.search.seed, progress=bar.update)
-        g = st.global_result
-        bar.extra = f"best loss {np.min(np.where(g.ok, g.loss, np.inf)):.4g}"
-        bar.finish(f"{int((~g.ok).sum())} failed" if (~g.ok).any() else "")
-    width = float(np.max(box.hi - box.lo))
-    chosen = st.global_result.best(opts.search.n_starts, local.start_distance * width)
-    st.states = [_search.LMState(theta=st.global_result.thetas[i].copy(), loss=float(st.global_result.loss[i]),
-                                 mu=local.mu0, radius=local.radius0) for i in chosen]
+        stage = _stages.GlobalStage(samples=samples, starts=opts.search.n_starts, seed=opts.search.seed,
+                                    local=opts.local, progress=bar.update)
+        g = stage.step(obj, stage.init(obj, prob.theta0))
+        st.global_result = g.result
+        bar.extra = f"best loss {np.min(np.where(g.result.ok, g.result.loss, np.inf)):.4g}"
+        bar.finish(f"{int((~g.result.ok).sum())} failed" if (~g.result.ok).any() else "")
+    st.states = g.states
     st.phase = "local"
 
 
 def _next_stage(st, keep, cont):
-    """The stage's best points start the next, longer stage (``cont``: :class:`ContinuationOptions`)."""
-    kept = []
-    best_loss = st.states[_order(st.states)[0]].loss
-    for i in _order(st.states)[:keep]:
-        s = st.states[i]
-        # searches that ended at the same point continue as one, and one that ended far
-        # above the best (in another basin) stops here: a longer horizon does not rescue it
-        if (math.isfinite(s.loss) and s.loss <= cont.carry_factor * best_loss
-                and all(np.max(np.abs(s.theta - o.theta)) > cont.same_point for o in kept)):
-            kept.append(s)
-    # a longer horizon moves the optimum little: start with a small trust radius (and so
-    # an accurate difference step), from the damping the previous stage ended with
-    st.states = [_search.LMState(theta=s.theta.copy(), loss=math.inf, radius=cont.next_radius,
-                                 mu=min(s.mu, 1.0)) for s in kept]
+    """The stage's best points start the next, longer stage (:func:`jaxplush.fitting.stages.carry`)."""
+    st.states = _stages.carry(st.states, keep, cont)
     st.stage += 1
     st.rounds = 0
     st.phase = "local"
 
 
-def _local(prob, ev, box, st, opts, progress, tick, save, callback, label):
-    """The local searches of the running stage, a Levenberg-Marquardt round of all of them at a
-    time (:func:`jaxplush.fitting.search.lm_round`), each round followed by rescues, screening, the
-    progress bar, the callback and a checkpoint."""
-    states, local, cont = st.states, opts.local, opts.continuation
-    _start_residuals(ev, states, local)
-    screen = st.stage == 0 and len(states) > local.keep
-    max_iter, noise_stop = opts.iteration_limit("lm"), local.noise_stop
-    if st.stage + 1 < len(st.horizons) or (prob.noise is not None and prob.noise > 0):
-        # only the last stage of a noise-free fit resolves the optimum itself: with a noisy
-        # target, the smoothing stage (jaxplush.fitting.search.smooth) does, at the scale of the noise
-        max_iter = min(max_iter, cont.iterations)
-        noise_stop = cont.noise_stop
-    with Progress(max_iter, f"local search, {label}", enabled=progress, unit="it") as bar:
-        bar.done = min(st.rounds, max_iter)
-        while any(not s.done for s in states):
-            _search.lm_round(ev, box, states, max_iter, local, noise_stop=noise_stop)
-            st.rounds += 1
-            # a search that stalls on a jump of the loss restarts from the lowest point of a scan
-            _search.rescue(ev, box, states, local.max_rescues, local)
-            _screen(states, st.rounds, screen, local)
+def _local(prob, obj, st, opts, progress, tick, save, callback, label):
+    """The local searches of the running stage (:class:`jaxplush.fitting.stages.LocalLM` on ``st``,
+    which holds its searches and rounds), each round followed by the progress bar, the callback
+    and a checkpoint."""
+    states = st.states
+    noisy = prob.noise is not None and prob.noise > 0
+    stage = _stages.local_for(_stages.LocalLM(max_iter=opts.iteration_limit("lm"), options=opts.local),
+                              st.stage, len(st.horizons), noisy, opts.continuation)
+    _stages.start_residuals(obj.evaluator, states, opts.local)
+    with Progress(stage.max_iter, f"local search, {label}", enabled=progress, unit="it") as bar:
+        bar.done = min(st.rounds, stage.max_iter)
+        while not stage.terminate(obj, st)[0]:
+            stage.step(obj, st)
             b = states[_order(states)[0]]
             vals = prob.values(b.theta)
             bar.update(1, extra=f"loss {b.loss:.4g} " + " ".join(
@@ -258,37 +198,6 @@ def _local(prob, ev, box, st, opts, progress, tick, save, callback, label):
             if save is not None and any(not s.done for s in states):
                 save(st)
         bar.finish(states[_order(states)[0]].reason)
-
-
-def _start_residuals(ev, states, local):
-    """The residuals of the states that lack them (a fresh start, or a resumed one: deterministic,
-    so the same values), in one evaluation."""
-    need = [s for s in states if s.residual is None and not s.done]
-    if not need:
-        return
-    fresh = _search.start_states(ev, np.asarray([s.theta for s in need]), options=local)
-    for s, f in zip(need, fresh):
-        s.residual, s.substeps, s.loss = f.residual, f.substeps, f.loss
-        if f.done:
-            s.done, s.stopped, s.reason = f.done, f.stopped, f.reason
-        if not s.history:
-            s.history.append((f.loss, s.theta.copy()))
-
-
-def _screen(states, rounds, screen, local):
-    """Set searches aside after ``rounds`` rounds: with ``screen``, all but the best ``keep`` after
-    ``screen_rounds``; then (or without screening) any whose loss exceeds ``drop_factor`` x the best's."""
-    if screen and rounds == local.screen_rounds:
-        for i in _order(states)[local.keep:]:
-            if not states[i].done:
-                states[i].done, states[i].stopped = True, Stop.SCREENED
-                states[i].reason = f"set aside after {local.screen_rounds} iterations (loss {states[i].loss:.4g})"
-    if rounds >= local.screen_rounds or not screen:
-        best = min(s.loss for s in states)
-        for s in states:
-            if not s.done and s.loss > local.drop_factor * best:
-                s.done, s.stopped = True, Stop.SCREENED
-                s.reason = f"set aside: its loss {s.loss:.4g} is {s.loss / best:.3g}x the best search's"
 
 
 def _final(prob, ev, box, st, opts, progress=False):
@@ -309,7 +218,9 @@ def _final(prob, ev, box, st, opts, progress=False):
     if prob.noise is not None and prob.noise > 0 and b.stopped != Stop.CALLBACK:
         with Progress(opts.smoothing.iterations, "smoothing (regression designs)", enabled=progress,
                       unit="designs") as bar:
-            sm = _search.smooth(ev, box, b.theta, st.jac, st.residual, progress=bar.update, options=opts.smoothing)
+            stage = _stages.Smoothing(options=opts.smoothing, local=local, progress=bar.update)
+            sm = stage.step(_stages.Objective(ev.prob, box, ev),
+                            _stages.SmoothState(theta=b.theta, jac=st.jac, residual=st.residual)).result
             bar.finish("skipped: singular Jacobian" if sm is None else
                        ("the step is within the standard errors" if sm.converged else f"stopped after {len(sm.path)} designs"))
         e = ev(np.asarray(sm.theta)[None]) if sm is not None else None

@@ -430,6 +430,32 @@ def test_the_default_fits_tuning_knobs_are_options_that_a_resume_checks(small, t
         np.testing.assert_array_equal(res.values[n], ref.values[n])
 
 
+def test_the_default_fits_stages_recombine_and_reach_its_searches_result(small):
+    """The stages (jaxplush.fitting.stages) recombined as the default fit's search (a global stage,
+    then Levenberg-Marquardt over horizons of growing length) reach lmfit.run's best point bit for
+    bit; a global stage alone gives its candidates, and a local stage after it goes on from them."""
+    import warnings
+    from jaxplush.fitting import FitOptions, lmfit, stages
+    _, start, target = small
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prob = F.build_problem(start, target, NAMES, noise_free=True)
+    box = lmfit.default_box(prob)
+    run, _ = lmfit.run(prob, box, FitOptions().replace(samples=4, starts=2, iterations=3))
+    objective = stages.Objective(prob, box)
+    cont = stages.Continuation(local=stages.LocalLM(max_iter=3), first=(stages.GlobalStage(samples=4, starts=2),))
+    (c,) = stages.run_stages(objective, prob.theta0, [cont])
+    best = c.states[stages.order(c.states)[0]]
+    np.testing.assert_array_equal(best.theta, run.best.theta)
+    assert best.loss == run.best.loss and len(c.paths) == len(run.paths) == 3
+    assert cont.terminate(objective, c) == (True, best.stopped)
+    glob, local = stages.run_stages(objective, prob.theta0, [stages.GlobalStage(samples=4, starts=2),
+                                                             stages.LocalLM(max_iter=2)])
+    assert len(glob.states) == 2 and glob.result.loss.shape == (5,)
+    assert all(s.iteration <= 2 and s.done for s in local.states)
+    assert min(s.loss for s in local.states) <= min(s.loss for s in glob.states)
+
+
 @pytest.mark.heavy
 def test_user_optax_optimizer_and_options_object(small, tmp_path):
     """A user's optax transformation runs through the fit's loop: the options object and the same

@@ -1,0 +1,417 @@
+"""The default fit's stages as pieces to recombine: one protocol, a few stages, a driver.
+
+An :class:`Objective` is built from a problem (:func:`jaxplush.fitting.fitter.build_problem`) and
+its search box: the residuals of the target at log values theta, batched and stable
+(:class:`jaxplush.fitting.evaluate.Evaluator`). A *stage* is any object with three methods:
+
+* ``init(objective, theta, state) -> stage_state``: start at the log values ``theta`` (the
+  problem's start values), or from ``state``, the previous stage's final state (None for the
+  first stage): a local stage starts from the previous stage's searches (its ``states``);
+* ``step(objective, stage_state) -> stage_state``: one step (a batch of evaluations);
+* ``terminate(objective, stage_state) -> (bool, Stop)``: whether it is done, and why
+  (:class:`jaxplush.fitting.outcome.Stop`).
+
+The stages of the default fit: :class:`GlobalStage` (a Sobol design over the box and the best
+candidates), :class:`LocalLM` (Levenberg-Marquardt from them, with screening and rescues) and
+:class:`Smoothing` (a noisy target's regression stage); :class:`Continuation` wraps stages to run
+over horizons of growing length (the target's first frames, then more). :func:`run_stages`
+runs a list of stages in turn, each from the last one's state. :func:`jaxplush.fitting.lmfit.run`
+is the default fit built from these stages, with checkpoints, progress and the callback around
+them. Every tuning knob comes from the options (:mod:`jaxplush.fitting.options`).
+
+A stage of one's own needs no base class: ``init``, ``step`` and ``terminate`` are enough (the
+README's "Stages" section puts a user's Gauss-Newton solver after the global stage).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Protocol
+
+import numpy as np
+
+from jaxplush.fitting import search as _search
+from jaxplush.fitting.evaluate import Evaluator
+from jaxplush.fitting.options import ContinuationOptions, LocalOptions, SmoothingOptions
+from jaxplush.fitting.outcome import Stop
+
+
+class Stage(Protocol):
+    """The protocol every stage follows (module docstring)."""
+
+    def init(self, objective, theta, state):
+        ...
+
+    def step(self, objective, state):
+        ...
+
+    def terminate(self, objective, state):
+        ...
+
+
+class Objective:
+    """The residuals of a problem's target at log values theta, over a search box.
+
+    Attributes:
+      prob: :class:`jaxplush.fitting.fitter.Problem`; box: :class:`jaxplush.fitting.search.Box`;
+      evaluator: its :class:`jaxplush.fitting.evaluate.Evaluator` (made on first use, or given).
+    """
+
+    def __init__(self, prob, box, evaluator=None):
+        self.prob, self.box, self._evaluator = prob, box, evaluator
+
+    @property
+    def evaluator(self):
+        if self._evaluator is None:
+            self._evaluator = Evaluator(self.prob)
+        return self._evaluator
+
+    def residuals(self, theta):
+        """(n,) residuals at one point (sum of squares: the loss), and whether it ran."""
+        e = self.evaluator(np.asarray(theta, np.float64)[None])
+        return e.residuals[0], bool(e.ok[0])
+
+    def jacobian(self, theta, h):
+        """(n, P) central-difference Jacobian at theta with step h (log space)."""
+        return _search.jacobian(self.evaluator, self.box, theta, h)
+
+
+def horizons(n_frames, continuation=None):
+    """Frame counts of the stages in time (increasing, the last ``n_frames``) under ``continuation``
+    (:class:`jaxplush.fitting.options.ContinuationOptions`, None: the defaults)."""
+    c = continuation or ContinuationOptions()
+    if n_frames < c.min_frames:
+        return (int(n_frames),)
+    out = sorted({max(2, int(math.ceil(f * n_frames))) for f in c.horizons})
+    return tuple(out[:-1]) + (int(n_frames),) if out[-1] != n_frames else tuple(out)
+
+
+class Horizons:
+    """One :class:`Objective` per horizon (the problem truncated to its first frames), made on first
+    use: each evaluator shares the first one's compiled rollout (frames in chunks of the first
+    horizon), its calibration, and a contact capacity grown at an earlier horizon."""
+
+    def __init__(self, prob, box, horizons):
+        self.prob, self.box, self.horizons, self.by_stage = prob, box, horizons, {}
+
+    def __call__(self, stage):
+        """The :class:`Objective` of horizon ``stage`` (an index into ``horizons``)."""
+        made = self.by_stage
+        if stage not in made:
+            sub = self.prob.truncated(self.horizons[stage])
+            calibration = next((e.calibration() for e in made.values()), None)
+            if made:              # a contact capacity grown at an earlier horizon carries over
+                sub = dataclasses.replace(sub, sim=made[max(made)].prob.sim)
+            share = made[min(made)] if made else None
+            # frames in chunks of the first horizon: every horizon runs the same compiled rollout
+            made[stage] = Evaluator(sub, calibration=calibration, share=share, chunk_frames=self.horizons[0])
+        return Objective(made[stage].prob, self.box, made[stage])
+
+    def evaluations(self):
+        return sum(e.evaluations for e in self.by_stage.values())
+
+    def last(self):
+        """The full problem's evaluator, holding the earlier horizons' notes first."""
+        last = len(self.horizons) - 1
+        ev = self(last).evaluator
+        ev.notes[:0] = [m for k, e in sorted(self.by_stage.items()) if k != last for m in e.notes]
+        return ev
+
+
+def order(states):
+    """Indices of ``states`` (:class:`jaxplush.fitting.search.LMState`) by increasing loss."""
+    return sorted(range(len(states)), key=lambda i: states[i].loss)
+
+
+# --------------------------------------------------------------------------- the global stage
+
+@dataclasses.dataclass
+class GlobalState:
+    """A :class:`GlobalStage`'s state: the start, the design's result and the searches it starts."""
+
+    theta: np.ndarray
+    result: object = None
+    states: list = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass(frozen=True)
+class GlobalStage:
+    """The start and ``samples`` Sobol points of the box (:func:`jaxplush.fitting.search.global_stage`),
+    in one step; its ``states`` are :class:`jaxplush.fitting.search.LMState` s at the best
+    ``starts`` of them, each ``local.start_distance`` of the box's width from those before.
+
+    Attributes: samples, starts, seed (:class:`jaxplush.fitting.options.SearchOptions`);
+    local: :class:`jaxplush.fitting.options.LocalOptions` (the spacing, and the searches' radius and mu);
+    progress: ``progress(n)`` after the design ran (or None).
+    """
+
+    samples: int = 64
+    starts: int = 5
+    seed: int = 0
+    local: LocalOptions = LocalOptions()
+    progress: object = None
+
+    def init(self, objective, theta, state=None):
+        return GlobalState(theta=np.asarray(theta, np.float64))
+
+    def step(self, objective, s):
+        box, o = objective.box, self.local
+        s.result = _search.global_stage(objective.evaluator, box, s.theta, self.samples, self.seed,
+                                        progress=self.progress)
+        width = float(np.max(box.hi - box.lo))
+        chosen = s.result.best(self.starts, o.start_distance * width)
+        s.states = [_search.LMState(theta=s.result.thetas[i].copy(), loss=float(s.result.loss[i]), mu=o.mu0,
+                                    radius=o.radius0) for i in chosen]
+        return s
+
+    def terminate(self, objective, s):
+        return s.result is not None, Stop.NONE
+
+
+# --------------------------------------------------------------------------- local Levenberg-Marquardt
+
+@dataclasses.dataclass
+class LocalState:
+    """A :class:`LocalLM`'s state: its searches and the rounds done (an
+    :class:`jaxplush.fitting.lmfit.LMRun`, which has both, serves as well)."""
+
+    states: list
+    rounds: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class LocalLM:
+    """Levenberg-Marquardt searches, one round of all of them per step
+    (:func:`jaxplush.fitting.search.lm_round`), then rescues of stalled ones
+    (:func:`jaxplush.fitting.search.rescue`) and screening (all but the best ``keep`` set aside after
+    ``screen_rounds`` when ``screen``; any far above the best, always).
+
+    Attributes:
+      max_iter: iterations per search; options: :class:`jaxplush.fitting.options.LocalOptions`;
+      noise_stop: the Gauss-Newton stop in standard errors (None: ``options.noise_stop``);
+      screen: screen down to ``options.keep`` searches (the first stage of the default fit).
+    """
+
+    max_iter: int = 40
+    options: LocalOptions = LocalOptions()
+    noise_stop: float | None = None
+    screen: bool = False
+
+    def init(self, objective, theta, state=None):
+        """From the previous stage's searches (``state.states``), or one search at theta."""
+        o = self.options
+        if state is not None and hasattr(state, "states"):
+            states = list(state.states)
+        else:
+            states = [_search.LMState(theta=np.asarray(theta, np.float64).copy(), loss=math.inf, mu=o.mu0,
+                                      radius=o.radius0)]
+        start_residuals(objective.evaluator, states, o)
+        return LocalState(states=states)
+
+    def step(self, objective, s):
+        o = self.options
+        ev, box, states = objective.evaluator, objective.box, s.states
+        _search.lm_round(ev, box, states, self.max_iter, o, noise_stop=self.noise_stop)
+        s.rounds += 1
+        # a search that stalls on a jump of the loss restarts from the lowest point of a scan
+        _search.rescue(ev, box, states, o.max_rescues, o)
+        screen(states, s.rounds, self.screen and len(states) > o.keep, o)
+        return s
+
+    def terminate(self, objective, s):
+        if any(not st.done for st in s.states):
+            return False, Stop.NONE
+        return True, s.states[order(s.states)[0]].stopped
+
+
+def start_residuals(ev, states, local):
+    """The residuals of the states that lack them (a fresh start, or a resumed one: deterministic,
+    so the same values), in one evaluation."""
+    need = [s for s in states if s.residual is None and not s.done]
+    if not need:
+        return
+    fresh = _search.start_states(ev, np.asarray([s.theta for s in need]), options=local)
+    for s, f in zip(need, fresh):
+        s.residual, s.substeps, s.loss = f.residual, f.substeps, f.loss
+        if f.done:
+            s.done, s.stopped, s.reason = f.done, f.stopped, f.reason
+        if not s.history:
+            s.history.append((f.loss, s.theta.copy()))
+
+
+def screen(states, rounds, screening, local):
+    """Set searches aside after ``rounds`` rounds: with ``screening``, all but the best ``keep`` after
+    ``screen_rounds``; then (or without screening) any whose loss exceeds ``drop_factor`` x the best's."""
+    if screening and rounds == local.screen_rounds:
+        for i in order(states)[local.keep:]:
+            if not states[i].done:
+                states[i].done, states[i].stopped = True, Stop.SCREENED
+                states[i].reason = f"set aside after {local.screen_rounds} iterations (loss {states[i].loss:.4g})"
+    if rounds >= local.screen_rounds or not screening:
+        best = min(s.loss for s in states)
+        for s in states:
+            if not s.done and s.loss > local.drop_factor * best:
+                s.done, s.stopped = True, Stop.SCREENED
+                s.reason = f"set aside: its loss {s.loss:.4g} is {s.loss / best:.3g}x the best search's"
+
+
+# --------------------------------------------------------------------------- smoothing
+
+@dataclasses.dataclass
+class SmoothState:
+    """A :class:`Smoothing` stage's state: its start, Jacobian and residuals there, and its result
+    (:class:`jaxplush.fitting.search.Smoothed`, or None: singular Jacobian); ``ran``: stepped."""
+
+    theta: np.ndarray
+    jac: np.ndarray
+    residual: np.ndarray
+    result: object = None
+    ran: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Smoothing:
+    """The smoothing stage of a noisy target (:func:`jaxplush.fitting.search.smooth`), in one step,
+    from the best search of the previous stage (or theta), its Jacobian taken at ``local.h_min``.
+
+    Attributes: options (:class:`jaxplush.fitting.options.SmoothingOptions`), local
+    (:class:`jaxplush.fitting.options.LocalOptions`), seed, progress (``progress(1, extra=...)``).
+    """
+
+    options: SmoothingOptions = SmoothingOptions()
+    local: LocalOptions = LocalOptions()
+    seed: int = 0
+    progress: object = None
+
+    def init(self, objective, theta, state=None):
+        states = getattr(state, "states", None)
+        theta = states[order(states)[0]].theta if states else np.asarray(theta, np.float64)
+        residual, _ = objective.residuals(theta)
+        jac = _search.jacobian(objective.evaluator, objective.box, theta, self.local.h_min, options=self.local)
+        return SmoothState(theta=theta, jac=jac, residual=residual)
+
+    def step(self, objective, s):
+        s.result = _search.smooth(objective.evaluator, objective.box, s.theta, s.jac, s.residual, seed=self.seed,
+                                  progress=self.progress, options=self.options)
+        s.ran = True
+        return s
+
+    def terminate(self, objective, s):
+        return s.ran, Stop.NONE
+
+
+# --------------------------------------------------------------------------- continuation in time
+
+def local_for(local, index, n_horizons, noisy, continuation):
+    """The :class:`LocalLM` of horizon ``index`` of ``n_horizons`` in the default fit: ``local``
+    screening on the first horizon; before the last (and on the last of a ``noisy`` target, which
+    the smoothing stage resolves) at most ``continuation.iterations`` iterations and the
+    continuation's Gauss-Newton stop."""
+    out = dataclasses.replace(local, screen=index == 0)
+    if index + 1 < n_horizons or noisy:
+        out = dataclasses.replace(out, max_iter=min(local.max_iter, continuation.iterations),
+                                  noise_stop=continuation.noise_stop)
+    return out
+
+
+def carry(states, keep, continuation):
+    """The searches that start the next horizon: of the best ``keep``, those within
+    ``carry_factor`` of the best loss, one per point (``same_point``), with the trust radius
+    ``next_radius`` (a longer horizon moves the optimum little) and their damping (at most 1)."""
+    kept = []
+    best_loss = states[order(states)[0]].loss
+    for i in order(states)[:keep]:
+        s = states[i]
+        # searches that ended at the same point continue as one, and one that ended far
+        # above the best (in another basin) stops here: a longer horizon does not rescue it
+        if (math.isfinite(s.loss) and s.loss <= continuation.carry_factor * best_loss
+                and all(np.max(np.abs(s.theta - o.theta)) > continuation.same_point for o in kept)):
+            kept.append(s)
+    return [_search.LMState(theta=s.theta.copy(), loss=math.inf, radius=continuation.next_radius,
+                            mu=min(s.mu, 1.0)) for s in kept]
+
+
+@dataclasses.dataclass
+class ContinuationState:
+    """A :class:`Continuation`'s state: its horizons' objectives, the horizon running, the stages
+    still to run there, the running stage and its state, and the finished horizons' searches."""
+
+    horizons: Horizons
+    index: int = 0
+    pending: list = dataclasses.field(default_factory=list)
+    stage: object = None
+    inner: object = None
+    paths: list = dataclasses.field(default_factory=list)
+    done: bool = False
+
+    @property
+    def states(self):
+        return getattr(self.inner, "states", [])
+
+
+@dataclasses.dataclass(frozen=True)
+class Continuation:
+    """Stages over horizons of growing length (:func:`horizons`): ``first`` (e.g. a
+    :class:`GlobalStage`) and then ``local`` on the target's first frames; on each longer horizon,
+    ``local`` (:func:`local_for`) from the searches :func:`carry` keeps. Its ``states`` are the
+    running stage's; one step is one step of the running stage.
+
+    Attributes: local (:class:`LocalLM`), first (stages before it on the first horizon),
+    options (:class:`jaxplush.fitting.options.ContinuationOptions`), noisy (a noisy target: the
+    last horizon's searches stop as the earlier ones' do, for :class:`Smoothing` to resolve).
+    """
+
+    local: LocalLM = LocalLM()
+    first: tuple = ()
+    options: ContinuationOptions = ContinuationOptions()
+    noisy: bool = False
+
+    def init(self, objective, theta, state=None):
+        hs = Horizons(objective.prob, objective.box, horizons(objective.prob.target.n_frames, self.options))
+        s = ContinuationState(horizons=hs, pending=list(self.first) + [self._local(0, hs)])
+        self._next(s, theta, state)
+        return s
+
+    def _local(self, index, hs):
+        return local_for(self.local, index, len(hs.horizons), self.noisy, self.options)
+
+    def _next(self, s, theta, state):
+        s.stage = s.pending.pop(0)
+        s.inner = s.stage.init(s.horizons(s.index), theta, state)
+
+    def step(self, objective, s):
+        obj = s.horizons(s.index)
+        s.inner = s.stage.step(obj, s.inner)
+        done, stop = s.stage.terminate(obj, s.inner)
+        if not done:
+            return s
+        if s.pending:
+            self._next(s, objective.prob.theta0, s.inner)
+        elif s.index + 1 < len(s.horizons.horizons) and not any(x.stopped == Stop.CALLBACK for x in s.states):
+            s.paths.append([(list(x.history), x.reason) for x in s.states])
+            carried = carry(s.states, self.local.options.keep, self.options)
+            s.index += 1
+            s.pending = [self._local(s.index, s.horizons)]
+            self._next(s, objective.prob.theta0, LocalState(states=carried))
+        else:
+            s.paths.append([(list(x.history), x.reason) for x in s.states])
+            s.done = True
+        return s
+
+    def terminate(self, objective, s):
+        if not s.done:
+            return False, Stop.NONE
+        return True, s.states[order(s.states)[0]].stopped if s.states else Stop.NONE
+
+
+def run_stages(objective, theta, stages):
+    """Run ``stages`` in turn, each from the previous one's final state (the first from theta).
+    Returns the list of their final states."""
+    out, state = [], None
+    for stage in stages:
+        state = stage.init(objective, theta, state)
+        while not stage.terminate(objective, state)[0]:
+            state = stage.step(objective, state)
+        out.append(state)
+    return out
