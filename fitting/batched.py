@@ -2,8 +2,9 @@
 
 ``make_batched_simulator(scene, dt, batch)`` builds the same physics as
 :func:`jaxplush.make_simulator` (springs, edge dashpot, air drag, gas, gravity, the floor and its
-optional friction/restitution, pinned vertices, the report's Verlet damping, several objects;
-only the terms the scene or the parameter batch needs are traced) for a static batch of B
+optional friction/restitution, pinned vertices, the report's Verlet damping, several objects,
+soft-soft contact with its friction and self-collision; only the terms the scene or the
+parameter batch needs are traced) for a static batch of B
 parameter points. It exists for throughput: a plain ``jax.vmap`` of the single-scene step puts
 the batch on the leading axis, so every one-ring gather moves single floats B times over, and
 batching then gains little over one scene at a time. Here every array carries the batch on
@@ -27,14 +28,26 @@ floats (:func:`_folded`: at 16 points a row, XLA:CPU leaves the small in-place p
 scalar; folded, it vectorises it; see benchmarks/RESULTS.md). Points are independent, so
 chunking changes the results only by rounding (chunks of another width vectorise differently).
 
+Soft-soft contact is the one term not written out on (V, B) slots: its candidate lists and
+closest-face search are per scene, so the single-scene functions of :mod:`jaxplush.model.contact`
+run ``jax.vmap``-ed over the points (:func:`_make_contact`), on each point's positions
+transposed to the single-scene (3, V) layout and back (the transposes cost little next to the
+contact term itself; benchmarks/RESULTS.md, "Batched contact"). The rollout carries every
+point's candidate lists (:class:`BatchedCoherent`), rebuilt per point where the single scene
+rebuilds them, so a batched point follows ``jaxplush.simulate`` to rounding.
+
 Only the Verlet integrator is batched. A scene whose :class:`jaxplush.model.forces.Terms` selects
-something this module does not implement (soft-soft contact, or a Terms field added later)
-raises ``NotImplementedError`` before anything is traced.
+something this module does not implement (a Terms field added later) raises
+``NotImplementedError`` before anything is traced.
 
 Health is tracked per batch point and object exactly as in :mod:`jaxplush.stepping.rollouts`: the
 rollout carries (O, B) status codes, the step at which each failure was seen and the last
 healthy state of every point; :func:`locate_failures` then finds the exact failing step of each
-failed point. One point blowing up never touches the others (nothing is reduced across B).
+failed point. One point blowing up never touches the others (nothing is reduced across B). A
+point whose contact candidates overflow their capacity gets the code ``CONTACT_OVERFLOW`` for
+that object at the next saved frame (its cache's sticky flag), as in a single-scene rollout;
+:class:`jaxplush.fitting.evaluate.Evaluator` then grows the capacity and runs it again, and a
+sweep reports it per point.
 """
 
 from __future__ import annotations
@@ -44,7 +57,7 @@ import functools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -55,6 +68,7 @@ from jaxplush.stepping import constraints
 from jaxplush.stepping import diagnostics
 from jaxplush.stepping import integrators
 from jaxplush.stepping.rollouts import Health
+from jaxplush.model import contact as _contact
 from jaxplush.model import forces as model
 from jaxplush.model import terms as T
 from jaxplush.model.layout import per_vertex, vertex_mass
@@ -82,6 +96,8 @@ class BatchedSimulator:
         (O, B) or None without gas.
       topology, terms, dt, substeps, batch, scene, dtype: how it was built.
       chunk: points per compiled rollout call (see :func:`rollout`).
+      coherent: with soft-soft contact between objects, a :class:`BatchedCoherent` (the step with
+        every point's contact candidate lists carried, which :func:`rollout` scans), else None.
     """
 
     init_fn: Callable
@@ -97,6 +113,7 @@ class BatchedSimulator:
     dtype: object
     chunk: int = None
     integrator: str = "verlet"
+    coherent: object = None
 
     def params(self, values=None):
         """Broadcast parameters to a batch: ``values`` is a Params of scalars, (O,) or (O, B)
@@ -137,13 +154,9 @@ def check_terms(terms):
     """Raise NotImplementedError if ``terms`` selects anything this module does not implement."""
     extra = T.unsupported(terms, "batched")
     if extra:
-        hint = ""
-        if "contact" in extra:
-            hint = (" (soft-soft contact is on for every multi-object scene, and with 'self_collision on'; "
-                    "if the objects never touch, add the line 'contact off' to the scene)")
         raise NotImplementedError(
             f"the batched simulator does not implement the term(s) {', '.join(extra)} that this scene "
-            f"needs{hint}; simulate such scenes one at a time with jaxplush.simulate")
+            f"needs; simulate such scenes one at a time with jaxplush.simulate")
 
 
 def terms_for(scene, params=None):
@@ -181,14 +194,22 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     topo = compiled.topology(scene)
     model.check_precision(topo, dtype, scene.path)
     kernel = _make_force_fn(topo, terms, scene.temperature)
-    init_fn, step_fn = _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype)
+    touch = _make_contact(topo, terms, h)
+    init_fn, step_fn, coherent = _make_verlet(topo, terms, scene, kernel, touch, h, substeps, batch, dtype)
 
     def status_fn(params, x):
-        return diagnostics.status_codes(topo, terms, x)
+        code = diagnostics.status_codes(topo, terms, x)
+        if touch is not None and touch.overflow is not None:
+            code = diagnostics.with_overflow(code, touch.overflow(x))
+        return code
 
-    return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=kernel,
+    def force_fn(params, x, v):
+        f, volume = kernel(params, x, v)
+        return (f if touch is None else touch.add(params, x, v, f)), volume
+
+    return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
                             topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
-                            dtype=dtype, chunk=chunk)
+                            dtype=dtype, chunk=chunk, coherent=coherent)
 
 
 def _checked_batch_args(integrator, dt, batch, substeps, chunk):
@@ -208,16 +229,19 @@ def _checked_batch_args(integrator, dt, batch, substeps, chunk):
     return dt, batch, substeps, chunk
 
 
-def _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype):
-    """The batched damped Verlet scheme on the internal layout: (init_fn, step_fn) of
-    :class:`BatchedSimulator`, ``substeps`` steps of h per ``step_fn`` call."""
+def _make_verlet(topo, terms, scene, kernel, touch, h, substeps, batch, dtype):
+    """The batched damped Verlet scheme on the internal layout: (init_fn, step_fn, coherent) of
+    :class:`BatchedSimulator`, ``substeps`` steps of h per ``step_fn`` call; ``touch``: the
+    :class:`_Contact` of :func:`_make_contact` (None without soft-soft contact)."""
     gravity = tuple(float(g) for g in scene.gravity)
     fixed = topo.fixed
     x0_fixed = np.ascontiguousarray(topo.x0[fixed].T)                 # (3, P)
     floor = _make_floor(topo, terms, scene, h)
 
-    def accel(params, x, v):
+    def accel(params, x, v, cache=None):
         f, volume = kernel(params, x, v)
+        if touch is not None:
+            f = touch.add(params, x, v, f, cache)
         inv_m = 1.0 / vertex_mass(topo, params)
         a = tuple(fc * inv_m for fc in f)
         if terms.gravity:
@@ -239,9 +263,9 @@ def _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype):
         u = tuple(integrators.verlet_start(vc, ac, h) for vc, ac in zip(v, a0))
         return State(x, pin(u))
 
-    def substep(params, state):
+    def substep(params, state, cache=None):
         x, u = state
-        a, _ = accel(params, x, u)
+        a, _ = accel(params, x, u, cache)
         keep = None
         if terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
@@ -258,7 +282,115 @@ def _make_verlet(topo, terms, scene, kernel, h, substeps, batch, dtype):
         def step_fn(params, state):
             return jax.lax.fori_loop(0, substeps, lambda _, s: substep(params, s), state)
 
-    return init_fn, step_fn
+    return init_fn, step_fn, _coherent_step(touch, substep, substeps)
+
+
+class BatchedCoherent(NamedTuple):
+    """The batched step with every point's soft-soft contact candidate lists carried between steps,
+    as :class:`jaxplush.stepping.step.CoherentStep` for one scene.
+
+    ``init(x) -> cache``: a fresh search of every point at internal positions x (three (V, B)): a
+    :class:`jaxplush.model.contact.ContactCache` whose leaves carry the batch on their *leading*
+    axis (those of ``jax.vmap``; its ``overflow`` is (B, O)); ``step(params, state, cache) ->
+    (state, cache)``: one time step with the carried lists, updated after every substep.
+    """
+
+    init: Callable
+    step: Callable
+
+
+def _coherent_step(touch, substep, substeps):
+    """The :class:`BatchedCoherent` of the Verlet ``substep`` (None without object pairs): as
+    :func:`jaxplush.stepping.step._coherent_step`, the force reading the carried lists and the
+    lists updated after each substep."""
+    if touch is None or touch.init is None:
+        return None
+
+    def coherent_substep(params, state, cache):
+        state = substep(params, state, cache)
+        return state, touch.update(cache, state.x)
+
+    if substeps == 1:
+        step = coherent_substep
+    else:
+        def step(params, state, cache):
+            return jax.lax.fori_loop(0, substeps, lambda _, c: coherent_substep(params, *c), (state, cache))
+
+    return BatchedCoherent(init=touch.init, step=step)
+
+
+class _Contact(NamedTuple):
+    """Soft-soft contact (and self-collision) on the batched layout: the single-scene functions of
+    :func:`jaxplush.model.contact.make_contact`, ``jax.vmap``-ed over the points.
+
+    add: (params, x, v, f, cache=None) -> f plus the contact force (x, v, f three (V, B); cache
+      batched as :class:`BatchedCoherent`'s; None: every point searches afresh).
+    init, update: a fresh batched cache at x, and the cache for new positions x (None without
+      object pairs).
+    overflow: x -> (O, B) bool, the objects whose candidates a fresh search at x would overflow
+      (:func:`jaxplush.model.contact.make_overflow_check`), or None without object pairs.
+    """
+
+    add: Callable
+    init: Callable
+    update: Callable
+    overflow: Callable
+
+
+def _lanes(comps):
+    """Three (V, B) components -> (B, 3, V): each point on the single-scene internal layout."""
+    return jnp.stack(comps).transpose(2, 0, 1)
+
+
+def _make_contact(topo, terms, h):
+    """The :class:`_Contact` of ``terms.contact``, or None when nothing can touch.
+
+    One definition of the physics: the single-scene force and candidate cache, vmapped over the
+    batch, with the positions (and, with contact friction, the velocities) transposed to
+    (B, 3, V) for them and the force back to (V, B) components (benchmarks/RESULTS.md, "Batched
+    contact", measures the transposes). A cache is rebuilt per point exactly where the single
+    scene rebuilds it, and the rebuild's search runs only for the points that need it.
+    """
+    cfg = terms.contact
+    if not cfg:
+        return None
+    force, ops = _contact.make_contact(topo, cfg, h)
+    check = _contact.make_overflow_check(topo, cfg)
+    friction = cfg.friction > 0
+
+    def add(params, x, v, f, cache=None):
+        with jax.named_scope("contact"):
+            one = lambda p, xl, vl, c: force(p, xl, vl, cache=c)          # noqa: E731
+            g = jax.vmap(one, in_axes=(1, 0, 0 if friction else None, None if cache is None else 0))(
+                params, _lanes(x), _lanes(v) if friction else None, cache)
+            g = g.transpose(1, 2, 0)                                       # (3, V, B)
+            return tuple(fc + g[c] for c, fc in enumerate(f))
+
+    if ops is None:
+        return _Contact(add, None, None, None)
+
+    def init(x):
+        return jax.vmap(ops.init)(_lanes(x))
+
+    def update(cache, x):
+        # every point walked, then the points due a rebuild rebuilt one at a time (ops.update, which
+        # rebuilds them): the search costs only the points that need it, as in the single scene
+        xl = _lanes(x)
+        stale = jax.vmap(ops.stale)(cache, xl)
+        walked = jax.vmap(ops.walk)(cache, xl)
+
+        def rebuild_one(c):
+            out, todo = c
+            b = jnp.argmax(todo)
+            one = ops.update(jax.tree_util.tree_map(lambda a: a[b], cache), xl[b])
+            return jax.tree_util.tree_map(lambda a, o: a.at[b].set(o), out, one), todo.at[b].set(False)
+
+        return jax.lax.while_loop(lambda c: jnp.any(c[1]), rebuild_one, (walked, stale))[0]
+
+    def overflow(x):
+        return jax.vmap(check)(_lanes(x)).T
+
+    return _Contact(add, init, update, overflow)
 
 
 def default_chunk(batch):
@@ -404,28 +536,48 @@ def initial_health(bsim, state, step0=0):
 
 
 def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe):
-    step_fn = bsim.step_fn
+    coherent = bsim.coherent
+    if coherent is None:
+        def one(s, cache):
+            return bsim.step_fn(params, s), cache
+        cache0 = None
+    else:
+        # soft-soft contact: every point's candidate lists ride along in the carry, as in
+        # jaxplush.stepping.rollouts (searched afresh at the start of each call), with their
+        # sticky per-object overflow flags
+        def one(s, cache):
+            return coherent.step(params, s, cache)
+        cache0 = coherent.init(state.x)
 
-    def steps(s):
+    def steps(s, cache):
         # The positions are carried folded (see _folded): the in-place position update then runs
         # on rows of >= _FOLD_WIDTH floats, which XLA:CPU vectorises.
         v, b = s.x[0].shape
         r = _fold_factor(v, b)
         fold = lambda st: State(tuple(a.reshape(v // r, r * b) for a in st.x), st.v)       # noqa: E731
         unfold = lambda st: State(tuple(a.reshape(v, b) for a in st.x), st.v)              # noqa: E731
-        return unfold(jax.lax.scan(lambda c, _: (fold(step_fn(params, unfold(c))), None), fold(s), None,
-                                   length=save_every)[0])
+
+        def body(c, _):
+            s, cache = one(unfold(c[0]), c[1])
+            return (fold(s), cache), None
+        s, cache = jax.lax.scan(body, (fold(s), cache), None, length=save_every)[0]
+        return unfold(s), cache
 
     def frame(carry, i):
-        s, h = carry
-        s = steps(s)
+        s, cache, h = carry
+        s, cache = steps(s, cache)
         step = step0 + (i + 1) * save_every                                  # (B,)
-        code = bsim.status_fn(params, s.x)
+        if coherent is None:
+            code = bsim.status_fn(params, s.x)
+        else:
+            # a contact overflow since the start of this call is the object's code
+            code = diagnostics.with_overflow(diagnostics.status_codes(bsim.topology, bsim.terms, s.x),
+                                             cache.overflow.T)
         h = h.advance(code, step, s)
         out = None if observe is None else observe(params, i, s.x, aux)
-        return (s, h), out
+        return (s, cache, h), out
 
-    (state, health), out = jax.lax.scan(frame, (state, health), jnp.arange(n_frames, dtype=jnp.int32))
+    (state, _, health), out = jax.lax.scan(frame, (state, cache0, health), jnp.arange(n_frames, dtype=jnp.int32))
     return state, out, health
 
 

@@ -4,7 +4,9 @@
 and returns each point's residual vector (:func:`jaxplush.fitting.losses.make_residual`: sum(r²) is the
 fit's loss), its loss and whether it ran. Points run in compiled batches of the batched
 simulator (:mod:`jaxplush.fitting.batched`, one compile per batch width and substep count) where the
-scene allows it (Verlet, no soft-soft contact), otherwise one at a time.
+scene allows it (Verlet, at most 8 runs of equally spaced target frames; soft-soft contact
+included), otherwise one at a time. A point whose contact candidates overflow their capacity is
+run again with a grown capacity (:meth:`Evaluator._frames_batched`).
 
 Stability: before a point runs, its explicit stability limit is predicted from the closed-form
 bound (:func:`jaxplush.stepping.stability.bound`, O(V) numpy), calibrated once against the power-iteration
@@ -34,6 +36,9 @@ from jaxplush.fitting import losses as _losses
 
 #: Largest substep count a point may be run with.
 MAX_SUBSTEPS = 16
+#: Times the batched path grows the soft-soft contact capacity for one call's overflowing points
+#: before it runs those still overflowing one at a time.
+MAX_CAPACITY_GROWTHS = 3
 #: Points simulated together by the batched simulator, in two chunks run on two cores: a call
 #: of 32 points at 642 vertices costs little more than one of 16 (see benchmarks/RESULTS.md); above
 #: LARGE_MESH vertices the chunks outgrow the caches and 16 points a call are cheaper.
@@ -230,7 +235,25 @@ class Evaluator:
         return self._bsims[key]
 
     def _frames_batched(self, thetas, n):
-        out, good, clamp = [], [], []
+        """(frames, ok, clamped) of :meth:`_frames` on the batched simulator. Points whose soft-soft
+        contact candidates overflowed (health code ``CONTACT_OVERFLOW``) are run again: the capacity
+        is grown to what the first of them needs (:meth:`_grow_contact`, a warning names it; later
+        batches compile with it) and they rerun batched, up to :data:`MAX_CAPACITY_GROWTHS` times;
+        any still overflowing then run one at a time (:meth:`_frames_single`, which grows on)."""
+        fr, good, clamp, over = self._run_batches(thetas, n)
+        for _ in range(MAX_CAPACITY_GROWTHS):
+            idx = np.flatnonzero(over)
+            if not idx.size or not self._grow_contact(thetas[idx[0]], self._single_fn(n)[0]):
+                break
+            fr[idx], good[idx], clamp[idx], over[idx] = self._run_batches(thetas[idx], n)
+        idx = np.flatnonzero(over)
+        if idx.size:
+            fr[idx], good[idx], clamp[idx] = self._frames_single(thetas[idx], n)
+        return fr, good, clamp
+
+    def _run_batches(self, thetas, n):
+        """(frames, ok, clamped, overflowed (N,)) of the points run in batches, as they come."""
+        out, good, clamp, over = [], [], [], []
         start = 0
         while start < len(thetas):
             left = len(thetas) - start
@@ -264,7 +287,8 @@ class Evaluator:
             out.append(fr)
             good.append(~failed & np.isfinite(fr).all(axis=(1, 2, 3)))
             clamp.append(warn)
-        return np.concatenate(out), np.concatenate(good), np.concatenate(clamp)
+            over.append((np.asarray(health.code) == diagnostics.CONTACT_OVERFLOW).any(axis=0)[:live])
+        return np.concatenate(out), np.concatenate(good), np.concatenate(clamp), np.concatenate(over)
 
     def _single_fn(self, n):
         if n not in self._single:

@@ -207,7 +207,7 @@ def test_contact_capacity_overflow_is_grown_not_rejected():
 
 @pytest.mark.heavy
 def test_evaluator_grows_the_contact_capacity_on_an_overflow_code():
-    """The default fit's evaluator (one point at a time with contact) reads the health code
+    """The default fit's evaluator (batched, with contact) reads the health code
     CONTACT_OVERFLOW of its rollout, raises the capacity (a warning names it) and runs the point
     again; the frames it returns are those of the grown capacity."""
     from jaxplush.fitting.evaluate import Evaluator
@@ -221,7 +221,7 @@ def test_evaluator_grows_the_contact_capacity_on_an_overflow_code():
     assert np.isfinite(np.asarray(frames)).all()
     assert (np.asarray(codes) == jaxplush.stepping.diagnostics.CONTACT_OVERFLOW).all()     # from the first frame on
     ev = Evaluator(prob)
-    assert not ev.batched
+    assert ev.batched                      # the batched path grows it (tests/test_batched_contact.py)
     with pytest.warns(UserWarning, match=r"contact candidates overflowed \(capacity 2\).*contact_capacity"):
         e = ev(np.asarray(prob.theta0)[None], keep_frames=True)
     assert e.ok.all() and np.isfinite(e.loss).all() and len(ev.notes) == 1

@@ -31,7 +31,7 @@ TRUE_K, TRUE_NMOL = 300.0, 2e-3
 
 def _two_object_scene(**kw):
     """Two icospheres with every term on: gas, floor, a pin, dashpot, drag, Verlet damping."""
-    # (soft-soft contact is not batched: switch it off)
+    # (soft-soft contact off: batched contact is checked in tests/test_batched_contact.py)
     text = ("contact off\n"
             + icosphere_text(subdivisions=1, nmol=1e-3, dashpot=0.01, drag=0.5, damping=200.0, floor=-0.12,
                              fixed=(0,), **kw)
@@ -119,9 +119,8 @@ def test_blow_up_is_located_per_point_at_simulates_step():
 def test_unsupported_terms_and_integrators_raise_before_tracing():
     two = jaxplush.parse_scene(icosphere_text(subdivisions=0) + icosphere_text(
         subdivisions=0, name="b", translate=(0.5, 0, 0), offset=12, header=False), "<contact>")
-    if getattr(batched.terms_for(two), "contact", None):
-        with pytest.raises(NotImplementedError, match="contact"):
-            batched.make_batched_simulator(two, DT, 2)
+    # soft-soft contact is batched (tests/test_batched_contact.py): built, with per-point candidate lists
+    assert batched.terms_for(two).contact and batched.make_batched_simulator(two, DT, 2).coherent is not None
 
     @dataclasses.dataclass(frozen=True)
     class FutureTerms(model.Terms):
@@ -460,12 +459,9 @@ def test_large_sweeps_pad_less_than_one_chunk_per_batch(monkeypatch):
     np.testing.assert_allclose(split.final_positions[48], traj.positions[-1], rtol=0, atol=1e-6)
 
 
-def test_cli_rejects_unplottable_grids_contact_scenes_and_empty_ranges(tmp_path, capsys):
+def test_cli_rejects_unplottable_grids_and_empty_ranges(tmp_path, capsys):
     obj = tmp_path / "ball.obj"
     obj.write_text(icosphere_text(subdivisions=0, nmol=1e-3))
-    two = tmp_path / "two.obj"
-    two.write_text(icosphere_text(subdivisions=0) + icosphere_text(subdivisions=0, name="b", translate=(0.5, 0, 0),
-                                                                    offset=12, header=False))
     out = tmp_path / "out.h5"
     common = ["--steps", "10", "--dt", "1e-4", "--out", str(out), "--quiet"]
     cases = [
@@ -475,14 +471,11 @@ def test_cli_rejects_unplottable_grids_contact_scenes_and_empty_ranges(tmp_path,
         ([str(obj), "--grid", "k=100:100:3"], "all be 100"),
         ([str(obj), "--grid", "k=100,200,100"], "distinct"),
     ]
-    if getattr(batched.terms_for(jaxplush.load_scene(two)), "contact", None):
-        cases.append(([str(two), "--grid", "k=1,2"], f"{two}: the batched simulator does not implement"))
-        cases.append(([str(two), "--grid", "k=1,2"], "add the line 'contact off'"))
     for argv, msg in cases:
         rc = sweep_main(argv + common)
         err = capsys.readouterr().err
         assert rc == 2 and msg in err and "Traceback" not in err, (argv, err)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ball.obj", "two.obj"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ball.obj"]
 
 
 def test_target_frames_must_be_strictly_increasing(truth_target):

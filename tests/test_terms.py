@@ -64,8 +64,8 @@ def test_an_unsupported_term_is_refused_by_name():
     with pytest.raises(ValueError, match="floor_friction"):
         G.rollout_loss(sim, sim.params(), sim.init_fn(sim.params()), (1,), lambda x, a: jnp.sum(x), jnp.zeros((1,)),
                        method="adjoint")
-    with pytest.raises(NotImplementedError, match="contact"):
-        batched.check_terms(model.Terms(contact=contact.ContactConfig(((0, 1),), (), (0.01,), (), None, (8, 8))))
+    # soft-soft contact (and its friction) is batched: the single-scene code under jax.vmap
+    batched.check_terms(model.Terms(contact=contact.ContactConfig(((0, 1),), (), (0.01,), (), None, (8, 8), 0.5)))
 
 
 # --------------------------------------------------------------------------- transposes

@@ -751,15 +751,20 @@ def _cache_ops(topo, cfg, ring, search):
         new = search(xs)
         return new._replace(overflow=new.overflow | cache.overflow)
 
+    def stale(cache, x):
+        """bool: some vertex has moved more than half the skin since the last build."""
+        xs = jax.lax.stop_gradient(x)
+        return jnp.max(jnp.sum((xs - cache.x_ref) ** 2, axis=0)) > jnp.asarray(half_skin2, xs.dtype)
+
     def update(cache, x):
         """The cache for positions x: rebuilt (:func:`search`) once some vertex has moved more than
         half the skin since the last build, else the targets walked. The overflow flags are
         sticky: once set they stay set, so an overflow between saved frames is not lost."""
         xs = jax.lax.stop_gradient(x)
-        moved = jnp.max(jnp.sum((xs - cache.x_ref) ** 2, axis=0)) > jnp.asarray(half_skin2, xs.dtype)
-        return jax.lax.cond(moved, lambda: rebuild(cache, xs), lambda: walk(cache, xs))
+        return jax.lax.cond(stale(cache, xs), lambda: rebuild(cache, xs), lambda: walk(cache, xs))
 
-    return CacheOps(init=lambda x: search(jax.lax.stop_gradient(x)), update=update)
+    return CacheOps(init=lambda x: search(jax.lax.stop_gradient(x)), update=update, stale=stale,
+                    walk=lambda cache, x: walk(cache, jax.lax.stop_gradient(x)))
 
 
 class ContactCache(NamedTuple):
@@ -785,10 +790,15 @@ class ContactCache(NamedTuple):
 
 class CacheOps(NamedTuple):
     """``init(x) -> ContactCache`` (a full search) and ``update(cache, x) -> ContactCache`` (rebuild
-    past half the skin, else walk the nearest vertices); x internal (3, V)."""
+    past half the skin, else walk the nearest vertices); x internal (3, V). ``update``'s two parts,
+    for callers that decide the rebuild for many caches at once (the batched engine,
+    :mod:`jaxplush.fitting.batched`, under ``jax.vmap``): ``stale(cache, x) -> bool`` (a rebuild is
+    due) and ``walk(cache, x) -> ContactCache`` (the targets walked, no rebuild)."""
 
     init: object
     update: object
+    stale: object = None
+    walk: object = None
 
 
 def _overflow_flags(cfg, n_objects, counts):

@@ -1,0 +1,191 @@
+"""Soft-soft contact in the batched engine (jaxplush.fitting.batched): the single-scene contact under
+``jax.vmap``, each point carrying its own candidate lists.
+
+A batch of points of a two-ball collision must give, point for point, the frames of separate
+``jaxplush.simulate`` runs (to float32 rounding, relative to the positions' size; to 1e-10 in
+float64), and the balls must really touch. A point whose candidates overflow their capacity gets
+the health code CONTACT_OVERFLOW for that object, as in a single-scene rollout, without touching
+the other points; the default fit's Evaluator takes the batched path for such scenes, grows the
+capacity on an overflow, and its losses are those of its one-point-at-a-time path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxplush
+from jaxplush.fitting import batched
+from jaxplush.model import contact
+from jaxplush.stepping import diagnostics
+from test_contact import two_balls
+
+DT = 2e-4
+
+
+def _thrown(gap=0.04, extra_scene=""):
+    """Two 42-vertex balls 4 cm apart thrown at each other (2 m/s closing, off-centre), no gravity:
+    they meet after about 100 steps."""
+    scene, n = two_balls(sub=1, gap=gap, extra_scene=extra_scene)
+    v0 = np.zeros((2 * n, 3))
+    v0[:n, 0], v0[n:, 0] = 1.0, -1.0
+    v0[n:, 1] = 0.3
+    return scene, n, v0
+
+
+POINTS = [dict(k_structural=[150.0, 200.0]),
+          dict(k_structural=[300.0, 120.0], nmol=[2e-3, 1e-3]),
+          dict(k_structural=[200.0, 400.0], total_weight=[0.08, 0.04])]
+
+
+def _points(scene):
+    return [scene.params._replace(**{k: np.asarray(v, np.float64) for k, v in p.items()}) for p in POINTS]
+
+
+def _batched_frames(scene, points, v0, steps, every):
+    bsim = batched.make_batched_simulator(scene, DT, len(points))
+    assert bsim.coherent is not None                       # candidate lists carried per point
+    pb = bsim.params(jaxplush.Params(*(np.stack(a, axis=1) for a in zip(*points))))
+    final, frames, health = batched.rollout(bsim, pb, bsim.init_fn(pb, None, v0), steps // every, every,
+                                            observe=batched.positions_observer)
+    assert not health.failed.any()
+    frames = np.asarray(frames)                            # (T, B, V, 3)
+    np.testing.assert_array_equal(batched.positions(final), frames[-1])
+    return bsim, frames
+
+
+def _check_against_simulate(scene, n, v0, tol, steps=400, every=50):
+    """Batched frames of the three POINTS against separate simulate runs; the balls touch."""
+    points = _points(scene)
+    bsim, frames = _batched_frames(scene, points, v0, steps, every)
+    sim = jaxplush.make_simulator(scene, DT)
+    assert sim.terms == bsim.terms and sim.terms.contact
+    force = jax.jit(contact.make_contact_force(sim.topology, sim.terms.contact, DT))
+    for b, p in enumerate(points):
+        traj = jaxplush.simulate(scene, steps, DT, every, params=p, v0=v0, check_dt=False, sim=sim)
+        ref = traj.positions[1:]
+        err = np.linalg.norm(frames[:, b] - ref) / np.linalg.norm(ref)
+        assert err < tol, (b, err)
+        # they touch: the contact force at some saved frame is large (vs about none at the start)
+        v = jnp.zeros((3, 2 * n), sim.dtype)
+        f = [float(jnp.abs(force(sim.params(p), jnp.asarray(x.T, sim.dtype), v)).max())
+             for x in traj.positions]
+        assert max(f) > 1.0 and f[0] < 1e-3 * max(f), (b, f)
+        # and bounce: ball a ends moving back (-x)
+        assert ref[-1, :n, 0].mean() < ref[-2, :n, 0].mean()
+
+
+def test_batched_contact_matches_separate_simulate_runs_float32():
+    scene, n, v0 = _thrown()
+    # two differently vectorised programs: float32 rounding apart (a wrong force is off by far more)
+    _check_against_simulate(scene, n, v0, 1e-4)
+
+
+@pytest.mark.heavy
+def test_batched_contact_matches_separate_simulate_runs_float64(x64):
+    scene, n, v0 = _thrown()
+    _check_against_simulate(scene, n, v0, 1e-10)
+
+
+@pytest.mark.heavy
+def test_batched_contact_friction_and_self_collision_match_simulate():
+    scene, n, v0 = _thrown(extra_scene="contact_friction 0.5\nself_collision on\n")
+    assert scene.contact_friction == 0.5 and scene.self_collision
+    _check_against_simulate(scene, n, v0, 1e-4)
+
+
+def _overlapping_and_apart(n_points=3):
+    """Two overlapping 42-vertex balls whose candidates overflow object a's capacity (4); the
+    batch's point 1 starts with ball b 0.5 m away (no candidates), the others overlapping."""
+    scene, n = two_balls(sub=1, gap=-0.005)
+    base = jaxplush.make_simulator(scene, 1e-4)
+    terms = dataclasses.replace(base.terms, contact=dataclasses.replace(base.terms.contact, capacity=(4, n)))
+    x0 = np.repeat(scene.vertices[None], n_points, axis=0)
+    x0[1, n:, 0] += 0.5
+    return scene, n, terms, x0
+
+
+def test_an_overflowing_point_reports_contact_overflow_and_leaves_the_others():
+    scene, n, terms, x0 = _overlapping_and_apart()
+    bsim = batched.make_batched_simulator(scene, 1e-4, 3, terms=terms)
+    pb = bsim.params()
+    state = bsim.init_fn(pb, x0)
+    final, frames, health = batched.rollout(bsim, pb, state, 3, 5, observe=batched.positions_observer)
+    assert np.isfinite(np.asarray(frames)).all()
+    over, ok = diagnostics.CONTACT_OVERFLOW, diagnostics.OK
+    np.testing.assert_array_equal(np.asarray(health.code), [[over, ok, over], [ok, ok, ok]])
+    np.testing.assert_array_equal(np.asarray(health.bad_step), [[5, -1, 5], [-1, -1, -1]])   # the first saved frame
+    np.testing.assert_array_equal(health.failed, [True, False, True])
+    # as a single-scene rollout of the same point reports it, and the located step is the first
+    sim = jaxplush.make_simulator(scene, 1e-4, terms=terms)
+    p = sim.params()
+    _, _, h1 = jaxplush.rollout(sim, p, sim.init_fn(p, x0[0]), 3, 5)
+    np.testing.assert_array_equal(np.asarray(h1.code), np.asarray(health.code)[:, 0])
+    step, code = batched.locate_failures(bsim, pb, health)
+    np.testing.assert_array_equal(step, [[1, -1, 1], [-1, -1, -1]])
+    np.testing.assert_array_equal(code[0], [over, ok, over])
+    # status_fn reports a state whose fresh search overflows, per point
+    np.testing.assert_array_equal(np.asarray(jax.jit(bsim.status_fn)(pb, state.x)), [[over, ok, over], [ok, ok, ok]])
+
+
+def _pressed_problem(capacity=None, sub=1):
+    """A fit of both balls' k to a target of two overlapping balls pushing apart (no gravity)."""
+    from jaxplush.fitting import fitter as F
+    from jaxplush.fitting.targets import make_target
+    head = "" if capacity is None else f"contact_capacity {capacity}\n"
+    scene, n = two_balls(sub=sub, gap=-0.006, extra_scene=head)
+    truth, _ = two_balls(sub=sub, gap=-0.006)
+    target = make_target(truth, 200, DT, 25)
+    return F.build_problem(scene, target, ("k_structural",), objects=["a", "b"])
+
+
+def test_evaluator_runs_contact_scenes_batched_with_the_single_paths_losses():
+    from jaxplush.fitting.evaluate import Evaluator
+    prob = _pressed_problem()
+    thetas = np.asarray(prob.theta0)[None] + np.array([0.3, -0.3, 0.5])[:, None, None] * np.array([[[1.0, -0.5]]])
+    ev = Evaluator(prob, calibrate=False)
+    assert ev.batched
+    single = Evaluator(prob, calibrate=False)
+    single.batched = False
+    e_b, e_s = ev(thetas, keep_frames=True), single(thetas, keep_frames=True)
+    assert e_b.ok.all() and e_s.ok.all()
+    # carried candidate lists against a search every step, in two programs: float32 rounding apart
+    for fb, fs in zip(e_b.frames, e_s.frames):
+        assert np.linalg.norm(fb - fs) <= 1e-4 * np.linalg.norm(fs)
+    assert np.all(e_b.loss > 0)
+    np.testing.assert_allclose(e_b.loss, e_s.loss, rtol=1e-3)
+
+
+@pytest.mark.heavy
+def test_evaluator_grows_the_capacity_of_overflowing_batched_points():
+    from jaxplush.fitting.evaluate import Evaluator
+    prob = _pressed_problem(capacity=4)
+    ev = Evaluator(prob, calibrate=False)
+    assert ev.batched and max(prob.sim.terms.contact.capacity) == 4
+    thetas = np.asarray(prob.theta0)[None] + np.array([0.0, 0.3])[:, None, None]
+    with pytest.warns(UserWarning, match=r"contact candidates overflowed \(capacity 4\).*contact_capacity"):
+        e = ev(thetas, keep_frames=True)
+    assert e.ok.all() and np.isfinite(e.loss).all() and len(ev.notes) == 1
+    assert max(ev.prob.sim.terms.contact.capacity) > 4
+    # the grown run is the run of a scene with that capacity from the start
+    big = _pressed_problem(capacity=max(ev.prob.sim.terms.contact.capacity))
+    ref = Evaluator(big, calibrate=False)(thetas, keep_frames=True)
+    assert np.linalg.norm(e.frames - ref.frames) <= 1e-4 * np.linalg.norm(ref.frames)
+
+
+def test_sweep_of_a_contact_scene_matches_simulate():
+    from jaxplush.fitting.sweep import sweep
+    # (a sweep starts every point at rest: two overlapping balls pushing apart)
+    scene, n = two_balls(sub=1, gap=-0.006)
+    res = sweep(scene, {"k": [150.0, 300.0]}, steps=200, dt=DT, progress=False)
+    assert not res.fail_code.any()
+    for i, k in enumerate((150.0, 300.0)):
+        p = scene.params._replace(k_structural=np.array([k, k]))
+        traj = jaxplush.simulate(scene, 200, DT, 200, params=p, check_dt=False)
+        ref = traj.positions[-1]
+        assert np.linalg.norm(res.final_positions[i] - ref) <= 1e-4 * np.linalg.norm(ref)
+        assert np.abs(ref - scene.vertices).max() > 1e-3                 # contact pushed them apart
