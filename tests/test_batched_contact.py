@@ -79,6 +79,7 @@ def _check_against_simulate(scene, n, v0, tol, steps=400, every=50):
         assert ref[-1, :n, 0].mean() < ref[-2, :n, 0].mean()
 
 
+@pytest.mark.heavy   # the default run covers batched contact by the sweep and evaluator tests
 def test_batched_contact_matches_separate_simulate_runs_float32():
     scene, n, v0 = _thrown()
     # two differently vectorised programs: float32 rounding apart (a wrong force is off by far more)
@@ -109,6 +110,7 @@ def _overlapping_and_apart(n_points=3):
     return scene, n, terms, x0
 
 
+@pytest.mark.heavy   # CI's second tier (the single-scene overflow code is checked in the default run)
 def test_an_overflowing_point_reports_contact_overflow_and_leaves_the_others():
     scene, n, terms, x0 = _overlapping_and_apart()
     bsim = batched.make_batched_simulator(scene, 1e-4, 3, terms=terms)
