@@ -24,7 +24,8 @@ several), the report's damping, dashpot, drag or a mix of two, floor friction in
 scenes, heights, tilts, masses, and a start drawn log-uniformly in x0.5..x2 for every fitted
 parameter (the default of jaxplush-fit: k_structural, the damping model's and nmol) of every
 object. dt is the largest of 5e-4, 4e-4, 2.5e-4, 2e-4, 1.25e-4, 1e-4, 5e-5 s below 0.8 of the truth's
-closed-form stability bound (``jaxplush.stepping.stability.bound``), the target runs the case's
+closed-form stability bound (``jaxplush.stepping.stability.bound``; the next one down, twice at
+most, when the truth's target blows up all the same), the target runs the case's
 duration (the top object lands and bounces; 0.5 s hanging) with about 50 frames, as exact
 positions or as point clouds of 400 points per frame with 2 mm noise. Each fit is
 ``jaxplush-fit START.obj TARGET.h5 --out FIT.h5 --quiet`` run in this process
@@ -190,7 +191,7 @@ def auto_dt(scene):
 
 def random_case_files(d, case, *, dt=None, steps=None):
     """Write the case's truth scene, target and start scene under ``d``; return (truth Scene,
-    target path, start path). Sets ``case["dt"]``, ``["steps"]``, ``["save_every"]`` (and
+    target path, start path). Sets ``case["dt"]``, ``["steps"]``, ``["save_every"]``, ``["dt_retries"]`` (and
     ``["contact_capacity"]`` when the truth's contact candidates overflowed the default)."""
     import jaxplush
     from jaxplush.errors import SimulationError
@@ -198,23 +199,33 @@ def random_case_files(d, case, *, dt=None, steps=None):
     from jaxplush.fitting.targets import make_target
     tag = f"case{case['index']:03d}"
     truth = jaxplush.parse_scene(case_scene_text(case), f"{tag}_truth.obj")
+    given_dt = dt
     dt = dt or auto_dt(truth)
-    steps = steps or max(1, int(round(case["duration"] / dt)))
-    every = max(1, steps // RANDOM_FRAMES)
-    case.update(dt=dt, steps=steps, save_every=every)
     points = case["kind"] == "points"
     kw = dict(point_cloud=points, n_points=CLOUD_POINTS if points else None, noise=CLOUD_NOISE if points else 0.0,
               seed=1000 * case.get("seed", 0) + case["index"])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            target = make_target(truth, steps, dt, every, **kw)
-        except SimulationError as e:
-            if truth.n_objects < 2 or "overflowed" not in str(e):
-                raise
-            case["contact_capacity"] = int(jaxplush.contact_capacity_needed(truth, steps, dt))
-            truth = jaxplush.parse_scene(case_scene_text(case), f"{tag}_truth.obj")
-            target = make_target(truth, steps, dt, every, **kw)
+    case["dt_retries"] = 0
+    while True:
+        n = steps or max(1, int(round(case["duration"] / dt)))
+        every = max(1, n // RANDOM_FRAMES)
+        case.update(dt=dt, steps=n, save_every=every)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                target = make_target(truth, n, dt, every, **kw)
+                break
+            except SimulationError as e:
+                if truth.n_objects > 1 and "overflowed" in str(e) and not case.get("contact_capacity"):
+                    case["contact_capacity"] = int(jaxplush.contact_capacity_needed(truth, n, dt))
+                    truth = jaxplush.parse_scene(case_scene_text(case), f"{tag}_truth.obj")
+                    continue
+                # the truth blew up (the closed-form bound is taken at rest: an impact, floor friction
+                # or contact can need less): the next dt of the ladder, twice at most, unless dt was given
+                smaller = [x for x in DT_LADDER if x < dt * (1 - 1e-9)]
+                if given_dt or case["dt_retries"] >= 2 or not smaller:
+                    raise
+                dt = smaller[0]
+                case["dt_retries"] += 1
     truth_path, target_path, start_path = (os.path.join(d, f"{tag}_{n}") for n in ("truth.obj", "target.h5",
                                                                                    "start.obj"))
     with open(truth_path, "w") as fh:
@@ -265,6 +276,7 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
         return row
     row.update(dt=case["dt"], steps=case["steps"], save_every=case["save_every"],
                duration=case["steps"] * case["dt"], contact_capacity=case.get("contact_capacity"),
+               dt_retries=case.get("dt_retries", 0),
                target_wall=time.perf_counter() - t)
     out = os.path.join(d, f"case{case['index']:03d}_FIT.h5")
     if os.path.exists(out):
