@@ -316,6 +316,11 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
             det = np.asarray(fit["identifiability"]["determined"], bool)
             labels = list(fit.get("identifiability_attrs", {}).get("labels", range(len(det))))
             row["undetermined"] = [str(lab) for lab, ok in zip(labels, det) if not ok]
+            warns = fit.get("identifiability_attrs", {}).get("warnings", "[]")
+            warns = json.loads(warns) if isinstance(warns, str) else list(warns)
+            # a weak combination ("ill-conditioned ... only the ratio ... is determined") or a poorly
+            # determined parameter is flagged too
+            row["identifiability_warnings"] = [w for w in warns if "determined" in w or "ill-conditioned" in w]
     verdict(row)
     return row
 
@@ -335,7 +340,7 @@ def verdict(row):
         reason = "floor"
     elif row.get("horizon_time", math.inf) <= length * (1 + 1e-9):
         reason = "horizon"
-    elif row.get("undetermined"):
+    elif row.get("undetermined") or row.get("identifiability_warnings"):
         reason = "identifiability"
     elif not in_time:
         reason = "time"

@@ -171,5 +171,7 @@ def test_the_verdict_follows_status_error_time_and_reports(bench):
     assert v(exit=4, status="poor_fit", horizon_time=0.3, undetermined=["drag[ball0]"]) == ("failed", "horizon")
     assert v(exit=4, status="poor_fit", horizon_time=math.inf, undetermined=["drag[ball0]"]) == \
         ("failed", "identifiability")
+    assert v(exit=4, status="poor_fit", identifiability_warnings=["J^T J is ill-conditioned"]) == \
+        ("failed", "identifiability")
     assert v(exit=4, status="stalled", wall=200.0) == ("failed", "time")
     assert v(exit=4, status="stalled") == ("failed", "other")
