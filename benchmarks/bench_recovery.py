@@ -16,14 +16,42 @@ compilation cache off, as on a user's first fit of a scene); it passes when
 the fit says converged (exit 0) and every parameter is within 1% (positions) or 3% (points) of
 the truth, within 60 s (240 s at 2562 vertices). A failed case is listed, never dropped.
 
+Random scenes (``--random N --seed S``): N cases drawn by ``jaxplush.fitting.scenarios.draw_case``,
+each from its own generator ``numpy.random.default_rng([S, i])`` (case i is the same whatever N):
+ball, torus, bean, cushion or capsule at about 162 or 642 vertices, 1 to 3 objects (stacked and
+dropped onto a floor, or hanging side by side from a pinned vertex; soft-soft contact on with
+several), the report's damping, dashpot, drag or a mix of two, floor friction in half the floor
+scenes, heights, tilts, masses, and a start drawn log-uniformly in x0.5..x2 for every fitted
+parameter (the default of jaxplush-fit: k_structural, the damping model's and nmol) of every
+object. dt is the largest of 5e-4, 4e-4, 2.5e-4, 2e-4, 1.25e-4, 1e-4, 5e-5 s below 0.8 of the truth's
+closed-form stability bound (``jaxplush.stepping.stability.bound``; the next one down, twice at
+most, when the truth's target blows up all the same), the target runs the case's
+duration (the top object lands and bounces; 0.5 s hanging) with about 50 frames, as exact
+positions or as point clouds of 400 points per frame with 2 mm noise. Each fit is
+``jaxplush-fit START.obj TARGET.h5 --out FIT.h5 --quiet`` run in this process
+(``jaxplush.fitting.cli.main``; the persistent compilation cache on, as the command sets it, but
+every scene differs, so each case compiles its own programs), stopped (Ctrl-C, as a user would)
+once it has run ``--stop-after`` times its time budget (120 s for one object, 300 s for several).
+A case is recovered when the fit says converged (exit 0) and every fitted parameter of every
+object is within 1% (positions) or 3% (points) of the truth, within the budget; a failed case
+gets a reason: floor (status at_floor), horizon (FIT.h5's predictability says the target is not
+predictable over its length), identifiability (the fit's identifiability report has undetermined
+parameters), time (over the budget), or other (the status).
+
 Usage: python benchmarks/bench_recovery.py [--scenes ball,torus,bean,ball2562] [--kinds positions,points]
            [--corners all|N] [--json results.jsonl]
+       python benchmarks/bench_recovery.py --random N [--seed S] [--max-vertices V] [--max-objects O]
+           [--kinds positions,points] [--steps N] [--dt DT] [--stop-after F] [--json results.jsonl]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import itertools
+import math
+import signal
 import json
 import os
 import platform
@@ -121,13 +149,309 @@ def run_case(d, name, kind, truth, target, factors):
     return row
 
 
+# ----------------------------------------------------------------------------------------------
+# Random scenes (--random N)
+
+#: Time budget of one fit, s: one object, several objects.
+RANDOM_BUDGET = {1: 120.0, "several": 300.0}
+#: The dt ladder of the random cases (the largest below 0.8 of the stability bound).
+DT_LADDER = (5e-4, 4e-4, 2.5e-4, 2e-4, 1.25e-4, 1e-4, 5e-5)
+#: Frames per target (about).
+RANDOM_FRAMES = 50
+#: Points per frame and noise of a point-cloud target.
+CLOUD_POINTS, CLOUD_NOISE = 400, 0.002
+#: Failure reasons, in the order they are tested.
+REASONS = ("floor", "horizon", "identifiability", "time", "other")
+
+
+def budget(case):
+    return RANDOM_BUDGET[1] if case["n_objects"] == 1 else RANDOM_BUDGET["several"]
+
+
+def draw_cases(n, seed, **kw):
+    """The first ``n`` random cases of ``seed`` (case i from ``default_rng([seed, i])``)."""
+    from jaxplush.fitting.scenarios import draw_case
+    cases = []
+    for i in range(n):
+        case = draw_case(np.random.default_rng([seed, i]), **kw)
+        case.update(index=i, seed=seed)
+        cases.append(case)
+    return cases
+
+
+def auto_dt(scene):
+    """The largest dt of :data:`DT_LADDER` below 0.8 of the closed-form stability bound of ``scene``."""
+    import jaxplush
+    from jaxplush.stepping import stability
+    sim = jaxplush.make_simulator(scene, DT_LADDER[-1])
+    limit = 0.8 * stability.bound(sim, sim.params()).dt_max
+    fits = [d for d in DT_LADDER if d <= limit]
+    return fits[0] if fits else limit / 2
+
+
+def random_case_files(d, case, *, dt=None, steps=None):
+    """Write the case's truth scene, target and start scene under ``d``; return (truth Scene,
+    target path, start path). Sets ``case["dt"]``, ``["steps"]``, ``["save_every"]``, ``["dt_retries"]`` (and
+    ``["contact_capacity"]`` when the truth's contact candidates overflowed the default)."""
+    import jaxplush
+    from jaxplush.errors import SimulationError
+    from jaxplush.fitting.scenarios import case_scene_text, case_start_text
+    from jaxplush.fitting.targets import make_target
+    tag = f"case{case['index']:03d}"
+    truth = jaxplush.parse_scene(case_scene_text(case), f"{tag}_truth.obj")
+    given_dt = dt
+    dt = dt or auto_dt(truth)
+    points = case["kind"] == "points"
+    kw = dict(point_cloud=points, n_points=CLOUD_POINTS if points else None, noise=CLOUD_NOISE if points else 0.0,
+              seed=1000 * case.get("seed", 0) + case["index"])
+    case["dt_retries"] = 0
+    while True:
+        n = steps or max(1, int(round(case["duration"] / dt)))
+        every = max(1, n // RANDOM_FRAMES)
+        case.update(dt=dt, steps=n, save_every=every)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                target = make_target(truth, n, dt, every, **kw)
+                break
+            except SimulationError as e:
+                if truth.n_objects > 1 and "overflowed" in str(e) and not case.get("contact_capacity"):
+                    case["contact_capacity"] = int(jaxplush.contact_capacity_needed(truth, n, dt))
+                    truth = jaxplush.parse_scene(case_scene_text(case), f"{tag}_truth.obj")
+                    continue
+                # the truth blew up (the closed-form bound is taken at rest: an impact, floor friction
+                # or contact can need less): the next dt of the ladder, twice at most, unless dt was given
+                smaller = [x for x in DT_LADDER if x < dt * (1 - 1e-9)]
+                if given_dt or case["dt_retries"] >= 2 or not smaller:
+                    raise
+                dt = smaller[0]
+                case["dt_retries"] += 1
+    truth_path, target_path, start_path = (os.path.join(d, f"{tag}_{n}") for n in ("truth.obj", "target.h5",
+                                                                                   "start.obj"))
+    with open(truth_path, "w") as fh:
+        fh.write(truth.text)
+    target.save(target_path, truth)
+    with open(start_path, "w") as fh:
+        fh.write(case_start_text(case))
+    return truth, target_path, start_path
+
+
+@contextlib.contextmanager
+def _deadline(seconds):
+    """Raise KeyboardInterrupt (the fit's Ctrl-C: it saves its state and exits 130) after ``seconds``."""
+    if not seconds or not math.isfinite(seconds) or not hasattr(signal, "SIGALRM"):
+        yield
+        return
+
+    def ring(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGALRM, ring)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
+    """Make the case's files, fit it with jaxplush-fit (in this process) and return its record (a dict)."""
+    from jaxplush.fitting import cli
+    from jaxplush.fitting.io import load_fit
+    from jaxplush.fitting.scenarios import case_truth, describe_case
+    row = dict(index=case.get("index"), seed=case.get("seed"), description=describe_case(case),
+               shapes=[o["shape"] for o in case["objects"]], vertices=[o["vertices"] for o in case["objects"]],
+               n_objects=case["n_objects"], damping_model=case["damping_model"], setting=case["setting"],
+               pinned=case["setting"] == "pinned", floor=case["setting"] == "floor",
+               floor_friction=case.get("floor_friction"), kind=case["kind"], params=list(case["params"]),
+               start_factors=case["start"], budget=budget(case))
+    t = time.perf_counter()
+    try:
+        truth, target, start = random_case_files(d, case, dt=dt, steps=steps)
+    except Exception as e:  # the truth itself cannot be simulated: a failed case, never dropped
+        row.update(dt=case.get("dt"), steps=case.get("steps"), status="no target", exit=None, wall=0.0,
+                   max_error=float("inf"), errors={}, verdict="failed", reason="other",
+                   detail=f"target: {type(e).__name__}: {str(e)[:200]}")
+        return row
+    row.update(dt=case["dt"], steps=case["steps"], save_every=case["save_every"],
+               duration=case["steps"] * case["dt"], contact_capacity=case.get("contact_capacity"),
+               dt_retries=case.get("dt_retries", 0),
+               target_wall=time.perf_counter() - t)
+    out = os.path.join(d, f"case{case['index']:03d}_FIT.h5")
+    if os.path.exists(out):
+        os.remove(out)
+    stdout, stderr = io.StringIO(), io.StringIO()
+    t = time.perf_counter()
+    with _deadline(stop_after * row["budget"] if stop_after else None), \
+            contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        try:
+            code = cli.main([start, target, "--out", out, "--quiet"])
+        except KeyboardInterrupt:   # the deadline rang outside the fit's own handler
+            code = cli.EXIT_INTERRUPTED
+    wall = time.perf_counter() - t
+    row.update(exit=int(code), wall=wall, stopped=code == cli.EXIT_INTERRUPTED)
+    lines = [ln for ln in stderr.getvalue().splitlines() if ln.strip()]
+    row["stderr_tail"] = lines[-3:]
+    fit = load_fit(out) if os.path.exists(out) else None
+    truth_values = case_truth(case)
+    if fit is None or "params" not in fit:
+        row.update(status="no FIT.h5", errors={}, max_error=float("inf"))
+    else:
+        row["status"] = str(fit["attrs"].get("status"))
+        row["message"] = str(fit["attrs"].get("reason", ""))
+        names = [n for n in case["params"] if n in fit["params"]]
+        errors = {f"{n}[{o['name']}]": float(fit["params"][n][j]) / truth_values[n][j] - 1.0
+                  for n in names for j, o in enumerate(case["objects"])}
+        row["fitted_params"] = names
+        row["errors"] = errors
+        row["max_error"] = max((abs(e) for e in errors.values()), default=float("inf"))
+        if set(names) != set(case["params"]):
+            row["detail"] = f"fitted {names}, expected {case['params']}"
+        pa = fit.get("predictability_attrs")
+        if pa is not None:
+            row["horizon_time"] = float(pa.get("horizon_time", float("inf")))
+            row["floor_rms"] = float(pa.get("floor_rms", float("nan")))
+        if "identifiability" in fit:
+            det = np.asarray(fit["identifiability"]["determined"], bool)
+            labels = list(fit.get("identifiability_attrs", {}).get("labels", range(len(det))))
+            row["undetermined"] = [str(lab) for lab, ok in zip(labels, det) if not ok]
+            warns = fit.get("identifiability_attrs", {}).get("warnings", "[]")
+            warns = json.loads(warns) if isinstance(warns, str) else list(warns)
+            # a weak combination ("ill-conditioned ... only the ratio ... is determined") or a poorly
+            # determined parameter is flagged too
+            row["identifiability_warnings"] = [w for w in warns if "determined" in w or "ill-conditioned" in w]
+    verdict(row)
+    return row
+
+
+def verdict(row):
+    """Set ``row["verdict"]`` (recovered / failed) and ``row["reason"]`` (None or one of :data:`REASONS`)."""
+    tol = TOLERANCE[row["kind"]]
+    fit_ok = row.get("exit") == 0 and row.get("status") == "converged" and row.get("max_error", math.inf) <= tol
+    in_time = row.get("wall", math.inf) <= row["budget"] and not row.get("stopped")
+    length = row.get("steps", 0) * (row.get("dt") or 0.0)
+    if fit_ok and in_time:
+        row.update(verdict="recovered", reason=None)
+        return row
+    if fit_ok:
+        reason = "time"
+    elif row.get("status") == "at_floor":
+        reason = "floor"
+    elif row.get("horizon_time", math.inf) <= length * (1 + 1e-9):
+        reason = "horizon"
+    elif row.get("undetermined") or row.get("identifiability_warnings"):
+        reason = "identifiability"
+    elif not in_time:
+        reason = "time"
+    else:
+        reason = "other"
+    row.update(verdict="failed", reason=reason)
+    return row
+
+
+def _factors_text(row):
+    return " ".join(f"{n.replace('k_structural', 'k')} " + ",".join(f"x{f:g}" for f in fs)
+                    for n, fs in row["start_factors"].items())
+
+
+def _random_line(row):
+    err = row.get("max_error", math.inf)
+    why = "" if row["verdict"] == "recovered" else f" ({row['reason']})"
+    return (f"| {row['index']} | {row['description']} | {row['n_objects']} | {_factors_text(row)} | "
+            f"{row.get('dt') or float('nan'):g} x {row.get('steps')} | {row['wall']:.1f} | {row.get('exit')} | "
+            f"{row['status']}{' (stopped)' if row.get('stopped') else ''} | {100 * err:.3g}% | "
+            f"{row['verdict']}{why} |")
+
+
+def _summary(rows):
+    out = []
+    for kind, label in (("positions", "positions"), ("points", "clouds")):
+        sel = [r for r in rows if r["kind"] == kind]
+        out.append(f"{label} {sum(r['verdict'] == 'recovered' for r in sel)}/{len(sel)}")
+    rec = sum(r["verdict"] == "recovered" for r in rows)
+    lines = [f"recovered {rec}/{len(rows)} ({', '.join(out)})"]
+    single = [r for r in rows if r["n_objects"] == 1 and r.get("exit") is not None]
+    for lo, hi, label in ((0, 200, "coarse (<= 200 vertices)"), (201, 10 ** 9, "fine (> 200 vertices)")):
+        ts = [r["wall"] for r in single if lo <= sum(r["vertices"]) <= hi]
+        if ts:
+            lines.append(f"single-object fits, {label}: median {float(np.median(ts)):.1f} s over {len(ts)}, "
+                         f"max {max(ts):.1f} s")
+    several = [r["wall"] for r in rows if r["n_objects"] > 1 and r.get("exit") is not None]
+    if several:
+        lines.append(f"several-object fits: median {float(np.median(several)):.1f} s over {len(several)}, "
+                     f"max {max(several):.1f} s")
+    if rows:
+        lines.append(f"max time: {max(r['wall'] for r in rows):.1f} s")
+    fails = {k: [r for r in rows if r["verdict"] == "failed" and r["reason"] == k] for k in REASONS}
+    counts = ", ".join(f"{k} {len(v)}" for k, v in fails.items() if v) or "none"
+    lines.append(f"failures by reason: {counts}")
+    for k, v in fails.items():
+        for r in v:
+            extra = ""
+            if k == "horizon":
+                extra = f", horizon {r.get('horizon_time', float('nan')):.3g} s of {r['steps'] * r['dt']:.3g} s"
+            elif k == "identifiability":
+                extra = f", undetermined {', '.join(r.get('undetermined', []))}"
+            lines.append(f"  {k}: case {r['index']} {r['description']}: exit {r.get('exit')}, {r['status']}, "
+                         f"max error {100 * r.get('max_error', math.inf):.3g}%, {r['wall']:.1f} s{extra}"
+                         + (f"; {r['detail']}" if r.get("detail") else ""))
+    return lines
+
+
+def main_random(args):
+    kinds = tuple(args.kinds.split(","))
+    cases = draw_cases(args.random, args.seed, max_vertices=args.max_vertices, max_objects=args.max_objects,
+                       kinds=kinds)
+    print(f"# {platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}; "
+          f"{time.strftime('%Y-%m-%d %H:%M')}; --random {args.random} --seed {args.seed}"
+          + (f" --max-vertices {args.max_vertices}" if args.max_vertices else "")
+          + f" --max-objects {args.max_objects} --kinds {args.kinds}", flush=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        for case in cases:
+            row = run_random_case(d, case, dt=args.dt, steps=args.steps, stop_after=args.stop_after)
+            rows.append(row)
+            print(f"case {row['index']}: {row['description']}, {row['n_objects']} object(s), start "
+                  f"{_factors_text(row)}: {row['status']}, exit {row.get('exit')}, {row['wall']:.1f} s, "
+                  f"max error {100 * row.get('max_error', math.inf):.3g}%: {row['verdict']}"
+                  + (f" ({row['reason']})" if row["reason"] else ""), flush=True)
+            if args.json:
+                with open(args.json, "a") as fh:
+                    fh.write(json.dumps(row, default=float) + "\n")
+    print()
+    print("| # | scene | objects | start factors | dt x steps | wall s | exit | status | max error | verdict |")
+    print("|---:|---|---:|---|---|---:|---:|---|---:|---|")
+    for row in rows:
+        print(_random_line(row))
+    print()
+    for line in _summary(rows):
+        print(line)
+    return 0 if all(r["verdict"] == "recovered" for r in rows) else 1
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--kinds", default="positions,points")
     ap.add_argument("--corners", default="all", help="all, the first N corners, or indices I,J,... (0-7)")
     ap.add_argument("--json", default=None, help="append each case as a JSON line to this file")
+    ap.add_argument("--random", type=int, default=None, metavar="N", help="fit N random scenes instead")
+    ap.add_argument("--seed", type=int, default=0, help="--random: the seed of the draws (default 0)")
+    ap.add_argument("--max-vertices", type=int, default=None, help="--random: largest mesh per object "
+                    "(200: coarse meshes only)")
+    ap.add_argument("--max-objects", type=int, default=3, help="--random: most objects per scene (1-3, default 3)")
+    ap.add_argument("--steps", type=int, default=None, help="--random: steps of every target (default: the case's "
+                    "duration / dt)")
+    ap.add_argument("--dt", type=float, default=None, help="--random: dt of every target (default: per case, "
+                    "below the stability bound)")
+    ap.add_argument("--stop-after", type=float, default=1.0, help="--random: stop a fit after this many times its "
+                    "time budget (default 1: at the budget; 0: never)")
     args = ap.parse_args(argv)
+    if args.random is not None:
+        if args.random < 1 or not 1 <= args.max_objects <= 3:
+            ap.error("--random needs N >= 1 and --max-objects 1-3")
+        return main_random(args)
     corners = list(itertools.product((0.5, 2.0), repeat=3))
     if args.corners != "all":
         picked = [int(c) for c in args.corners.split(",")]

@@ -1,0 +1,177 @@
+"""The random-scene recovery benchmark (benchmarks/bench_recovery.py --random N; the generator
+jaxplush.fitting.scenarios.draw_case): the draws are deterministic, cover every shape, damping
+model, object count, setting and target kind, and give valid scenes whose objects start apart;
+and one tiny case run through the benchmark's case runner gives an honest record."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+
+import jaxplush
+from jaxplush.fitting import outcome
+from jaxplush.fitting import scenarios as S
+from jaxplush.fitting.fitter import default_params
+
+_BENCH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
+                      "bench_recovery.py")
+N_DRAWS = 200
+
+
+@pytest.fixture(scope="module")
+def bench():
+    path = list(sys.path)            # the script puts the checkout's root on sys.path: keep conftest's
+    try:
+        spec = importlib.util.spec_from_file_location("bench_recovery_under_test", _BENCH)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path[:] = path
+    return mod
+
+
+@pytest.fixture(scope="module")
+def cases(bench):
+    return bench.draw_cases(N_DRAWS, 7)
+
+
+def test_the_draws_are_deterministic(bench, cases):
+    """Same seed: the same cases and the same scene text (truth and start); another seed differs;
+    case i does not depend on how many are drawn."""
+    again = bench.draw_cases(N_DRAWS, 7)
+    assert json.dumps(again) == json.dumps(cases)
+    for a, b in zip(cases[:20], again[:20]):
+        assert S.case_scene_text(a) == S.case_scene_text(b)
+        assert S.case_start_text(a) == S.case_start_text(b)
+    assert json.dumps(bench.draw_cases(5, 7)) == json.dumps(cases[:5])
+    assert json.dumps(bench.draw_cases(5, 8)) != json.dumps(cases[:5])
+
+
+def test_the_draws_cover_every_shape_model_count_setting_and_kind(cases):
+    objs = [o for c in cases for o in c["objects"]]
+    assert {o["shape"] for o in objs} == set(S.SHAPES) == {"ball", "torus", "bean", "cushion", "capsule"}
+    assert {o["level"] for o in objs} == {2, 3}
+    assert {c["damping_model"] for c in cases} == set(S.DAMPING_MODELS)
+    assert {c["n_objects"] for c in cases} == {1, 2, 3}
+    assert {c["kind"] for c in cases} == {"positions", "points"}
+    assert {c["setting"] for c in cases} == {"floor", "pinned"}
+    floors = [c for c in cases if c["setting"] == "floor"]
+    assert any(c["floor_friction"] for c in floors) and any(not c["floor_friction"] for c in floors)
+    assert any(c["n_objects"] > 1 for c in cases if c["setting"] == "pinned")
+    assert any(o["tilt_deg"] > 0 for o in objs) and any(o["tilt_deg"] == 0 for o in objs)
+    assert len({o["total_weight"] for o in objs}) > N_DRAWS // 2                     # masses vary
+    for c in cases:
+        for n, fs in c["start"].items():
+            assert len(fs) == c["n_objects"] and all(0.5 <= f <= 2.0 for f in fs), (n, fs)
+    factors = [f for c in cases for fs in c["start"].values() for f in fs]
+    assert min(factors) < 0.55 and max(factors) > 1.8                                  # the whole range
+    # --max-vertices keeps to the coarse meshes
+    coarse = [S.draw_case(np.random.default_rng([7, i]), max_vertices=200) for i in range(40)]
+    assert all(o["vertices"] <= 200 and o["level"] == 2 for c in coarse for o in c["objects"])
+
+
+def _boxes_apart(a, b):
+    lo_a, hi_a, lo_b, hi_b = a.min(0), a.max(0), b.min(0), b.max(0)
+    return bool(np.any((hi_a < lo_b) | (hi_b < lo_a)))
+
+
+def test_every_drawn_scene_is_valid_and_its_objects_start_apart(cases):
+    """Every truth and start scene parses; the scene has what the case says (objects, floor or
+    pins, friction, contact with several objects, the damping model's parameters switched on),
+    jaxplush-fit's default fits exactly the case's parameters, the start is the truth times the
+    factors, and the objects' bounding boxes are apart at the start."""
+    for c in cases:
+        truth = jaxplush.parse_scene(S.case_scene_text(c), "<truth>")
+        start = jaxplush.parse_scene(S.case_start_text(c), "<start>")
+        assert truth.n_objects == c["n_objects"]
+        assert [o.name for o in truth.objects] == [o["name"] for o in c["objects"]]
+        assert truth.n_vertices == sum(o["vertices"] for o in c["objects"])
+        if c["setting"] == "floor":
+            assert truth.floor == 0.0 and len(truth.fixed) == 0
+            assert truth.vertices[:, 1].min() > 0.019
+            assert (truth.floor_friction or None) == c["floor_friction"]
+        else:
+            assert truth.floor is None and len(truth.fixed) == c["n_objects"]
+        if c["n_objects"] > 1:
+            assert truth.contact
+        assert default_params(truth)[0] == tuple(c["params"])
+        values = S.case_truth(c)
+        for n in c["params"]:
+            assert np.allclose(getattr(truth.params, n), values[n], rtol=1e-12)
+            assert np.allclose(getattr(start.params, n), np.asarray(values[n]) * c["start"][n], rtol=1e-12)
+        assert np.array_equal(truth.vertices, start.vertices)
+        parts = [truth.vertices[slice(*o.vertex_slice)] for o in truth.objects]
+        for i in range(len(parts)):
+            for j in range(i + 1, len(parts)):
+                assert _boxes_apart(parts[i], parts[j]), (S.describe_case(c), i, j)
+
+
+def _tiny_case():
+    """A 42-vertex ball (level 1) resting 1 cm above the floor, with a dashpot, positions."""
+    case = S.draw_case(np.random.default_rng(3), max_objects=1, kinds=("positions",), shapes=("ball",),
+                       levels=(1,), settings=("floor",), damping_models=("dashpot",))
+    obj = case["objects"][0]
+    v, _ = S._placed(obj)
+    obj["position"][1] = round(obj["position"][1] - (v[:, 1].min() - 0.01), 6)
+    case.update(index=0, seed=0)
+    return case
+
+
+def test_one_tiny_case_gives_an_honest_record(bench, tmp_path):
+    """The case runner fits a 42-vertex drop (300 steps) and records what happened: the fit's
+    status, exit code and time, the errors against the truth, and a verdict that follows from
+    them (no fitted number is asserted: the outcome may differ between CPUs)."""
+    case = _tiny_case()
+    row = bench.run_random_case(str(tmp_path), case, steps=300, stop_after=0)
+    assert row["vertices"] == [42] and row["shapes"] == ["ball"] and row["n_objects"] == 1
+    assert row["kind"] == "positions" and row["damping_model"] == "dashpot" and row["floor"] and not row["pinned"]
+    assert row["steps"] == 300 and row["dt"] > 0 and row["save_every"] >= 1
+    assert row["description"].startswith("ball42 floor") and row["budget"] == 120.0
+    assert row["status"] in outcome.STATUSES and not row["stopped"]
+    assert row["exit"] in (0, outcome.EXIT_NOT_CONVERGED)
+    assert (row["exit"] == 0) == (row["status"] == "converged")
+    assert row["wall"] > 0
+    assert set(row["errors"]) == {f"{n}[ball0]" for n in ("k_structural", "dashpot", "nmol")}
+    assert math.isfinite(row["max_error"]) and row["max_error"] == max(abs(e) for e in row["errors"].values())
+    ok = row["status"] == "converged" and row["max_error"] <= 0.01 and row["wall"] <= 120.0
+    assert (row["verdict"] == "recovered") == ok
+    if ok:
+        assert row["reason"] is None
+    else:
+        assert row["verdict"] == "failed" and row["reason"] in bench.REASONS
+        assert (row["reason"] == "floor") == (row["status"] == "at_floor")
+    json.dumps(row, default=float)                                   # what --json writes
+    line = bench._random_line(row)
+    assert line.startswith("| 0 | ball42 floor") and row["verdict"] in line
+    summary = bench._summary([row])
+    assert summary[0] == f"recovered {int(ok)}/1 (positions {int(ok)}/1, clouds 0/0)"
+
+
+def test_the_verdict_follows_status_error_time_and_reports(bench):
+    """The verdict's rules on hand-made records: within tolerance and time is recovered; then
+    floor, horizon, identifiability, time and other, in that order."""
+    base = dict(kind="points", budget=120.0, exit=0, status="converged", max_error=0.02, wall=10.0, steps=1000,
+                dt=5e-4)
+
+    def v(**kw):
+        r = bench.verdict(dict(base, **kw))
+        return r["verdict"], r["reason"]
+
+    assert v() == ("recovered", None)
+    assert v(kind="positions") == ("failed", "other")                # 2% > 1%
+    assert v(wall=130.0) == ("failed", "time")
+    assert v(stopped=True, exit=130, status="interrupted") == ("failed", "time")
+    assert v(exit=4, status="at_floor", horizon_time=0.1) == ("failed", "floor")
+    assert v(exit=4, status="poor_fit", horizon_time=0.3, undetermined=["drag[ball0]"]) == ("failed", "horizon")
+    assert v(exit=4, status="poor_fit", horizon_time=math.inf, undetermined=["drag[ball0]"]) == \
+        ("failed", "identifiability")
+    assert v(exit=4, status="poor_fit", identifiability_warnings=["J^T J is ill-conditioned"]) == \
+        ("failed", "identifiability")
+    assert v(exit=4, status="stalled", wall=200.0) == ("failed", "time")
+    assert v(exit=4, status="stalled") == ("failed", "other")
