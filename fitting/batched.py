@@ -276,13 +276,7 @@ def _make_verlet(topo, terms, scene, kernel, touch, h, substeps, batch, dtype):
             x_new, u_new = floor(x, x_new, u_new)
         return State(pin(x_new, x0_fixed), pin(u_new))
 
-    if substeps == 1:
-        step_fn = substep
-    else:
-        def step_fn(params, state):
-            return jax.lax.fori_loop(0, substeps, lambda _, s: substep(params, s), state)
-
-    return init_fn, step_fn, _coherent_step(touch, substep, substeps)
+    return init_fn, integrators.repeat_substeps(substep, substeps), _coherent_step(touch, substep, substeps)
 
 
 class BatchedCoherent(NamedTuple):
@@ -310,13 +304,8 @@ def _coherent_step(touch, substep, substeps):
         state = substep(params, state, cache)
         return state, touch.update(cache, state.x)
 
-    if substeps == 1:
-        step = coherent_substep
-    else:
-        def step(params, state, cache):
-            return jax.lax.fori_loop(0, substeps, lambda _, c: coherent_substep(params, *c), (state, cache))
-
-    return BatchedCoherent(init=touch.init, step=step)
+    repeated = integrators.repeat_substeps(lambda params, c: coherent_substep(params, *c), substeps)
+    return BatchedCoherent(init=touch.init, step=lambda params, state, cache: repeated(params, (state, cache)))
 
 
 class _Contact(NamedTuple):

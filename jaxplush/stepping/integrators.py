@@ -152,6 +152,18 @@ def damping_keep(damping, substeps=1):
     return jnp.exp(jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / substeps)
 
 
+def repeat_substeps(step, substeps):
+    """``substeps`` applications of ``step(params, carry) -> carry`` as one step (one
+    ``lax.fori_loop``; ``step`` itself for one substep). The carry is the state, or a tuple such as
+    (state, contact cache)."""
+    if substeps == 1:
+        return step
+
+    def repeated(params, carry):
+        return jax.lax.fori_loop(0, substeps, lambda _, c: step(params, c), carry)
+    return repeated
+
+
 def verlet_start(v, a, h):
     """Verlet's first half-step velocity u_0 = v_0 - a_0 h/2 (makes free fall exact)."""
     return v - (0.5 * h) * a

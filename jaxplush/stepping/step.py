@@ -175,11 +175,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
         coherent = _coherent_step(system, kernel, cache_ops, integrator, substeps, cg_tol, cg_maxiter)
 
     # Internally everything is component-major, (3, V): see model.make_force_fn.
-    if substeps == 1:
-        internal_step = scheme.step
-    else:
-        def internal_step(params, state):
-            return jax.lax.fori_loop(0, substeps, lambda _, s: scheme.step(params, s), state)
+    internal_step = integrators.repeat_substeps(scheme.step, substeps)
 
     overflow = None
     if terms.contact:
@@ -216,13 +212,8 @@ def _coherent_step(system, kernel, cache_ops, integrator, substeps, cg_tol, cg_m
         state = integrators.build(integrator, sys_c, cg_tol=cg_tol, cg_maxiter=cg_maxiter).step(params, state)
         return state, cache_ops.update(cache, state.x)
 
-    if substeps == 1:
-        coherent_step = coherent_substep
-    else:
-        def coherent_step(params, state, cache):
-            return jax.lax.fori_loop(0, substeps, lambda _, c: coherent_substep(params, *c), (state, cache))
-
-    return CoherentStep(init=cache_ops.init, step=coherent_step)
+    repeated = integrators.repeat_substeps(lambda params, c: coherent_substep(params, *c), substeps)
+    return CoherentStep(init=cache_ops.init, step=lambda params, state, cache: repeated(params, (state, cache)))
 
 
 def _public_fns(topo, terms, dtype, scheme, internal_step, kernel, overflow):
