@@ -2,11 +2,14 @@
 
     jaxplush-fit SCENE.obj TARGET.h5 [--params k_structural,damping,nmol] [--objects NAMES]
         [--optimizer lm|adam|lbfgs] [--bounds NAME=LO:HI,...] [--iterations N] [--lr LR] [--dt DT]
-        [--noise SIGMA | --noise-free] --out FIT.h5 [--out-scene FITTED.obj] [--resume]
+        [--noise SIGMA | --noise-free] [--shooting auto|off|FRAMES] --out FIT.h5
+        [--out-scene FITTED.obj] [--resume]
 
 Before fitting it prints the predictability of the start values over the target (stderr): how
 long the positions stay predictable and the model's own reproducibility floor (the result table
-repeats it; a fit whose residual lies at that floor ends ``at_floor``, not ``poor_fit``).
+repeats it; a fit whose residual lies at that floor ends ``at_floor``, not ``poor_fit``), and how
+the default fit shoots (``--shooting``, :mod:`jaxplush.fitting.shooting`): one rollout over the
+target, or segments no longer than the horizon, restarted from the observed positions.
 
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
@@ -66,6 +69,10 @@ def _parser():
     g.add_argument("--noise", type=float, default=None,
                    help="measurement noise per coordinate, m (default: the target's 'noise' attribute)")
     g.add_argument("--noise-free", action="store_true", help="the target is exact (synthetic)")
+    p.add_argument("--shooting", default="auto", metavar="auto|off|FRAMES",
+                   help="position targets: 'auto' (default) runs segments restarted from the observed positions "
+                        "where the motion is not predictable over the whole target and that measures better; "
+                        "'off' one rollout; or FRAMES per segment")
     p.add_argument("--out", required=True, help="output FIT.h5 (also the checkpoint file)")
     p.add_argument("--out-scene", default=None, help="also write the scene with the fitted values (.obj)")
     p.add_argument("--resume", action="store_true", help="continue the interrupted fit saved in --out")
@@ -152,6 +159,10 @@ def _check_args(args):
     for name, val in (("--lr", args.lr), ("--dt", args.dt)):
         if val is not None and not (val == val and 0 < val < float("inf")):
             raise JaxplushError(f"{name} must be a positive number, got {val}")
+    args.shooting = _shooting_arg(args.shooting)
+    if args.optimizer != "lm" and args.shooting not in ("auto", "off"):
+        raise JaxplushError(f"--shooting {args.shooting} belongs to the default fit (--optimizer lm), "
+                            f"not {args.optimizer}")
     if args.noise is not None and not (args.noise == args.noise and 0 <= args.noise < float("inf")):
         raise JaxplushError(f"--noise must be a number >= 0, got {args.noise}")
     check_output_path(args.out, (".h5", ".hdf5"), "--out")
@@ -165,6 +176,20 @@ def _check_args(args):
         raise JaxplushError(f"{args.out}: no checkpoint to resume (the file does not exist); run without --resume")
 
 
+def _shooting_arg(text):
+    """--shooting: "auto", "off" or frames per segment (an int >= 2)."""
+    from jaxplush.errors import JaxplushError
+    if text in ("auto", "off"):
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 2:
+        raise JaxplushError(f"--shooting must be auto, off or frames per segment (an integer >= 2), got {text!r}")
+    return n
+
+
 def _options(args, names):
     """The :class:`fitting.FitOptions` of the command line (--start and --bounds parsed and checked)."""
     from jaxplush.fitting import fitter as _fit_mod
@@ -172,7 +197,7 @@ def _options(args, names):
     start = parse_start(args.start) if args.start is not None else None
     bounds = _fit_mod.parse_bounds(args.bounds, names or _fit_mod.PARAM_NAMES) if args.bounds is not None else None
     return FitOptions(iterations=args.iterations, lr=args.lr, start=start, noise=args.noise,
-                      noise_free=args.noise_free, method=args.method, force=args.force,
+                      noise_free=args.noise_free, method=args.method, force=args.force, shooting=args.shooting,
                       search=SearchOptions(bounds=bounds, samples=args.samples, starts=args.starts),
                       checkpoint=CheckpointOptions(path=args.out, every=args.checkpoint_every, resume=args.resume))
 

@@ -253,30 +253,39 @@ class Evaluator:
 
     def _run_batches(self, thetas, n):
         """(frames, ok, clamped, overflowed (N,)) of the points run in batches, as they come."""
+        return self._run_lanes([self.prob.params_at(th) for th in thetas], n, self.runs)
+
+    def _run_lanes(self, values, n, runs, x0=None, v0=None, step0=None):
+        """(frames (N, T, V, 3), ok, clamped, overflowed) of N independent runs ("lanes") on the
+        batched simulator at ``n`` substeps: lane i with parameter values ``values[i]``
+        (:class:`Params` of numpy arrays), from positions ``x0[i]`` and velocities ``v0[i]``
+        ((N, V, 3); None: the scene's start) at step ``step0[i]`` (None: 0), saving frames in
+        ``runs`` [(gap, count), ...] (steps between frames, frames)."""
         out, good, clamp, over = [], [], [], []
+        n_lanes = len(values)
         start = 0
-        while start < len(thetas):
-            left = len(thetas) - start
+        while start < n_lanes:
+            left = n_lanes - start
             # full batches, and a narrow one (a quarter) for a remainder that fits in it: a local
             # search's calls hold a few points, and a padded wide batch would simulate copies
             b = self.batch if left > self.batch // 4 else max(1, self.batch // 4)
             bsim, init = self._bsim(n, b)
-            part = thetas[start:start + b]
-            start += len(part)
-            live = len(part)
-            pad = np.concatenate([part, np.repeat(part[-1:], b - live, axis=0)]) if live < b else part
-            vals = [self.prob.params_at(th) for th in pad]
-            p = bsim.params(Params(*(np.stack([np.asarray(getattr(v, f), np.float64) for v in vals], axis=1)
+            idx = np.arange(start, min(start + b, n_lanes))
+            start += len(idx)
+            live = len(idx)
+            idx = np.concatenate([idx, np.repeat(idx[-1:], b - live)])        # pad with copies of the last
+            p = bsim.params(Params(*(np.stack([np.asarray(getattr(values[i], f), np.float64) for i in idx], axis=1)
                                      for f in Params._fields)))
-            state = init(p)
-            health = batched.initial_health(bsim, state)
+            state = init(p) if x0 is None else init(p, np.asarray(x0)[idx], np.asarray(v0)[idx])
+            first = 0 if step0 is None else np.asarray(step0, np.int64)[idx]
+            health = batched.initial_health(bsim, state, first)
             chunks = []
             done = 0
-            for gap, count in self.runs:
+            for gap, count in runs:
                 size = self.chunk_frames or count
                 while count > 0:
                     n_fr = min(size, count)
-                    state, obs, health = batched.rollout(bsim, p, state, n_fr, gap, health=health, step0=done,
+                    state, obs, health = batched.rollout(bsim, p, state, n_fr, gap, health=health, step0=first + done,
                                                          observe=batched.positions_observer)
                     chunks.append(np.asarray(obs, np.float64))            # (n_fr, B, V, 3)
                     done += gap * n_fr

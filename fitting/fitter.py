@@ -115,6 +115,7 @@ class Problem:
       noise: the noise sigma of the normalisation (m), or None.
       predictability: :class:`jaxplush.Predictability` of the start values over the target
         (:func:`measure_predictability`), or None (not measured, or the start run blew up).
+      shooting: :class:`jaxplush.fitting.shooting.Shooting` of the default fit, or None (single shooting).
     """
 
     scene: object
@@ -128,6 +129,7 @@ class Problem:
     method: str
     noise: float | None
     predictability: object = None
+    shooting: object = None
 
     @property
     def labels(self):
@@ -975,6 +977,16 @@ def measure_predictability(prob, report=None):
     return dataclasses.replace(prob, predictability=pred)
 
 
+def plan_shooting(prob, setting, report=None):
+    """The problem with :attr:`Problem.shooting` planned (:func:`jaxplush.fitting.shooting.plan`);
+    ``report`` (if given) gets the line that says what was chosen."""
+    from jaxplush.fitting import shooting as _shooting
+    sh, prob = _shooting.plan(prob, setting)
+    if report is not None:
+        report("shooting: " + sh.reason)
+    return dataclasses.replace(prob, shooting=sh)
+
+
 def _judge(prob, theta, **kw):
     """:func:`jaxplush.fitting.outcome.judge` of a fit ending at log values theta, with the
     reproducibility floor of :attr:`Problem.predictability`; for a fit that does not reach the
@@ -982,6 +994,9 @@ def _judge(prob, theta, **kw):
     from jaxplush.fitting import outcome as _outcome
     pred = prob.predictability
     start = (None, None) if pred is None else (pred.floor, pred.horizon_time)
+    if prob.shooting is not None and prob.shooting.on:
+        # segments no longer than the horizon: the floor is the node states' (the shooting floor)
+        return _outcome.judge(**kw, floor=prob.shooting.floor, horizon=None)
     out = _outcome.judge(**kw, floor=start[0], horizon=start[1])
     if out.reached or pred is None:
         return out
@@ -1055,7 +1070,7 @@ def _lm_settings(prob, opts, box):
     settings = _common_settings(prob, opts, "lm", _iterations(opts, "lm"), None)
     settings.update(frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind,
                     box_lo=box.lo.ravel().tolist(), box_hi=box.hi.ravel().tolist(),
-                    samples=s.n_samples, starts=s.n_starts, seed=int(s.seed))
+                    samples=s.n_samples, starts=s.n_starts, seed=int(s.seed), shooting=str(opts.shooting))
     settings.update({group: dataclasses.asdict(getattr(opts, group)) for group in _options.TUNING})
     return settings
 
@@ -1069,6 +1084,7 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
     prior = _io.load_lm_checkpoint(checkpoint_path, prob, settings) if opts.checkpoint.resume else None
     if opts.predictability:                 # every input checked (a resumed checkpoint too)
         prob = measure_predictability(prob, report)
+    prob = plan_shooting(prob, opts.shooting, report)
     last = [prior]
 
     def save(run, status="running"):

@@ -25,6 +25,8 @@ Layout:
   ``times``, ``steps``, ``drift_rms``, ``motion_rms`` datasets; attributes ``horizon_time``
   (inf: never), ``horizon_frame`` (-1: never), ``floor_rms``, ``threshold``, ``threshold_kind``,
   ``motion``, ``perturbation``, ``method``, ``dtype``, ``duration``, ``text``;
+* ``shooting/`` (the default fit, :mod:`jaxplush.fitting.shooting`): attributes ``segment_frames``
+  (0: one rollout), ``floor_rms``, ``single_floor_rms``, ``refine``, ``text``;
 * ``checkpoint/``: the optimisation loop's complete state (log values, optimiser state leaves,
   history, counters, RNG-free), enough for ``--resume`` to continue to the same answer.
 
@@ -213,6 +215,8 @@ def save_fit(result, path):
             a["status"] = Status(result.status).value
             if getattr(result, "predictability", None) is not None:
                 _write_predictability(f.create_group("predictability"), result.predictability)
+            if getattr(prob, "shooting", None) is not None:
+                _write_shooting(f.create_group("shooting"), prob.shooting)
             if result.search:
                 sg = f.create_group("search")
                 srch = result.search
@@ -257,6 +261,17 @@ def _write_predictability(g, pred):
     for k in ("threshold_kind", "method", "dtype"):
         g.attrs[k] = str(getattr(pred, k))
     g.attrs["text"] = pred.text()
+
+
+def _write_shooting(g, sh):
+    """The ``shooting`` group of FIT.h5 (a :class:`jaxplush.fitting.shooting.Shooting`): attributes
+    ``segment_frames`` (0: single shooting), ``floor_rms`` and ``single_floor_rms`` (m; NaN: not
+    measured), ``refine`` and ``text``."""
+    g.attrs["segment_frames"] = int(sh.segment_frames or 0)
+    g.attrs["floor_rms"] = float("nan") if sh.floor is None else float(sh.floor)
+    g.attrs["single_floor_rms"] = float("nan") if sh.single_floor is None else float(sh.single_floor)
+    g.attrs["refine"] = int(sh.refine)
+    g.attrs["text"] = sh.reason
 
 
 # --------------------------------------------------------------------------- the default fit (lm)

@@ -206,6 +206,10 @@ class FitOptions:
       predictability: measure the predictability of the start values over the target before
         fitting (:func:`jaxplush.predictability`, two or three rollouts), reported in the result
         and FIT.h5; its reproducibility floor lets the outcome say ``at_floor``.
+      shooting: how the default fit runs a position target (:mod:`jaxplush.fitting.shooting`):
+        "auto" (multiple shooting where the measured horizon is shorter than the target and
+        shooting measures better than one rollout), "off" (one rollout over the target), or the
+        frames per segment (an int >= 2).
       search: :class:`SearchOptions` of the default fit's global stage.
       local: :class:`LocalOptions` of its local searches; continuation: :class:`ContinuationOptions`
         of its stages in time; smoothing: :class:`SmoothingOptions` of its smoothing stage.
@@ -228,6 +232,7 @@ class FitOptions:
     identifiability: bool = True
     check_dt: bool = True
     predictability: bool = True
+    shooting: object = "auto"
     search: SearchOptions = dataclasses.field(default_factory=SearchOptions)
     local: LocalOptions = dataclasses.field(default_factory=LocalOptions)
     continuation: ContinuationOptions = dataclasses.field(default_factory=ContinuationOptions)
@@ -330,6 +335,11 @@ def validate(opts, optimizer):
             raise JaxplushError(f"{name} must be a number >= 0, got {val!r}")
     if opts.predictability not in (True, False):
         raise JaxplushError(f"predictability must be True or False, got {opts.predictability!r}")
+    if opts.shooting not in ("auto", "off") and not (_is_whole(opts.shooting) and int(opts.shooting) >= 2):
+        raise JaxplushError(f"shooting must be 'auto', 'off' or frames per segment (an integer >= 2), "
+                            f"got {opts.shooting!r}")
+    if optimizer != "lm" and opts.shooting not in ("auto", "off"):
+        raise JaxplushError(f"multiple shooting is part of the default fit (optimizer 'lm'), not of {optimizer}")
     if not _is_whole(opts.patience) or opts.patience < 1:
         raise JaxplushError(f"patience must be an integer >= 1, got {opts.patience!r}")
 

@@ -32,7 +32,7 @@ from typing import Protocol
 import numpy as np
 
 from jaxplush.fitting import search as _search
-from jaxplush.fitting.evaluate import Evaluator
+from jaxplush.fitting import shooting as _shooting
 from jaxplush.fitting.options import ContinuationOptions, LocalOptions, SmoothingOptions
 from jaxplush.fitting.outcome import Stop
 
@@ -64,7 +64,7 @@ class Objective:
     @property
     def evaluator(self):
         if self._evaluator is None:
-            self._evaluator = Evaluator(self.prob)
+            self._evaluator = _shooting.evaluator(self.prob)
         return self._evaluator
 
     def residuals(self, theta):
@@ -105,7 +105,7 @@ class Horizons:
                 sub = dataclasses.replace(sub, sim=made[max(made)].prob.sim)
             share = made[min(made)] if made else None
             # frames in chunks of the first horizon: every horizon runs the same compiled rollout
-            made[stage] = Evaluator(sub, calibration=calibration, share=share, chunk_frames=self.horizons[0])
+            made[stage] = _shooting.evaluator(sub, calibration=calibration, share=share, chunk_frames=self.horizons[0])
         return Objective(made[stage].prob, self.box, made[stage])
 
     def evaluations(self):

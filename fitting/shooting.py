@@ -1,0 +1,349 @@
+"""Multiple shooting: fit a position target in segments that restart from the observed positions.
+
+Where the motion amplifies rounding (weakly damped wrinkling, tumbling), one rollout over the whole
+target ("single shooting") drifts from any target, the true parameters' own included, by more than
+the parameters move it: the loss is a needle on a rough plateau. Multiple shooting cuts the target
+into segments no longer than the predictable horizon (:func:`jaxplush.predictability`) and
+restarts each from the observed state at its first frame (its *node*), so no rollout runs past
+the horizon. All segments of all points run as one batch ("lanes") of the batched engine.
+
+Model of a segment (frames on an even grid, H seconds apart; every vertex observed):
+
+* segment 0 starts from the scene's own start; segment j > 0 from the observed positions of its
+  node frame, with node velocities estimated by central differences of the neighbouring frames,
+  ``(x[k+1] - x[k-1]) / 2H``, then refined at each evaluated point by ``refine`` Gauss-Newton
+  steps of the velocity against the next frame (Jacobian of the position after one frame with
+  respect to the start velocity taken as ``H`` I, the free flight's): the node velocities are
+  inner unknowns solved for each parameter value (a variable projection), and a refinement
+  that does not bring the next frame closer is not taken;
+* each segment is simulated to the next node; its frames, the next node's included, are the
+  residuals: the position gap at every node (where one segment ends and the next restarts) is a
+  residual like any frame's.
+
+Node states estimated from frames carry an error of their own (modes faster than the frame rate
+are aliased): :func:`plan` measures it (the *shooting floor*: multiple shooting of a target
+simulated at the start values, at those values). A lower floor is not enough: short segments see
+little of what accumulates over the whole motion (the report's per-step damping above all). So
+the plan also measures how well each way resolves the parameters: the standard error of each
+log-parameter if the residuals carried the way's floor as noise (from a central-difference
+Jacobian at the start values, :func:`resolution`), and takes multiple shooting only where its
+worst resolved parameter is resolved better than single shooting's. The fitted rollout written to
+FIT.h5 is the single-shooting one (what ``jaxplush simulate`` gives for the fitted values).
+
+Point-cloud targets observe no vertex, so they have no node states: where the horizon is
+shorter than the target, the fit uses the frames within the horizon (and says so).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from jaxplush.errors import JaxplushError
+from jaxplush.fitting import losses as _losses
+from jaxplush.fitting.evaluate import Evaluator, MAX_CAPACITY_GROWTHS, _batchable
+
+#: Default Gauss-Newton refinements of the node velocities per evaluation.
+REFINE = 1
+#: Fewest frames of a segment (the node's next frame refines its velocity, the rest fit).
+MIN_SEGMENT = 2
+#: Fewest frames a point-cloud fit keeps when it stops at the predictable horizon.
+MIN_HORIZON_FRAMES = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class Shooting:
+    """How a fit shoots (:func:`plan`).
+
+    Attributes:
+      segment_frames: frames per segment (None: single shooting).
+      floor: the shooting floor, m (RMS of multiple shooting of the start values' own rollout),
+        or None (not measured).
+      single_floor: single shooting's reproducibility floor, m (:func:`jaxplush.predictability`), or None.
+      resolution, single_resolution: the largest standard error of a log-parameter with the
+        floor as noise (:func:`resolution`), multiple and single shooting's (None: not measured).
+      refine: node-velocity refinements per evaluation.
+      reason: a line for a person saying what was chosen and why.
+    """
+
+    segment_frames: int | None
+    floor: float | None = None
+    single_floor: float | None = None
+    refine: int = REFINE
+    reason: str = ""
+    resolution: float | None = None
+    single_resolution: float | None = None
+
+    @property
+    def on(self):
+        return self.segment_frames is not None
+
+
+def even_gap(target):
+    """The steps between frames when the target's frames lie on an even grid from step 0 (a frame
+    at step 0 allowed), else None."""
+    steps = np.asarray(target.steps, np.int64)
+    steps = steps[steps > 0]
+    if steps.size < 2:
+        return None
+    gap = int(steps[0])
+    return gap if np.array_equal(steps, gap * np.arange(1, steps.size + 1)) else None
+
+
+def why_not(prob):
+    """Why multiple shooting cannot run on this problem (a phrase), or None when it can."""
+    if prob.target.kind != "positions":
+        return "the target is point clouds (no vertex is observed, so there are no node states)"
+    if even_gap(prob.target) is None:
+        return "the target's frames are not on an even grid"
+    if prob.sim.integrator != "verlet":
+        return f"the {prob.sim.integrator} integrator has no batched engine"
+    if not _batchable(prob.sim.terms):
+        return "this scene's terms have no batched engine"
+    return None
+
+
+class ShootingEvaluator(Evaluator):
+    """An :class:`jaxplush.fitting.evaluate.Evaluator` whose points run as segments of
+    ``segment_frames`` frames (module docstring); the residuals have the layout of the single
+    shooting's (every target frame, each simulated by its segment).
+
+    Args:
+      prob: :class:`jaxplush.fitting.fitter.Problem` with a position target on an even grid.
+      segment_frames: frames per segment (>= :data:`MIN_SEGMENT`).
+      refine: node-velocity refinements per evaluation (0: central differences alone).
+      **kw: as :class:`Evaluator`.
+    """
+
+    def __init__(self, prob, segment_frames, refine=REFINE, **kw):
+        kw.pop("chunk_frames", None)          # a segment runs in one piece
+        super().__init__(prob, **kw)
+        reason = why_not(prob)
+        if reason is not None:
+            raise JaxplushError(f"multiple shooting cannot run: {reason}")
+        self.segment_frames = max(MIN_SEGMENT, int(segment_frames))
+        self.refine = int(refine)
+        t = prob.target
+        self.gap = even_gap(t)
+        keep = np.asarray(t.steps) > 0
+        x0 = np.asarray(prob.sim.topology.x0, np.float64)
+        # observed positions at steps 0, gap, 2 gap, ...: the scene's start, then the target's frames
+        self.observed = np.concatenate([x0[None], np.asarray(t.positions, np.float64)[keep]])
+        self.n_steps_frames = len(self.observed) - 1
+        self.nodes = np.arange(0, self.n_steps_frames, self.segment_frames)
+        self.h_frame = self.gap * t.dt
+        obs = self.observed
+        v = np.zeros((len(self.nodes),) + x0.shape)
+        k = self.nodes[1:]
+        v[1:] = (obs[k + 1] - obs[k - 1]) / (2.0 * self.h_frame)
+        self.v_estimate = v
+        # the target's frame at step 0 (if any) is the start itself, in every segmentation
+        self._frame_rows = np.flatnonzero(keep)
+
+    def _frames(self, thetas, n):
+        self.evaluations += len(thetas)
+        return self._segments(thetas, n)
+
+    def _lanes(self, thetas):
+        """Per lane (point, segment): values, start positions, velocities, start step."""
+        n_seg = len(self.nodes)
+        values = [self.prob.params_at(th) for th in thetas for _ in range(n_seg)]
+        x0 = np.tile(self.observed[self.nodes], (len(thetas), 1, 1, 1)).reshape((-1,) + self.observed.shape[1:])
+        v0 = np.tile(self.v_estimate, (len(thetas), 1, 1, 1)).reshape(x0.shape)
+        step0 = np.tile(self.nodes * self.gap, len(thetas))
+        return values, x0, v0, step0
+
+    def _refine(self, values, x0, v0, step0, n):
+        """Node velocities (lanes of segments after the first) refined against the next frame."""
+        n_seg = len(self.nodes)
+        rows = np.flatnonzero(np.arange(len(values)) % n_seg != 0)
+        if not rows.size or self.refine <= 0:
+            return v0
+        nxt = self.observed[(step0[rows] // self.gap) + 1]
+        vals = [values[i] for i in rows]
+        v = v0[rows].copy()
+        fr, ok, _, _ = self._run_lanes(vals, n, [(self.gap, 1)], x0[rows], v, step0[rows])
+        gap = np.sqrt(np.mean((fr[:, 0] - nxt) ** 2, axis=(1, 2)))
+        for _ in range(self.refine):
+            trial = v + np.where(ok[:, None, None], nxt - fr[:, 0], 0.0) / self.h_frame
+            fr2, ok2, _, _ = self._run_lanes(vals, n, [(self.gap, 1)], x0[rows], trial, step0[rows])
+            gap2 = np.sqrt(np.mean((fr2[:, 0] - nxt) ** 2, axis=(1, 2)))
+            better = ok2 & (gap2 < gap)
+            v[better], fr[better], gap[better] = trial[better], fr2[better], gap2[better]
+        out = v0.copy()
+        out[rows] = v
+        return out
+
+    def _segments(self, thetas, n):
+        """(frames (N, T, V, 3), ok, clamped) of :meth:`Evaluator._frames`, run as segments."""
+        n_pts, n_seg, seg = len(thetas), len(self.nodes), self.segment_frames
+        values, x0, v0, step0 = self._lanes(thetas)
+        v0 = self._refine(values, x0, v0, step0, n)
+        fr, good, clamp, over = self._run_lanes(values, n, [(self.gap, seg)], x0, v0, step0)
+        for _ in range(MAX_CAPACITY_GROWTHS):
+            lanes = np.flatnonzero(over)
+            if not lanes.size or not self._grow_contact(thetas[lanes[0] // n_seg], self._single_fn(n)[0]):
+                break
+            pts = np.unique(lanes // n_seg)
+            redo = (pts[:, None] * n_seg + np.arange(n_seg)).ravel()
+            fr[redo], good[redo], clamp[redo], over[redo] = self._run_lanes(
+                [values[i] for i in redo], n, [(self.gap, seg)], x0[redo], v0[redo], step0[redo])
+        if over.any():
+            self.notes.append("contact candidates still overflowed in some segments after growing the capacity")
+        T = self.n_steps_frames
+        out = np.empty((n_pts, T) + self.observed.shape[1:])
+        fr = fr.reshape((n_pts, n_seg, seg) + fr.shape[2:])
+        for j, k in enumerate(self.nodes):
+            m = min(seg, T - k)
+            out[:, k:k + m] = fr[:, j, :m]
+        full = np.empty((n_pts, self.prob.target.n_frames) + out.shape[2:])
+        full[:, self._frame_rows] = out
+        full[:, np.setdiff1d(np.arange(self.prob.target.n_frames), self._frame_rows)] = self.observed[0]
+        return (full, good.reshape(n_pts, n_seg).all(axis=1), clamp.reshape(n_pts, n_seg).any(axis=1))
+
+    def __call__(self, thetas, substeps=None, keep_frames=False):
+        """As :meth:`Evaluator.__call__`; the frames kept (``keep_frames``) are the single-shooting
+        rollout's (the fitted motion), the residuals multiple shooting's."""
+        e = super().__call__(thetas, substeps=substeps)
+        if not keep_frames:
+            return e
+        whole = Evaluator(self.prob, calibration=self.calibration())(thetas, substeps=e.substeps, keep_frames=True)
+        return e._replace(frames=whole.frames)
+
+
+def evaluator(prob, **kw):
+    """The evaluator of a problem: :class:`ShootingEvaluator` where its :attr:`shooting` is on,
+    else :class:`jaxplush.fitting.evaluate.Evaluator`."""
+    sh = getattr(prob, "shooting", None)
+    if sh is not None and sh.on:
+        return ShootingEvaluator(prob, sh.segment_frames, sh.refine, **kw)
+    return Evaluator(prob, **kw)
+
+
+def _floor(prob, segment_frames, refine):
+    """The shooting floor (module docstring) of ``segment_frames`` frames at the start values, m,
+    or None when the start's own rollout does not run."""
+    ev = Evaluator(prob)
+    e = ev(prob.theta0[None], keep_frames=True)
+    if not e.ok[0]:
+        return None
+    own = dataclasses.replace(prob.target, positions=e.frames[0], noise=None)
+    twin = dataclasses.replace(prob, target=own)
+    ms = ShootingEvaluator(twin, segment_frames, refine, calibration=ev.calibration())
+    d = ms(prob.theta0[None], substeps=e.substeps, keep_frames=False)
+    if not d.ok[0]:
+        return None
+    # the residuals are normalised by the target's scale: back to metres per coordinate
+    return _losses.rms_metres(float(d.loss[0]), prob.loss.scale2, "positions")
+
+
+#: Central-difference step (log space) of :func:`resolution`'s Jacobian: wide enough to see past
+#: the rough plateau of a sensitive motion's loss.
+RESOLUTION_STEP = 0.02
+
+
+def resolution(ev, theta, floor):
+    """The largest standard error of a log-parameter at theta if every residual of ``ev`` carried
+    noise of RMS ``floor`` (m): sqrt of the largest diagonal entry of s² (JᵀJ)⁻¹, J the
+    central-difference Jacobian (:data:`RESOLUTION_STEP`); inf where J is singular, None where the
+    stencil does not run."""
+    from jaxplush.fitting import search as _search
+    theta = np.asarray(theta, np.float64)
+    box = _search.Box(theta - 1.0, theta + 1.0)
+    jac = _search.jacobian(ev, box, theta, RESOLUTION_STEP)
+    if not np.isfinite(jac).all() or not np.any(jac):
+        return None
+    prob = ev.prob
+    # the floor as a normalised loss, spread evenly over the residual entries
+    s2 = floor ** 2 * _losses.COMPONENTS[prob.target.kind] / prob.loss.scale2 / jac.shape[0]
+    try:
+        cov = s2 * np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return math.inf
+    d = np.diag(cov)
+    return float(np.sqrt(d.max())) if np.all(d > 0) else math.inf
+
+
+def segment_frames_for(prob):
+    """Frames per segment from the measured horizon (at least :data:`MIN_SEGMENT`), or None when
+    the positions stay predictable over the whole target (or it was not measured)."""
+    pred = prob.predictability
+    if pred is None or not math.isfinite(pred.horizon_time):
+        return None
+    h = even_gap(prob.target) * prob.target.dt if even_gap(prob.target) else None
+    if h is None:
+        return None
+    return max(MIN_SEGMENT, int(pred.horizon_time / h))
+
+
+def plan(prob, setting="auto", refine=REFINE):
+    """How to shoot a problem (after its predictability was measured).
+
+    Args:
+      prob: :class:`jaxplush.fitting.fitter.Problem`.
+      setting: "off" (single shooting), "auto" (multiple shooting where the horizon is shorter
+        than the target and the shooting floor is below single shooting's), or frames per segment.
+      refine: node-velocity refinements per evaluation.
+
+    Returns:
+      (:class:`Shooting`, the problem to fit: a point-cloud target cut at the horizon under "auto").
+
+    Raises:
+      JaxplushError: frames per segment were asked for and multiple shooting cannot run.
+    """
+    pred = prob.predictability
+    single = None if pred is None else float(pred.floor)
+    if setting == "off":
+        return Shooting(None, single_floor=single, reason="single shooting (--shooting off)"), prob
+    if setting != "auto":
+        reason = why_not(prob)
+        if reason is not None:
+            raise JaxplushError(f"--shooting {setting}: multiple shooting cannot run: {reason}")
+        seg = max(MIN_SEGMENT, int(setting))
+        floor = _floor(prob, seg, refine)
+        return Shooting(seg, floor, single, refine, f"multiple shooting in segments of {seg} frames (asked for)"
+                        + ("" if floor is None else f"; shooting floor {floor * 1e3:.3g} mm")), prob
+    seg = segment_frames_for(prob)
+    if seg is None:
+        why = "not measured" if pred is None else "the positions stay predictable over the whole target"
+        return Shooting(None, single_floor=single, reason=f"single shooting ({why})"), prob
+    reason = why_not(prob)
+    if reason is not None and prob.target.kind == "points":
+        return _points_within_horizon(prob, single)
+    if reason is not None:
+        return Shooting(None, single_floor=single, reason=f"single shooting ({reason})"), prob
+    if seg >= prob.target.n_frames:
+        return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
+    floor = _floor(prob, seg, refine)
+    if floor is None or single is None or floor >= single:
+        why = ("the shooting floor could not be measured" if floor is None or single is None else
+               f"node states estimated from the frames ({floor * 1e3:.3g} mm) are no better than "
+               f"single shooting's floor ({single * 1e3:.3g} mm)")
+        return Shooting(None, floor, single, refine, f"single shooting ({why})"), prob
+    ms = ShootingEvaluator(prob, seg, refine)
+    res_ms = resolution(ms, prob.theta0, floor)
+    res_single = resolution(Evaluator(prob, calibration=ms.calibration()), prob.theta0, single)
+    floors = f"shooting floor {floor * 1e3:.3g} mm against single shooting's {single * 1e3:.3g} mm"
+    if res_ms is None or res_single is None or not res_ms < res_single:
+        why = ("the parameters' resolution could not be measured" if res_ms is None or res_single is None else
+               f"{floors}, but segments of {seg} frames resolve the parameters less well: a log-parameter "
+               f"to {res_ms:.2g} against {res_single:.2g}")
+        return Shooting(None, floor, single, refine, f"single shooting ({why})", res_ms, res_single), prob
+    return Shooting(seg, floor, single, refine,
+                    f"multiple shooting in segments of {seg} frames (the horizon is {pred.horizon_time:.3g} s; "
+                    f"{floors}; a log-parameter resolved to {res_ms:.2g} against {res_single:.2g})",
+                    res_ms, res_single), prob
+
+
+def _points_within_horizon(prob, single):
+    """A point-cloud target cut at the predictable horizon (at least :data:`MIN_HORIZON_FRAMES` frames)."""
+    t, pred = prob.target, prob.predictability
+    keep = int(np.searchsorted(np.asarray(t.times, np.float64), pred.horizon_time, side="right"))
+    keep = max(min(MIN_HORIZON_FRAMES, t.n_frames), keep)
+    if keep >= t.n_frames:
+        return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
+    reason = (f"single shooting within the predictable horizon: the first {keep} of {t.n_frames} frames "
+              f"(up to {float(t.times[keep - 1]):.3g} s; a point-cloud target has no node states to shoot from)")
+    return Shooting(None, single_floor=single, reason=reason), prob.truncated(keep)

@@ -1,0 +1,227 @@
+"""Multiple shooting (jaxplush.fitting.shooting): segments restarted from the observed positions,
+node velocities from the neighbouring frames and refined, the plan that chooses it, and the
+command line's --shooting.
+
+Assertions are physical properties (a free fall is a parabola, which central differences and
+Verlet follow exactly; refining a node velocity never moves the next frame away) and relations
+between two measurements, with tolerances relative to the motion: never one CPU's rounding.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import h5py
+import numpy as np
+import pytest
+
+import jaxplush
+from conftest import icosphere_scene
+from jaxplush.errors import JaxplushError
+from jaxplush.fitting import cli as fit_cli
+from jaxplush.fitting import fitter as F
+from jaxplush.fitting import losses
+from jaxplush.fitting import shooting as S
+from jaxplush.fitting.evaluate import Evaluator
+from jaxplush.fitting.scenarios import drop_scene_text
+from jaxplush.fitting.targets import make_target
+
+pytestmark = pytest.mark.numeric
+
+#: The sensitive case of tests/test_predictability.py: a 162-vertex bean dropped tilted onto a
+#: floor with the report's damping, 0.4 s, a frame every 4 ms.
+BEAN = dict(steps=1000, dt=4e-4, save_every=10)
+
+
+def _problem(scene, target, names=("k_structural",), **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return F.build_problem(scene, target, list(names), noise_free=True, **kw)
+
+
+@pytest.fixture(scope="module")
+def free_fall():
+    """A 42-vertex ball without gas or damping falling freely (springs at rest): a rigid parabola."""
+    scene = icosphere_scene()
+    return scene, make_target(scene, 200, 5e-4, 10)
+
+
+@pytest.fixture(scope="module")
+def bean():
+    scene = jaxplush.parse_scene(drop_scene_text("bean", 2, tilt_deg=30.0), "<bean>")
+    return scene, make_target(scene, BEAN["steps"], BEAN["dt"], BEAN["save_every"])
+
+
+def test_segments_of_a_free_fall_follow_the_parabola(free_fall):
+    """Central differences of a parabola are its velocity and Verlet integrates constant
+    acceleration exactly: every segment restarted from the target lands on it, to rounding."""
+    scene, target = free_fall
+    prob = _problem(scene, target)
+    ev = S.ShootingEvaluator(prob, 4, refine=0)
+    assert list(ev.nodes) == [0, 4, 8, 12, 16] and ev.gap == 10 and ev.h_frame == pytest.approx(5e-3)
+    e = ev(prob.theta0[None], keep_frames=True)
+    motion = np.sqrt(np.mean((target.positions - scene.vertices) ** 2))
+    assert motion > 0.01
+    assert e.ok[0] and losses.rms_metres(e.loss[0], prob.loss.scale2, "positions") < 1e-5 * motion
+    # the node velocities are the fall's, g t at the node's time
+    t_nodes = ev.nodes[1:] * ev.h_frame
+    np.testing.assert_allclose(ev.v_estimate[1:, :, 1].mean(axis=1), -9.81 * t_nodes, rtol=1e-4)
+    # the frames kept are the single-shooting rollout's
+    assert np.abs(e.frames[0] - target.positions).max() < 1e-5 * max(motion, 1e-3) + 1e-6
+
+
+def test_the_segments_fill_every_frame_and_a_long_segment_is_single_shooting(free_fall):
+    scene, target = free_fall
+    prob = _problem(scene, target)
+    th = prob.theta0 + 0.3                           # a wrong k: the frames are the model's, not the target's
+    whole = Evaluator(prob)(th[None], keep_frames=True)
+    long = S.ShootingEvaluator(prob, target.n_frames)
+    assert list(long.nodes) == [0]
+    e = long(th[None])
+    assert e.loss[0] == pytest.approx(whole.loss[0], rel=1e-4)
+    # 3-frame segments: 7 of them, the last one short; residuals of every one of the 20 frames
+    ev = S.ShootingEvaluator(prob, 3)
+    assert len(ev.nodes) == 7 and ev.residual.n == whole.residuals.shape[1]
+    assert ev(th[None]).ok[0]
+
+
+def test_refining_the_node_velocities_brings_the_next_frame_closer(bean):
+    """On the tumbling bean the central differences miss the velocities of modes faster than the
+    frames; the refinement is taken only where the next frame comes closer, so the loss at the
+    true values does not grow."""
+    scene, target = bean
+    prob = _problem(scene, target)
+    plain = S.ShootingEvaluator(prob, 10, refine=0)(prob.theta0[None])
+    refined = S.ShootingEvaluator(prob, 10, refine=1)(prob.theta0[None])
+    assert plain.ok[0] and refined.ok[0]
+    assert refined.loss[0] <= plain.loss[0] * (1 + 1e-3)
+
+
+def test_multiple_shooting_keeps_the_basin_where_single_shooting_drifts(bean):
+    """Along k, segments of the horizon's length have their minimum at the truth, and at the truth a
+    residual below single shooting's (whose rollout drifts over the whole target)."""
+    scene, target = bean
+    prob = F.measure_predictability(_problem(scene, target))
+    seg = S.segment_frames_for(prob)
+    assert seg is not None and 2 <= seg < target.n_frames
+    ms = S.ShootingEvaluator(prob, seg)
+    thetas = prob.theta0[None] + np.asarray([-0.1, 0.0, 0.1])[:, None, None]
+    loss = ms(thetas).loss
+    assert loss[1] < min(loss[0], loss[2])
+
+
+def test_auto_plans_single_shooting_for_a_predictable_motion(free_fall):
+    scene, target = free_fall
+    prob = F.measure_predictability(_problem(scene, target))
+    sh, same = S.plan(prob, "auto")
+    assert not sh.on and same is prob and "predictable over the whole target" in sh.reason
+    sh, _ = S.plan(prob, "off")
+    assert not sh.on and "--shooting off" in sh.reason
+    sh, _ = S.plan(prob, 5)
+    assert sh.on and sh.segment_frames == 5 and sh.floor is not None and sh.floor >= 0
+
+
+def test_auto_measures_both_floors_on_the_tumbling_bean(bean):
+    """The plan measures the shooting floor and chooses whichever of the two floors is lower, and
+    says which and why."""
+    scene, target = bean
+    prob = F.measure_predictability(_problem(scene, target, ("k_structural", "nmol")))
+    sh, _ = S.plan(prob, "auto")
+    assert sh.floor is not None and sh.single_floor == prob.predictability.floor
+    if sh.floor < sh.single_floor:
+        # then the resolution of the parameters decides
+        assert sh.resolution > 0 and sh.single_resolution > 0
+        assert sh.on == (sh.resolution < sh.single_resolution)
+        assert f"{sh.resolution:.2g} against {sh.single_resolution:.2g}" in sh.reason
+    else:
+        assert not sh.on
+    assert ("multiple shooting in segments of" in sh.reason) == sh.on
+    assert f"{sh.floor * 1e3:.3g} mm" in sh.reason
+
+
+def test_resolution_is_the_standard_error_of_a_linear_model(free_fall):
+    """For residuals linear in theta the resolution is the least-squares standard error: halving the
+    floor halves it, and a second residual set twice as sensitive resolves twice as well."""
+    scene, target = free_fall
+
+    class Linear:
+        def __init__(self, prob, gain):
+            self.prob, self.gain = prob, gain
+            self.residual = type("R", (), {"n": 50})()
+
+        def substeps_for(self, thetas):
+            return np.ones(len(thetas), np.int64)
+
+        def __call__(self, thetas, substeps=None, keep_frames=False):
+            from jaxplush.fitting.evaluate import Evaluation
+            t = np.asarray(thetas).reshape(len(thetas), -1)
+            a = np.linspace(1.0, 2.0, 50)[:, None] * self.gain
+            r = t @ a.T
+            n = len(t)
+            return Evaluation(r, (r ** 2).sum(1), np.ones(n, bool), np.ones(n, np.int64), np.zeros(n, bool))
+
+    prob = _problem(scene, target)
+    one = S.resolution(Linear(prob, 1.0), prob.theta0, 1e-3)
+    assert one > 0
+    assert S.resolution(Linear(prob, 1.0), prob.theta0, 5e-4) == pytest.approx(one / 2, rel=1e-6)
+    assert S.resolution(Linear(prob, 2.0), prob.theta0, 1e-3) == pytest.approx(one / 2, rel=1e-6)
+
+
+def test_a_point_cloud_target_is_fitted_within_its_horizon(free_fall):
+    """No vertex observed, no node states: "auto" keeps the frames within the horizon and says so;
+    asking for segments is refused."""
+    scene, target = free_fall
+    cloud = dataclasses.replace(target, positions=None, points=target.positions[:, ::2])
+    prob = F.measure_predictability(_problem(scene, cloud))
+    with pytest.raises(JaxplushError, match="point clouds"):
+        S.plan(prob, 4)
+    short = dataclasses.replace(prob, predictability=dataclasses.replace(
+        prob.predictability, horizon_time=float(target.times[7]) + 1e-9))
+    sh, cut = S.plan(short, "auto")
+    assert not sh.on and cut.target.n_frames == 8 and "the first 8 of 20 frames" in sh.reason
+
+
+def test_the_fit_records_how_it_shot(free_fall, tmp_path):
+    scene, target = free_fall
+    p = scene.params
+    start = scene.replace(params=p._replace(k_structural=p.k_structural * 1.3))
+    lines = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = F.fit(start, target, ("k_structural",), noise_free=True, identifiability=False, shooting=4,
+                    samples=8, report=lines.append)
+    assert any(x.startswith("shooting: multiple shooting in segments of 4 frames") for x in lines)
+    assert res.settings["shooting"] == "4"
+    with h5py.File(res.save(tmp_path / "FIT.h5")) as f:
+        g = f["shooting"]
+        assert g.attrs["segment_frames"] == 4 and g.attrs["text"].startswith("multiple shooting")
+        # the fitted rollout is one rollout (single shooting), as simulate gives
+        assert f["fitted/positions"].shape == target.positions.shape
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--shooting", "1"], "--shooting must be auto, off or frames per segment"),
+    (["--shooting", "often"], "--shooting must be auto, off or frames per segment"),
+    (["--shooting", "4", "--optimizer", "adam"], "belongs to the default fit"),
+])
+def test_bad_shooting_arguments_exit_2_before_anything_runs(free_fall, tmp_path, capsys, argv, message):
+    scene, target = free_fall
+    sp, tp, out = tmp_path / "s.obj", tmp_path / "t.h5", tmp_path / "FIT.h5"
+    sp.write_text(scene.text)
+    target.save(tp, scene)
+    rc = fit_cli.main([str(sp), str(tp), "--params", "k", "--out", str(out)] + argv)
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and "Traceback" not in err and not out.exists()
+
+
+@pytest.mark.parametrize("value, ok", [("auto", True), ("off", True), (3, True), (1, False), ("x", False)])
+def test_fit_options_validate_shooting(value, ok):
+    from jaxplush.fitting import options as O
+    opts = O.FitOptions(shooting=value)
+    if ok:
+        O.validate(opts, "lm")
+    else:
+        with pytest.raises(JaxplushError, match="shooting must be"):
+            O.validate(opts, "lm")
