@@ -55,7 +55,6 @@ from jaxplush.fitting import identifiability as _ident
 from jaxplush.fitting import losses as _losses
 from jaxplush.fitting import options as _options
 from jaxplush.fitting.errors import FitError  # noqa: F401  (jaxplush.fitting.fitter.FitError)
-from jaxplush.fitting.io import LoopState
 from jaxplush.fitting.outcome import Status, Stop
 from jaxplush.fitting.options import CheckpointOptions, FitOptions, SearchOptions  # noqa: F401  (jaxplush.fitting.fitter.FitOptions)
 from jaxplush.fitting.targets import Target, load_target
@@ -410,7 +409,7 @@ class FitResult:
     target_path: str
     wall_time: float
     warnings: tuple = ()
-    loop: object = None     # the final LoopState / LMRun (for saving a resumable file)
+    loop: object = None     # the final LoopState / the default fit's RunState (for saving a resumable file)
     problem: object = None  # the Problem that was solved
     settings: dict = dataclasses.field(default_factory=dict)
     outcome: object = None  # jaxplush.fitting.outcome.Outcome
@@ -566,6 +565,41 @@ def _common_settings(prob, opts, kind, iterations, lr):
                 method=opts.method)
 
 
+@dataclasses.dataclass
+class LoopState:
+    """The complete state of the optimisation loop (what a checkpoint holds).
+
+    ``theta`` is the next point to evaluate, with ``opt_state`` the optimiser state to use
+    there; ``anchor`` the last accepted point it was reached from (None before the first).
+    """
+
+    theta: np.ndarray
+    opt_state: object
+    anchor: np.ndarray | None = None
+    scale: float = 1.0
+    iteration: int = 0           # evaluations done (accepted + rejected)
+    rejected: int = 0
+    rejected_in_row: int = 0
+    stall: int = 0
+    best_theta: np.ndarray | None = None
+    best_loss: float = math.inf
+    done: bool = False
+    reason: str = ""             # why it stopped, in words for a person
+    stopped: Stop = Stop.NONE    # ... and as a :class:`jaxplush.fitting.outcome.Stop`
+    h_iter: list = dataclasses.field(default_factory=list)
+    h_loss: list = dataclasses.field(default_factory=list)
+    h_theta: list = dataclasses.field(default_factory=list)
+    h_gnorm: list = dataclasses.field(default_factory=list)
+    h_time: list = dataclasses.field(default_factory=list)
+    h_rejected: list = dataclasses.field(default_factory=list)
+    wall: float = 0.0
+
+    def snapshot(self):
+        """A copy that later iterations do not change (lists copied; arrays are never mutated)."""
+        return dataclasses.replace(self, **{f.name: list(getattr(self, f.name)) for f in dataclasses.fields(self)
+                                            if f.name.startswith("h_")})
+
+
 #: Depth from :class:`_GradientFit`'s methods to the caller of :func:`fit`, for warnings.
 _LOOP_STACKLEVEL = {"warn_dt": 4, "grow_contact_capacity": 6}
 
@@ -625,7 +659,14 @@ class _GradientFit:
         """The :class:`LoopState` to start from: the checkpoint's (resume), or the start values."""
         if self.opts.checkpoint.resume:
             from jaxplush.fitting import io as _io
-            return _io.load_checkpoint(self.opts.checkpoint.path, self.prob, self.opt, self.settings)
+            from jaxplush.fitting.treeio import conform
+
+            def check(loop):      # this optimiser's state, with its dtypes and array kinds
+                template = jax.jit(self.opt.init)(jnp.asarray(loop.theta))
+                if not isinstance(loop, LoopState):
+                    raise TypeError(f"the checkpoint holds a {type(loop).__name__}, not a gradient fit's LoopState")
+                return dataclasses.replace(loop, opt_state=conform(loop.opt_state, template))
+            return _io.load_checkpoint(self.opts.checkpoint.path, self.prob, self.settings, conform=check)
         th0 = jnp.asarray(self.prob.theta0, self.prob.sim.dtype)
         loop = LoopState(theta=np.asarray(th0), opt_state=jax.jit(self.opt.init)(th0))
         loop.best_theta = np.asarray(th0)
@@ -700,7 +741,10 @@ class _GradientFit:
     def save(self, state, status="running"):
         if self.opts.checkpoint.path is not None:
             from jaxplush.fitting import io as _io
-            _io.save_checkpoint(self.opts.checkpoint.path, self.prob, state, self.settings, status=status)
+            _io.save_checkpoint(self.opts.checkpoint.path, self.prob, state, self.settings, status=status,
+                                theta=state.best_theta, history=_loop_history(self.prob, state),
+                                loss=float(state.best_loss), iterations=int(state.iteration),
+                                rejected=int(state.rejected))
 
     def grow_contact_capacity(self, theta):
         """After a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
@@ -876,9 +920,7 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
         warnings.warn(msg, stacklevel=4)
         notes.append(msg)
     report = _report(prob, frames, jac) if want_ident else None
-    hist = _history(prob, loop.h_theta, iteration=np.asarray(loop.h_iter, np.int64),
-                    loss=np.asarray(loop.h_loss, np.float64), grad_norm=np.asarray(loop.h_gnorm, np.float64),
-                    time=np.asarray(loop.h_time, np.float64), rejected=np.asarray(loop.h_rejected, np.int64))
+    hist = _loop_history(prob, loop)
     out = _judge_loop(prob, loop)
     return _result(prob, best, frames=frames, history=hist, outcome=out, report=report, warn_report=True,
                    notes=notes, settings=settings, loop=loop, wall=wall, stacklevel=4,
@@ -886,6 +928,13 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
                    loss_start=float(loop.h_loss[0]) if loop.h_loss else float("nan"),
                    iterations=loop.iteration, rejected=loop.rejected,
                    reason=f"{out.text} (the optimiser stopped: {loop.reason})", lr=settings["lr"])
+
+
+def _loop_history(prob, loop):
+    """The :attr:`FitResult.history` of a gradient loop (:class:`LoopState`)."""
+    return _history(prob, loop.h_theta, iteration=np.asarray(loop.h_iter, np.int64),
+                    loss=np.asarray(loop.h_loss, np.float64), grad_norm=np.asarray(loop.h_gnorm, np.float64),
+                    time=np.asarray(loop.h_time, np.float64), rejected=np.asarray(loop.h_rejected, np.int64))
 
 
 def _history(prob, thetas, **arrays):
@@ -1066,41 +1115,57 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
     box = _lm_box(prob, opts.search.bounds)
     settings = _lm_settings(prob, opts, box)
     checkpoint_path, want_ident = opts.checkpoint.path, opts.identifiability
-    prior = _io.load_lm_checkpoint(checkpoint_path, prob, settings) if opts.checkpoint.resume else None
+    prior = _io.load_checkpoint(checkpoint_path, prob, settings, conform=_driver_state) \
+        if opts.checkpoint.resume else None
     if opts.predictability:                 # every input checked (a resumed checkpoint too)
         prob = measure_predictability(prob, report)
     last = [prior]
 
-    def save(run, status="running"):
-        last[0] = _io.light_copy(run)
+    def write(state, status):
+        best = lmfit.best_search(state)
+        extra = {} if best is None else dict(theta=best.theta, loss=float(best.loss))
+        _io.save_checkpoint(checkpoint_path, prob, state, settings, status,
+                            iterations=int(state.evaluations), **extra)
+
+    def save(run):
+        last[0] = lmfit.light_copy(run)
         if checkpoint_path is not None:
-            _io.save_lm_checkpoint(checkpoint_path, prob, last[0], settings, status)
+            write(last[0], "running")
 
     user_cb = None
     if callback is not None:
-        def user_cb(run):
-            b = min(run.states, key=lambda st: st.loss)
-            return callback(dict(iteration=run.rounds, loss=b.loss, values=prob.values(b.theta), grad_norm=np.nan))
+        def user_cb(local):
+            b = min(local.states, key=lambda st: st.loss)
+            return callback(dict(iteration=local.rounds, loss=b.loss, values=prob.values(b.theta), grad_norm=np.nan))
     try:
         run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, callback=user_cb)
     except KeyboardInterrupt:
         if last[0] is not None and checkpoint_path is not None:
-            _io.save_lm_checkpoint(checkpoint_path, prob, last[0], settings, "interrupted")
+            write(last[0], "interrupted")
         raise
     try:
         wall = time.perf_counter() - t_start + (prior.wall if prior is not None else 0.0)
         result = _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall)
     except KeyboardInterrupt:
         if checkpoint_path is not None:
-            _io.save_lm_checkpoint(checkpoint_path, prob, _io.light_copy(run), settings, "interrupted")
+            write(lmfit.light_copy(run.state), "interrupted")
         raise
     if checkpoint_path is not None:
         _io.save_fit(result, checkpoint_path)
     return result
 
 
+def _driver_state(state):
+    """A default fit's checkpointed state, checked to be its driver's."""
+    from jaxplush.fitting.stages import RunState
+    if not isinstance(state, RunState):
+        raise TypeError(f"the checkpoint holds a {type(state).__name__}, not the default fit's RunState")
+    return state
+
+
 def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability."""
+    from jaxplush.fitting import lmfit
     from jaxplush.fitting.search import gauss_newton
     notes = list(notes) + list(ev.notes)
     prob = dataclasses.replace(prob, sim=ev.prob.sim)       # with a grown contact capacity, if any
@@ -1145,7 +1210,8 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
                   horizons=run.horizons, box_lo=box.lo, box_hi=box.hi, grad=run.grad, grad0=run.grad0)
     # the identifiability warnings only for a converged fit (whose standard errors mean something)
     return _result(prob, best.theta, frames=frames, history=hist, outcome=out, report=report,
-                   warn_report=out.converged, notes=notes, settings=settings, loop=run, wall=wall, stacklevel=3,
+                   warn_report=out.converged, notes=notes, settings=settings, loop=lmfit.light_copy(run.state),
+                   wall=wall, stacklevel=3,
                    loss=float(best.loss), loss_start=float(run.loss0), iterations=int(run.evaluations),
                    rejected=int((~g.ok).sum()), reason=out.text, lr=None, search=search)
 
