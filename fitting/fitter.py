@@ -272,7 +272,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
                   horizons=run.horizons, box_lo=box.lo, box_hi=box.hi, grad=run.grad, grad0=run.grad0)
     # the identifiability warnings only for a converged fit (whose standard errors mean something)
     return _result(prob, best.theta, frames=frames, history=hist, outcome=out, report=report,
-                   warn_report=out.converged, notes=notes, settings=settings, loop=lmfit.light_copy(run.state),
+                   warn_report=out.converged, notes=notes, settings=settings, loop=dataclasses.replace(run, state=lmfit.light_copy(run.state)),
                    wall=wall, stacklevel=3,
                    loss=float(best.loss), loss_start=float(run.loss0), iterations=int(run.evaluations),
                    rejected=int((~g.ok).sum()), reason=out.text, lr=None, search=search)

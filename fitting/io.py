@@ -200,8 +200,8 @@ def save_fit(result, path):
                                                                np.asarray(srch["box_hi"])[i]]))
                 sg.attrs["grad"] = np.asarray(srch["grad"], np.float64)
                 sg.attrs["grad_start"] = np.asarray(srch["grad0"], np.float64)
-            if loop is not None:
-                _write_state(f, prob, loop, result.settings)
+            if loop is not None:    # a gradient fit's LoopState, or the default fit's driver state (LMRun.state)
+                _write_state(f, prob, getattr(loop, "state", loop), result.settings)
     return os.fspath(path)
 
 

@@ -60,7 +60,7 @@ def synthetic_recovery(subdivisions=3, noise=0.0, point_cloud=False, progress=Tr
       dict: true, start and fitted values, relative errors, wall time of the fit (s), loss,
       iterations, the identifiability summary, and the :class:`FitResult` ("result").
     """
-    from jaxplush.fitting.fitter import fit
+    from jaxplush import fitting      # (fitting.fit: the package's lazy name, no import cycle)
     truth = recovery_scene_text(subdivisions)
     scene_true = jaxplush.parse_scene(truth, "<recovery truth>")
     t0 = time.perf_counter()
@@ -73,7 +73,7 @@ def synthetic_recovery(subdivisions=3, noise=0.0, point_cloud=False, progress=Tr
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = fit(scene, target, ("k_structural", "damping", "nmol"), optimizer=optimizer, iterations=iterations,
+        res = fitting.fit(scene, target, ("k_structural", "damping", "nmol"), optimizer=optimizer, iterations=iterations,
                   noise_free=not noise, progress=progress, checkpoint_path=checkpoint_path, check_dt=False)
     wall = time.perf_counter() - t0
     fitted = {n: float(res.values[n][0]) for n in true_vals}

@@ -73,7 +73,7 @@ class FitResult:
     target_path: str
     wall_time: float
     warnings: tuple = ()
-    loop: object = None     # the final LoopState / the default fit's RunState (for saving a resumable file)
+    loop: object = None     # the final LoopState / LMRun, whose .state a checkpoint holds (for a resumable file)
     problem: object = None  # the Problem that was solved
     settings: dict = dataclasses.field(default_factory=dict)
     outcome: object = None  # jaxplush.fitting.outcome.Outcome

@@ -14,10 +14,14 @@ its search box: the residuals of the target at log values theta, batched and sta
 The stages of the default fit: :class:`GlobalStage` (a Sobol design over the box and the best
 candidates), :class:`LocalLM` (Levenberg-Marquardt from them, with screening and rescues) and
 :class:`Smoothing` (a noisy target's regression stage); :class:`Continuation` wraps stages to run
-over horizons of growing length (the target's first frames, then more). :func:`run_stages`
-runs a list of stages in turn, each from the last one's state. :func:`jaxplush.fitting.lmfit.run`
-is the default fit built from these stages, with checkpoints, progress and the callback around
-them. Every tuning knob comes from the options (:mod:`jaxplush.fitting.options`).
+over horizons of growing length (the target's first frames, then more); :class:`Linearise`
+takes the best point's residuals and Jacobian. :func:`run_stages` runs a list of stages in turn,
+each from the last one's state, calling :class:`Hooks` around every step; its state
+(:class:`RunState`: the stage running, its state, those finished) is plain data, which a
+checkpoint holds (:mod:`jaxplush.fitting.treeio`) and ``run_stages`` resumes from.
+:func:`jaxplush.fitting.lmfit.run` is the default fit: ``run_stages`` of these stages, with
+progress, the callback and checkpoints as hooks. Every tuning knob comes from the options
+(:mod:`jaxplush.fitting.options`).
 
 A stage of one's own needs no base class: ``init``, ``step`` and ``terminate`` are enough (the
 README's "Stages" section puts a user's Gauss-Newton solver after the global stage).
@@ -188,8 +192,7 @@ class GlobalStage:
 
 @dataclasses.dataclass
 class LocalState:
-    """A :class:`LocalLM`'s state: its searches and the rounds done (an
-    :class:`jaxplush.fitting.lmfit.LMRun`, which has both, serves as well)."""
+    """A :class:`LocalLM`'s state: its searches and the rounds done."""
 
     states: list
     rounds: int = 0
