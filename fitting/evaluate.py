@@ -1,6 +1,6 @@
 """Residuals of a fit at many parameter points at once, every point simulated stably.
 
-:class:`Evaluator` runs a :class:`jaxplush.fitting.fitter.Problem` at N points theta (log-parameters)
+:class:`Evaluator` runs a :class:`jaxplush.fitting.problem.Problem` at N points theta (log-parameters)
 and returns each point's residual vector (:func:`jaxplush.fitting.losses.make_residual`: sum(r²) is the
 fit's loss), its loss and whether it ran. Points run in compiled batches of the batched
 simulator (:mod:`jaxplush.fitting.batched`, one compile per batch width and substep count) where the
@@ -88,7 +88,7 @@ class Evaluator:
     """Evaluate a problem's residuals at many points (see the module docstring).
 
     Args:
-      prob: :class:`jaxplush.fitting.fitter.Problem`.
+      prob: :class:`jaxplush.fitting.problem.Problem`.
       batch: points per batched call (static; default :data:`DEFAULT_BATCH`, half that above
         :data:`LARGE_MESH` vertices).
       calibrate: calibrate the closed-form stability bound against the power-iteration estimate

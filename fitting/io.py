@@ -27,8 +27,10 @@ Layout:
   ``motion``, ``perturbation``, ``method``, ``dtype``, ``duration``, ``text``;
 * ``shooting/`` (the default fit, :mod:`jaxplush.fitting.shooting`): attributes ``segment_frames``
   (0: one rollout), ``floor_rms``, ``single_floor_rms``, ``refine``, ``text``;
-* ``checkpoint/``: the optimisation loop's complete state (log values, optimiser state leaves,
-  history, counters, RNG-free), enough for ``--resume`` to continue to the same answer.
+* ``checkpoint/``: the fit's complete state (the gradient loop's log values, optimiser state,
+  history and counters; the default fit's stage driver and its stage's searches), a pytree as
+  :mod:`jaxplush.fitting.treeio` writes it, with attributes ``format`` and ``settings``: enough
+  for ``--resume`` to continue to the same answer.
 
 Format: docs/formats.md §5.
 """
@@ -42,13 +44,12 @@ import math
 import os
 
 import h5py
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
 from jaxplush.fitting.options import TUNING
-from jaxplush.fitting.outcome import Status, Stop
+from jaxplush.fitting.outcome import Status
+from jaxplush.fitting.treeio import read_tree, write_tree
 from jaxplush.io.trajectory import atomic_path, open_hdf5
 from jaxplush.types import PARAM_NAMES
 
@@ -94,47 +95,6 @@ def _write_values(group, prob, values_by_name):
     group.attrs["object_names"] = np.asarray(names, dtype=object)
 
 
-def _write_loop(f, prob, loop, settings):
-    g = f.create_group("checkpoint")
-    g.create_dataset("theta", data=np.asarray(loop.theta))
-    if loop.anchor is not None:
-        g.create_dataset("anchor", data=np.asarray(loop.anchor))
-    g.create_dataset("best_theta", data=np.asarray(loop.best_theta))
-    for key in ("scale", "best_loss", "wall"):
-        g.attrs[key] = float(getattr(loop, key))
-    for key in ("iteration", "rejected", "rejected_in_row", "stall"):
-        g.attrs[key] = int(getattr(loop, key))
-    g.attrs["done"] = bool(loop.done)
-    g.attrs["reason"] = loop.reason
-    g.attrs["stopped"] = Stop(loop.stopped).value
-    g.attrs["settings"] = json.dumps(_settings(prob, settings))
-    leaves = jax.tree_util.tree_leaves(loop.opt_state)
-    og = g.create_group("opt_state")
-    og.attrs["n_leaves"] = len(leaves)
-    for i, leaf in enumerate(leaves):
-        og.create_dataset(f"{i:05d}", data=np.asarray(leaf))
-    hg = g.create_group("history")
-    n_p = len(prob.names) * len(prob.objects)
-    hg.create_dataset("iteration", data=np.asarray(loop.h_iter, np.int64))
-    hg.create_dataset("loss", data=np.asarray(loop.h_loss, np.float64))
-    hg.create_dataset("theta", data=np.asarray(loop.h_theta, np.float64).reshape(-1, n_p))
-    hg.create_dataset("grad_norm", data=np.asarray(loop.h_gnorm, np.float64))
-    hg.create_dataset("time", data=np.asarray(loop.h_time, np.float64))
-    hg.create_dataset("rejected", data=np.asarray(loop.h_rejected, np.int64))
-
-
-def _history(f, prob, loop):
-    hg = f.create_group("history")
-    th = np.asarray(loop.h_theta, np.float64).reshape(-1, len(prob.names), len(prob.objects))
-    hg.create_dataset("loss", data=np.asarray(loop.h_loss, np.float64))
-    hg.create_dataset("iteration", data=np.asarray(loop.h_iter, np.int64))
-    hg.create_dataset("grad_norm", data=np.asarray(loop.h_gnorm, np.float64))
-    hg.create_dataset("time", data=np.asarray(loop.h_time, np.float64))
-    hg.create_dataset("rejected", data=np.asarray(loop.h_rejected, np.int64))
-    for i, n in enumerate(prob.names):
-        hg.create_dataset(n, data=np.exp(th[:, i]))
-
-
 def _common_attrs(f, prob, settings, status):
     from jaxplush import __version__
     a = f.attrs
@@ -152,23 +112,28 @@ def _common_attrs(f, prob, settings, status):
     a["jaxplush_version"] = __version__
 
 
-def save_checkpoint(path, prob, loop, settings, status="running"):
-    """Write the loop state (and the best values so far) to ``path`` atomically."""
+def save_checkpoint(path, prob, state, settings, status="running", *, theta=None, history=None, **attrs):
+    """Write a fit's ``state`` (a pytree, :func:`jaxplush.fitting.treeio.write_tree`) to ``path`` atomically,
+    with what a person reads of it: the best values so far (log values ``theta``), ``history``
+    (name -> array) and ``attrs`` (loss, iterations, rejected)."""
     with atomic_path(path, ".h5") as tmp:
         with h5py.File(tmp, "w") as f:
             _common_attrs(f, prob, settings, status)
-            f.attrs["loss"] = float(loop.best_loss)
-            f.attrs["iterations"] = int(loop.iteration)
-            f.attrs["rejected"] = int(loop.rejected)
-            _write_values(f.create_group("params"), prob, prob.values(loop.best_theta))
+            for k, v in attrs.items():
+                f.attrs[k] = v
+            if theta is not None:
+                _write_values(f.create_group("params"), prob, prob.values(theta))
             _write_values(f.create_group("start"), prob, prob.start)
-            _history(f, prob, loop)
-            _write_loop(f, prob, loop, settings)
+            if history is not None:
+                hg = f.create_group("history")
+                for k, v in history.items():
+                    hg.create_dataset(k, data=np.asarray(v))
+            _write_state(f, prob, state, settings)
     return os.fspath(path)
 
 
 def save_fit(result, path):
-    """Write a :class:`jaxplush.fitting.fitter.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
+    """Write a :class:`jaxplush.fitting.result.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
     fit's outcome (jaxplush.fitting.outcome: "converged", "poor_fit", "stalled", ...)."""
     loop = result.loop
     prob = result.problem
@@ -239,12 +204,8 @@ def save_fit(result, path):
                                                                np.asarray(srch["box_hi"])[i]]))
                 sg.attrs["grad"] = np.asarray(srch["grad"], np.float64)
                 sg.attrs["grad_start"] = np.asarray(srch["grad0"], np.float64)
-            if loop is not None:
-                if result.optimizer == "lm":
-                    _write_lm(f, prob, light_copy(loop), result.settings)
-                    f["checkpoint"].attrs["done"] = True
-                else:
-                    _write_loop(f, prob, loop, result.settings)
+            if loop is not None:    # a gradient fit's LoopState, or the default fit's driver state (LMRun.state)
+                _write_state(f, prob, getattr(loop, "state", loop), result.settings)
     return os.fspath(path)
 
 
@@ -274,79 +235,29 @@ def _write_shooting(g, sh):
     g.attrs["text"] = sh.reason
 
 
-# --------------------------------------------------------------------------- the default fit (lm)
+# --------------------------------------------------------------------------- the checkpoint
 
-def light_copy(run):
-    """A copy of a :class:`jaxplush.fitting.lmfit.LMRun` without the residuals and Jacobians (which a
-    resumed fit recomputes, identically): what a checkpoint holds."""
-    import copy
-    states = [dataclasses.replace(st, history=list(st.history), residual=None, jac=None) for st in run.states]
-    run = dataclasses.replace(run, paths=[list(p) for p in run.paths])
-    out = dataclasses.replace(run, states=states, best=None, jac=None, residual=None)
-    out.global_result = copy.copy(run.global_result)
-    return out
+#: The checkpoint's format: the state pytree of :mod:`jaxplush.fitting.treeio` (a file without it
+#: was written by an older jaxplush, in a format of its own).
+CHECKPOINT_FORMAT = "tree-1"
+#: The checkpoint group's own attributes (a state's fields must not take these names).
+_CHECKPOINT_ATTRS = ("format", "settings")
 
 
-def _write_lm(f, prob, run, settings):
+def _write_state(f, prob, state, settings):
+    """The ``checkpoint`` group: the format, the settings a resume must match, and the state pytree."""
+    names = {fld.name for fld in dataclasses.fields(state)} if dataclasses.is_dataclass(state) else set()
+    if names & set(_CHECKPOINT_ATTRS):
+        raise TypeError(f"a checkpointed state must not have the fields {sorted(names & set(_CHECKPOINT_ATTRS))}")
     g = f.create_group("checkpoint")
-    g.attrs["kind"] = "lm"
+    write_tree(g, state)
+    g.attrs["format"] = CHECKPOINT_FORMAT
     g.attrs["settings"] = json.dumps(_settings(prob, settings))
-    g.attrs["phase"] = run.phase if run.phase in ("global", "local") else "final"
-    g.attrs["stage"] = int(run.stage)
-    g.attrs["horizons"] = np.asarray(run.horizons, np.int64)
-    g.attrs["rounds"] = int(run.rounds)
-    pg = g.create_group("paths")
-    k = 0
-    for stage, stage_paths in enumerate(run.paths):
-        for hist, reason in stage_paths:
-            one = pg.create_group(f"{k:04d}")
-            one.attrs["stage"] = stage
-            one.attrs["reason"] = reason
-            one.create_dataset("loss", data=np.asarray([l for l, _ in hist], np.float64))
-            one.create_dataset("theta", data=np.asarray([t for _, t in hist], np.float64).reshape(
-                (len(hist),) + np.shape(prob.theta0)))
-            k += 1
-    g.attrs["wall"] = float(run.wall)
-    g.attrs["evaluations"] = int(run.evaluations)
-    gr = run.global_result
-    if gr is not None:
-        gg = g.create_group("global")
-        for k in ("thetas", "loss", "ok", "substeps"):
-            gg.create_dataset(k, data=np.asarray(getattr(gr, k)))
-    for i, st in enumerate(run.states):
-        sg = g.create_group(f"state_{i:03d}")
-        sg.create_dataset("theta", data=np.asarray(st.theta, np.float64))
-        for k in ("loss", "mu", "radius", "jac_h"):
-            sg.attrs[k] = float(getattr(st, k))
-        for k in ("iteration", "substeps", "evaluations", "rescues"):
-            sg.attrs[k] = int(getattr(st, k))
-        sg.attrs["done"] = bool(st.done)
-        sg.attrs["reason"] = st.reason
-        sg.attrs["stopped"] = Stop(st.stopped).value
-        sg.create_dataset("history_loss", data=np.asarray([l for l, _ in st.history], np.float64))
-        sg.create_dataset("history_theta", data=np.asarray([t for _, t in st.history], np.float64).reshape(
-            (len(st.history),) + np.shape(st.theta)))
-    g.attrs["n_states"] = len(run.states)
 
 
-def save_lm_checkpoint(path, prob, run, settings, status="running"):
-    """Write a default fit's state (:class:`jaxplush.fitting.lmfit.LMRun`) to ``path`` atomically."""
-    with atomic_path(path, ".h5") as tmp:
-        with h5py.File(tmp, "w") as f:
-            _common_attrs(f, prob, settings, status)
-            states = run.states
-            if states:
-                best = min(states, key=lambda st: st.loss)
-                f.attrs["loss"] = float(best.loss)
-                _write_values(f.create_group("params"), prob, prob.values(best.theta))
-            f.attrs["iterations"] = int(run.evaluations)
-            _write_values(f.create_group("start"), prob, prob.start)
-            _write_lm(f, prob, run, settings)
-    return os.fspath(path)
-
-
-def load_lm_checkpoint(path, prob, settings):
-    """The :class:`jaxplush.fitting.lmfit.LMRun` saved in ``path``, checked to belong to this fit."""
+def load_checkpoint(path, prob, settings, conform=None):
+    """The state pytree checkpointed in ``path``, checked to belong to this fit (its settings);
+    ``conform(state)`` (optional) checks it further and returns the state to use."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise JaxplushError(f"{path}: no checkpoint to resume (the file does not exist); run without --resume")
@@ -356,45 +267,17 @@ def load_lm_checkpoint(path, prob, settings):
         raise TrajectoryError(path, "not an HDF5 file: cannot resume from it") from None
     try:
         with f:
-            return _read_lm(path, f, prob, settings)
-    except (KeyError, ValueError, TypeError, OSError) as e:
+            if "checkpoint" not in f:
+                raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
+            g = f["checkpoint"]
+            if g.attrs.get("format") != CHECKPOINT_FORMAT:
+                raise JaxplushError(f"{path}: cannot resume: its checkpoint was written by an older jaxplush; "
+                                    "run without --resume to start over")
+            _check_settings(path, g, prob, settings)
+            state = read_tree(g)
+            return conform(state) if conform is not None else state
+    except (KeyError, ValueError, TypeError, OSError) as e:  # damaged, or written by another version
         raise TrajectoryError(path, f"cannot read the checkpoint ({e}); run without --resume to start over") from None
-
-
-def _read_lm(path, f, prob, settings):
-    from jaxplush.fitting.lmfit import LMRun
-    from jaxplush.fitting.search import GlobalResult, LMState
-    if "checkpoint" not in f:
-        raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
-    g = f["checkpoint"]
-    if g.attrs.get("kind", "loop") != "lm":
-        raise JaxplushError(f"{path}: the checkpoint is of a different fit (optimizer: checkpoint "
-                            f"{json.loads(g.attrs['settings']).get('optimizer')!r}, now 'lm'); run without "
-                            "--resume to start over")
-    _check_settings(path, g, prob, settings)
-    run = LMRun(phase=str(g.attrs["phase"]), stage=int(g.attrs["stage"]),
-                horizons=tuple(int(h) for h in g.attrs["horizons"]), rounds=int(g.attrs["rounds"]),
-                wall=float(g.attrs["wall"]), evaluations=int(g.attrs["evaluations"]))
-    paths = {}
-    for key in sorted(g["paths"].keys()):
-        one = g["paths"][key]
-        hist = [(float(a), np.asarray(b)) for a, b in zip(one["loss"][()], one["theta"][()])]
-        paths.setdefault(int(one.attrs["stage"]), []).append((hist, str(one.attrs["reason"])))
-    run.paths = [paths[k] for k in sorted(paths)]
-    if "global" in g:
-        gg = g["global"]
-        run.global_result = GlobalResult(*(np.asarray(gg[k][()]) for k in ("thetas", "loss", "ok", "substeps")))
-    for i in range(int(g.attrs["n_states"])):
-        sg = g[f"state_{i:03d}"]
-        hl, ht = sg["history_loss"][()], sg["history_theta"][()]
-        run.states.append(LMState(
-            theta=np.asarray(sg["theta"][()]), loss=float(sg.attrs["loss"]), mu=float(sg.attrs["mu"]),
-            radius=float(sg.attrs["radius"]), iteration=int(sg.attrs["iteration"]), done=bool(sg.attrs["done"]),
-            reason=str(sg.attrs["reason"]), stopped=Stop(str(sg.attrs["stopped"])),
-            history=[(float(a), np.asarray(b)) for a, b in zip(hl, ht)], jac_h=float(sg.attrs["jac_h"]),
-            substeps=int(sg.attrs["substeps"]), evaluations=int(sg.attrs["evaluations"]),
-            rescues=int(sg.attrs.get("rescues", 0))))
-    return run
 
 
 def _check_settings(path, g, prob, settings):
@@ -407,106 +290,6 @@ def _check_settings(path, g, prob, settings):
             raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "
                                 f"{saved.get(k)!r}, now {mine.get(k)!r}{_RESUME_HINTS.get(k, '')}); "
                                 "run without --resume to start over")
-
-
-def load_checkpoint(path, prob, opt, settings):
-    """The :class:`LoopState` saved in ``path``, checked to belong to this fit."""
-    path = os.fspath(path)
-    if not os.path.exists(path):
-        raise JaxplushError(f"{path}: no checkpoint to resume (the file does not exist); run without --resume")
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise TrajectoryError(path, "not an HDF5 file: cannot resume from it") from None
-    try:
-        with f:
-            return _read_checkpoint(path, f, prob, opt, settings)
-    except (KeyError, ValueError, TypeError, OSError) as e:  # damaged, or written by another version
-        raise TrajectoryError(path, f"cannot read the checkpoint ({e}); run without --resume to start over") from None
-
-
-@dataclasses.dataclass
-class LoopState:
-    """The complete state of the optimisation loop (what a checkpoint holds).
-
-    ``theta`` is the next point to evaluate, with ``opt_state`` the optimiser state to use
-    there; ``anchor`` the last accepted point it was reached from (None before the first).
-    """
-
-    theta: np.ndarray
-    opt_state: object
-    anchor: np.ndarray | None = None
-    scale: float = 1.0
-    iteration: int = 0           # evaluations done (accepted + rejected)
-    rejected: int = 0
-    rejected_in_row: int = 0
-    stall: int = 0
-    best_theta: np.ndarray | None = None
-    best_loss: float = math.inf
-    done: bool = False
-    reason: str = ""             # why it stopped, in words for a person
-    stopped: Stop = Stop.NONE    # ... and as a :class:`jaxplush.fitting.outcome.Stop`
-    h_iter: list = dataclasses.field(default_factory=list)
-    h_loss: list = dataclasses.field(default_factory=list)
-    h_theta: list = dataclasses.field(default_factory=list)
-    h_gnorm: list = dataclasses.field(default_factory=list)
-    h_time: list = dataclasses.field(default_factory=list)
-    h_rejected: list = dataclasses.field(default_factory=list)
-    wall: float = 0.0
-
-    def snapshot(self):
-        """A copy that later iterations do not change (lists copied; arrays are never mutated)."""
-        return dataclasses.replace(self, **{f.name: list(getattr(self, f.name)) for f in dataclasses.fields(self)
-                                            if f.name.startswith("h_")})
-
-
-def _read_checkpoint(path, f, prob, opt, settings):
-    if "checkpoint" not in f:
-        raise TrajectoryError(path, "holds no checkpoint group: not a resumable FIT.h5")
-    g = f["checkpoint"]
-    if g.attrs.get("kind", "loop") == "lm":
-        raise JaxplushError(f"{path}: the checkpoint is of a different fit (optimizer: checkpoint 'lm', now "
-                            f"{settings.get('optimizer')!r}); run without --resume to start over")
-    _check_settings(path, g, prob, settings)
-    template = opt.init(jnp.asarray(np.asarray(g["theta"])))
-    leaves, treedef = jax.tree_util.tree_flatten(template)
-    og = g["opt_state"]
-    if int(og.attrs["n_leaves"]) != len(leaves):
-        raise JaxplushError(f"{path}: optimizer state does not match this optax version / optimizer")
-    restored = []
-    for i, leaf in enumerate(leaves):
-        arr = np.asarray(og[f"{i:05d}"][()])
-        if arr.shape != np.shape(leaf):
-            raise JaxplushError(f"{path}: optimizer state leaf {i} has shape {arr.shape}, expected "
-                                f"{np.shape(leaf)}")
-        restored.append(jnp.asarray(arr, dtype=jnp.asarray(leaf).dtype))
-    hg = g["history"]
-    n_p = len(prob.names) * len(prob.objects)
-    shape = (len(prob.names), len(prob.objects))
-    loop = LoopState(
-        theta=np.asarray(g["theta"][()]),
-        opt_state=jax.tree_util.tree_unflatten(treedef, restored),
-        anchor=np.asarray(g["anchor"][()]) if "anchor" in g else None,
-        scale=float(g.attrs["scale"]), iteration=int(g.attrs["iteration"]), rejected=int(g.attrs["rejected"]),
-        rejected_in_row=int(g.attrs["rejected_in_row"]), stall=int(g.attrs["stall"]),
-        best_theta=np.asarray(g["best_theta"][()]), best_loss=float(g.attrs["best_loss"]),
-        done=bool(g.attrs["done"]), reason=str(g.attrs["reason"]), stopped=_stopped(g.attrs),
-        h_iter=[int(i) for i in hg["iteration"][()]], h_loss=[float(x) for x in hg["loss"][()]],
-        h_theta=[t.reshape(shape) for t in np.asarray(hg["theta"][()]).reshape(-1, n_p)],
-        h_gnorm=[float(x) for x in hg["grad_norm"][()]], h_time=[float(x) for x in hg["time"][()]],
-        h_rejected=[int(i) for i in hg["rejected"][()]], wall=float(g.attrs["wall"]))
-    return loop
-
-
-def _stopped(attrs):
-    """The :class:`Stop` of a gradient loop's checkpoint (a file written before it was stored: from
-    the reason's words, as those versions judged it)."""
-    if "stopped" in attrs:
-        return Stop(str(attrs["stopped"]))
-    reason = str(attrs["reason"])
-    if reason.startswith("reached the iteration limit"):
-        return Stop.ITERATIONS
-    return Stop.CALLBACK if reason.startswith("stopped by") else Stop.NONE
 
 
 def _norm(v):

@@ -1,6 +1,6 @@
 """The default fit's driver: continuation in time, a global stage, local Levenberg-Marquardt.
 
-:func:`run` takes a built :class:`jaxplush.fitting.fitter.Problem` and its search box and returns a
+:func:`run` takes a built :class:`jaxplush.fitting.problem.Problem` and its search box and returns a
 :class:`LMRun`: the global samples, every local search, the best point, its residuals and
 finite-difference Jacobian, and the gradients the outcome is judged by.
 
@@ -14,22 +14,24 @@ half, all): the global stage and the screening of
 local starts on the shortest, then each stage's best points start the next, longer one, whose
 minimum lies close by (for an exact model, at the same parameters).
 
-Progress is shown per stage; the run's state is checkpointed after the global stage and after
-every local iteration (:func:`jaxplush.fitting.io.save_lm_checkpoint`), so ``resume`` continues an
-interrupted fit to the same answer (every evaluation is deterministic).
-
-The run is built from the stages of :mod:`jaxplush.fitting.stages` (:class:`~jaxplush.fitting.stages.GlobalStage`,
-:class:`~jaxplush.fitting.stages.LocalLM` per horizon, :class:`~jaxplush.fitting.stages.Smoothing`);
-this module adds the phases a checkpoint records, progress bars, the callback and the final
-Jacobian and gradients. Every tuning constant is a field of the :class:`jaxplush.fitting.options.FitOptions` that
-:func:`run` takes (its ``search``, ``local``, ``continuation`` and ``smoothing`` groups).
+The run is a list of the stages of :mod:`jaxplush.fitting.stages` (:func:`default_stages`: a
+:class:`~jaxplush.fitting.stages.Continuation` of a :class:`~jaxplush.fitting.stages.GlobalStage` and
+:class:`~jaxplush.fitting.stages.LocalLM` per horizon, :class:`~jaxplush.fitting.stages.Linearise`, and
+for a noisy target :class:`~jaxplush.fitting.stages.Smoothing`) run by
+:func:`jaxplush.fitting.stages.run_stages`, with hooks around its steps: progress per stage and
+horizon, the callback after every local iteration, and a checkpoint of the driver's state
+(:class:`~jaxplush.fitting.stages.RunState`, :func:`light_copy`) after every step, so ``resume``
+continues an interrupted fit to the same answer (every evaluation is deterministic). This module
+then reads the result off the final states (the smoothed optimum, the gradients). Every tuning
+constant is a field of the :class:`jaxplush.fitting.options.FitOptions` that :func:`run` takes
+(its ``search``, ``local``, ``continuation`` and ``smoothing`` groups).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
-import time
 
 import numpy as np
 
@@ -43,38 +45,33 @@ from jaxplush.fitting.stages import horizons  # noqa: F401  (jaxplush.fitting.lm
 
 @dataclasses.dataclass
 class LMRun:
-    """The state and result of a default fit (everything its checkpoint holds, and more).
+    """The result of a default fit, read off the driver's final state.
 
     Attributes:
-      phase: "global", "local", "final" or "done".
-      stage: index into ``horizons`` (frame counts) of the stage running.
-      global_result: :class:`jaxplush.fitting.search.GlobalResult` (None before the global stage).
-      states: list of :class:`jaxplush.fitting.search.LMState`, the local searches of this stage.
-      rounds: local iterations done in this stage.
-      best: the best state once done; jac (n, P) its Jacobian at step ``h_min``; residual (n,);
-      grad, grad0: loss gradients (log space) at the best point and at the start values;
-      paths: per finished stage, the (loss, theta) paths of its searches and why each ended;
-      loss0: the loss of the start values on the whole target;
+      best: the best search (:class:`jaxplush.fitting.search.LMState`; for a noisy target at the
+      smoothed optimum); jac (n, P) its Jacobian (at step ``h_min``, or the smoothing's slope);
+      residual (n,); grad, grad0: loss gradients (log space) at the best point and at the start values;
+      global_result: :class:`jaxplush.fitting.search.GlobalResult`;
+      paths: per finished horizon, the (loss, theta) paths of its searches and why each ended;
+      horizons: the frame counts of the horizons; loss0: the loss of the start values on the whole target;
       wall: seconds spent; evaluations: points simulated;
-      smoothed: the :class:`jaxplush.fitting.search.Smoothed` stage of a noisy target's fit (else None).
+      smoothed: the :class:`jaxplush.fitting.search.Smoothed` stage of a noisy target's fit (else None);
+      state: the driver's final :class:`jaxplush.fitting.stages.RunState` (as a checkpoint holds it).
     """
 
-    phase: str = "global"
-    stage: int = 0
-    horizons: tuple = ()
-    global_result: object = None
-    states: list = dataclasses.field(default_factory=list)
-    rounds: int = 0
-    best: object = None
-    jac: np.ndarray | None = None
-    residual: np.ndarray | None = None
-    grad: np.ndarray | None = None
-    grad0: np.ndarray | None = None
-    paths: list = dataclasses.field(default_factory=list)
-    loss0: float = math.nan
+    best: object
+    jac: np.ndarray
+    residual: np.ndarray
+    grad: np.ndarray
+    grad0: np.ndarray
+    global_result: object
+    paths: list
+    horizons: tuple
+    loss0: float
     wall: float = 0.0
     evaluations: int = 0
     smoothed: object = None
+    state: object = None
 
 
 def default_box(prob, bounds=None, factor=4.0):
@@ -94,153 +91,200 @@ def default_box(prob, bounds=None, factor=4.0):
 _order = _stages.order
 
 
+def _noisy(prob):
+    return prob.noise is not None and prob.noise > 0
+
+
+def default_stages(prob, opts, progress=None):
+    """The default fit's stages under ``opts`` (:class:`jaxplush.fitting.options.FitOptions`):
+    the global stage and local Levenberg-Marquardt over horizons of growing length, the best point
+    linearised, and for a noisy target the smoothing stage. ``progress(n, extra=...)``: what the
+    global and smoothing stages report their progress to."""
+    local = opts.local
+    first = _stages.GlobalStage(samples=opts.search.n_samples, starts=opts.search.n_starts, seed=opts.search.seed,
+                                local=local, progress=progress)
+    out = [_stages.Continuation(local=_stages.LocalLM(max_iter=opts.iteration_limit("lm"), options=local),
+                                first=(first,), options=opts.continuation, noisy=_noisy(prob)),
+           _stages.Linearise(local=local)]
+    if _noisy(prob):
+        out.append(_stages.Smoothing(options=opts.smoothing, local=local, progress=progress))
+    return out
+
+
 def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None):
     """Global stage, then Levenberg-Marquardt from the best ``starts`` candidates (successive
     halving to ``keep``), over horizons of growing length; then the Jacobian and gradients at
-    the best point of the full problem (and, for a noisy target, the smoothing stage).
+    the best point of the full problem (and, for a noisy target, the smoothing stage):
+    :func:`jaxplush.fitting.stages.run_stages` of :func:`default_stages`.
 
     Args:
-      prob: :class:`jaxplush.fitting.fitter.Problem`; box: :class:`jaxplush.fitting.search.Box`.
+      prob: :class:`jaxplush.fitting.problem.Problem`; box: :class:`jaxplush.fitting.search.Box`.
       options: :class:`jaxplush.fitting.options.FitOptions` (None: the defaults): ``search``
         (Sobol points of the global stage, plus the start itself; local starts; the seed),
         ``iterations`` (Levenberg-Marquardt iterations per start and stage), ``local``,
         ``continuation`` and ``smoothing`` (the tuning knobs).
       progress: draw progress bars on stderr.
-      resume: an :class:`LMRun` from a checkpoint to continue.
-      save: ``save(run)`` called after the global stage and every local iteration.
-      callback: ``callback(run)`` after every local iteration; returning True stops the search.
+      resume: a :class:`jaxplush.fitting.stages.RunState` from a checkpoint to continue.
+      save: ``save(run)`` after every step, with the driver's :class:`~jaxplush.fitting.stages.RunState`.
+      callback: ``callback(local)`` after every local iteration with the local stage's state (its
+        ``states`` and ``rounds``); returning True stops the search.
 
     Returns:
-      (:class:`LMRun` (phase "done"), the :class:`jaxplush.fitting.evaluate.Evaluator` of the full problem).
+      (:class:`LMRun`, the :class:`jaxplush.fitting.evaluate.Evaluator` of the full problem, its notes
+      those of every horizon).
     """
     opts = options or FitOptions()
-    t0 = time.perf_counter()
-    st = resume or LMRun(horizons=horizons(prob.target.n_frames, opts.continuation))
-    wall0, evals0 = st.wall, st.evaluations
-    objectives = _stages.Horizons(prob, box, st.horizons)
+    show = _Show(prob, opts, progress, callback)
+    show.stages = stages = default_stages(prob, opts, show.feed)
+    objective = _stages.Objective(prob, box)
+    hs = objective.horizons(horizons(prob.target.n_frames, opts.continuation))
+    state = resume if resume is not None else _stages.RunState()
+    try:
+        _stages.run_stages(objective, prob.theta0, stages, state=state,
+                           hooks=_stages.Hooks(before=show.before, after=show.after, save=save))
+    finally:
+        show.close()
+    n0 = objective.evaluations()
+    out = _result(objective, state, opts)
+    out.evaluations = state.evaluations + objective.evaluations() - n0
+    ev = objective.evaluator
+    ev.notes[:] = hs.notes()
+    return out, ev
 
-    def tick():
-        st.wall = wall0 + time.perf_counter() - t0
-        st.evaluations = evals0 + objectives.evaluations()
 
-    n_stages = len(st.horizons)
-    while st.phase in ("global", "local"):
-        obj = objectives(st.stage)
-        label = f"stage {st.stage + 1}/{n_stages} ({st.horizons[st.stage]} of {st.horizons[-1]} frames)"
-        if st.phase == "global":
-            _global(prob, obj, st, opts, progress, label)
-            tick()
-            if save is not None:
-                save(st)
-        _local(prob, obj, st, opts, progress, tick, save, callback, label)
-        st.paths.append([(list(s.history), s.reason) for s in st.states])
-        if st.stage + 1 < n_stages and not any(s.stopped == Stop.CALLBACK for s in st.states):
-            _next_stage(st, opts.local.keep, opts.continuation)
-            tick()
-            if save is not None:
-                save(st)
+def _result(objective, state, opts):
+    """The :class:`LMRun` of the driver's final ``state`` (left as it is): for a noisy target the
+    best search moves to the smoothing stage's optimum, whose regression slope and intercept (at the
+    last design's centre) stand for the Jacobian and residuals; then the gradients at it and at the
+    start values."""
+    cont, lin = state.finished[0], state.finished[1]
+    sm = state.finished[2].result if len(state.finished) > 2 else None
+    ev, box, local = objective.evaluator, objective.box, opts.local
+    best = dataclasses.replace(lin.best, history=list(lin.best.history))
+    paths = [list(p) for p in cont.paths]
+    jac, residual, smoothed = lin.jac, lin.residual, None
+    e = ev(np.asarray(sm.theta)[None]) if sm is not None else None
+    if e is not None and e.ok[0]:
+        smoothed = sm
+        best.theta, best.loss, best.residual = sm.theta.copy(), float(e.loss[0]), e.residuals[0]
+        best.substeps = int(e.substeps[0])
+        history = list(sm.path) + [(best.loss, best.theta.copy())]
+        best.history.extend(history)
+        jac, residual = sm.jac, sm.residual
+        worst = float(np.max(np.abs(sm.step) / sm.stderr))
+        reason = (f"smoothed over {len(sm.path)} regression design(s): the Gauss-Newton step of the last is "
+                  f"{worst:.2g} of the standard errors")
+        best.reason = f"{best.reason}; {reason}" if best.reason else reason
+        if paths:
+            paths[-1].append((history, reason))
+    th0 = np.asarray(objective.prob.theta0, np.float64)
+    if lin.start_ok:
+        jac0 = _search.jacobian(ev, box, th0, local.h_max, lin.start_substeps, local)
+        grad0 = 2.0 * jac0.T @ lin.start_residual
+    else:
+        grad0 = np.full(th0.size, np.inf)
+    return LMRun(best=best, jac=jac, residual=residual, grad=2.0 * jac.T @ np.nan_to_num(residual), grad0=grad0,
+                 global_result=cont.first[0].result, paths=paths, horizons=cont.horizons, loss0=lin.loss0,
+                 wall=state.wall, smoothed=smoothed, state=state)
+
+
+def best_search(run):
+    """The best search (:class:`jaxplush.fitting.search.LMState`) of a driver state so far, or None."""
+    for st in [run.state] + run.finished[::-1]:
+        states = getattr(st, "states", None)
+        if states:
+            return states[_order(states)[0]]
+    return None
+
+
+def light_copy(run):
+    """A copy of the driver's state that later steps do not change, without the searches' residuals
+    and Jacobians (which a resumed fit recomputes, identically): what a checkpoint holds."""
+    def strip(x):
+        if isinstance(x, _search.LMState):
+            return dataclasses.replace(x, residual=None, jac=None)
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            return dataclasses.replace(x, **{f.name: strip(getattr(x, f.name))
+                                             for f in dataclasses.fields(x) if f.init})
+        if type(x) in (list, tuple):
+            return type(x)(strip(v) for v in x)
+        return x
+    return copy.deepcopy(strip(run))
+
+
+class _Show:
+    """The default fit's progress bars (one per stage and horizon) and the user's callback, as the
+    driver's ``before`` and ``after`` hooks."""
+
+    def __init__(self, prob, opts, enabled, callback):
+        self.prob, self.opts, self.enabled, self.callback = prob, opts, enabled, callback
+        self.stages, self.bar, self.key, self.inner, self.active = None, None, None, None, False
+
+    def feed(self, n=1, **kw):
+        """Progress inside a step (the global design's batches, the smoothing's designs)."""
+        if self.bar is not None:
+            self.bar.update(n, **kw)
+
+    def before(self, run):
+        s = run.state
+        if isinstance(s, _stages.ContinuationState):
+            key, inner = (run.index, s.index, s.position), s.inner
         else:
-            st.phase = "final"
-    ev = objectives.last()
-    if st.phase == "final":
-        _final(prob, ev, box, st, opts, progress)
-        st.phase = "done"
-        tick()
-    return st, ev
+            key, inner = (run.index,), s
+        self.inner = inner
+        self.active = not (isinstance(inner, _stages.LocalState) and all(x.done for x in inner.states))
+        if key != self.key:
+            self.close()
+            self.key = key
+            self.bar = self._open(run, s, inner)
 
+    def _open(self, run, s, inner):
+        opts, on = self.opts, self.enabled
+        if isinstance(s, _stages.ContinuationState):
+            hs = s.horizons
+            label = f"stage {s.index + 1}/{len(hs)} ({hs[s.index]} of {hs[-1]} frames)"
+            if isinstance(inner, _stages.GlobalState):
+                bar = Progress(opts.search.n_samples + 1, f"global search, {label}", enabled=on, unit="points")
+            else:
+                total = self.stages[run.index].stage(s).max_iter
+                bar = Progress(total, f"local search, {label}", enabled=on, unit="it")
+                bar.done = min(inner.rounds, total)
+        elif isinstance(s, _stages.SmoothState):
+            bar = Progress(opts.smoothing.iterations, "smoothing (regression designs)", enabled=on, unit="designs")
+        else:
+            return None
+        return bar.__enter__()
 
-def _global(prob, obj, st, opts, progress, label):
-    """The global stage (:class:`jaxplush.fitting.stages.GlobalStage`) and the local searches it starts."""
-    samples = opts.search.n_samples
-    with Progress(samples + 1, f"global search, {label}", enabled=progress, unit="points") as bar:
-        stage = _stages.GlobalStage(samples=samples, starts=opts.search.n_starts, seed=opts.search.seed,
-                                    local=opts.local, progress=bar.update)
-        g = stage.step(obj, stage.init(obj, prob.theta0))
-        st.global_result = g.result
-        bar.extra = f"best loss {np.min(np.where(g.result.ok, g.result.loss, np.inf)):.4g}"
-        bar.finish(f"{int((~g.result.ok).sum())} failed" if (~g.result.ok).any() else "")
-    st.states = g.states
-    st.phase = "local"
-
-
-def _next_stage(st, keep, cont):
-    """The stage's best points start the next, longer stage (:func:`jaxplush.fitting.stages.carry`)."""
-    st.states = _stages.carry(st.states, keep, cont)
-    st.stage += 1
-    st.rounds = 0
-    st.phase = "local"
-
-
-def _local(prob, obj, st, opts, progress, tick, save, callback, label):
-    """The local searches of the running stage (:class:`jaxplush.fitting.stages.LocalLM` on ``st``,
-    which holds its searches and rounds), each round followed by the progress bar, the callback
-    and a checkpoint."""
-    states = st.states
-    noisy = prob.noise is not None and prob.noise > 0
-    stage = _stages.local_for(_stages.LocalLM(max_iter=opts.iteration_limit("lm"), options=opts.local),
-                              st.stage, len(st.horizons), noisy, opts.continuation)
-    _stages.start_residuals(obj.evaluator, states, opts.local)
-    with Progress(stage.max_iter, f"local search, {label}", enabled=progress, unit="it") as bar:
-        bar.done = min(st.rounds, stage.max_iter)
-        while not stage.terminate(obj, st)[0]:
-            stage.step(obj, st)
+    def after(self, run):
+        inner, bar = self.inner, self.bar
+        if bar is None or not self.active:
+            return
+        if isinstance(inner, _stages.GlobalState):
+            g = inner.result
+            bar.extra = f"best loss {np.min(np.where(g.ok, g.loss, np.inf)):.4g}"
+            bar.finish(f"{int((~g.ok).sum())} failed" if (~g.ok).any() else "")
+            self.close()
+        elif isinstance(inner, _stages.LocalState):
+            states = inner.states
             b = states[_order(states)[0]]
-            vals = prob.values(b.theta)
             bar.update(1, extra=f"loss {b.loss:.4g} " + " ".join(
                 ("k" if n == "k_structural" else n) + " " + ",".join(f"{x:.4g}" for x in np.atleast_1d(v))
-                for n, v in vals.items()))
-            tick()
-            stop = callback(st) if callback is not None else None
-            if stop is True:
-                for s in states:
-                    if not s.done:
-                        s.done, s.stopped, s.reason = True, Stop.CALLBACK, "stopped by the callback"
-            if save is not None and any(not s.done for s in states):
-                save(st)
-        bar.finish(states[_order(states)[0]].reason)
-
-
-def _final(prob, ev, box, st, opts, progress=False):
-    """Jacobian at the best point (at step ``h_min``) and the gradients at it and at the start; for a noisy
-    target, the smoothing stage (:func:`jaxplush.fitting.search.smooth`) moves the best point to the
-    optimum of a regression model, whose slope and intercept then stand for the Jacobian and the
-    residuals."""
-    states = st.states
-    st.best = states[_order(states)[0]]
-    b = st.best
-    th0 = np.asarray(prob.theta0, np.float64)
-    centre = ev(np.asarray([b.theta, th0]))
-    st.residual = centre.residuals[0]
-    st.loss0 = float(centre.loss[1])
-    n_sub = max(int(centre.substeps[0]), b.substeps)
-    local = opts.local
-    st.jac = _search.jacobian(ev, box, b.theta, local.h_min, n_sub, local)
-    if prob.noise is not None and prob.noise > 0 and b.stopped != Stop.CALLBACK:
-        with Progress(opts.smoothing.iterations, "smoothing (regression designs)", enabled=progress,
-                      unit="designs") as bar:
-            stage = _stages.Smoothing(options=opts.smoothing, local=local, progress=bar.update)
-            sm = stage.step(_stages.Objective(ev.prob, box, ev),
-                            _stages.SmoothState(theta=b.theta, jac=st.jac, residual=st.residual)).result
+                for n, v in self.prob.values(b.theta).items()))
+            if self.callback is not None and self.callback(inner) is True:
+                for x in states:
+                    if not x.done:
+                        x.done, x.stopped, x.reason = True, Stop.CALLBACK, "stopped by the callback"
+            if all(x.done for x in states):
+                bar.finish(states[_order(states)[0]].reason)
+                self.close()
+        elif isinstance(inner, _stages.SmoothState):
+            sm = inner.result
             bar.finish("skipped: singular Jacobian" if sm is None else
-                       ("the step is within the standard errors" if sm.converged else f"stopped after {len(sm.path)} designs"))
-        e = ev(np.asarray(sm.theta)[None]) if sm is not None else None
-        if e is not None and e.ok[0]:
-            # the result moves to the model's optimum; the model's slope and intercept (at the last
-            # design's centre) stand for the Jacobian and residuals the outcome is judged by
-            st.smoothed = sm
-            b.theta, b.loss, b.residual, b.substeps = sm.theta.copy(), float(e.loss[0]), e.residuals[0], int(e.substeps[0])
-            history = list(sm.path) + [(b.loss, b.theta.copy())]
-            b.history.extend(history)
-            st.jac, st.residual = sm.jac, sm.residual
-            worst = float(np.max(np.abs(sm.step) / sm.stderr))
-            reason = (f"smoothed over {len(sm.path)} regression design(s): the Gauss-Newton step of the last is "
-                      f"{worst:.2g} of the standard errors")
-            b.reason = f"{b.reason}; {reason}" if b.reason else reason
-            if st.paths:
-                st.paths[-1].append((history, reason))
-    st.grad = 2.0 * st.jac.T @ np.nan_to_num(st.residual)
-    if centre.ok[1]:
-        jac0 = _search.jacobian(ev, box, th0, local.h_max, int(centre.substeps[1]), local)
-        st.grad0 = 2.0 * jac0.T @ centre.residuals[1]
-    else:
-        st.grad0 = np.full(th0.size, np.inf)
+                       ("the step is within the standard errors" if sm.converged else
+                        f"stopped after {len(sm.path)} designs"))
+            self.close()
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.__exit__(None, None, None)
+        self.bar = None

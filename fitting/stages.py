@@ -1,6 +1,6 @@
 """The default fit's stages as pieces to recombine: one protocol, a few stages, a driver.
 
-An :class:`Objective` is built from a problem (:func:`jaxplush.fitting.fitter.build_problem`) and
+An :class:`Objective` is built from a problem (:func:`jaxplush.fitting.problem.build_problem`) and
 its search box: the residuals of the target at log values theta, batched and stable
 (:class:`jaxplush.fitting.evaluate.Evaluator`). A *stage* is any object with three methods:
 
@@ -14,10 +14,14 @@ its search box: the residuals of the target at log values theta, batched and sta
 The stages of the default fit: :class:`GlobalStage` (a Sobol design over the box and the best
 candidates), :class:`LocalLM` (Levenberg-Marquardt from them, with screening and rescues) and
 :class:`Smoothing` (a noisy target's regression stage); :class:`Continuation` wraps stages to run
-over horizons of growing length (the target's first frames, then more). :func:`run_stages`
-runs a list of stages in turn, each from the last one's state. :func:`jaxplush.fitting.lmfit.run`
-is the default fit built from these stages, with checkpoints, progress and the callback around
-them. Every tuning knob comes from the options (:mod:`jaxplush.fitting.options`).
+over horizons of growing length (the target's first frames, then more); :class:`Linearise`
+takes the best point's residuals and Jacobian. :func:`run_stages` runs a list of stages in turn,
+each from the last one's state, calling :class:`Hooks` around every step; its state
+(:class:`RunState`: the stage running, its state, those finished) is plain data, which a
+checkpoint holds (:mod:`jaxplush.fitting.treeio`) and ``run_stages`` resumes from.
+:func:`jaxplush.fitting.lmfit.run` is the default fit: ``run_stages`` of these stages, with
+progress, the callback and checkpoints as hooks. Every tuning knob comes from the options
+(:mod:`jaxplush.fitting.options`).
 
 A stage of one's own needs no base class: ``init``, ``step`` and ``terminate`` are enough (the
 README's "Stages" section puts a user's Gauss-Newton solver after the global stage).
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from typing import Protocol
 
 import numpy as np
@@ -54,18 +59,38 @@ class Objective:
     """The residuals of a problem's target at log values theta, over a search box.
 
     Attributes:
-      prob: :class:`jaxplush.fitting.fitter.Problem`; box: :class:`jaxplush.fitting.search.Box`;
+      prob: :class:`jaxplush.fitting.problem.Problem`; box: :class:`jaxplush.fitting.search.Box`;
       evaluator: its :class:`jaxplush.fitting.evaluate.Evaluator` (made on first use, or given).
     """
 
     def __init__(self, prob, box, evaluator=None):
         self.prob, self.box, self._evaluator = prob, box, evaluator
+        self._horizons = None
 
     @property
     def evaluator(self):
+        """The problem's evaluator: given, or the last horizon's of :meth:`horizons` (sharing its
+        compiled rollout), or made on first use."""
         if self._evaluator is None:
-            self._evaluator = _shooting.evaluator(self.prob)
+            hs = self._horizons
+            self._evaluator = hs(len(hs.horizons) - 1).evaluator if hs is not None else _shooting.evaluator(self.prob)
         return self._evaluator
+
+    def horizons(self, frames):
+        """The :class:`Horizons` of this problem over the frame counts ``frames`` (made once)."""
+        frames = tuple(int(n) for n in frames)
+        if self._horizons is None or self._horizons.horizons != frames:
+            if self._horizons is not None or self._evaluator is not None:
+                raise ValueError("an Objective holds the horizons of one continuation, made before its evaluator")
+            self._horizons = Horizons(self.prob, self.box, frames)
+        return self._horizons
+
+    def evaluations(self):
+        """Points simulated by this objective's evaluators (its horizons' included)."""
+        evs = {id(e): e for e in (self._horizons.by_stage.values() if self._horizons is not None else ())}
+        if self._evaluator is not None:
+            evs[id(self._evaluator)] = self._evaluator
+        return sum(e.evaluations for e in evs.values())
 
     def residuals(self, theta):
         """(n,) residuals at one point (sum of squares: the loss), and whether it ran."""
@@ -108,15 +133,9 @@ class Horizons:
             made[stage] = _shooting.evaluator(sub, calibration=calibration, share=share, chunk_frames=self.horizons[0])
         return Objective(made[stage].prob, self.box, made[stage])
 
-    def evaluations(self):
-        return sum(e.evaluations for e in self.by_stage.values())
-
-    def last(self):
-        """The full problem's evaluator, holding the earlier horizons' notes first."""
-        last = len(self.horizons) - 1
-        ev = self(last).evaluator
-        ev.notes[:0] = [m for k, e in sorted(self.by_stage.items()) if k != last for m in e.notes]
-        return ev
+    def notes(self):
+        """The notes of every horizon's evaluator, the shortest horizon's first."""
+        return [m for _, e in sorted(self.by_stage.items()) for m in e.notes]
 
 
 def order(states):
@@ -173,8 +192,7 @@ class GlobalStage:
 
 @dataclasses.dataclass
 class LocalState:
-    """A :class:`LocalLM`'s state: its searches and the rounds done (an
-    :class:`jaxplush.fitting.lmfit.LMRun`, which has both, serves as well)."""
+    """A :class:`LocalLM`'s state: its searches and the rounds done."""
 
     states: list
     rounds: int = 0
@@ -212,6 +230,7 @@ class LocalLM:
     def step(self, objective, s):
         o = self.options
         ev, box, states = objective.evaluator, objective.box, s.states
+        start_residuals(ev, states, o)          # those a resumed checkpoint left out (recomputed, identically)
         _search.lm_round(ev, box, states, self.max_iter, o, noise_stop=self.noise_stop)
         s.rounds += 1
         # a search that stalls on a jump of the loss restarts from the lowest point of a scan
@@ -256,16 +275,66 @@ def screen(states, rounds, screening, local):
                 s.reason = f"set aside: its loss {s.loss:.4g} is {s.loss / best:.3g}x the best search's"
 
 
+# --------------------------------------------------------------------------- the best point, linearised
+
+@dataclasses.dataclass
+class LinearState:
+    """A :class:`Linearise` stage's state: the best search (``best``, a
+    :class:`jaxplush.fitting.search.LMState`), the residuals and Jacobian at its point, and the
+    residuals (``start_residual``; ``start_ok``: it ran; ``start_substeps``) and loss ``loss0`` of the
+    start values; ``ran``: stepped."""
+
+    best: object
+    residual: np.ndarray | None = None
+    jac: np.ndarray | None = None
+    start_residual: np.ndarray | None = None
+    start_ok: bool = False
+    start_substeps: int = 1
+    loss0: float = math.nan
+    ran: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Linearise:
+    """The best search of the previous stage, linearised in one step: its residuals and those of the
+    start values (one batch), and the Jacobian at its point with step ``local.h_min`` (as many
+    substeps as either it or the search needed). What the smoothing stage starts from and the
+    outcome is judged by.
+
+    Attributes: local (:class:`jaxplush.fitting.options.LocalOptions`).
+    """
+
+    local: LocalOptions = LocalOptions()
+
+    def init(self, objective, theta, state=None):
+        states = state.states
+        return LinearState(best=states[order(states)[0]], start_residual=None)
+
+    def step(self, objective, s):
+        ev, b = objective.evaluator, s.best
+        centre = ev(np.asarray([b.theta, np.asarray(objective.prob.theta0, np.float64)]))
+        s.residual, s.loss0 = centre.residuals[0], float(centre.loss[1])
+        s.start_residual, s.start_ok, s.start_substeps = centre.residuals[1], bool(centre.ok[1]), int(centre.substeps[1])
+        n_sub = max(int(centre.substeps[0]), b.substeps)
+        s.jac = _search.jacobian(ev, objective.box, b.theta, self.local.h_min, n_sub, self.local)
+        s.ran = True
+        return s
+
+    def terminate(self, objective, s):
+        return s.ran, Stop.NONE
+
+
 # --------------------------------------------------------------------------- smoothing
 
 @dataclasses.dataclass
 class SmoothState:
     """A :class:`Smoothing` stage's state: its start, Jacobian and residuals there, and its result
-    (:class:`jaxplush.fitting.search.Smoothed`, or None: singular Jacobian); ``ran``: stepped."""
+    (:class:`jaxplush.fitting.search.Smoothed`, or None: singular Jacobian, or skipped); ``ran``:
+    stepped (or skipped: a search the callback stopped is not smoothed)."""
 
     theta: np.ndarray
-    jac: np.ndarray
-    residual: np.ndarray
+    jac: np.ndarray | None
+    residual: np.ndarray | None
     result: object = None
     ran: bool = False
 
@@ -273,7 +342,8 @@ class SmoothState:
 @dataclasses.dataclass(frozen=True)
 class Smoothing:
     """The smoothing stage of a noisy target (:func:`jaxplush.fitting.search.smooth`), in one step,
-    from the best search of the previous stage (or theta), its Jacobian taken at ``local.h_min``.
+    from the previous stage's best point: a :class:`Linearise` state's (its Jacobian and residuals),
+    or the best search's (its Jacobian taken at ``local.h_min``), or theta.
 
     Attributes: options (:class:`jaxplush.fitting.options.SmoothingOptions`), local
     (:class:`jaxplush.fitting.options.LocalOptions`), seed, progress (``progress(1, extra=...)``).
@@ -285,6 +355,9 @@ class Smoothing:
     progress: object = None
 
     def init(self, objective, theta, state=None):
+        if isinstance(state, LinearState):
+            skip = state.best.stopped == Stop.CALLBACK
+            return SmoothState(theta=state.best.theta, jac=state.jac, residual=state.residual, ran=skip)
         states = getattr(state, "states", None)
         theta = states[order(states)[0]].theta if states else np.asarray(theta, np.float64)
         residual, _ = objective.residuals(theta)
@@ -334,14 +407,17 @@ def carry(states, keep, continuation):
 
 @dataclasses.dataclass
 class ContinuationState:
-    """A :class:`Continuation`'s state: its horizons' objectives, the horizon running, the stages
-    still to run there, the running stage and its state, and the finished horizons' searches."""
+    """A :class:`Continuation`'s state (plain data, as a checkpoint holds it): the horizons (frame
+    counts), the horizon running (``index``), on the first horizon which of the ``first`` stages runs
+    (``position``; past them, the local stage), the running stage's state (``inner``), the final
+    states of the ``first`` stages, and the finished horizons' searches (``paths``: per horizon, the
+    (loss, theta) path of each search and why it ended)."""
 
-    horizons: Horizons
+    horizons: tuple
     index: int = 0
-    pending: list = dataclasses.field(default_factory=list)
-    stage: object = None
+    position: int = 0
     inner: object = None
+    first: list = dataclasses.field(default_factory=list)
     paths: list = dataclasses.field(default_factory=list)
     done: bool = False
 
@@ -355,7 +431,8 @@ class Continuation:
     """Stages over horizons of growing length (:func:`horizons`): ``first`` (e.g. a
     :class:`GlobalStage`) and then ``local`` on the target's first frames; on each longer horizon,
     ``local`` (:func:`local_for`) from the searches :func:`carry` keeps. Its ``states`` are the
-    running stage's; one step is one step of the running stage.
+    running stage's; one step is one step of the running stage. The horizons' objectives are the
+    objective's (:meth:`Objective.horizons`).
 
     Attributes: local (:class:`LocalLM`), first (stages before it on the first horizon),
     options (:class:`jaxplush.fitting.options.ContinuationOptions`), noisy (a noisy target: the
@@ -368,34 +445,39 @@ class Continuation:
     noisy: bool = False
 
     def init(self, objective, theta, state=None):
-        hs = Horizons(objective.prob, objective.box, horizons(objective.prob.target.n_frames, self.options))
-        s = ContinuationState(horizons=hs, pending=list(self.first) + [self._local(0, hs)])
-        self._next(s, theta, state)
+        s = ContinuationState(horizons=horizons(objective.prob.target.n_frames, self.options))
+        s.inner = self.stage(s).init(self.objective(objective, s), theta, state)
         return s
 
-    def _local(self, index, hs):
-        return local_for(self.local, index, len(hs.horizons), self.noisy, self.options)
+    def stage(self, s):
+        """The stage running in state ``s``."""
+        if s.index == 0 and s.position < len(self.first):
+            return self.first[s.position]
+        return local_for(self.local, s.index, len(s.horizons), self.noisy, self.options)
 
-    def _next(self, s, theta, state):
-        s.stage = s.pending.pop(0)
-        s.inner = s.stage.init(s.horizons(s.index), theta, state)
+    @staticmethod
+    def objective(objective, s):
+        """The :class:`Objective` of the horizon running in state ``s``."""
+        return objective.horizons(s.horizons)(s.index)
 
     def step(self, objective, s):
-        obj = s.horizons(s.index)
-        s.inner = s.stage.step(obj, s.inner)
-        done, stop = s.stage.terminate(obj, s.inner)
-        if not done:
+        obj, stage = self.objective(objective, s), self.stage(s)
+        if not stage.terminate(obj, s.inner)[0]:      # (a hook may have stopped its searches)
+            s.inner = stage.step(obj, s.inner)
+            if not stage.terminate(obj, s.inner)[0]:
+                return s
+        theta0 = objective.prob.theta0
+        if s.index == 0 and s.position < len(self.first):
+            s.first.append(s.inner)
+            s.position += 1
+            s.inner = self.stage(s).init(obj, theta0, s.inner)
             return s
-        if s.pending:
-            self._next(s, objective.prob.theta0, s.inner)
-        elif s.index + 1 < len(s.horizons.horizons) and not any(x.stopped == Stop.CALLBACK for x in s.states):
-            s.paths.append([(list(x.history), x.reason) for x in s.states])
+        s.paths.append([(list(x.history), x.reason) for x in s.states])
+        if s.index + 1 < len(s.horizons) and not any(x.stopped == Stop.CALLBACK for x in s.states):
             carried = carry(s.states, self.local.options.keep, self.options)
             s.index += 1
-            s.pending = [self._local(s.index, s.horizons)]
-            self._next(s, objective.prob.theta0, LocalState(states=carried))
+            s.inner = self.stage(s).init(self.objective(objective, s), theta0, LocalState(states=carried))
         else:
-            s.paths.append([(list(x.history), x.reason) for x in s.states])
             s.done = True
         return s
 
@@ -405,13 +487,64 @@ class Continuation:
         return True, s.states[order(s.states)[0]].stopped if s.states else Stop.NONE
 
 
-def run_stages(objective, theta, stages):
-    """Run ``stages`` in turn, each from the previous one's final state (the first from theta).
-    Returns the list of their final states."""
-    out, state = [], None
-    for stage in stages:
-        state = stage.init(objective, theta, state)
-        while not stage.terminate(objective, state)[0]:
-            state = stage.step(objective, state)
-        out.append(state)
-    return out
+# --------------------------------------------------------------------------- the driver
+
+@dataclasses.dataclass
+class RunState:
+    """:func:`run_stages`' state (what the default fit checkpoints): the stage running (``index``
+    into the list of stages) and its state (None: not started), the final states of the stages
+    before it, and the seconds and evaluations (:meth:`Objective.evaluations`) spent so far."""
+
+    index: int = 0
+    state: object = None
+    finished: list = dataclasses.field(default_factory=list)
+    wall: float = 0.0
+    evaluations: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class Hooks:
+    """What :func:`run_stages` calls around each step (each optional): ``before(run)`` before it
+    (e.g. to open a progress bar), ``after(run)`` after it (progress; a callback, which may stop the
+    running stage's searches), then ``save(run)`` (a checkpoint); ``run`` is the :class:`RunState`."""
+
+    before: object = None
+    after: object = None
+    save: object = None
+
+
+def run_stages(objective, theta, stages, *, hooks=None, state=None):
+    """Run ``stages`` in turn, each from the previous one's final state (the first from theta), and
+    return the list of their final states.
+
+    Args:
+      objective: an :class:`Objective` (or any object the stages take).
+      theta: the start (log values); every stage's ``init`` gets it.
+      stages: stages (the protocol of the module docstring).
+      hooks: :class:`Hooks` called around every step (None: none).
+      state: a :class:`RunState` to continue (a checkpoint's) or to fill (None: a fresh one); it
+        holds the run's progress as it goes.
+    """
+    run = state if state is not None else RunState()
+    hooks = hooks or Hooks()
+    count = getattr(objective, "evaluations", None)
+    t0, wall0, evals0 = time.perf_counter(), run.wall, run.evaluations
+    n0 = count() if count is not None else 0
+    while run.index < len(stages):
+        stage = stages[run.index]
+        if run.state is None:
+            run.state = stage.init(objective, theta, run.finished[-1] if run.finished else None)
+        while not stage.terminate(objective, run.state)[0]:
+            if hooks.before is not None:
+                hooks.before(run)
+            run.state = stage.step(objective, run.state)
+            run.wall = wall0 + time.perf_counter() - t0
+            if count is not None:
+                run.evaluations = evals0 + count() - n0
+            if hooks.after is not None:
+                hooks.after(run)
+            if hooks.save is not None:
+                hooks.save(run)
+        run.finished.append(run.state)
+        run.index, run.state = run.index + 1, None
+    return list(run.finished)

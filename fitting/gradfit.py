@@ -1,0 +1,453 @@
+"""The gradient optimisers' fit: "adam", "lbfgs" or a user's optax transformation.
+
+One loop on the log-parameters (:class:`_GradientFit`): each iteration evaluates the loss and its
+gradient through the rollout (:func:`_make_step`) and steps (:func:`_iterate`); a step whose rollout
+blows up (non-finite loss or gradient, an inverted object, damping < 1) is rejected and the step
+halved (:func:`_reject`); the loop stops at the iteration limit or a tolerance
+(:func:`_check_convergence`). Its complete state is a :class:`LoopState`, which checkpoints hold
+(:func:`jaxplush.fitting.io.save_checkpoint`), so a resumed fit continues to the same answer;
+:func:`_finish` makes the :class:`jaxplush.fitting.result.FitResult` at the best accepted point.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import jaxplush
+from jaxplush.stepping import diagnostics
+from jaxplush.errors import JaxplushError
+from jaxplush.progress import Progress
+
+from jaxplush.fitting import identifiability as _ident
+from jaxplush.fitting import losses as _losses
+from jaxplush.fitting.errors import FitError
+from jaxplush.fitting.outcome import Stop
+from jaxplush.fitting.problem import _common_settings
+from jaxplush.fitting.result import _history, _judge, _motion, _report, _result, measure_predictability
+
+
+OPTIMIZERS = ("lm", "adam", "lbfgs")
+
+
+#: Default learning rates (log space) per optimiser (L-BFGS: none, the line search sets the step).
+DEFAULT_LR = {"adam": 0.05, "lbfgs": None, "lm": None}
+
+
+MAX_REJECTIONS = 30
+
+
+def make_optimizer(name, lr=None, iterations=100):
+    """optax optimiser for the log-parameters: "adam" (cosine-decayed lr) or "lbfgs"."""
+    if name not in OPTIMIZERS:
+        raise JaxplushError(f"unknown optimizer {name!r}; expected {' or '.join(OPTIMIZERS)}")
+    if name == "adam":
+        lr = DEFAULT_LR["adam"] if lr is None else float(lr)
+        if not (np.isfinite(lr) and lr > 0):
+            raise JaxplushError(f"learning rate must be > 0, got {lr!r}")
+        return optax.adam(optax.cosine_decay_schedule(lr, max(int(iterations), 1), alpha=0.01))
+    if lr is not None and not (np.isfinite(lr) and lr > 0):
+        raise JaxplushError(f"learning rate must be > 0, got {lr!r}")
+    return optax.lbfgs(learning_rate=None if lr is None else float(lr))
+
+
+def optimizer_kind(optimizer):
+    """"lm", "adam" or "lbfgs" for those names, "optax" for an ``optax.GradientTransformation``."""
+    if isinstance(optimizer, str) and optimizer in OPTIMIZERS:
+        return optimizer
+    if isinstance(optimizer, optax.GradientTransformation):
+        return "optax"
+    raise JaxplushError(f"unknown optimizer {optimizer!r}; expected one of {', '.join(OPTIMIZERS)} or an "
+                        "optax.GradientTransformation")
+
+
+@dataclasses.dataclass
+class LoopState:
+    """The complete state of the optimisation loop (what a checkpoint holds).
+
+    ``theta`` is the next point to evaluate, with ``opt_state`` the optimiser state to use
+    there; ``anchor`` the last accepted point it was reached from (None before the first).
+    """
+
+    theta: np.ndarray
+    opt_state: object
+    anchor: np.ndarray | None = None
+    scale: float = 1.0
+    iteration: int = 0           # evaluations done (accepted + rejected)
+    rejected: int = 0
+    rejected_in_row: int = 0
+    stall: int = 0
+    best_theta: np.ndarray | None = None
+    best_loss: float = math.inf
+    done: bool = False
+    reason: str = ""             # why it stopped, in words for a person
+    stopped: Stop = Stop.NONE    # ... and as a :class:`jaxplush.fitting.outcome.Stop`
+    h_iter: list = dataclasses.field(default_factory=list)
+    h_loss: list = dataclasses.field(default_factory=list)
+    h_theta: list = dataclasses.field(default_factory=list)
+    h_gnorm: list = dataclasses.field(default_factory=list)
+    h_time: list = dataclasses.field(default_factory=list)
+    h_rejected: list = dataclasses.field(default_factory=list)
+    wall: float = 0.0
+
+    def snapshot(self):
+        """A copy that later iterations do not change (lists copied; arrays are never mutated)."""
+        return dataclasses.replace(self, **{f.name: list(getattr(self, f.name)) for f in dataclasses.fields(self)
+                                            if f.name.startswith("h_")})
+
+
+#: Depth from :class:`_GradientFit`'s methods to the caller of :func:`fit`, for warnings.
+_LOOP_STACKLEVEL = {"warn_dt": 4, "grow_contact_capacity": 6}
+
+
+class _GradientFit:
+    """The gradient optimisers' loop ("adam", "lbfgs" or a user's optax transformation) on
+    log-parameters: a step whose rollout blows up is rejected and the step halved (:func:`_iterate`);
+    a contact-candidate overflow grows the capacity and evaluates the point again; checkpoints,
+    Ctrl-C saves, callbacks and the progress bar; then :func:`_finish`."""
+
+    def __init__(self, prob, optimizer, opts, notes, *, progress, callback, report=None):
+        self.kind = optimizer_kind(optimizer)
+        self.iterations = opts.iteration_limit(self.kind)
+        self.opt = optimizer if self.kind == "optax" else make_optimizer(self.kind, opts.lr, self.iterations)
+        self.prob, self.opts, self.notes = prob, opts, notes
+        self.progress, self.callback, self.note = progress, callback, report
+        shape = jax.eval_shape(self.opt.init, jax.ShapeDtypeStruct(np.shape(prob.theta0), prob.sim.dtype))
+        self.linesearch = uses_linesearch(shape)
+        self.settings = _common_settings(prob, opts, self.kind, self.iterations, opts.lr)
+        self.settings.update(gtol=opts.gtol, rtol=opts.rtol, xtol=opts.xtol, ftol=opts.ftol,
+                             patience=int(opts.patience), frame_steps=list(prob.loss.frame_steps),
+                             target_kind=prob.target.kind)
+        if self.kind == "optax":     # what a resume can check of a user's transformation: its state's structure
+            self.settings["optax_state"] = str(jax.tree_util.tree_structure(shape))
+        self.step_fn = _make_step(prob, self.opt, self.linesearch)
+        self.bar = None
+        self.consistent = None      # the last loop state that is not half-way through an iteration
+
+    def run(self, t_start):
+        """The whole fit: the loop (from a checkpoint with ``resume``), its result, FIT.h5."""
+        loop = self.initial_loop()
+        if self.opts.predictability:        # every input checked (a resumed checkpoint too)
+            self.prob = measure_predictability(self.prob, self.note)
+        self.warn_dt(loop)
+        wall_before = loop.wall
+        self.bar = Progress(self.iterations, "fit", enabled=self.progress, unit="it")
+        self.bar.done = min(loop.iteration, self.iterations)
+        t_loop = time.perf_counter() - loop.wall
+        loop = self.loop(loop, t_loop)
+        if not loop.done:
+            loop.reason, loop.stopped = f"reached the iteration limit ({self.iterations})", Stop.ITERATIONS
+        loop.wall = time.perf_counter() - t_loop
+        try:
+            result = _finish(self.prob, loop, self.settings, self.notes, self.opts.identifiability,
+                             time.perf_counter() - t_start + wall_before)
+        except KeyboardInterrupt:
+            # Ctrl-C during the health check or the identifiability report (JVPs through the rollout,
+            # not short): the loop has finished, so save it; --resume goes straight to this step
+            self.save(loop, "interrupted")
+            raise
+        if self.opts.checkpoint.path is not None:
+            from jaxplush.fitting import io as _io
+            _io.save_fit(result, self.opts.checkpoint.path)
+        return result
+
+    def initial_loop(self):
+        """The :class:`LoopState` to start from: the checkpoint's (resume), or the start values."""
+        if self.opts.checkpoint.resume:
+            from jaxplush.fitting import io as _io
+            from jaxplush.fitting.treeio import conform
+
+            def check(loop):      # this optimiser's state, with its dtypes and array kinds
+                template = jax.jit(self.opt.init)(jnp.asarray(loop.theta))
+                if not isinstance(loop, LoopState):
+                    raise TypeError(f"the checkpoint holds a {type(loop).__name__}, not a gradient fit's LoopState")
+                return dataclasses.replace(loop, opt_state=conform(loop.opt_state, template))
+            return _io.load_checkpoint(self.opts.checkpoint.path, self.prob, self.settings, conform=check)
+        th0 = jnp.asarray(self.prob.theta0, self.prob.sim.dtype)
+        loop = LoopState(theta=np.asarray(th0), opt_state=jax.jit(self.opt.init)(th0))
+        loop.best_theta = np.asarray(th0)
+        return loop
+
+    def warn_dt(self, loop):
+        """Warn (and note) when dt exceeds the estimated stability limit at the loop's point."""
+        prob = self.prob
+        if not self.opts.check_dt:
+            return
+        est = jaxplush.estimate_stable_dt(prob.sim, prob.sim.params(prob.params_at(loop.theta)))
+        if est is not None and prob.target.dt > est.dt_max:
+            msg = (f"dt = {prob.target.dt:g} s exceeds the estimated stability limit {est.dt_max:.3g} s at the "
+                   "start values; expect rejected steps")
+            warnings.warn(msg, stacklevel=_LOOP_STACKLEVEL["warn_dt"])
+            self.notes.append(msg)
+
+    def loop(self, loop, t_loop):
+        """Iterate to the limit or a stop; Ctrl-C saves the last consistent state and re-raises."""
+        last_saved = loop.iteration
+        self.consistent = loop
+        every = self.opts.checkpoint.every
+        try:
+            with self.bar:
+                while not loop.done and loop.iteration < self.iterations:
+                    loop, again = self.attempt(loop)
+                    if again:
+                        continue
+                    loop.wall = time.perf_counter() - t_loop
+                    self.report(loop)
+                    if every and loop.iteration - last_saved >= int(every) and not loop.done:
+                        self.save(loop)
+                        last_saved = loop.iteration
+                self.bar.finish(loop.reason if loop.done else "iteration limit")
+        except KeyboardInterrupt:
+            # Ctrl-C may land anywhere, also inside an iteration: save the last consistent state
+            self.consistent.wall = time.perf_counter() - t_loop
+            self.save(self.consistent, "interrupted")
+            raise
+        return loop
+
+    def attempt(self, loop):
+        """One :func:`_iterate`. Returns (the loop state to go on from, whether the point is to be
+        evaluated again because the contact capacity was grown)."""
+        before = loop.snapshot()
+        self.consistent = before
+        try:
+            _iterate(self.prob, self.opt, self.linesearch, self.step_fn, loop, self.opts)
+        except FitError:
+            if not self.grow_contact_capacity(before.theta):
+                raise
+            return before, True             # evaluate the same point again, with room for contact
+        if loop.h_rejected and loop.h_rejected[-1] == before.iteration \
+                and self.grow_contact_capacity(before.theta):
+            return before, True
+        self.consistent = loop
+        return loop, False
+
+    def report(self, loop):
+        """The progress bar and the callback after an iteration (a True return stops the fit)."""
+        if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
+            vals = self.prob.values(loop.h_theta[-1])
+            self.bar.update(1, extra=_progress_text(loop.h_loss[-1], vals))
+            if self.callback is not None:
+                stop = self.callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1], values=vals,
+                                          grad_norm=loop.h_gnorm[-1]))
+                if stop is True and not loop.done:
+                    loop.done, loop.reason, loop.stopped = True, "stopped by the callback", Stop.CALLBACK
+        else:
+            self.bar.update(1, extra="step rejected (rollout blew up); halving the step")
+
+    def save(self, state, status="running"):
+        if self.opts.checkpoint.path is not None:
+            from jaxplush.fitting import io as _io
+            _io.save_checkpoint(self.opts.checkpoint.path, self.prob, state, self.settings, status=status,
+                                theta=state.best_theta, history=_loop_history(self.prob, state),
+                                loss=float(state.best_loss), iterations=int(state.iteration),
+                                rejected=int(state.rejected))
+
+    def grow_contact_capacity(self, theta):
+        """After a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
+        loss is NaN: :func:`jaxplush.fitting.gradients.rollout_loss`), rebuild the problem with a capacity
+        that fits (warning) and return True."""
+        prob = self.prob
+        if prob.sim.terms.contact is None:
+            return False
+        from jaxplush.model import contact
+        from jaxplush.stepping.simulation import contact_capacity_needed
+        # the loss's own check (a fresh search at every step) decides whether it was an overflow
+        _, codes = prob.frames(theta)
+        if not (np.asarray(codes) == diagnostics.CONTACT_OVERFLOW).any():
+            return False
+        old = max(prob.sim.terms.contact.capacity)
+        need = contact_capacity_needed(prob.scene, int(prob.loss.frame_steps[-1]), prob.target.dt,
+                                       params=prob.params_at(theta), sim=prob.sim)
+        if need is None:
+            # simulate's carried candidate lists (rebuilt at other steps) did not overflow where
+            # the fresh search of every step did: grow past the current capacity all the same
+            need = contact.grown_capacity(old + 1)
+        sim = jaxplush.make_simulator(prob.scene, prob.target.dt, terms=contact.with_capacity(prob.sim.terms, need))
+        self.prob = prob = dataclasses.replace(prob, sim=sim)
+        self.step_fn = _make_step(prob, self.opt, self.linesearch)
+        msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "
+               f"refitting with contact_capacity {need} (set it in the scene to skip this)")
+        warnings.warn(msg, stacklevel=_LOOP_STACKLEVEL["grow_contact_capacity"])
+        self.notes.append(msg)
+        self.bar.update(0, extra=f"contact capacity raised to {need}; recompiling")
+        return True
+
+
+def _progress_text(loss, vals):
+    return f"loss {loss:.4g} " + _values_text(vals)
+
+
+def _values_text(vals):
+    return " ".join(("k" if n == "k_structural" else n) + " " + ",".join(f"{x:.4g}" for x in np.atleast_1d(v))
+                    for n, v in vals.items())
+
+
+_LINESEARCH_STATES = (optax.ScaleByZoomLinesearchState, optax.ScaleByBacktrackingLinesearchState)
+
+
+def _linesearch_states(state):
+    """The line-search states (optax's zoom and backtracking line searches) inside an optimiser state."""
+    nodes = jax.tree_util.tree_leaves(state, is_leaf=lambda s: isinstance(s, _LINESEARCH_STATES))
+    return [s for s in nodes if isinstance(s, _LINESEARCH_STATES)]
+
+
+def uses_linesearch(state):
+    """Whether an optax state (or its ``jax.eval_shape``) holds a line search, as L-BFGS's does:
+    such an optimiser chooses its own step, which the loop then never rescales."""
+    return bool(_linesearch_states(state))
+
+
+def _make_step(prob, opt, linesearch):
+    """The jitted update: (theta, opt_state) -> (loss, grad, updates, new_opt_state) at theta.
+
+    A line search that stores the loss and gradient at its accepted point (L-BFGS's zoom line
+    search) has them read back from its state (``optax.value_and_grad_from_state``) rather than
+    recomputed. A ``GradientTransformationExtraArgs`` gets ``value``, ``grad`` and ``value_fn``
+    with the update (transformations that need none ignore them)."""
+    loss_fn = prob.loss_fn
+    extra = isinstance(opt, optax.GradientTransformationExtraArgs)
+    from_state = linesearch and all(s.grad is not None for s in _linesearch_states(
+        jax.eval_shape(opt.init, jax.ShapeDtypeStruct(np.shape(prob.theta0), prob.sim.dtype))))
+    vg = optax.value_and_grad_from_state(loss_fn) if from_state else jax.value_and_grad(loss_fn)
+
+    def step(theta, state):
+        loss, g = vg(theta, state=state) if from_state else vg(theta)
+        if extra:
+            updates, new_state = opt.update(g, state, theta, value=loss, grad=g, value_fn=loss_fn)
+        else:
+            updates, new_state = opt.update(g, state, theta)
+        return loss, g, updates, new_state
+    return jax.jit(step)
+
+
+def _iterate(prob, opt, linesearch, step_fn, loop, opts):
+    """One evaluation at loop.theta: accept and step, or reject and halve the step."""
+    dtype = prob.sim.dtype
+    t0 = time.perf_counter()
+    theta = jnp.asarray(loop.theta, dtype)
+    ok = prob.valid(loop.theta)
+    if ok:
+        loss, g, updates, new_state = step_fn(theta, loop.opt_state)
+        loss = float(loss)
+        g = np.asarray(g)
+        ok = math.isfinite(loss) and bool(np.all(np.isfinite(g)))
+    it = loop.iteration
+    loop.iteration += 1
+    if not ok:
+        _reject(prob, opt, linesearch, loop, it)
+        return
+    loop.rejected_in_row = 0
+    gnorm = float(np.max(np.abs(g)))
+    prev = loop.h_loss[-1] if loop.h_loss else None
+    loop.h_iter.append(it)
+    loop.h_loss.append(loss)
+    loop.h_theta.append(np.asarray(loop.theta, np.float64))
+    loop.h_gnorm.append(gnorm)
+    loop.h_time.append(loop.wall + time.perf_counter() - t0)
+    if loss < loop.best_loss:
+        loop.best_loss, loop.best_theta = loss, np.asarray(loop.theta)
+    # a line search (L-BFGS's) already chose the step (and stored the loss there): never rescale it
+    step = np.asarray(updates) if linesearch else loop.scale * np.asarray(updates)
+    _check_convergence(loop, loss, prev, gnorm, step, opts)
+    if loop.done:
+        return
+    loop.anchor = np.asarray(loop.theta)
+    loop.theta = (np.asarray(loop.theta, dtype) + step.astype(dtype)).astype(dtype)
+    loop.opt_state = new_state
+
+
+def _reject(prob, opt, linesearch, loop, it):
+    """A blown-up evaluation (iteration ``it``): halve the step back toward the last accepted point,
+    or raise :class:`FitError` at the start or after too many rejections in a row."""
+    loop.rejected += 1
+    loop.rejected_in_row += 1
+    loop.h_rejected.append(it)
+    if loop.anchor is None:
+        raise FitError("the rollout blows up (non-finite loss or gradient, or an object turned inside out) "
+                       "at the start values; start closer to a stable setting or use a smaller dt")
+    if loop.rejected_in_row > MAX_REJECTIONS:
+        raise FitError(f"{loop.rejected_in_row} steps in a row blew up the rollout; the last good values were "
+                       + _progress_text(loop.best_loss, prob.values(loop.anchor)))
+    loop.scale *= 0.5
+    loop.theta = loop.anchor + 0.5 * (loop.theta - loop.anchor)
+    if linesearch:  # its memory holds the rejected pair: start it afresh there
+        loop.opt_state = jax.jit(opt.init)(jnp.asarray(loop.theta, prob.sim.dtype))
+
+
+def _check_convergence(loop, loss, prev, gnorm, step, opts):
+    """Set ``loop.done``, its reason and its :class:`Stop` when an accepted point meets a criterion of ``opts``."""
+    rtol, patience = opts.rtol, int(opts.patience)
+    if prev is not None and abs(prev - loss) <= rtol * max(abs(loss), 1e-300):
+        loop.stall += 1
+    else:
+        loop.stall = 0
+    if loss <= opts.ftol:
+        loop.done, loop.stopped, loop.reason = True, Stop.LOSS, f"converged: loss {loss:.3g} <= ftol {opts.ftol:g}"
+    elif gnorm <= opts.gtol:
+        loop.done, loop.stopped = True, Stop.GRADIENT
+        loop.reason = f"converged: gradient max-norm {gnorm:.3g} <= gtol {opts.gtol:g}"
+    elif loop.stall >= patience:
+        loop.done, loop.stopped = True, Stop.LOSS
+        loop.reason = f"converged: relative loss change <= rtol {rtol:g} for {patience} iterations"
+    elif float(np.max(np.abs(step))) <= opts.xtol:
+        loop.done, loop.stopped = True, Stop.STEP
+        loop.reason = f"converged: step {float(np.max(np.abs(step))):.3g} <= xtol {opts.xtol:g} (log space)"
+
+
+def _finish(prob, loop, settings, notes, want_ident, wall):
+    """Health check, identifiability and the :class:`FitResult` at the best accepted point."""
+    best = loop.best_theta if loop.h_loss else np.asarray(prob.theta0)
+    th = jnp.asarray(best, prob.sim.dtype)
+    if want_ident:
+        frames, codes, jac = _ident.frames_and_jacobian(prob.frames, th)
+    else:
+        frames, codes = jax.jit(prob.frames)(th)
+        frames, codes = np.asarray(frames, np.float64), np.asarray(codes)
+    notes = list(notes)
+    bad = diagnostics.first_failure(codes)
+    if bad is not None:
+        t, o, c = bad
+        raise FitError(f"the fitted rollout fails at step {prob.loss.frame_steps[t]}, object "
+                       f"{prob.scene.object_names[o]!r}: {diagnostics.MESSAGES[c]}")
+    if (codes == diagnostics.VOLUME_CLAMPED).any():
+        t, o = (int(a[0]) for a in np.nonzero(codes == diagnostics.VOLUME_CLAMPED))
+        msg = (f"object {prob.scene.object_names[o]!r}: {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
+               f"at step {prob.loss.frame_steps[t]} of the fitted rollout")
+        warnings.warn(msg, stacklevel=4)
+        notes.append(msg)
+    report = _report(prob, frames, jac) if want_ident else None
+    hist = _loop_history(prob, loop)
+    out = _judge_loop(prob, loop)
+    return _result(prob, best, frames=frames, history=hist, outcome=out, report=report, warn_report=True,
+                   notes=notes, settings=settings, loop=loop, wall=wall, stacklevel=4,
+                   loss=float(loop.best_loss if loop.h_loss else np.nan),
+                   loss_start=float(loop.h_loss[0]) if loop.h_loss else float("nan"),
+                   iterations=loop.iteration, rejected=loop.rejected,
+                   reason=f"{out.text} (the optimiser stopped: {loop.reason})", lr=settings["lr"])
+
+
+def _loop_history(prob, loop):
+    """The :attr:`FitResult.history` of a gradient loop (:class:`LoopState`)."""
+    return _history(prob, loop.h_theta, iteration=np.asarray(loop.h_iter, np.int64),
+                    loss=np.asarray(loop.h_loss, np.float64), grad_norm=np.asarray(loop.h_gnorm, np.float64),
+                    time=np.asarray(loop.h_time, np.float64), rejected=np.asarray(loop.h_rejected, np.int64))
+
+
+def _judge_loop(prob, loop):
+    """The outcome of an Adam or L-BFGS loop: residual at the best point, exact gradients."""
+    from jaxplush.fitting import outcome as _outcome
+    if not loop.h_loss:
+        return _outcome.judge(rms=np.inf, noise=prob.noise, motion=_motion(prob), grad=np.inf, grad0=1.0,
+                              stopped=Stop.ITERATIONS)
+    best = int(np.argmin(loop.h_loss))
+    return _judge(prob, loop.h_theta[best], rms=_losses.rms_metres(loop.h_loss[best], prob.loss.scale2,
+                                                                   prob.target.kind),
+                  noise=prob.noise, motion=_motion(prob), grad=loop.h_gnorm[best], grad0=loop.h_gnorm[0],
+                  stopped=loop.stopped)

@@ -1,0 +1,262 @@
+"""A fit's result: :class:`FitResult`, made by :func:`_result` for every optimiser.
+
+Also what a result is judged with: the reproducibility floor of the start values
+(:func:`measure_predictability`), the outcome (:func:`_judge`, :mod:`jaxplush.fitting.outcome`), the
+target's motion (:func:`_motion`), and the identifiability report at a point
+(:func:`identifiability_at`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+
+import jaxplush
+from jaxplush.types import PARAM_NAMES, Params
+
+from jaxplush.fitting import identifiability as _ident
+from jaxplush.fitting import losses as _losses
+from jaxplush.fitting.outcome import Status
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FitResult:
+    """The outcome of :func:`fit`.
+
+    Attributes:
+      params: full :class:`jaxplush.types.Params` (numpy float64) with the fitted values.
+      names: fitted parameter names; objects: fitted object names.
+      values: dict name -> (O_f,) fitted values; start: dict name -> (O_f,) start values.
+      loss: normalised loss at the fitted values (see :mod:`jaxplush.fitting.losses`); loss_start.
+      history: dict of arrays over accepted iterations: "iteration", "loss", "grad_norm",
+        "time" (s), each fitted name (n, O_f); and "rejected" (iterations whose step was rejected).
+      iterations: evaluations done; rejected: steps rejected (blow-ups).
+      converged: the fit reached the data at an optimum (``status == "converged"``).
+      reason: how it ended, in words (:attr:`outcome`'s message).
+      identifiability: :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` (or None); its
+        standard errors mean something only for a converged fit (:meth:`table` hides them otherwise).
+      frames: (T, V, 3) simulated positions at the target frames with the fitted values.
+      steps: (T,) their steps; dt.
+      optimizer, lr, normalisation ("noise"/"motion"), scale2 (m²), noise.
+      scene_text, scene_path, target_path, wall_time (s), warnings.
+      predictability: :class:`jaxplush.Predictability` of the start values over the target,
+        measured before fitting (None: not measured); the outcome's ``floor`` is the
+        reproducibility floor it was judged against.
+    """
+
+    params: Params
+    names: tuple
+    objects: tuple
+    values: dict
+    start: dict
+    loss: float
+    loss_start: float
+    history: dict
+    iterations: int
+    rejected: int
+    converged: bool
+    reason: str
+    identifiability: object
+    frames: np.ndarray
+    steps: np.ndarray
+    dt: float
+    optimizer: str
+    lr: float | None
+    normalisation: str
+    scale2: float
+    noise: float | None
+    scene_text: str
+    scene_path: str
+    target_path: str
+    wall_time: float
+    warnings: tuple = ()
+    loop: object = None     # the final LoopState / LMRun, whose .state a checkpoint holds (for a resumable file)
+    problem: object = None  # the Problem that was solved
+    settings: dict = dataclasses.field(default_factory=dict)
+    outcome: object = None  # jaxplush.fitting.outcome.Outcome
+    search: dict = dataclasses.field(default_factory=dict)   # the default fit's samples and paths
+    predictability: object = None  # jaxplush.Predictability of the start values
+
+    @property
+    def status(self):
+        """The :class:`jaxplush.fitting.outcome.Status`: "converged", "poor_fit", "stalled", "iteration_limit",
+        "at_bound" or "at_floor" (equal to those strings)."""
+        if self.outcome is not None:
+            return self.outcome.status
+        return Status.CONVERGED if self.converged else Status.STALLED
+
+    def table(self):
+        """The fitted values as a text table: start, fitted value and, for a converged fit only,
+        the approximate standard error; then the predictability and the outcome."""
+        rep = self.identifiability
+        se = {} if rep is None else dict(zip(rep.labels, rep.stderr))
+        rows = [f"{'parameter':<14} {'object':<14} {'start':>12} {'fitted':>12} {'std. error':>11}"]
+        for n in self.names:
+            for j, o in enumerate(self.objects):
+                e = se.get(f"{n}[{o}]", np.nan)
+                if rep is None:
+                    es = "-"
+                elif not self.converged:
+                    es = "n/a"
+                else:
+                    es = f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined"
+                rows.append(f"{n:<14} {o:<14} {self.start[n][j]:>12.6g} {self.values[n][j]:>12.6g} {es:>11}")
+        rows.append(f"loss {self.loss_start:.4g} -> {self.loss:.4g} ({self.normalisation}-normalised) after "
+                    f"{self.iterations} {'evaluations' if self.optimizer == 'lm' else 'iterations'} "
+                    f"({self.rejected} rejected), {self.wall_time:.1f} s")
+        if self.predictability is not None:
+            rows.append(f"predictability: {self.predictability.text()}")
+        rows.append(f"outcome: {self.reason}")
+        if rep is not None and not self.converged:
+            rows.append("standard errors: not meaningful, the fit did not converge to the data")
+        return "\n".join(rows)
+
+    def save(self, path):
+        """Write FIT.h5 atomically (see :mod:`jaxplush.fitting.io`)."""
+        from jaxplush.fitting import io as _io
+        return _io.save_fit(self, path)
+
+    def write_scene(self, path):
+        """Write the scene with the fitted values (extended OBJ), ready to simulate."""
+        from jaxplush.fitting import io as _io
+        return _io.write_fitted_scene(self, path)
+
+
+def _history(prob, thetas, **arrays):
+    """A :attr:`FitResult.history`: ``arrays`` (iteration, loss, grad_norm, time, rejected) and each
+    fitted parameter's values (n, O_f) at the log values ``thetas`` (n, P_n, O_f)."""
+    hist = dict(arrays)
+    th = np.asarray(thetas, np.float64).reshape(-1, len(prob.names), len(prob.objects))
+    for i, n in enumerate(prob.names):
+        hist[n] = np.exp(th[:, i])
+    return hist
+
+
+def _result(prob, theta, *, frames, history, outcome, report, warn_report, notes, settings, loop, wall, stacklevel,
+            **fields):
+    """The :class:`FitResult` of every fit (the default fit and the gradient optimisers) ending at
+    log values ``theta``: the full parameters, the identifiability ``report`` (its warnings issued
+    when ``warn_report``), the ``outcome`` (warned and noted unless converged), and ``fields``
+    particular to the optimiser (loss, loss_start, iterations, rejected, reason, lr, search).
+    ``stacklevel``: that of the caller's own warnings (its caller's caller is the user's code)."""
+    notes = list(notes)
+    if report is not None and warn_report:
+        for w in report.warnings:
+            warnings.warn(w, stacklevel=stacklevel + 1)
+    if not outcome.converged:
+        warnings.warn(outcome.text, stacklevel=stacklevel + 1)
+        notes.append(outcome.text)
+    vals = prob.values(theta)
+    full = {n: np.array(getattr(prob.base, n), np.float64) for n in PARAM_NAMES}
+    for n in prob.names:
+        full[n][list(prob.objects)] = vals[n]
+    return FitResult(
+        params=Params(**full), names=prob.names, objects=tuple(prob.scene.object_names[o] for o in prob.objects),
+        values=vals, start=prob.start, history=history, converged=outcome.converged, outcome=outcome,
+        identifiability=report, frames=frames, steps=np.asarray(prob.loss.frame_steps, np.int64),
+        dt=prob.target.dt, optimizer=settings["optimizer"], normalisation=prob.loss.normalisation,
+        scale2=prob.loss.scale2, noise=prob.noise, scene_text=prob.scene.text, scene_path=prob.scene.path,
+        target_path=prob.target.path, wall_time=float(wall), warnings=tuple(notes), loop=loop, problem=prob,
+        settings=settings, predictability=prob.predictability, **fields)
+
+
+def _motion(prob):
+    """The target's RMS motion from the rest shape, m (the measure of the residual RMS)."""
+    kind, scale2 = prob.target.kind, prob.loss.scale2
+    if prob.loss.normalisation == "motion":
+        return _losses.rms_metres(1.0, scale2, kind)
+    rest = _losses.rest_distance(prob.target, prob.sim.topology.x0, prob.sim.topology.faces)
+    return float(np.sqrt(rest / _losses.COMPONENTS[kind]))
+
+
+#: Most frames the predictability measurement saves per target frame (a target on an irregular
+#: grid is measured on an even grid of about as many frames instead).
+_PREDICTABILITY_FRAMES = 4
+
+
+def _predictability_grid(target):
+    """(steps, save_every) of the predictability measurement over a target: its last step, and
+    the largest step that divides every frame's step (or, where that saves too many frames, an
+    even grid with about as many frames as the target)."""
+    steps = int(target.steps[-1])
+    every = int(np.gcd.reduce(np.asarray(target.steps, np.int64)))
+    if steps // every > _PREDICTABILITY_FRAMES * target.n_frames + 100:
+        every = max(1, steps // target.n_frames)
+    return steps, every
+
+
+def _predictability_at(prob, theta=None):
+    """:func:`jaxplush.predictability` of the problem's scene over its target at log values theta
+    (default: the start values); None when a run blows up."""
+    steps, every = _predictability_grid(prob.target)
+    params = None if theta is None else prob.params_at(theta)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # a volume clamp or grown capacity: the fit reports its own
+            return jaxplush.predictability(prob.scene, steps, prob.target.dt, every, params=params, sim=prob.sim,
+                                           noise=prob.noise, motion=_motion(prob))
+    except jaxplush.SimulationError:
+        return None
+
+
+def measure_predictability(prob, report=None):
+    """The problem with :attr:`Problem.predictability` measured at the start values; ``report``
+    (if given) gets the line that describes it."""
+    pred = _predictability_at(prob)
+    if report is not None:
+        report("predictability: " + (pred.text() if pred is not None else
+                                     "not measured (the rollout at the start values blows up)"))
+    return dataclasses.replace(prob, predictability=pred)
+
+
+def plan_shooting(prob, setting, report=None):
+    """The problem with :attr:`Problem.shooting` planned (:func:`jaxplush.fitting.shooting.plan`);
+    ``report`` (if given) gets the line that says what was chosen."""
+    from jaxplush.fitting import shooting as _shooting
+    sh, prob = _shooting.plan(prob, setting)
+    if report is not None:
+        report("shooting: " + sh.reason)
+    return dataclasses.replace(prob, shooting=sh)
+
+
+def _judge(prob, theta, **kw):
+    """:func:`jaxplush.fitting.outcome.judge` of a fit ending at log values theta, with the
+    reproducibility floor of :attr:`Problem.predictability`; for a fit that does not reach the
+    data the floor is measured again at theta (the start's may be far from the result's)."""
+    from jaxplush.fitting import outcome as _outcome
+    pred = prob.predictability
+    start = (None, None) if pred is None else (pred.floor, pred.horizon_time)
+    if prob.shooting is not None and prob.shooting.on:
+        # segments no longer than the horizon: the floor is the node states' (the shooting floor)
+        return _outcome.judge(**kw, floor=prob.shooting.floor, horizon=None)
+    out = _outcome.judge(**kw, floor=start[0], horizon=start[1])
+    if out.reached or pred is None:
+        return out
+    pred = _predictability_at(prob, theta) or pred
+    return _outcome.judge(**kw, floor=pred.floor, horizon=pred.horizon_time)
+
+
+def identifiability_at(prob, theta):
+    """The :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` of a problem at log values theta."""
+    frames, _, jac = _ident.frames_and_jacobian(prob.frames, jnp.asarray(theta, prob.sim.dtype))
+    return _report(prob, frames, jac)
+
+
+def _report(prob, frames, jac):
+    if prob.target.kind == "positions":
+        residual = frames - prob.target.positions
+    else:
+        residual = np.concatenate([_nearest_residual(x, p) for x, p in zip(frames, prob.target.points)])
+    return _ident.analyse(jac, residual, prob.labels, noise=prob.noise)
+
+
+def _nearest_residual(x, p):
+    """(V, 3) vector from each vertex to its nearest target point (numpy, chunked)."""
+    out = np.empty_like(x)
+    for a in range(0, len(x), 512):
+        d2 = ((x[a:a + 512, None, :] - p[None, :, :]) ** 2).sum(-1)
+        out[a:a + 512] = x[a:a + 512] - p[np.argmin(d2, axis=1)]
+    return out
