@@ -84,25 +84,18 @@ def block_losses(residuals, owner, n_objects):
 def compose(thetas, blocks, per_object):
     """Candidates (M, P_n, O_f) made of the best ``per_object`` parameter blocks of each object:
     object o's column of ``thetas`` (N, P_n, O_f) from one of the ``per_object`` points of lowest
-    ``blocks[:, o]`` ((N, O_f), :func:`block_losses`), every combination (``per_object`` ** O_f of
-    them, fewer where blocks are shared), the combination of each object's best first."""
+    ``blocks[:, o]`` ((N, O_f), :func:`block_losses`; only points that ran), every combination
+    (``per_object`` ** O_f of them, fewer where an object has fewer blocks that ran), in order of
+    the sum of their ranks: the combination of each object's best first."""
     thetas = np.asarray(thetas, np.float64)
     n_obj = thetas.shape[-1]
     best = []
     for o in range(n_obj):
         order = [int(i) for i in np.argsort(blocks[:, o], kind="stable") if np.isfinite(blocks[i, o])]
         best.append(order[:per_object] or [0])
-    out, seen = [], set()
-    # combinations in order of the sum of their ranks (each object's best first)
     combos = sorted(itertools.product(*(range(len(b)) for b in best)), key=lambda c: (sum(c), c))
-    for combo in combos:
-        key = tuple(best[o][c] for o, c in enumerate(combo))
-        if key in seen:
-            continue
-        seen.add(key)
-        th = np.stack([thetas[key[o]][:, o] for o in range(n_obj)], axis=-1)
-        out.append(th)
-    return np.asarray(out)
+    return np.asarray([np.stack([thetas[best[o][c]][:, o] for o, c in enumerate(combo)], axis=-1)
+                       for combo in combos])
 
 
 @dataclasses.dataclass
@@ -166,9 +159,8 @@ class PerObjectGlobal:
         if prob.target.kind == "positions":
             return residual_objects(prob)
         e = objective.evaluator(s.theta[None], keep_frames=True)
-        if not e.ok[0]:                           # no rollout to assign points by: one block for all
-            return np.zeros(objective.evaluator.residual.n, np.int64) if len(prob.objects) == 1 else \
-                np.full(objective.evaluator.residual.n, -1, np.int64)
+        if not e.ok[0]:       # no rollout to assign the points by: every block scored by the whole loss
+            return np.full(objective.evaluator.residual.n, -1, np.int64)
         return residual_objects(prob, e.frames[0])
 
     def _run(self, objective, thetas):
@@ -191,7 +183,7 @@ class PerObjectGlobal:
             design = _search.sobol_design(_search.Box(lo, hi), self.samples, self.seed + s.rounds)
         ev = self._run(objective, design)
         blocks = block_losses(ev.residuals, s.owner, n_obj)
-        if (s.owner < 0).all():                  # no residual belongs to a fitted object: whole losses
+        if (s.owner < 0).all():     # no residual belongs to a fitted object: each block by the whole loss
             blocks = np.repeat(ev.loss[:, None], n_obj, axis=1)
         cand = compose(design, blocks, self.per_object)
         ec = self._run(objective, cand)
