@@ -53,6 +53,7 @@ from jaxplush.errors import JaxplushError
 from jaxplush.types import PARAM_NAMES  # noqa: F401  (jaxplush.fitting.fitter.PARAM_NAMES)
 
 from jaxplush.fitting import identifiability as _ident
+from jaxplush.fitting import objects as _objects
 from jaxplush.fitting import losses as _losses
 from jaxplush.fitting import options as _options
 from jaxplush.fitting.errors import FitError  # noqa: F401  (jaxplush.fitting.fitter.FitError)
@@ -166,7 +167,8 @@ def _lm_settings(prob, opts, box):
     settings = _common_settings(prob, opts, "lm", opts.iteration_limit("lm"), None)
     settings.update(frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind,
                     box_lo=box.lo.ravel().tolist(), box_hi=box.hi.ravel().tolist(),
-                    samples=s.n_samples, starts=s.n_starts, seed=int(s.seed), shooting=str(opts.shooting))
+                    samples=s.n_samples, starts=s.n_starts, seed=int(s.seed), shooting=str(opts.shooting),
+                    global_stage="per_object" if _objects.suits(prob) else "sobol")
     settings.update({group: dataclasses.asdict(getattr(opts, group)) for group in _options.TUNING})
     return settings
 

@@ -37,6 +37,7 @@ import numpy as np
 
 from jaxplush.progress import Progress
 
+from jaxplush.fitting import objects as _objects
 from jaxplush.fitting import search as _search
 from jaxplush.fitting import stages as _stages
 from jaxplush.fitting.options import FitOptions
@@ -101,8 +102,10 @@ def default_stages(prob, opts, progress=None):
     linearised, and for a noisy target the smoothing stage. ``progress(n, extra=...)``: what the
     global and smoothing stages report their progress to."""
     local = opts.local
-    first = _stages.GlobalStage(samples=opts.search.n_samples, starts=opts.search.n_starts, seed=opts.search.seed,
-                                local=local, progress=progress)
+    # several fitted objects, positions observed: each object's parameters scored by its own residuals
+    kind = _objects.PerObjectGlobal if _objects.suits(prob) else _stages.GlobalStage
+    first = kind(samples=opts.search.n_samples, starts=opts.search.n_starts, seed=opts.search.seed,
+                 local=local, progress=progress)
     out = [_stages.Continuation(local=_stages.LocalLM(max_iter=opts.iteration_limit("lm"), options=local),
                                 first=(first,), options=opts.continuation, noisy=_noisy(prob)),
            _stages.Linearise(local=local)]
@@ -245,6 +248,9 @@ class _Show:
             label = f"stage {s.index + 1}/{len(hs)} ({hs[s.index]} of {hs[-1]} frames)"
             if isinstance(inner, _stages.GlobalState):
                 bar = Progress(opts.search.n_samples + 1, f"global search, {label}", enabled=on, unit="points")
+            elif isinstance(inner, _objects.PerObjectState):
+                total = self.stages[run.index].first[0].evaluations(len(self.prob.objects))
+                bar = Progress(total, f"global search per object, {label}", enabled=on, unit="points")
             else:
                 total = self.stages[run.index].stage(s).max_iter
                 bar = Progress(total, f"local search, {label}", enabled=on, unit="it")
@@ -259,7 +265,14 @@ class _Show:
         inner, bar = self.inner, self.bar
         if bar is None or not self.active:
             return
-        if isinstance(inner, _stages.GlobalState):
+        if isinstance(inner, _objects.PerObjectState):
+            g = inner.result
+            if g is not None:
+                bar.extra = f"best loss {np.min(np.where(g.ok, g.loss, np.inf)):.4g}"
+            if inner.states:
+                bar.finish(f"{inner.rounds} rounds" + (f", {int((~g.ok).sum())} failed" if (~g.ok).any() else ""))
+                self.close()
+        elif isinstance(inner, _stages.GlobalState):
             g = inner.result
             bar.extra = f"best loss {np.min(np.where(g.ok, g.loss, np.inf)):.4g}"
             bar.finish(f"{int((~g.ok).sum())} failed" if (~g.ok).any() else "")

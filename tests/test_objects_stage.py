@@ -1,0 +1,160 @@
+"""The per-object global stage (jaxplush.fitting.objects): residual blocks belong to the right
+objects, scoring each object's parameters by its own residuals finds better candidates than the
+full-dimensional Sobol design with as many runs, and the stage hands its candidates to
+Levenberg-Marquardt through run_stages."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+import jaxplush
+from jaxplush.fitting import fitter as F
+from jaxplush.fitting import lmfit, objects, stages
+from jaxplush.fitting.targets import make_target
+from jaxplush.types import GAS_CONSTANT
+
+from conftest import icosphere_text
+
+#: Two 42-vertex balls hanging from their top vertex 0.6 m apart (they never touch), each with
+#: its own stiffness and gas; the fit starts with k x2 / nmol x0.5 on one and the opposite on the other.
+TRUE_K = (60.0, 120.0)
+FACTORS = ((2.0, 0.5), (0.5, 2.0))      # (k, nmol) start factors per ball
+DT, STEPS, EVERY = 5e-4, 240, 12
+
+
+def _nmol(k, inflation=1.05, sub=1):
+    """Gas that inflates a free ball of stiffness k to ``inflation`` x its size (docs/model.md §8.5)."""
+    m = trimesh.creation.icosphere(subdivisions=sub, radius=0.1)
+    e = m.edges_unique
+    sum_l2 = float(np.sum((m.vertices[e[:, 0]] - m.vertices[e[:, 1]]) ** 2))
+    return k * inflation * (inflation - 1) * sum_l2 / (3 * GAS_CONSTANT * 293.15)
+
+
+def _scene(ks, nmols):
+    top = int(np.argmax(trimesh.creation.icosphere(subdivisions=1, radius=0.1).vertices[:, 1]))
+    text = icosphere_text(name="a", k=ks[0], nmol=nmols[0], damping=1000.0, mass=0.1, translate=(-0.3, 1, 0),
+                          fixed=(top,))
+    text += icosphere_text(name="b", k=ks[1], nmol=nmols[1], damping=1000.0, mass=0.1, translate=(0.3, 1, 0),
+                           fixed=(top,), offset=42, header=False)
+    return jaxplush.parse_scene(text, "<two hanging balls>")
+
+
+@pytest.fixture(scope="module")
+def two_balls():
+    """(problem, objective, true log values) of the two hanging balls, k and nmol of each fitted."""
+    nmols = [_nmol(k) for k in TRUE_K]
+    truth = _scene(TRUE_K, nmols)
+    target = make_target(truth, STEPS, DT, EVERY)
+    start = _scene([k * f[0] for k, f in zip(TRUE_K, FACTORS)], [n * f[1] for n, f in zip(nmols, FACTORS)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prob = F.build_problem(start, target, ("k_structural", "nmol"), noise_free=True)
+    objective = stages.Objective(prob, lmfit.default_box(prob))
+    return prob, objective, np.log(np.array([TRUE_K, nmols]))
+
+
+def test_residual_blocks_belong_to_their_objects(two_balls):
+    prob, objective, truth = two_balls
+    owner = objects.residual_objects(prob)
+    n_frames = prob.target.n_frames
+    assert owner.shape == (objective.evaluator.residual.n,)
+    # every residual is one of the two balls', 3 coordinates x 42 vertices x frames each
+    assert np.array_equal(np.bincount(owner), [3 * 42 * n_frames] * 2)
+    assert objects.suits(prob)
+    # the physics: the balls do not touch, so moving ball a's parameters changes ball a's residuals
+    # and leaves ball b's exactly as they were (and the other way round)
+    moved_a, moved_b = truth.copy(), truth.copy()
+    moved_a[:, 0] += 0.1
+    moved_b[:, 1] -= 0.1
+    ev = objective.evaluator(np.stack([truth, moved_a, moved_b]))
+    assert ev.ok.all()
+    change_a, change_b = np.abs(ev.residuals[1] - ev.residuals[0]), np.abs(ev.residuals[2] - ev.residuals[0])
+    assert np.max(change_a[owner == 1]) == 0.0 and np.max(change_a[owner == 0]) > 1e-3
+    assert np.max(change_b[owner == 0]) == 0.0 and np.max(change_b[owner == 1]) > 1e-3
+    # block losses add up to the loss, and each ball's block is ~0 at the truth
+    blocks = objects.block_losses(ev.residuals, owner, 2)
+    np.testing.assert_allclose(blocks.sum(axis=1), ev.loss, rtol=1e-12)
+    assert blocks[1, 1] == blocks[0, 1] and blocks[1, 0] > 1e3 * blocks[0, 0]
+
+
+def test_point_cloud_points_go_to_the_nearest_object(two_balls):
+    prob, objective, truth = two_balls
+    frames = objective.evaluator(truth[None], keep_frames=True).frames[0]
+    # points on each ball's surface (its vertices, pushed out 1 mm) in every frame
+    n = 42
+    pts = np.concatenate([frames[:, :n], frames[:, n:]], axis=1) * 1.001
+    p2 = dataclasses.replace(prob, target=dataclasses.replace(prob.target, positions=None, points=pts))
+    assert p2.target.kind == "points"
+    owner = objects.residual_objects(p2, frames)
+    assert owner.shape == (prob.target.n_frames * 2 * n,)
+    per_frame = owner.reshape(prob.target.n_frames, 2 * n)
+    assert (per_frame[:, :n] == 0).all() and (per_frame[:, n:] == 1).all()
+    assert not objects.suits(p2)
+
+
+def test_compose_takes_each_objects_best_block():
+    thetas = np.zeros((4, 2, 2))
+    thetas[:, :, 0] = np.arange(4)[:, None]          # object 0's block of point i: (i, i)
+    thetas[:, :, 1] = 10 + np.arange(4)[:, None]     # object 1's: (10 + i, 10 + i)
+    blocks = np.array([[3.0, 0.1], [0.2, 5.0], [1.0, 4.0], [np.inf, 0.5]])
+    out = objects.compose(thetas, blocks, 2)
+    assert len(out) == 4                              # 2 x 2 combinations
+    np.testing.assert_array_equal(out[0], [[1, 10], [1, 10]])    # object 0 from point 1, object 1 from point 0
+    assert {(int(c[0, 0]), int(c[0, 1])) for c in out} == {(1, 10), (1, 13), (2, 10), (2, 13)}
+
+
+def test_per_object_candidates_beat_the_full_design_with_as_many_runs(two_balls):
+    prob, objective, truth = two_balls
+    stage = objects.PerObjectGlobal(samples=32, per_object=3, rounds=2, starts=3)
+    (po,) = stages.run_stages(objective, prob.theta0, [stage])
+    n_runs = len(po.result.thetas)
+    assert n_runs == stage.evaluations(2) == 1 + 2 * (32 + 9)
+    (gl,) = stages.run_stages(objective, prob.theta0, [stages.GlobalStage(samples=n_runs - 1, starts=3)])
+    assert len(gl.result.thetas) == n_runs
+
+    def error(s):
+        return float(np.max(np.abs(s.theta - truth)))
+
+    best_po, best_gl = po.states[0], gl.states[0]
+    # lower loss, and closer to the truth in every parameter's worst case, by a wide margin
+    assert best_po.loss < 0.5 * best_gl.loss, (best_po.loss, best_gl.loss)
+    assert error(best_po) < 0.6 * error(best_gl), (error(best_po), error(best_gl))
+
+
+def test_per_object_stage_then_local_lm_recovers_the_truth(two_balls):
+    prob, objective, truth = two_balls
+    out = stages.run_stages(objective, prob.theta0,
+                            [objects.PerObjectGlobal(samples=32, per_object=3, rounds=2, starts=3),
+                             stages.LocalLM(max_iter=40)])
+    best = out[-1].states[stages.order(out[-1].states)[0]]
+    rel = np.exp(best.theta - truth) - 1.0
+    assert np.max(np.abs(rel)) < 0.01, rel
+
+
+def test_the_default_fit_of_two_objects_uses_it_and_resumes(two_balls, tmp_path):
+    """``fitting.fit`` picks the per-object stage for two fitted objects observed as positions,
+    records it in its settings and recovers both balls; its checkpoint (which holds that stage's
+    state) resumes to the same answer."""
+    prob, _, truth = two_balls
+    path = tmp_path / "FIT.h5"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = F.fit(prob.scene, prob.target, ("k_structural", "nmol"), noise_free=True, identifiability=False,
+                    checkpoint_path=path)
+        again = F.fit(prob.scene, prob.target, ("k_structural", "nmol"), noise_free=True, identifiability=False,
+                      checkpoint_path=path, resume=True)
+    assert res.settings["global_stage"] == "per_object"
+    fitted = np.log(np.array([res.values["k_structural"], res.values["nmol"]]))
+    assert np.max(np.abs(fitted - truth)) < 0.01
+    for n in ("k_structural", "nmol"):
+        np.testing.assert_array_equal(again.values[n], res.values[n])
+    # one object alone keeps the full-dimensional design
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        one = F.build_problem(prob.scene, prob.target, ("k_structural",), objects=["a"], noise_free=True)
+    assert not objects.suits(one)
