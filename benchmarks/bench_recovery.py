@@ -28,9 +28,10 @@ closed-form stability bound (``jaxplush.stepping.stability.bound``; the next one
 most, when the truth's target blows up all the same), the target runs the case's
 duration (the top object lands and bounces; 0.5 s hanging) with about 50 frames, as exact
 positions or as point clouds of 400 points per frame with 2 mm noise. Each fit is
-``jaxplush-fit START.obj TARGET.h5 --out FIT.h5 --quiet`` run in this process
-(``jaxplush.fitting.cli.main``; the persistent compilation cache on, as the command sets it, but
-every scene differs, so each case compiles its own programs), stopped (Ctrl-C, as a user would)
+``jaxplush-fit START.obj TARGET.h5 --out FIT.h5 --quiet`` (``jaxplush.fitting.cli.main``),
+each case in a fresh Python process (``--in-process``: all in this one; the persistent
+compilation cache on, as the command sets it, but every scene differs, so each case compiles its
+own programs), stopped (Ctrl-C, as a user would)
 once it has run ``--stop-after`` times its time budget (120 s for one object, 300 s for several).
 A case is recovered when the fit says converged (exit 0) and every fitted parameter of every
 object is within 1% (positions) or 3% (points) of the truth, within the budget; a failed case
@@ -399,6 +400,28 @@ def _summary(rows):
     return lines
 
 
+def _case_in_child(args, case):
+    """Run one random case in a fresh Python process (its compiled programs and memory go with it;
+    a long run in one process once died of an LLVM out-of-memory while compiling) and return its row."""
+    argv = [sys.executable, os.path.abspath(__file__), "--random", str(args.random), "--seed", str(args.seed),
+            "--max-objects", str(args.max_objects), "--kinds", args.kinds, "--stop-after", str(args.stop_after),
+            "--only", str(case["index"])]
+    for flag, val in (("--max-vertices", args.max_vertices), ("--steps", args.steps), ("--dt", args.dt)):
+        if val is not None:
+            argv += [flag, str(val)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(argv, capture_output=True, text=True)
+    rows = [ln[4:] for ln in proc.stdout.splitlines() if ln.startswith("ROW ")]
+    if rows:
+        return json.loads(rows[-1])
+    tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or [""]
+    from jaxplush.fitting.scenarios import describe_case
+    return dict(index=case["index"], seed=case.get("seed"), description=describe_case(case),
+                n_objects=case["n_objects"], kind=case["kind"], start_factors=case["start"],
+                status=f"process exited {proc.returncode}", exit=proc.returncode, wall=time.perf_counter() - t0,
+                max_error=math.inf, errors={}, verdict="failed", reason="other", detail=tail[0][-200:])
+
+
 def main_random(args):
     kinds = tuple(args.kinds.split(","))
     cases = draw_cases(args.random, args.seed, max_vertices=args.max_vertices, max_objects=args.max_objects,
@@ -407,10 +430,18 @@ def main_random(args):
           f"{time.strftime('%Y-%m-%d %H:%M')}; --random {args.random} --seed {args.seed}"
           + (f" --max-vertices {args.max_vertices}" if args.max_vertices else "")
           + f" --max-objects {args.max_objects} --kinds {args.kinds}", flush=True)
+    if args.only is not None:                    # one case, in this process (the parent reads the last line)
+        with tempfile.TemporaryDirectory() as d:
+            row = run_random_case(d, cases[args.only], dt=args.dt, steps=args.steps, stop_after=args.stop_after)
+        print("ROW " + json.dumps(row, default=float), flush=True)
+        return 0
     rows = []
     with tempfile.TemporaryDirectory() as d:
         for case in cases:
-            row = run_random_case(d, case, dt=args.dt, steps=args.steps, stop_after=args.stop_after)
+            if args.in_process:
+                row = run_random_case(d, case, dt=args.dt, steps=args.steps, stop_after=args.stop_after)
+            else:
+                row = _case_in_child(args, case)
             rows.append(row)
             print(f"case {row['index']}: {row['description']}, {row['n_objects']} object(s), start "
                   f"{_factors_text(row)}: {row['status']}, exit {row.get('exit')}, {row['wall']:.1f} s, "
@@ -447,6 +478,9 @@ def main(argv=None):
                     "below the stability bound)")
     ap.add_argument("--stop-after", type=float, default=1.0, help="--random: stop a fit after this many times its "
                     "time budget (default 1: at the budget; 0: never)")
+    ap.add_argument("--in-process", action="store_true", help="--random: fit every case in this process "
+                    "(default: each in a fresh process)")
+    ap.add_argument("--only", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.random is not None:
         if args.random < 1 or not 1 <= args.max_objects <= 3:

@@ -65,7 +65,8 @@ from jaxplush.fitting.problem import (ALIASES, Problem, _common_settings, build_
                                       canonical_names, check_mass_fit, default_params, parse_bounds)
 from jaxplush.fitting.recovery import RECOVERY_TRUTH, recovery_scene_text, synthetic_recovery  # noqa: F401
 from jaxplush.fitting.result import (FitResult, _history, _judge, _motion, _result,  # noqa: F401
-                                     identifiability_at, measure_predictability, plan_shooting)
+                                     identifiability_at, measure_predictability)
+from jaxplush.fitting.shooting import plan_shooting
 
 
 def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=None, callback=None, progress=False,

@@ -212,16 +212,6 @@ def measure_predictability(prob, report=None):
     return dataclasses.replace(prob, predictability=pred)
 
 
-def plan_shooting(prob, setting, report=None):
-    """The problem with :attr:`Problem.shooting` planned (:func:`jaxplush.fitting.shooting.plan`);
-    ``report`` (if given) gets the line that says what was chosen."""
-    from jaxplush.fitting import shooting as _shooting
-    sh, prob = _shooting.plan(prob, setting)
-    if report is not None:
-        report("shooting: " + sh.reason)
-    return dataclasses.replace(prob, shooting=sh)
-
-
 def _judge(prob, theta, **kw):
     """:func:`jaxplush.fitting.outcome.judge` of a fit ending at log values theta, with the
     reproducibility floor of :attr:`Problem.predictability`; for a fit that does not reach the

@@ -20,7 +20,9 @@ Model of a segment (frames on an even grid, H seconds apart; every vertex observ
   residuals: the position gap at every node (where one segment ends and the next restarts) is a
   residual like any frame's.
 
-Node states estimated from frames carry an error of their own (modes faster than the frame rate
+Where one rollout's floor is below half of what a converged fit needs (the outcome's rule:
+1.25 x the noise, or 1% of the motion), nothing is measured: one rollout can converge. Otherwise,
+node states estimated from frames carry an error of their own (modes faster than the frame rate
 are aliased): :func:`plan` measures it (the *shooting floor*: multiple shooting of a target
 simulated at the start values, at those values). A lower floor is not enough: short segments see
 little of what accumulates over the whole motion (the report's per-step damping above all). So
@@ -316,6 +318,11 @@ def plan(prob, setting="auto", refine=REFINE):
         return Shooting(None, single_floor=single, reason=f"single shooting ({reason})"), prob
     if seg >= prob.target.n_frames:
         return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
+    need = _reach(prob)
+    if single is not None and single <= need / 2:
+        return Shooting(None, single_floor=single, reason=(
+            f"single shooting (its floor, {single * 1e3:.3g} mm, is below half of what a converged fit "
+            f"needs, {need * 1e3:.3g} mm)")), prob
     floor = _floor(prob, seg, refine)
     if floor is None or single is None or floor >= single:
         why = ("the shooting floor could not be measured" if floor is None or single is None else
@@ -335,6 +342,25 @@ def plan(prob, setting="auto", refine=REFINE):
                     f"multiple shooting in segments of {seg} frames (the horizon is {pred.horizon_time:.3g} s; "
                     f"{floors}; a log-parameter resolved to {res_ms:.2g} against {res_single:.2g})",
                     res_ms, res_single), prob
+
+
+def plan_shooting(prob, setting, report=None):
+    """The problem with :attr:`~jaxplush.fitting.problem.Problem.shooting` planned (:func:`plan`);
+    ``report`` (if given) gets the line that says what was chosen."""
+    sh, prob = plan(prob, setting)
+    if report is not None:
+        report("shooting: " + sh.reason)
+    return dataclasses.replace(prob, shooting=sh)
+
+
+def _reach(prob):
+    """The residual RMS (m) a converged fit must reach (:func:`jaxplush.fitting.outcome.judge`):
+    ``NOISE_FACTOR`` x the noise, or ``MOTION_FRACTION`` x the target's motion."""
+    from jaxplush.fitting import outcome
+    from jaxplush.fitting.result import _motion
+    if prob.noise:
+        return outcome.NOISE_FACTOR * float(prob.noise)
+    return outcome.MOTION_FRACTION * _motion(prob)
 
 
 def _points_within_horizon(prob, single):

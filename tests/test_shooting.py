@@ -129,7 +129,12 @@ def test_auto_measures_both_floors_on_the_tumbling_bean(bean):
     scene, target = bean
     prob = F.measure_predictability(_problem(scene, target, ("k_structural", "nmol")))
     sh, _ = S.plan(prob, "auto")
-    assert sh.floor is not None and sh.single_floor == prob.predictability.floor
+    assert sh.single_floor == prob.predictability.floor
+    if sh.single_floor <= S._reach(prob) / 2:
+        # a CPU whose rounding leaves this bean less drift: one rollout can converge, nothing measured
+        assert not sh.on and sh.floor is None and "below half of what a converged fit needs" in sh.reason
+        return
+    assert sh.floor is not None
     if sh.floor < sh.single_floor:
         # then the resolution of the parameters decides
         assert sh.resolution > 0 and sh.single_resolution > 0
@@ -139,6 +144,22 @@ def test_auto_measures_both_floors_on_the_tumbling_bean(bean):
         assert not sh.on
     assert ("multiple shooting in segments of" in sh.reason) == sh.on
     assert f"{sh.floor * 1e3:.3g} mm" in sh.reason
+
+
+def test_a_floor_below_what_convergence_needs_keeps_one_rollout(bean):
+    """Whatever the horizon, a single-shooting floor below half of the residual a converged fit
+    needs (1% of the motion here) keeps one rollout without measuring anything; above it, the
+    plan measures."""
+    scene, target = bean
+    prob = F.measure_predictability(_problem(scene, target))
+    need = S._reach(prob)
+    pred = prob.predictability
+    low = dataclasses.replace(prob, predictability=dataclasses.replace(pred, floor=0.4 * need))
+    sh, _ = S.plan(low, "auto")
+    assert not sh.on and sh.floor is None and "below half of what a converged fit needs" in sh.reason
+    high = dataclasses.replace(prob, predictability=dataclasses.replace(pred, floor=2.0 * need))
+    sh, _ = S.plan(high, "auto")
+    assert sh.floor is not None and "below half" not in sh.reason
 
 
 def test_resolution_is_the_standard_error_of_a_linear_model(free_fall):
