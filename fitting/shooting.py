@@ -307,8 +307,7 @@ def plan(prob, setting="auto", refine=REFINE):
         floor = _floor(prob, seg, refine)
         return Shooting(seg, floor, single, refine, f"multiple shooting in segments of {seg} frames (asked for)"
                         + ("" if floor is None else f"; shooting floor {floor * 1e3:.3g} mm")), prob
-    seg = segment_frames_for(prob)
-    if seg is None:
+    if pred is None or not math.isfinite(pred.horizon_time):
         why = "not measured" if pred is None else "the positions stay predictable over the whole target"
         return Shooting(None, single_floor=single, reason=f"single shooting ({why})"), prob
     reason = why_not(prob)
@@ -316,6 +315,7 @@ def plan(prob, setting="auto", refine=REFINE):
         return _points_within_horizon(prob, single)
     if reason is not None:
         return Shooting(None, single_floor=single, reason=f"single shooting ({reason})"), prob
+    seg = segment_frames_for(prob)
     if seg >= prob.target.n_frames:
         return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
     need = _reach(prob)

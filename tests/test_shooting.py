@@ -162,6 +162,21 @@ def test_a_floor_below_what_convergence_needs_keeps_one_rollout(bean):
     assert sh.floor is not None and "below half" not in sh.reason
 
 
+def test_frames_off_an_even_grid_say_so(bean):
+    """A target whose last frame lies off the even grid (a run that saves its final step too)
+    cannot be cut into equal segments: auto keeps one rollout and says why, never that the motion
+    is predictable."""
+    scene, target = bean
+    keep = np.r_[np.arange(target.n_frames - 1)]
+    odd = dataclasses.replace(target, positions=np.concatenate([target.positions[keep], target.positions[-1:]]),
+                              steps=np.r_[target.steps[keep], target.steps[-1] - 3],
+                              times=np.r_[target.times[keep], (target.steps[-1] - 3) * target.dt])
+    prob = F.measure_predictability(_problem(scene, odd))
+    assert S.even_gap(odd) is None and math.isfinite(prob.predictability.horizon_time)
+    sh, _ = S.plan(prob, "auto")
+    assert not sh.on and "not on an even grid" in sh.reason and "predictable" not in sh.reason
+
+
 def test_resolution_is_the_standard_error_of_a_linear_model(free_fall):
     """For residuals linear in theta the resolution is the least-squares standard error: halving the
     floor halves it, and a second residual set twice as sensitive resolves twice as well."""
