@@ -136,6 +136,7 @@ def test_per_object_stage_then_local_lm_recovers_the_truth(two_balls):
     assert np.max(np.abs(rel)) < 0.01, rel
 
 
+@pytest.mark.heavy        # two whole fits (46 s cold): CI's heavy tier
 def test_the_default_fit_of_two_objects_uses_it_and_resumes(two_balls, tmp_path):
     """``fitting.fit`` picks the per-object stage for two fitted objects observed as positions,
     records it in its settings and recovers both balls; its checkpoint (which holds that stage's
