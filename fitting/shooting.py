@@ -211,7 +211,8 @@ class ShootingEvaluator(Evaluator):
         e = super().__call__(thetas, substeps=substeps)
         if not keep_frames:
             return e
-        whole = Evaluator(self.prob, calibration=self.calibration())(thetas, substeps=e.substeps, keep_frames=True)
+        whole = Evaluator(self.prob, calibration=self.calibration(), share=self)(thetas, substeps=e.substeps,
+                                                                               keep_frames=True)
         return e._replace(frames=whole.frames)
 
 
@@ -233,7 +234,7 @@ def _floor(prob, segment_frames, refine):
         return None
     own = dataclasses.replace(prob.target, positions=e.frames[0], noise=None)
     twin = dataclasses.replace(prob, target=own)
-    ms = ShootingEvaluator(twin, segment_frames, refine, calibration=ev.calibration())
+    ms = ShootingEvaluator(twin, segment_frames, refine, calibration=ev.calibration(), share=ev)
     d = ms(prob.theta0[None], substeps=e.substeps, keep_frames=False)
     if not d.ok[0]:
         return None
@@ -331,7 +332,7 @@ def plan(prob, setting="auto", refine=REFINE):
         return Shooting(None, floor, single, refine, f"single shooting ({why})"), prob
     ms = ShootingEvaluator(prob, seg, refine)
     res_ms = resolution(ms, prob.theta0, floor)
-    res_single = resolution(Evaluator(prob, calibration=ms.calibration()), prob.theta0, single)
+    res_single = resolution(Evaluator(prob, calibration=ms.calibration(), share=ms), prob.theta0, single)
     floors = f"shooting floor {floor * 1e3:.3g} mm against single shooting's {single * 1e3:.3g} mm"
     if res_ms is None or res_single is None or not res_ms < res_single:
         why = ("the parameters' resolution could not be measured" if res_ms is None or res_single is None else
