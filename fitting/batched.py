@@ -349,9 +349,14 @@ def _make_contact(topo, terms, h):
 
     def add(params, x, v, f, cache=None):
         with jax.named_scope("contact"):
-            one = lambda p, xl, vl, c: force(p, xl, vl, cache=c)          # noqa: E731
-            g = jax.vmap(one, in_axes=(1, 0, 0 if friction else None, None if cache is None else 0))(
-                params, _lanes(x), _lanes(v) if friction else None, cache)
+            if cache is None:
+                one = lambda p, xl, vl: force(p, xl, vl)                      # noqa: E731
+                g = jax.vmap(one, in_axes=(1, 0, 0 if friction else None))(
+                    params, _lanes(x), _lanes(v) if friction else None)
+            else:
+                # the blocks of query slots that hold a valid query in any point (one lax.cond
+                # for the whole batch, :func:`jaxplush.model.contact.make_contact`)
+                g = force.lanes(params, _lanes(x), _lanes(v) if friction else None, cache)
             g = g.transpose(1, 2, 0)                                       # (3, V, B)
             return tuple(fc + g[c] for c, fc in enumerate(f))
 
@@ -366,7 +371,7 @@ def _make_contact(topo, terms, h):
         # rebuilds them): the search costs only the points that need it, as in the single scene
         xl = _lanes(x)
         stale = jax.vmap(ops.stale)(cache, xl)
-        walked = jax.vmap(ops.walk)(cache, xl)
+        walked = jax.lax.cond(jnp.any(cache.valid), lambda c: jax.vmap(ops.walk)(c, xl), lambda c: c, cache)
 
         def rebuild_one(c):
             out, todo = c

@@ -331,29 +331,27 @@ class Evaluator:
 
     def _grow_contact(self, theta, sim):
         """After a run at theta whose contact candidates overflowed (health code
-        ``CONTACT_OVERFLOW``): rebuild with the capacity the run needs (a warning names it) and
-        return True (run it again); False when there is no soft-soft contact."""
+        ``CONTACT_OVERFLOW``): rebuild with twice the capacity, at most each object's vertex count
+        (a warning names it), and return True (run it again); False when there is no soft-soft
+        contact or the capacity is already that of whole objects (which cannot overflow). Doubling
+        needs no run to measure the need (a single-scene simulation and its compiles), and the
+        problem starts with headroom (:func:`jaxplush.fitting.problem.build_problem`), so this is rare."""
         import dataclasses
         import warnings
         import jaxplush
         from jaxplush.model import contact
-        from jaxplush.stepping.simulation import contact_capacity_needed
         prob = self.prob
-        if prob.sim.terms.contact is None:
+        if not prob.sim.terms.contact:
             return False
-        need = contact_capacity_needed(prob.scene, int(self.steps[-1]), prob.target.dt, params=prob.params_at(theta),
-                                       sim=sim)
-        old = max(prob.sim.terms.contact.capacity)
-        if need is None:
-            # the fresh search of every step overflowed where simulate's carried candidate lists
-            # (rebuilt at other steps) did not: grow past the current capacity all the same
-            need = contact.grown_capacity(max(max(sim.terms.contact.capacity), old) + 1)
-        new_sim = jaxplush.make_simulator(prob.scene, prob.target.dt, prob.sim.integrator,
-                                          terms=contact.with_capacity(prob.sim.terms, need))
+        old = prob.sim.terms.contact.capacity
+        terms = contact.with_headroom(prob.sim.terms, contact.object_sizes(prob.scene))
+        if terms.contact.capacity == old:
+            return False
+        new_sim = jaxplush.make_simulator(prob.scene, prob.target.dt, prob.sim.integrator, terms=terms)
         self.prob = dataclasses.replace(prob, sim=new_sim)
         self._single.clear()
-        msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "
-               f"refitting with contact_capacity {need} (set it in the scene to skip this)")
+        msg = (f"contact candidates overflowed (capacity {max(old)}) at {_values_text(prob.values(theta))}; "
+               f"refitting with contact_capacity {max(terms.contact.capacity)} (set it in the scene to skip this)")
         warnings.warn(msg, stacklevel=4)
         self.notes.append(msg)
         return True

@@ -269,7 +269,8 @@ class _GradientFit:
             # simulate's carried candidate lists (rebuilt at other steps) did not overflow where
             # the fresh search of every step did: grow past the current capacity all the same
             need = contact.grown_capacity(old + 1)
-        sim = jaxplush.make_simulator(prob.scene, prob.target.dt, terms=contact.with_capacity(prob.sim.terms, need))
+        terms = contact.with_capacity(prob.sim.terms, need, contact.object_sizes(prob.scene))
+        sim = jaxplush.make_simulator(prob.scene, prob.target.dt, terms=terms)
         self.prob = prob = dataclasses.replace(prob, sim=sim)
         self.step_fn = _make_step(prob, self.opt, self.linesearch)
         msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "

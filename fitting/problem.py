@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxplush
+from jaxplush.model import contact
 from jaxplush.model import forces as model
 from jaxplush.errors import JaxplushError
 from jaxplush.types import PARAM_NAMES, Params
@@ -304,7 +305,10 @@ def _fit_simulator(scene, fit_scene, target, method):
     from jaxplush.fitting.gradients import METHODS, adjoint_supported
     if method not in METHODS:
         raise JaxplushError(f"unknown gradient method {method!r}; expected one of {', '.join(METHODS)}")
-    sim = jaxplush.make_simulator(fit_scene, target.dt, terms=model.Terms.for_scene(fit_scene))
+    # soft-soft contact with headroom: the fit's parameters squash objects into each other far more
+    # than the scene's own values (each growth on overflow costs a rerun and compiles)
+    terms = contact.with_headroom(model.Terms.for_scene(fit_scene), contact.object_sizes(fit_scene))
+    sim = jaxplush.make_simulator(fit_scene, target.dt, terms=terms)
     if method == "adjoint" and not adjoint_supported(sim):
         raise JaxplushError(f"gradient method 'adjoint' does not support this scene ({scene.path}: integrator "
                             f"{sim.integrator!r}, terms {', '.join(sim.terms.names())}); use auto or checkpoint")

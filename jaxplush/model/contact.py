@@ -26,7 +26,12 @@ Candidates (static shapes, no N_A x F_B work):
    twice the skin s (:func:`skin_distance`, half the longest rest edge), take part; they are
    compacted into a list of fixed capacity (``jnp.nonzero(size=...)``);
 2. narrow phase: each candidate vertex finds the nearest candidate vertex of the other object
-   (a cap_A x cap_B distance table, its argmin one packed integer min), and the closest face is
+   (a cap_A x cap_B distance table, its argmin one packed integer min). A candidate whose nearest
+   vertex is farther than 2 delta + an edge + s cannot come within the force's reach before the
+   next search (:func:`_near_limits`); the others, the queries, of every pair are compacted to
+   the front of one list, which the force runs in blocks of :data:`QUERY_BLOCK`, only as many as
+   hold queries (:func:`_blockwise`), so its cost follows the contact patch, not the capacities
+   (the broad phase's box and sphere hold several times more vertices). The closest face is
    searched among the faces of that vertex's one-ring (the force, :func:`make_contact`), or
    among the faces touching that vertex or its one-ring (about 24; the reference energy,
    :func:`make_contact_energy`). On a fair mesh the closest face of any point within an edge
@@ -38,7 +43,12 @@ some vertex has moved more than s/2 since the last build, which the skin makes e
 now within reach of the other object's box and sphere was within reach + 2 s of them at the
 build); between rebuilds each query's nearest vertex is walked to the nearest of itself and its
 one-ring, which follows any sliding of less than an edge per step. A resting or slowly moving
-contact then costs only the narrow phase; ``make_simulator(..., coherent_contact=False)`` and the
+contact then costs only the narrow phase. Objects that are apart cost less still: a search that
+finds every vertex outside the other objects' inflated boxes by a clearance g keeps its (empty)
+lists until some vertex has moved s/2 + g/2 (:func:`_box_gap`), the distance tables of a pair are
+built only when both its objects have candidates, and the narrow phase runs no block while no
+pair has a query (the batched engine of :mod:`jaxplush.fitting.batched` takes each block's branch
+once for the whole batch). ``make_simulator(..., coherent_contact=False)`` and the
 single ``step_fn`` search every step (the same forces but for near-ties between faces).
 
 The search over a vertex's ring runs on slot-major (K, Q) arrays, and values are gathered and
@@ -46,8 +56,8 @@ picked several at a time: XLA:CPU vectorises such elementwise loops, while its r
 short leading axis, its 2-D concatenations and its atan2 run element by element, and each XLA
 operation adds a fixed dispatch cost inside the step's loop (see benchmarks/RESULTS.md).
 
-The cost is O(cap_A cap_B) per rebuild and O((cap_A + cap_B) K) per pair and step, set by the
-capacities (which follow the contact area, not the meshes). If more vertices than the capacity
+The cost is O(cap_A cap_B) per rebuild, set by the capacities (which follow the contact area, not
+the meshes), and O(n K) per step for n queries. If more vertices than the capacity
 fall in an overlap region the step cannot be exact: the force then uses the candidates that fit
 (it stays finite), and the overflow is a status, not a NaN (as JAX-MD's neighbour-list overflow
 flag): :class:`ContactCache` carries a per-object flag that stays set once an overflow is seen, the
@@ -153,12 +163,31 @@ def config_for_scene(scene):
                          friction=float(scene.contact_friction) if pairs else 0.0)
 
 
-def with_capacity(terms, capacity):
-    """``terms`` with every object's candidate capacity raised to at least ``capacity`` (an int or (O,))."""
+def with_capacity(terms, capacity, sizes=None):
+    """``terms`` with every object's candidate capacity raised to at least ``capacity`` (an int or
+    (O,)), and at most its vertex count ``sizes[o]`` when given (an object cannot have more
+    candidates than vertices, so that capacity never overflows; :func:`object_sizes`)."""
     cfg = terms.contact
     cap = np.broadcast_to(np.asarray(capacity, np.int64), (len(cfg.capacity),))
+    top = (None,) * len(cap) if sizes is None else tuple(int(n) for n in sizes)
     return dataclasses.replace(terms, contact=dataclasses.replace(
-        cfg, capacity=tuple(int(max(c, n)) for c, n in zip(cfg.capacity, cap))))
+        cfg, capacity=tuple(int(max(c, n)) if t is None else int(min(t, max(c, n)))
+                            for c, n, t in zip(cfg.capacity, cap, top))))
+
+
+def with_headroom(terms, sizes, factor=2):
+    """``terms`` with every object's candidate capacity multiplied by ``factor``, each at most its
+    vertex count ``sizes[o]`` (:func:`object_sizes`); unchanged without soft-soft contact. A fit
+    ranges over parameters that squash objects into each other far more than the scene's own
+    values: headroom given once costs less than the reruns and compiles of growing on overflow."""
+    if not terms.contact:
+        return terms
+    return with_capacity(terms, [factor * c for c in terms.contact.capacity], sizes)
+
+
+def object_sizes(scene):
+    """(O,) the vertex count of each object of a scene (the largest useful capacity)."""
+    return tuple(int(o.n_vertices) for o in scene.objects)
 
 
 # --------------------------------------------------------------------------- static tables
@@ -524,13 +553,30 @@ def make_contact(topo, cfg, h=None):
     n_v = topo.n_vertices
     self_energy = (make_contact_energy(topo, dataclasses.replace(cfg, pairs=(), thickness=()))
                    if cfg.self_objects else None)
-    pair_of_query, delta_q = _query_layout(cfg)
     friction = float(cfg.friction)
     if friction > 0 and h is None:
         raise ValueError("contact friction needs the integrator step h")
 
+    skin = skin_distance(topo, cfg) if cfg.pairs else 0.0
+
+    near_limit = _near_limits(topo, cfg)
+
     def search(xs):
-        return _search(xs, topo, cfg, tab.margin)
+        return _search(xs, topo, cfg, tab.margin, skin, near_limit)
+
+    def add_block(params, x, v, f, cache, i):
+        """f (3, V) plus the force of the queries in block i of the cache's list (slots
+        i B .. (i + 1) B, B = QUERY_BLOCK)."""
+        dtype = x.dtype
+        mass = vertex_mass(topo, params) if friction > 0 else None
+        tiny = jnp.asarray(tiny_len ** 2, dtype)
+        take = lambda a: jax.lax.dynamic_slice_in_dim(a, i * QUERY_BLOCK, QUERY_BLOCK)   # noqa: E731
+        pair = take(cache.pair)
+        kc = _take(_pair_stiffnesses(params, cfg, tab, dtype), pair)
+        delta = _take(jnp.asarray(cfg.thickness, dtype), pair)
+        idx, rows = _narrow(x, v, mass, take(cache.q_idx), take(cache.valid), take(cache.target),
+                            delta, kc, tiny, ring_t, valence, friction, h)
+        return jnp.stack([fc.at[idx].add(rc, mode="promise_in_bounds") for fc, rc in zip(f, rows)])
 
     # jit: inlined under an outer jit; outside one (e.g. an eager init_fn) it compiles once
     # instead of dispatching hundreds of small operations one by one.
@@ -542,21 +588,35 @@ def make_contact(topo, cfg, h=None):
         dtype = x.dtype
         if friction > 0 and v is None:
             raise ValueError("contact friction needs the velocities")
-        mass = vertex_mass(topo, params) if friction > 0 else None
-        tiny = jnp.asarray(tiny_len ** 2, dtype)
         f = jnp.zeros((3, n_v), dtype) if base is None else base
         if cfg.pairs:
             if cache is None:
                 cache = search(jax.lax.stop_gradient(x))
             # on an overflow the lists hold the candidates that fit: the force stays finite (and
             # inexact); the overflow is reported by the cache's flag, not here
-            kc = _take(_pair_stiffnesses(params, cfg, tab, dtype), jnp.asarray(pair_of_query))
-            idx, rows = _narrow(x, v, mass, cache.q_idx, cache.valid, cache.target,
-                                jnp.asarray(delta_q, dtype), kc, tiny, ring_t, valence, friction, h)
-            f = jnp.stack([fc.at[idx].add(rc, mode="promise_in_bounds") for fc, rc in zip(f, rows)])
+            f = _blockwise(cache.valid, f, lambda f, i: add_block(params, x, v, f, cache, i))
         if self_energy is not None:
             f = f - jax.grad(lambda y: self_energy(params, y)[0])(x)
         return f
+
+    def force_lanes(params, x, v, cache):
+        """The pair force of B independent points at once (the batched engine's layout): params
+        with objects on axis 0 and points on axis 1, x and v (B, 3, V) (v None without friction),
+        ``cache`` a batched :class:`ContactCache`; returns (B, 3, V). A block of queries runs
+        where any point has a valid query in it (one ``lax.cond`` for the whole batch: under
+        ``vmap`` a per-point cond would run both branches)."""
+        f = jnp.zeros(x.shape, x.dtype)
+
+        def add(f, i):
+            one = lambda p, xl, vl, fl, c: add_block(p, xl, vl, fl, c, i)         # noqa: E731
+            return jax.vmap(one, in_axes=(1, 0, None if v is None else 0, 0, 0))(params, x, v, f, cache)
+        if cfg.pairs:
+            f = _blockwise(cache.valid, f, add)
+        if self_energy is not None:
+            f = f - jax.vmap(lambda p, y: jax.grad(lambda z: self_energy(p, z)[0])(y), in_axes=(1, 0))(params, x)
+        return f
+
+    force.lanes = force_lanes
 
     ops = _cache_ops(topo, cfg, tab.ring, search) if cfg.pairs else None
     return force, ops
@@ -575,13 +635,31 @@ def _ring_slot_tables(topo, tab):
 
 
 def _query_layout(cfg):
-    """Per query slot of :func:`make_contact`'s force, laid out as [A of pair 0, B of pair 0, A of
-    pair 1, ...]: (which pair (Q,) int32, for delta and k_c; that pair's thickness delta (Q,))."""
-    pair_of_query = np.concatenate([np.full(cfg.capacity[o], i, np.int32)
-                                    for i, (oa, ob) in enumerate(cfg.pairs) for o in (oa, ob)]) \
-        if cfg.pairs else np.zeros(0, np.int32)
-    delta_q = np.asarray(cfg.thickness, np.float64)[pair_of_query] if cfg.pairs else np.zeros(0)
-    return pair_of_query, delta_q
+    """(Q,) int32 the pair of each query slot of the broad phase's lists, laid out as [A of pair 0,
+    B of pair 0, A of pair 1, ...] (:func:`_search` compacts them)."""
+    if not cfg.pairs:
+        return np.zeros(0, np.int32)
+    return np.concatenate([np.full(cfg.capacity[o], i, np.int32) for i, (oa, ob) in enumerate(cfg.pairs)
+                           for o in (oa, ob)])
+
+
+#: Queries per block of the narrow phase (:func:`_blockwise`).
+QUERY_BLOCK = 64
+
+
+def _blockwise(valid, f, add):
+    """f with ``add(f, i)`` applied for each block i of QUERY_BLOCK query slots that holds a valid
+    query. A search compacts the valid queries of all pairs to the front of the list
+    (:func:`_search`), so the blocks run are the first ceil(n / QUERY_BLOCK) for n valid queries
+    (the most of any point when ``valid`` is batched, (B, Q)): the narrow phase costs what the
+    contact needs, not the capacities. A loop of static length over ``lax.cond`` (one compiled
+    block; differentiable in both modes)."""
+    n_blocks = valid.shape[-1] // QUERY_BLOCK
+    count = jnp.max(jnp.sum(valid, axis=-1))
+
+    def body(i, f):
+        return jax.lax.cond(i * QUERY_BLOCK < count, lambda f: add(f, i), lambda f: f, f)
+    return jax.lax.fori_loop(0, n_blocks, body, f)
 
 
 def _pair_stiffnesses(params, cfg, tab, dtype):
@@ -713,22 +791,67 @@ def _friction(v, mass, idx, n, w, mag, vec, friction, h, tiny):
     return _sub(vec, _scale(vt, ft))
 
 
-def _search(xs, topo, cfg, margins):
+def _search(xs, topo, cfg, margins, skin, near_limits):
     """The candidate queries of every pair and direction at positions xs (no gradient): a
-    :class:`ContactCache` (queries laid out as in :func:`_query_layout`)."""
+    :class:`ContactCache`. The broad phase's candidates (:func:`_pair_candidates`) are kept as
+    queries where their nearest vertex of the other object lies within the pair's
+    :func:`_near_limits`, and the queries of all pairs are compacted to the front of one list of
+    :func:`_list_length` slots (:func:`_blockwise` runs only the blocks that hold them)."""
     slices = topo.vertex_slices
-    qs, valids, targets, counts = [], [], [], []
-    for (oa, ob), margin in zip(cfg.pairs, margins):
+    qs, valids, targets, counts, gaps = [], [], [], [], []
+    for (oa, ob), margin, near in zip(cfg.pairs, margins, near_limits):
         (a0, a1), (b0, b1) = slices[oa], slices[ob]
         cap_a, cap_b = cfg.capacity[oa], cfg.capacity[ob]
         ia, ib, n_a, n_b, near_a, near_b = _pair_candidates(xs, (a0, a1), (b0, b1), cap_a, cap_b, margin)
         counts.append((n_a, n_b))
-        qs += [a0 + ia, b0 + ib]
-        valids += [(jnp.arange(cap_a) < n_a) & (n_b > 0), (jnp.arange(cap_b) < n_b) & (n_a > 0)]
-        targets += [near_b, near_a]
-    return ContactCache(jnp.concatenate(qs).astype(jnp.int32), jnp.concatenate(valids),
-                        jnp.concatenate(targets).astype(jnp.int32), xs,
-                        _overflow_flags(cfg, topo.n_objects, counts))
+        gaps.append(_box_gap(xs[:, a0:a1], xs[:, b0:b1], margin))
+        for q, t, n, cap, other in ((a0 + ia, near_b, n_a, cap_a, n_b), (b0 + ib, near_a, n_b, cap_b, n_a)):
+            d2 = sum((pc - tc) ** 2 for pc, tc in zip(_gather(xs, q), _gather(xs, t)))
+            qs.append(q)
+            targets.append(t)
+            valids.append((jnp.arange(cap) < n) & (other > 0) & (d2 <= near * near))
+    # the lists stay exact until some vertex has moved half the skin plus half the smallest gap
+    # (:func:`_box_gap`; a vertex and the box it approaches each move at most that far)
+    limit = 0.5 * skin + 0.5 * jnp.min(jnp.stack(gaps))
+    pair_of_query = _query_layout(cfg)
+    valid = jnp.concatenate(valids)
+    length = _list_length(cfg)
+    order = jnp.nonzero(valid, size=length, fill_value=0)[0]
+    return ContactCache(_take(jnp.concatenate(qs).astype(jnp.int32), order),
+                        jnp.arange(length) < jnp.sum(valid),
+                        _take(jnp.concatenate(targets).astype(jnp.int32), order), xs,
+                        _overflow_flags(cfg, topo.n_objects, counts), limit * limit,
+                        _take(jnp.asarray(pair_of_query), order))
+
+
+def _list_length(cfg):
+    """Slots of the query list: every pair's capacities in both directions, rounded up to whole
+    blocks of QUERY_BLOCK."""
+    n = sum(cfg.capacity[a] + cfg.capacity[b] for a, b in cfg.pairs)
+    return -(-n // QUERY_BLOCK) * QUERY_BLOCK
+
+
+def _near_limits(topo, cfg):
+    """Per pair: how near its nearest vertex of the other object a candidate must be at the search
+    to be a query, 2 delta + the longest rest edge + the skin s. A point within 2 delta of a face
+    (beyond that the force is below e^-20 of its scale) is within an edge of one of its corners,
+    and until the next search the point and the corner each move at most s/2."""
+    longest = _longest_edges(topo)
+    skin = skin_distance(topo, cfg)
+    return tuple(2.0 * d + max(longest[a], longest[b]) + skin for (a, b), d in zip(cfg.pairs, cfg.thickness))
+
+
+def _box_gap(xa, xb, margin):
+    """The clearance of an object pair (no gradient): how far, in the max norm, every vertex of
+    each object lies outside the other's bounding box inflated by ``margin`` (0 when some vertex is
+    inside, and then maybe a candidate). A vertex that moves d (and a box whose vertices each move
+    at most d) closes such a gap by at most 2 d, so while every vertex has moved less than half the
+    gap plus half the skin since the search, no vertex outside the broad phase then has come
+    nearer the other object than one that was inside it at half the skin: the lists are exact."""
+    def gap(p, q):
+        lo, hi = q.min(axis=1, keepdims=True) - margin, q.max(axis=1, keepdims=True) + margin
+        return jnp.min(jnp.max(jnp.maximum(jnp.maximum(lo - p, p - hi), 0.0), axis=0))
+    return jnp.minimum(gap(xa, xb), gap(xb, xa))
 
 
 def _cache_ops(topo, cfg, ring, search):
@@ -736,15 +859,17 @@ def _cache_ops(topo, cfg, ring, search):
     ``search(xs)``: a fresh :class:`ContactCache`)."""
     n_v = topo.n_vertices
     ring_ext = np.ascontiguousarray(np.concatenate([np.arange(n_v, dtype=np.int32)[:, None], ring], axis=1))
-    half_skin2 = (0.5 * skin_distance(topo, cfg)) ** 2 if cfg.pairs else 0.0
 
     def walk(cache, xs):
         """Each query's target moved to the nearest of the target and its one-ring (one step of a
-        greedy descent of the vertex distance: the nearest vertex follows a sliding contact)."""
-        rk = _take(ring_ext, cache.target)                                   # (Q, K + 1)
-        p, n = _gather(xs, cache.q_idx), _gather(xs, rk)
-        d2 = sum((nc - pc[:, None]) ** 2 for nc, pc in zip(n, p))
-        return cache._replace(target=_pick(rk, _packed_argmin(d2, 1)))
+        greedy descent of the vertex distance: the nearest vertex follows a sliding contact);
+        nothing to do while no pair has candidates."""
+        def walked(cache):
+            rk = _take(ring_ext, cache.target)                                   # (Q, K + 1)
+            p, n = _gather(xs, cache.q_idx), _gather(xs, rk)
+            d2 = sum((nc - pc[:, None]) ** 2 for nc, pc in zip(n, p))
+            return cache._replace(target=_pick(rk, _packed_argmin(d2, 1)))
+        return jax.lax.cond(jnp.any(cache.valid), walked, lambda c: c, cache)
 
     def rebuild(cache, xs):
         """A fresh search, its overflow flags OR-ed with the cache's (they stay set)."""
@@ -752,9 +877,10 @@ def _cache_ops(topo, cfg, ring, search):
         return new._replace(overflow=new.overflow | cache.overflow)
 
     def stale(cache, x):
-        """bool: some vertex has moved more than half the skin since the last build."""
+        """bool: some vertex has moved farther than the cache's limit since the last build (half
+        the skin, plus half the pairs' clearance then: :func:`_box_gap`)."""
         xs = jax.lax.stop_gradient(x)
-        return jnp.max(jnp.sum((xs - cache.x_ref) ** 2, axis=0)) > jnp.asarray(half_skin2, xs.dtype)
+        return jnp.max(jnp.sum((xs - cache.x_ref) ** 2, axis=0)) > cache.limit2
 
     def update(cache, x):
         """The cache for positions x: rebuilt (:func:`search`) once some vertex has moved more than
@@ -768,17 +894,23 @@ def _cache_ops(topo, cfg, ring, search):
 
 
 class ContactCache(NamedTuple):
-    """Soft-soft candidate lists carried between steps (:func:`make_contact`); Q queries.
+    """Soft-soft candidate lists carried between steps (:func:`make_contact`); Q query slots
+    (:func:`_list_length`), the valid queries of every pair first (:func:`_search`).
 
     Attributes:
       q_idx: (Q,) int32 global index of each query vertex (padded slots repeat a valid index).
-      valid: (Q,) bool, the slot holds a candidate (and the other object has some).
+      valid: (Q,) bool, the slot holds a query: a broad-phase candidate near the other object (a
+        prefix of the list).
       target: (Q,) int32 global index of the query's nearest vertex of the other object.
       x_ref: (3, V) positions at the last build.
       overflow: (O,) bool per object: at some build since the cache was made (:meth:`CacheOps.init`),
         the object had more candidates in some pair than its capacity. Sticky: ``update`` never
         clears it. The force then used the candidates that fit (inexact, finite); rollouts turn
         the flag into the object's ``diagnostics.CONTACT_OVERFLOW`` health code.
+      limit2: () the squared displacement since the build past which the lists are rebuilt: (s/2
+        + g/2)², s the skin and g the pairs' clearance at the build (:func:`_box_gap`; 0 once any
+        vertex is in some pair's broad phase), so objects that are far apart rebuild rarely.
+      pair: (Q,) int32 the object pair of each query (an index into ``ContactConfig.pairs``).
     """
 
     q_idx: jax.Array
@@ -786,6 +918,8 @@ class ContactCache(NamedTuple):
     target: jax.Array
     x_ref: jax.Array
     overflow: jax.Array
+    limit2: jax.Array
+    pair: jax.Array
 
 
 class CacheOps(NamedTuple):
@@ -869,13 +1003,20 @@ def _pair_candidates(xs, sa, sb, cap_a, cap_b, margin):
     ia = jnp.nonzero(in_a, size=cap_a, fill_value=0)[0]
     ib = jnp.nonzero(in_b, size=cap_b, fill_value=0)[0]
     va, vb = jnp.arange(cap_a) < n_a, jnp.arange(cap_b) < n_b
-    pa, pb = _gather(xa, ia), _gather(xb, ib)
-    d2 = sum((pa[c][:, None] - pb[c][None, :]) ** 2 for c in range(3))
-    d2 = jnp.where(va[:, None] & vb[None, :], d2, jnp.inf)
-    # the table once per direction, each reduced along its rows (XLA's CPU column reductions are slow)
-    d2t = sum((pb[c][:, None] - pa[c][None, :]) ** 2 for c in range(3))
-    d2t = jnp.where(vb[:, None] & va[None, :], d2t, jnp.inf)
-    return ia, ib, n_a, n_b, a0 + _take(ia, _packed_argmin(d2t, 1)), b0 + _take(ib, _packed_argmin(d2, 1))
+
+    def nearest():
+        pa, pb = _gather(xa, ia), _gather(xb, ib)
+        d2 = sum((pa[c][:, None] - pb[c][None, :]) ** 2 for c in range(3))
+        d2 = jnp.where(va[:, None] & vb[None, :], d2, jnp.inf)
+        # the table once per direction, each reduced along its rows (XLA's CPU column reductions are slow)
+        d2t = sum((pb[c][:, None] - pa[c][None, :]) ** 2 for c in range(3))
+        d2t = jnp.where(vb[:, None] & va[None, :], d2t, jnp.inf)
+        return _packed_argmin(d2t, 1), _packed_argmin(d2, 1)
+
+    # the cap_A x cap_B tables only where both objects have candidates (else no query is valid)
+    ja, jb = jax.lax.cond((n_a > 0) & (n_b > 0), nearest,
+                          lambda: (jnp.zeros(cap_b, jnp.int32), jnp.zeros(cap_a, jnp.int32)))
+    return ia, ib, n_a, n_b, a0 + _take(ia, ja), b0 + _take(ib, jb)
 
 
 def _packed_argmin(d2, axis):

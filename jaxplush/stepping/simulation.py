@@ -120,8 +120,8 @@ def _growing_capacity(scene, sim, run, warn):
             if warn:
                 warnings.warn(msg, stacklevel=3)   # the caller of simulate
             notes += (msg,)
-            sim = make_simulator(scene, sim.dt, sim.integrator, terms=contact.with_capacity(sim.terms, need),
-                                 substeps=sim.substeps)
+            terms = contact.with_capacity(sim.terms, need, contact.object_sizes(scene))
+            sim = make_simulator(scene, sim.dt, sim.integrator, terms=terms, substeps=sim.substeps)
 
 
 def contact_capacity_needed(scene, steps, dt, params=None, sim=None):
