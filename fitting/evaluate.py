@@ -331,7 +331,8 @@ class Evaluator:
 
     def _grow_contact(self, theta, sim):
         """After a run at theta whose contact candidates overflowed (health code
-        ``CONTACT_OVERFLOW``): rebuild with twice the capacity, at most each object's vertex count
+        ``CONTACT_OVERFLOW``): rebuild with twice the capacity (at least the default minimum
+        ``MIN_CAPACITY``), at most each object's vertex count
         (a warning names it), and return True (run it again); False when there is no soft-soft
         contact or the capacity is already that of whole objects (which cannot overflow). Doubling
         needs no run to measure the need (a single-scene simulation and its compiles), and the
@@ -344,7 +345,7 @@ class Evaluator:
         if not prob.sim.terms.contact:
             return False
         old = prob.sim.terms.contact.capacity
-        terms = contact.with_headroom(prob.sim.terms, contact.object_sizes(prob.scene))
+        terms = contact.with_headroom(prob.sim.terms, contact.object_sizes(prob.scene), least=contact.MIN_CAPACITY)
         if terms.contact.capacity == old:
             return False
         new_sim = jaxplush.make_simulator(prob.scene, prob.target.dt, prob.sim.integrator, terms=terms)

@@ -175,14 +175,15 @@ def with_capacity(terms, capacity, sizes=None):
                             for c, n, t in zip(cfg.capacity, cap, top))))
 
 
-def with_headroom(terms, sizes, factor=2):
-    """``terms`` with every object's candidate capacity multiplied by ``factor``, each at most its
-    vertex count ``sizes[o]`` (:func:`object_sizes`); unchanged without soft-soft contact. A fit
-    ranges over parameters that squash objects into each other far more than the scene's own
-    values: headroom given once costs less than the reruns and compiles of growing on overflow."""
+def with_headroom(terms, sizes, factor=2, least=0):
+    """``terms`` with every object's candidate capacity multiplied by ``factor`` (and at least
+    ``least``), each at most its vertex count ``sizes[o]`` (:func:`object_sizes`); unchanged
+    without soft-soft contact. A fit ranges over parameters that squash objects into each other
+    far more than the scene's own values: headroom given once costs less than the reruns and
+    compiles of growing on overflow."""
     if not terms.contact:
         return terms
-    return with_capacity(terms, [factor * c for c in terms.contact.capacity], sizes)
+    return with_capacity(terms, [max(factor * c, least) for c in terms.contact.capacity], sizes)
 
 
 def object_sizes(scene):
