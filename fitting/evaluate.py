@@ -237,13 +237,12 @@ class Evaluator:
     def _frames_batched(self, thetas, n):
         """(frames, ok, clamped) of :meth:`_frames` on the batched simulator. Points whose soft-soft
         contact candidates overflowed (health code ``CONTACT_OVERFLOW``) are run again: the capacity
-        is grown to what the first of them needs (:meth:`_grow_contact`, a warning names it; later
-        batches compile with it) and they rerun batched, up to :data:`MAX_CAPACITY_GROWTHS` times;
+        is doubled (:meth:`_grow_contact`, a warning names it; later batches compile with it) and they rerun batched, up to :data:`MAX_CAPACITY_GROWTHS` times;
         any still overflowing then run one at a time (:meth:`_frames_single`, which grows on)."""
         fr, good, clamp, over = self._run_batches(thetas, n)
         for _ in range(MAX_CAPACITY_GROWTHS):
             idx = np.flatnonzero(over)
-            if not idx.size or not self._grow_contact(thetas[idx[0]], self._single_fn(n)[0]):
+            if not idx.size or not self._grow_contact(thetas[idx[0]]):
                 break
             fr[idx], good[idx], clamp[idx], over[idx] = self._run_batches(thetas[idx], n)
         idx = np.flatnonzero(over)
@@ -322,19 +321,19 @@ class Evaluator:
                 # soft-soft contact candidates that overflowed are a status (finite, inexact frames),
                 # not a blow-up: grow the capacity and run the point again
                 if ok or bad is None or not (codes[bad[0]] == diagnostics.CONTACT_OVERFLOW).any() \
-                        or not self._grow_contact(th, sim):
+                        or not self._grow_contact(th):
                     break
             out.append(fr)
             good.append(ok)
             clamp.append(bool((codes == diagnostics.VOLUME_CLAMPED).any()))
         return np.stack(out), np.asarray(good), np.asarray(clamp)
 
-    def _grow_contact(self, theta, sim):
+    def _grow_contact(self, theta):
         """After a run at theta whose contact candidates overflowed (health code
         ``CONTACT_OVERFLOW``): rebuild with twice the capacity (at least the default minimum
-        ``MIN_CAPACITY``), at most each object's vertex count
-        (a warning names it), and return True (run it again); False when there is no soft-soft
-        contact or the capacity is already that of whole objects (which cannot overflow). Doubling
+        ``MIN_CAPACITY``, at most each object's vertex count; a warning names it) and return True
+        (run it again); False when there is no soft-soft contact or the capacity is already that
+        of whole objects (which cannot overflow). Doubling
         needs no run to measure the need (a single-scene simulation and its compiles), and the
         problem starts with headroom (:func:`jaxplush.fitting.problem.build_problem`), so this is rare."""
         import dataclasses

@@ -186,7 +186,7 @@ class ShootingEvaluator(Evaluator):
         fr, good, clamp, over = self._run_lanes(values, n, [(self.gap, seg)], x0, v0, step0)
         for _ in range(MAX_CAPACITY_GROWTHS):
             lanes = np.flatnonzero(over)
-            if not lanes.size or not self._grow_contact(thetas[lanes[0] // n_seg], self._single_fn(n)[0]):
+            if not lanes.size or not self._grow_contact(thetas[lanes[0] // n_seg]):
                 break
             pts = np.unique(lanes // n_seg)
             redo = (pts[:, None] * n_seg + np.arange(n_seg)).ravel()
