@@ -36,8 +36,12 @@ once it has run ``--stop-after`` times its time budget (120 s for one object, 30
 A case is recovered when the fit says converged (exit 0) and every fitted parameter of every
 object is within 1% (positions) or 3% (points) of the truth, within the budget; a failed case
 gets a reason: floor (status at_floor), horizon (FIT.h5's predictability says the target is not
-predictable over its length), identifiability (the fit's identifiability report has undetermined
-parameters), time (over the budget), or other (the status).
+predictable over its length), identifiability (status undetermined, or the fit's identifiability
+report has undetermined parameters), time (over the budget), or other (the status). A scene
+damped by both the report's ``damping`` and air ``drag`` fits both, which no target can tell
+apart (both decay every velocity uniformly): the fit should end ``undetermined``, and the row
+also gives the error of the combined rate -ln(1 - 1/D)/dt + drag, which is what the target
+determines.
 
 Usage: python benchmarks/bench_recovery.py [--scenes ball,torus,bean,ball2562] [--kinds positions,points]
            [--corners all|N] [--json results.jsonl]
@@ -316,12 +320,21 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
         if "identifiability" in fit:
             det = np.asarray(fit["identifiability"]["determined"], bool)
             labels = list(fit.get("identifiability_attrs", {}).get("labels", range(len(det))))
-            row["undetermined"] = [str(lab) for lab, ok in zip(labels, det) if not ok]
+            und = fit.get("identifiability_attrs", {}).get("undetermined")
+            row["undetermined"] = (json.loads(und) if isinstance(und, str) else
+                                   [str(lab) for lab, ok in zip(labels, det) if not ok])
             warns = fit.get("identifiability_attrs", {}).get("warnings", "[]")
             warns = json.loads(warns) if isinstance(warns, str) else list(warns)
             # a weak combination ("ill-conditioned ... only the ratio ... is determined") or a poorly
             # determined parameter is flagged too
             row["identifiability_warnings"] = [w for w in warns if "determined" in w or "ill-conditioned" in w]
+        if "damping" in names and "drag" in names and row.get("dt"):
+            # one effect (uniform velocity decay): what a target determines is the combined rate
+            rate = lambda d, g: -math.log1p(-1.0 / d) / row["dt"] + g  # noqa: E731
+            row["combined_rate_errors"] = [
+                rate(float(fit["params"]["damping"][j]), float(fit["params"]["drag"][j]))
+                / rate(truth_values["damping"][j], truth_values["drag"][j]) - 1.0
+                for j in range(len(case["objects"]))]
     verdict(row)
     return row
 
@@ -339,6 +352,8 @@ def verdict(row):
         reason = "time"
     elif row.get("status") == "at_floor":
         reason = "floor"
+    elif row.get("status") == "undetermined":
+        reason = "identifiability"
     elif row.get("horizon_time", math.inf) <= length * (1 + 1e-9):
         reason = "horizon"
     elif row.get("undetermined") or row.get("identifiability_warnings"):
@@ -359,6 +374,9 @@ def _factors_text(row):
 def _random_line(row):
     err = row.get("max_error", math.inf)
     why = "" if row["verdict"] == "recovered" else f" ({row['reason']})"
+    if row.get("combined_rate_errors"):
+        worst = max(abs(e) for e in row["combined_rate_errors"])
+        why += f"; damping+drag combined rate {100 * worst:.3g}% off"
     return (f"| {row['index']} | {row['description']} | {row['n_objects']} | {_factors_text(row)} | "
             f"{row.get('dt') or float('nan'):g} x {row.get('steps')} | {row['wall']:.1f} | {row.get('exit')} | "
             f"{row['status']}{' (stopped)' if row.get('stopped') else ''} | {100 * err:.3g}% | "
@@ -372,6 +390,11 @@ def _summary(rows):
         out.append(f"{label} {sum(r['verdict'] == 'recovered' for r in sel)}/{len(sel)}")
     rec = sum(r["verdict"] == "recovered" for r in rows)
     lines = [f"recovered {rec}/{len(rows)} ({', '.join(out)})"]
+    pair = [r for r in rows if r.get("combined_rate_errors") is not None]
+    if pair:
+        told = sum(r.get("status") == "undetermined" for r in pair)
+        lines.append(f"damping+drag cases (the pair is one effect, never separately identifiable): {len(pair)}, "
+                     f"{told} reported 'undetermined'")
     single = [r for r in rows if r["n_objects"] == 1 and r.get("exit") is not None]
     for lo, hi, label in ((0, 200, "coarse (<= 200 vertices)"), (201, 10 ** 9, "fine (> 200 vertices)")):
         ts = [r["wall"] for r in single if lo <= sum(r["vertices"]) <= hi]

@@ -253,11 +253,13 @@ def _report(args, result):
         result.write_scene(args.out_scene)
     print(result.table())
     if result.identifiability is not None:
-        print(result.identifiability.summary() if result.converged else
+        print(result.identifiability.summary() if result.converged or result.status == "undetermined" else
               result.identifiability.summary(standard_errors=False))
     print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))
     if not result.converged:
-        print(f"jaxplush-fit: the fit did not converge to the data ({result.status}); see FIT.h5 and the "
+        what = ("reproduces the target but does not determine every parameter" if result.status == "undetermined"
+                else "did not converge to the data")
+        print(f"jaxplush-fit: the fit {what} ({result.status}); see FIT.h5 and the "
               f"message above (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
         return EXIT_NOT_CONVERGED
     return 0

@@ -65,7 +65,7 @@ from jaxplush.fitting.problem import (ALIASES, Problem, _common_settings, build_
                                       canonical_names, check_mass_fit, default_params, parse_bounds)
 from jaxplush.fitting.recovery import RECOVERY_TRUTH, recovery_scene_text, synthetic_recovery  # noqa: F401
 from jaxplush.fitting.result import (FitResult, _history, _judge, _motion, _result,  # noqa: F401
-                                     identifiability_at, measure_predictability)
+                                     identifiability_at, measure_predictability, rounding_drift)
 from jaxplush.fitting.shooting import plan_shooting
 
 
@@ -257,12 +257,18 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     at_bound = tuple(f"{labels[i]} at its {'lower' if lo_edge[i] else 'upper'} bound "
                      f"{math.exp((box.lo if lo_edge[i] else box.hi).ravel()[i]):.4g}" for i in np.nonzero(edge)[0])
     gn_step, stderr = gauss_newton(run.jac, run.residual)
+    # the identifiability report (its undetermined parameters set the status), with the rounding
+    # noise of a finite-difference Jacobian from the measured reproducibility drift
+    factor = math.sqrt(prob.target.n_frames * prob.target.data.shape[1] * scale2)
+    drift = rounding_drift(prob)
+    noise_j = None if run.jac_step is None or drift is None else _ident.fd_noise(drift, run.jac_step)
+    report = _ident.analyse(run.jac * factor, np.nan_to_num(run.residual) * factor, labels, noise=prob.noise,
+                            jac_noise=noise_j)
     out = _judge(prob, best.theta, rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
-                 stopped=best.stopped, at_bound=at_bound, gn_step=gn_step, stderr=stderr)
-    report = None
-    if want_ident:
-        factor = math.sqrt(prob.target.n_frames * prob.target.data.shape[1] * scale2)
-        report = _ident.analyse(run.jac * factor, np.nan_to_num(run.residual) * factor, labels, noise=prob.noise)
+                 stopped=best.stopped, at_bound=at_bound, gn_step=gn_step, stderr=stderr,
+                 undetermined=report.undetermined if want_ident else ())
+    if not want_ident:
+        report = None
     path = best.history
     hist = _history(prob, [t for _, t in path], iteration=np.arange(len(path), dtype=np.int64),
                     loss=np.asarray([l for l, _ in path], np.float64), grad_norm=np.full(len(path), np.nan),
@@ -274,9 +280,10 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
                   local_losses=[np.asarray([l for l, _ in h]) for _, h, _ in paths],
                   local_reasons=[r for _, _, r in paths], local_stages=[s for s, _, _ in paths],
                   horizons=run.horizons, box_lo=box.lo, box_hi=box.hi, grad=run.grad, grad0=run.grad0)
-    # the identifiability warnings only for a converged fit (whose standard errors mean something)
+    # the identifiability warnings only for a fit that reached the data at an optimum (converged or
+    # undetermined: there the standard errors mean something)
     return _result(prob, best.theta, frames=frames, history=hist, outcome=out, report=report,
-                   warn_report=out.converged, notes=notes, settings=settings, loop=dataclasses.replace(run, state=lmfit.light_copy(run.state)),
+                   warn_report=out.converged or out.status == "undetermined", notes=notes, settings=settings, loop=dataclasses.replace(run, state=lmfit.light_copy(run.state)),
                    wall=wall, stacklevel=3,
                    loss=float(best.loss), loss_start=float(run.loss0), iterations=int(run.evaluations),
                    rejected=int((~g.ok).sum()), reason=out.text, lr=None, search=search)

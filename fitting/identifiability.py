@@ -11,7 +11,17 @@ From J^T J:
   parameter whose sensitivity is below :data:`SENSITIVITY_WARN` of the largest one is "not
   determined by the target" (damping from a settled, static shape);
 * approximate standard errors of log p (relative errors of p), from the residual variance times
-  (J^T J)^-1.
+  (J^T J)^-1;
+* with the rounding noise of a finite-difference J (``jac_noise``: a float32 rollout's own
+  reproducibility drift over the fitted frames, divided by sqrt(2) h for central differences of
+  step h), the parameter combinations J does not resolve: an eigen-direction of J^T J whose
+  effect on the frames, RMS metres per unit step in log space, is at most
+  :data:`RESOLVE_FACTOR` times that noise is rounding, not signal. The condition number alone
+  cannot tell: two exactly degenerate parameters (the report's ``damping`` and air ``drag``
+  both decay every velocity uniformly) give a float32 J^T J a condition number of only about
+  1e5-1e6, set by the noise. Their standard errors are infinite and they are "not determined
+  individually". For a noise-free target the residual variance is rounding too, so these
+  standard errors alone would call such a pair determined to 1e-5.
 
 For point-cloud targets J is that of the simulated vertex positions and the residuals are the
 distances from each vertex to its nearest target point (the Gauss-Newton view of the
@@ -40,6 +50,12 @@ STDERR_WARN = 0.5
 #: Eigenvalues below this fraction of the largest are treated as zero (a float32 Jacobian resolves
 #: J^T J to about (1e-6)² of its largest eigenvalue): the standard errors along them are infinite.
 SINGULAR_EIG = 1e-10
+#: A parameter combination is resolved only when a unit step along it (log space) moves the frames
+#: by more than this many times the Jacobian's rounding noise (RMS m per unit step).
+RESOLVE_FACTOR = 3.0
+#: A parameter whose squared weight in the unresolved combinations exceeds this (a component of
+#: about 0.03: a unit step along them moves it by 3%) is not determined individually.
+UNRESOLVED_WEIGHT = 1e-3
 
 
 def frames_at_steps(sim, params, state0, steps):
@@ -124,6 +140,9 @@ class IdentifiabilityReport:
       weak: list of (eigenvalue / largest, {label: component}) weak directions (cond > 1e6).
       weakest: the weakest parameter combination (eigenvector of the smallest eigenvalue), in words.
       warnings: list of messages.
+      jac_noise: the Jacobian's rounding noise, RMS m per unit step in log space (NaN: not known).
+      unresolved: list of (RMS effect per unit step (m), {label: component}) combinations within
+        :data:`RESOLVE_FACTOR` of ``jac_noise``.
     """
 
     labels: tuple
@@ -139,6 +158,16 @@ class IdentifiabilityReport:
     weak: list
     weakest: str
     warnings: list
+    jac_noise: float = math.nan
+    unresolved: list = dataclasses.field(default_factory=list)
+
+    @property
+    def undetermined(self):
+        """Labels of the parameters the target does not determine: insensitive ones, those in an
+        unresolved combination (infinite standard error) and those whose standard error exceeds
+        :data:`STDERR_WARN`."""
+        bad = ~np.asarray(self.determined, bool) | ~np.isfinite(self.stderr) | (np.asarray(self.stderr) > STDERR_WARN)
+        return tuple(lab for lab, b in zip(self.labels, bad) if b)
 
     def summary(self, standard_errors=True):
         """Several lines of text: standard errors (or "n/a" when ``standard_errors`` is False: for a
@@ -186,7 +215,7 @@ def frames_and_jacobian(frames_fn, theta):
     return np.asarray(frames, np.float64), np.asarray(codes), jac
 
 
-def analyse(jac, residual, labels, noise=None):
+def analyse(jac, residual, labels, noise=None, jac_noise=None):
     """Build the :class:`IdentifiabilityReport` from J and the residuals at the optimum.
 
     Args:
@@ -194,6 +223,8 @@ def analyse(jac, residual, labels, noise=None):
       residual: (n,) residuals at the optimum (m).
       labels: P names for the columns.
       noise: known measurement noise per coordinate (m), to compare with the residuals.
+      jac_noise: the rounding noise of J's columns, RMS m per unit step in log space
+        (:func:`fd_noise`), or None (not known: every direction counts as resolved).
     """
     jac = np.asarray(jac, np.float64)
     residual = np.asarray(residual, np.float64).ravel()
@@ -221,6 +252,7 @@ def analyse(jac, residual, labels, noise=None):
     evecs = np.zeros((p, p))
     stderr = np.full(p, np.inf)
     weak = []
+    unresolved = []
     weakest = ""
     cond = math.inf
     if idx.size:
@@ -235,10 +267,27 @@ def analyse(jac, residual, labels, noise=None):
         bad_dirs = (v[:, ~good] ** 2).sum(axis=1) > 1e-6
         se = np.sqrt(sigma2 * inv_diag)
         se[bad_dirs] = np.inf
-        stderr[idx] = se
+
         def direction(k):
             vk = v[:, k] * np.sign(v[np.argmax(np.abs(v[:, k])), k])   # largest component positive
             return {labels[i]: float(vk[j]) for j, i in enumerate(idx)}
+
+        if jac_noise is not None and np.isfinite(jac_noise) and jac_noise > 0:
+            effect = np.sqrt(np.maximum(w, 0.0) / max(n, 1))            # RMS m per unit step along v_k
+            lost = effect <= RESOLVE_FACTOR * jac_noise
+            unresolved = [(float(effect[k]), direction(k)) for k in np.nonzero(lost)[0]]
+            weight = (v[:, lost] ** 2).sum(axis=1)
+            se[weight > UNRESOLVED_WEIGHT] = np.inf
+            if unresolved:
+                names = [labels[i] for j, i in enumerate(idx) if weight[j] > UNRESOLVED_WEIGHT]
+                worst = max(e for e, _ in unresolved)
+                warnings.append(
+                    f"{', '.join(names)} {'is' if len(names) == 1 else 'are'} not determined individually: along "
+                    f"{len(unresolved)} combination(s) of them a unit step in log space moves the frames by at most "
+                    f"{worst:.2g} m RMS, within {RESOLVE_FACTOR:g}x the rounding noise of the finite-difference "
+                    f"Jacobian ({jac_noise:.2g} m); the target does not tell these values apart"
+                    + ("" if len(unresolved) > 1 else f" ({describe_direction(unresolved[0][1])})"))
+        stderr[idx] = se
 
         if idx.size > 1:
             comp = direction(0)
@@ -259,7 +308,15 @@ def analyse(jac, residual, labels, noise=None):
                         f"({noise:.3g} m): the model does not reproduce the target")
     return IdentifiabilityReport(labels=labels, jtj=jtj, eigenvalues=evals, eigenvectors=evecs, condition=cond,
                                  sensitivity=sens, stderr=stderr, sigma=sigma, n_data=n, determined=determined,
-                                 weak=weak, weakest=weakest, warnings=warnings)
+                                 weak=weak, weakest=weakest, warnings=warnings,
+                                 jac_noise=math.nan if jac_noise is None else float(jac_noise), unresolved=unresolved)
+
+
+def fd_noise(drift, h):
+    """The rounding noise of a central-difference Jacobian column (RMS m per unit step in log
+    space): two rollouts whose rounding errors are about ``drift`` each (RMS m, independent)
+    differenced over 2 h."""
+    return float(drift) / (math.sqrt(2.0) * float(h))
 
 
 def describe_direction(comp):

@@ -16,7 +16,8 @@ Layout:
   ``history/<name>`` [n, n_fitted_objects] over accepted iterations; ``history/rejected``;
 * ``identifiability/``: ``jtj``, ``eigenvalues``, ``eigenvectors``, ``sensitivity``, ``stderr``,
   ``determined`` datasets; attributes ``labels``, ``condition``, ``sigma``, ``n_data``,
-  ``warnings`` (JSON), ``weakest``, ``summary``;
+  ``warnings`` (JSON), ``weakest``, ``summary``, ``jac_noise`` (the Jacobian's rounding noise,
+  m; NaN: not known), ``undetermined`` (JSON list of the labels the target does not determine);
 * ``fitted/positions`` [T, V, 3], ``fitted/steps``, ``fitted/times``: the fitted rollout at the
   target frames;
 * ``search/`` (the default fit): ``global/<name>`` and ``global/loss`` of every global sample,
@@ -168,6 +169,8 @@ def save_fit(result, path):
                 ig.attrs["n_data"] = int(rep.n_data)
                 ig.attrs["warnings"] = json.dumps(list(rep.warnings))
                 ig.attrs["weakest"] = rep.weakest
+                ig.attrs["jac_noise"] = float(rep.jac_noise)
+                ig.attrs["undetermined"] = json.dumps(list(rep.undetermined))
                 ig.attrs["summary"] = rep.summary()
             fg = f.create_group("fitted")
             fg.create_dataset("positions", data=np.asarray(result.frames), compression="gzip", compression_opts=1)

@@ -57,7 +57,8 @@ class LMRun:
       horizons: the frame counts of the horizons; loss0: the loss of the start values on the whole target;
       wall: seconds spent; evaluations: points simulated;
       smoothed: the :class:`jaxplush.fitting.search.Smoothed` stage of a noisy target's fit (else None);
-      state: the driver's final :class:`jaxplush.fitting.stages.RunState` (as a checkpoint holds it).
+      state: the driver's final :class:`jaxplush.fitting.stages.RunState` (as a checkpoint holds it);
+      jac_step: the central-difference step (log space) of ``jac``, None for the smoothing's slope.
     """
 
     best: object
@@ -73,6 +74,7 @@ class LMRun:
     evaluations: int = 0
     smoothed: object = None
     state: object = None
+    jac_step: float | None = None
 
 
 def default_box(prob, bounds=None, factor=4.0):
@@ -188,7 +190,8 @@ def _result(objective, state, opts):
         grad0 = np.full(th0.size, np.inf)
     return LMRun(best=best, jac=jac, residual=residual, grad=2.0 * jac.T @ np.nan_to_num(residual), grad0=grad0,
                  global_result=cont.first[0].result, paths=paths, horizons=cont.horizons, loss0=lin.loss0,
-                 wall=state.wall, smoothed=smoothed, state=state)
+                 wall=state.wall, smoothed=smoothed, state=state,
+                 jac_step=None if smoothed is not None else float(local.h_min))
 
 
 def best_search(run):

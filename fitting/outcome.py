@@ -20,6 +20,13 @@ For a noisy target the default fit ends with a smoothing stage (:func:`jaxplush.
 its regression model's slope and intercept stand for the Jacobian and the residuals, so the
 gradient, the Gauss-Newton step and the standard errors above are the model's.
 
+A fit that reached the data at an optimum but whose identifiability report
+(:mod:`jaxplush.fitting.identifiability`) finds parameters the target does not determine (a
+parameter the frames do not depend on, a combination the Jacobian does not resolve above its
+rounding noise, a standard error above 50%) is ``undetermined``: the frames are reproduced, but
+those values are not measured by this target (the report's ``damping`` and air ``drag`` fitted
+together are the standard case: both decay every velocity uniformly, only their sum is seen).
+
 Otherwise the status says what happened, in this order: ``at_bound`` (a parameter ended on the
 edge of the search box), ``at_floor`` (the residual does not reach the data but lies at the
 model's own reproducibility floor, see below), ``iteration_limit``, ``stalled`` (no step lowers
@@ -86,6 +93,7 @@ class Status(_StrEnum):
     ITERATION_LIMIT = "iteration_limit"
     AT_BOUND = "at_bound"
     AT_FLOOR = "at_floor"
+    UNDETERMINED = "undetermined"
 
 
 class Stop(_StrEnum):
@@ -164,7 +172,7 @@ def _mm(x):
 
 
 def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None, stderr=None, floor=None,
-          horizon=None):
+          horizon=None, undetermined=()):
     """The :class:`Outcome` of a fit.
 
     Args:
@@ -177,6 +185,7 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
       gn_step, stderr: the Gauss-Newton step at the result and the standard errors (log space).
       floor: the model's reproducibility floor, m (:func:`jaxplush.predictability`), or None;
       horizon: the time after which the positions are not predictable, s (for the message).
+      undetermined: labels of the parameters the identifiability report finds not determined.
     """
     g = float(np.max(np.abs(grad))) if np.size(grad) else 0.0
     g0 = float(np.max(np.abs(grad0))) if np.size(grad0) else 0.0
@@ -208,12 +217,19 @@ def judge(*, rms, noise, motion, grad, grad0, stopped, at_bound=(), gn_step=None
         status = Status.AT_BOUND
         msg = (f"stopped at the edge of the search box ({', '.join(at_bound)}); widen it (--bounds) and fit "
                f"again; {versus}")
+    elif reached and optimal and undetermined:
+        status = Status.UNDETERMINED
+        msg = (f"the fit reproduces the target ({versus}, {grad_text}), but the target does not determine "
+               f"{', '.join(undetermined)}: other values fit as well (see the identifiability report); fix "
+               "them to known values or fit fewer parameters")
     elif reached and optimal:
         status = Status.CONVERGED
         msg = f"{versus}, {grad_text}"
     elif floor_msg is not None:
         status = Status.AT_FLOOR
         msg = floor_msg
+        if undetermined:
+            msg += f"; at this floor the target does not determine {', '.join(undetermined)}"
     elif stopped == Stop.ITERATIONS:
         status = Status.ITERATION_LIMIT
         msg = f"the iteration limit came before convergence: {versus}, {grad_text}"

@@ -161,6 +161,13 @@ class Problem:
         return _ident.frames_at_steps(self.sim, p, self.sim.init_fn(p), self.loss.frame_steps)
 
 
+#: Said before a fit of both the report's damping and air drag (they are one effect).
+DAMPING_DRAG_NOTE = ("damping and drag are fitted together, but in this model both decay every vertex's velocity "
+                     "uniformly (the report's damping D acts as the drag rate -ln(1 - 1/D)/dt), so a target "
+                     "determines only their combined rate: the fit will end 'undetermined'; fit one of them "
+                     "(--params) to measure it")
+
+
 def default_params(scene, objects=None):
     """The material parameters a scene switches on, to fit by default: ``k_structural``; the
     damping it uses (``damping``, ``dashpot`` and/or ``drag``, whichever is above 0 on a fitted
@@ -193,6 +200,8 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
     objs = _fit_objects(scene, objects)
     base = _start_values(scene, start, objs)
     _check_start_values(scene, names, objs, base)
+    if "damping" in names and "drag" in names:
+        warnings.warn(DAMPING_DRAG_NOTE, stacklevel=3)
     fit_scene = scene.replace(params=Params(**base))
     target = _fit_target(scene, target, dt)
     if noise is not None and not (np.isfinite(noise) and noise >= 0):

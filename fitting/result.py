@@ -83,7 +83,7 @@ class FitResult:
     @property
     def status(self):
         """The :class:`jaxplush.fitting.outcome.Status`: "converged", "poor_fit", "stalled", "iteration_limit",
-        "at_bound" or "at_floor" (equal to those strings)."""
+        "at_bound", "at_floor" or "undetermined" (equal to those strings)."""
         if self.outcome is not None:
             return self.outcome.status
         return Status.CONVERGED if self.converged else Status.STALLED
@@ -99,7 +99,7 @@ class FitResult:
                 e = se.get(f"{n}[{o}]", np.nan)
                 if rep is None:
                     es = "-"
-                elif not self.converged:
+                elif not (self.converged or self.status == Status.UNDETERMINED):
                     es = "n/a"
                 else:
                     es = f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined"
@@ -110,7 +110,7 @@ class FitResult:
         if self.predictability is not None:
             rows.append(f"predictability: {self.predictability.text()}")
         rows.append(f"outcome: {self.reason}")
-        if rep is not None and not self.converged:
+        if rep is not None and not (self.converged or self.status == Status.UNDETERMINED):
             rows.append("standard errors: not meaningful, the fit did not converge to the data")
         return "\n".join(rows)
 
@@ -227,6 +227,22 @@ def _judge(prob, theta, **kw):
         return out
     pred = _predictability_at(prob, theta) or pred
     return _outcome.judge(**kw, floor=pred.floor, horizon=pred.horizon_time)
+
+
+def rounding_drift(prob):
+    """The float32 rollout's own rounding drift over the fitted frames (RMS m), from the
+    predictability measured at the start values: over the whole target, or with multiple
+    shooting over one segment's length; None when not measured."""
+    pred = prob.predictability
+    if pred is None:
+        return None
+    use = pred.times > 0
+    sh = prob.shooting
+    if sh is not None and sh.on and prob.target.n_frames > 1:
+        span = float(np.median(np.diff(np.asarray(prob.target.times, np.float64)))) * sh.segment_frames
+        use &= pred.times <= pred.times[0] + span * (1 + 1e-9)
+    d = np.asarray(pred.drift_rms, np.float64)[use]
+    return float(np.sqrt(np.mean(d * d))) if d.size else None
 
 
 def identifiability_at(prob, theta):

@@ -148,6 +148,65 @@ def test_identifiability_wording():
     assert not good.warnings
 
 
+def test_identifiability_sees_a_degenerate_pair_through_rounding_noise():
+    """Two exactly collinear columns plus float32-like noise of known size: the condition number
+    stays below the warning level (the noise breaks the degeneracy), the residual-based standard
+    errors look tiny, and only the Jacobian's noise tells that the pair is not determined."""
+    from jaxplush.fitting.identifiability import COND_WARN, analyse, fd_noise
+    rng = np.random.default_rng(1)
+    n = 4000
+    g, k = rng.normal(size=n), rng.normal(size=n)
+    eps = 5e-3                                       # the noise of every column, RMS per residual
+    # p0 and p1 act only through p0 + 3 p1 (as damping and drag act through their summed rate)
+    jac = np.stack([g, 3.0 * g, k], 1) + eps * rng.normal(size=(n, 3))
+    resid = 1e-7 * rng.normal(size=n)                # a noise-free fit: rounding-sized residuals
+    blind = analyse(jac, resid, ["p0", "p1", "p2"])
+    assert blind.condition < COND_WARN and np.all(np.isfinite(blind.stderr)) and max(blind.stderr) < 1e-3
+    assert blind.undetermined == ()                  # the old verdict: everything determined
+    # the same Jacobian with its noise known: the pair is unresolved, p2 still determined
+    drift, h = eps * np.sqrt(2) * 1e-3, 1e-3         # fd_noise(drift, h) == eps
+    assert fd_noise(drift, h) == pytest.approx(eps)
+    rep = analyse(jac, resid, ["p0", "p1", "p2"], jac_noise=fd_noise(drift, h))
+    assert rep.undetermined == ("p0", "p1") and len(rep.unresolved) == 1
+    assert not np.isfinite(rep.stderr[:2]).any() and np.isfinite(rep.stderr[2])
+    assert any("p0, p1 are not determined individually" in w for w in rep.warnings), rep.warnings
+    # a weak but real direction (a unit step along it moves the residuals by 10x the noise) stays resolved
+    m = rng.normal(size=n)
+    weak = np.stack([g, 3.0 * g + 10 * eps * np.sqrt(10) * m, k], 1) + eps * rng.normal(size=(n, 3))
+    ok = analyse(weak, resid, ["p0", "p1", "p2"], jac_noise=eps)
+    assert ok.unresolved == [] and ok.undetermined == (), ok.summary()
+
+
+def test_damping_and_drag_fitted_together_end_undetermined():
+    """The report's damping and air drag both decay every velocity uniformly, so a target
+    determines only their combined rate: the default fit says so before it starts, reproduces
+    the target, recovers that rate and the other parameters, and ends ``undetermined`` (not
+    ``converged``) with the pair named, their standard errors infinite."""
+    from jaxplush.fitting.outcome import Status
+    from jaxplush.fitting.problem import DAMPING_DRAG_NOTE
+
+    def scene(drag, **kw):
+        return jaxplush.parse_scene(F.recovery_scene_text(1, **kw).replace("damping", f"drag {drag}\ndamping", 1),
+                                    "<hanging+drag>")
+    truth = scene(2.0, damping=1000.0)
+    p = truth.params
+    dt = 1e-3
+    target = make_target(truth, 200, dt, 20)
+    start = scene(2.0 * 1.7, damping=600.0, k_structural=1.3 * p.k_structural[0], nmol=0.8 * p.nmol[0])
+    with pytest.warns(UserWarning, match=re.escape(DAMPING_DRAG_NOTE[:60])):
+        res = F.fit(start, target, noise_free=True)
+    assert set(res.names) == {"k_structural", "damping", "drag", "nmol"}
+    assert res.status == Status.UNDETERMINED and not res.converged and res.outcome.reached, res.reason
+    und = res.identifiability.undetermined
+    assert "damping[ball]" in und and "drag[ball]" in und, res.identifiability.summary()
+    assert "k_structural[ball]" not in und and "nmol[ball]" not in und
+    rate = lambda d, g: -np.log1p(-1.0 / d) / dt + g  # noqa: E731
+    got, want = rate(res.values["damping"][0], res.values["drag"][0]), rate(p.damping[0], p.drag[0])
+    assert got == pytest.approx(want, rel=1e-2)
+    for n in ("k_structural", "nmol"):
+        assert res.values[n][0] == pytest.approx(getattr(p, n)[0], rel=1e-2)
+
+
 # --------------------------------------------------------------------------- blow-ups
 
 @pytest.mark.heavy
