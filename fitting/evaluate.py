@@ -203,6 +203,32 @@ class Evaluator:
         res[~ok] = np.nan
         return Evaluation(res, loss, ok, subs, clamped, frames)
 
+    # ------------------------------------------------------------------ per-object structure
+
+    def owners(self):
+        """(n,) the fitted object each residual belongs to (-1: an object not fitted), when the
+        residuals are vertex positions of more than one fitted object; else None. What a coloured
+        finite-difference Jacobian (:func:`jaxplush.fitting.search.jacobian`) needs."""
+        if not hasattr(self, "_owners"):
+            from jaxplush.fitting import objects as _objects
+            prob = self.prob
+            self._owners = (_objects.residual_objects(prob) if len(prob.objects) > 1
+                            and prob.target.kind == "positions" else None)
+        return self._owners
+
+    def clear(self, residuals):
+        """(N,) whether, in the runs behind N rows of position residuals, no two objects came within
+        reach of contact (:func:`jaxplush.fitting.objects.clear_of_contact`; the frames are rebuilt
+        from the residuals and the target). Failed rows (NaN) are not clear."""
+        from jaxplush.fitting import objects as _objects
+        prob = self.prob
+        r = np.asarray(residuals, np.float64)
+        data = np.asarray(prob.target.data, np.float64)
+        t, m = data.shape[:2]
+        frames = data[None] + r.reshape((len(r),) + data.shape) * np.sqrt(t * m * prob.loss.scale2)
+        ok = np.isfinite(r).all(axis=1)
+        return ok & _objects.clear_of_contact(prob, np.where(ok[:, None, None, None], frames, 0.0))
+
     def _residuals(self, frames):
         """(N, n) float64 residuals of (N, T, V, 3) frames, jitted over pieces of one batch (one
         compile; XLA spreads each piece over the cores)."""

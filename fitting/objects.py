@@ -70,6 +70,45 @@ def residual_objects(prob, frames=None):
     return np.concatenate(out)
 
 
+#: Extra clearance, as a fraction of a pair's query reach, that :func:`clear_of_contact` asks for.
+CLEARANCE_SAFETY = 0.5
+
+
+def clear_of_contact(prob, frames):
+    """Whether no two objects came within reach of soft-soft contact in ``frames`` ((T, V, 3)
+    positions at the target's frames, or (N, T, V, 3) for N runs: (N,) bools).
+
+    A pair is clear when, at every frame, every vertex of each object lies outside the other's
+    bounding box inflated by the pair's query reach (:func:`jaxplush.model.contact.near_limits`:
+    2 delta + the longest edge + the skin, beyond which no contact is evaluated at all) plus
+    twice the largest move of any vertex between two frames (the frames do not show the steps
+    between them) and :data:`CLEARANCE_SAFETY` of the reach. In a run where every pair is clear,
+    each object's motion depends on its own parameters only. A scene without soft-soft contact
+    between objects is always clear."""
+    from jaxplush.model import contact as _contact
+    x = np.asarray(frames, np.float64)
+    single = x.ndim == 3
+    x = x[None] if single else x
+    cfg = prob.sim.terms.contact
+    out = np.ones(len(x), bool)
+    if cfg is None or not cfg.pairs:
+        return bool(out[0]) if single else out
+    topo = prob.sim.topology
+    vobj = np.asarray(topo.vertex_object, np.int64)
+    reach = _contact.near_limits(topo, cfg)
+    move = np.abs(np.diff(x, axis=1)).max(axis=(1, 2, 3)) if x.shape[1] > 1 else np.zeros(len(x))
+    for (a, b), lim in zip(cfg.pairs, reach):
+        margin = (1.0 + CLEARANCE_SAFETY) * float(lim) + 2.0 * move               # (N,)
+        xa, xb = x[:, :, vobj == a], x[:, :, vobj == b]
+
+        def outside(p, q):
+            lo = q.min(axis=2, keepdims=True) - margin[:, None, None, None]
+            hi = q.max(axis=2, keepdims=True) + margin[:, None, None, None]
+            return np.any((p < lo) | (p > hi), axis=-1).all(axis=(1, 2))
+        out &= outside(xa, xb) & outside(xb, xa)
+    return bool(out[0]) if single else out
+
+
 def block_losses(residuals, owner, n_objects):
     """(N, O_f) each point's loss restricted to each fitted object's residuals (``owner`` from
     :func:`residual_objects`; NaN residuals of a failed point give an infinite block loss)."""

@@ -162,12 +162,52 @@ def _stencil(box, theta, h):
     return pts, spans
 
 
+#: Coloured stencils that came near contact (and were run again in full) after which an
+#: evaluator stops trying them.
+COLOUR_MISSES = 2
+
+
+def _coloured_stencil(box, theta, h):
+    """The 2 P_n central-difference points of a coloured stencil: row i of theta (one parameter
+    of every fitted object) moved by -h and +h at once (clipped into the box), and the spans
+    (P_n, O_f) of each entry."""
+    lo_b, hi_b = box.lo.reshape(theta.shape), box.hi.reshape(theta.shape)
+    pts, spans = [], np.zeros(theta.shape)
+    for i in range(theta.shape[0]):
+        lo_t, hi_t = theta.copy(), theta.copy()
+        lo_t[i] = np.maximum(theta[i] - h, lo_b[i])
+        hi_t[i] = np.minimum(theta[i] + h, hi_b[i])
+        pts += [lo_t, hi_t]
+        spans[i] = hi_t[i] - lo_t[i]
+    return pts, spans
+
+
 def _jacobians(evaluator, box, states, options=None):
     """Central-difference Jacobians (n, P) of every state at its own step h, all stencils run in
     one evaluation; a stencil runs at the substeps its points need (at least its centre's).
-    Columns whose stencil fails are zero."""
+    Columns whose stencil fails are zero.
+
+    With several fitted objects and a position target (``evaluator.owners()``), the stencil is
+    first *coloured*: each parameter is moved for every object at once (2 P_n points instead of
+    2 P_n O_f), and each object's column is read off its own vertices' residuals. That is exact
+    when the objects do not interact, which is checked in every run of the stencil
+    (``evaluator.clear``: no two objects within reach of contact); a state whose coloured stencil
+    is not clear gets the full stencil (a second evaluation)."""
+    owners = evaluator.owners() if hasattr(evaluator, "owners") else None
+    rest = list(states)
+    if owners is not None and getattr(evaluator, "colour_misses", 0) < COLOUR_MISSES:
+        # only states whose own run (when known) kept the objects apart
+        try_ = [st for st in states if st.theta.ndim == 2 and st.theta.shape[1] > 1 and
+                (st.residual is None or evaluator.clear(np.asarray(st.residual)[None])[0])]
+        if try_:
+            done = _coloured_jacobians(evaluator, box, try_, owners, options)
+            evaluator.colour_misses = getattr(evaluator, "colour_misses", 0) + done.count(False)
+            ok = {id(st) for st, d in zip(try_, done) if d}
+            rest = [st for st in states if id(st) not in ok]
+    if not rest:
+        return
     pts, owner, spans, subs = [], [], [], []
-    for i, st in enumerate(states):
+    for i, st in enumerate(rest):
         h = fd_step(st.radius, options)
         p, sp = _stencil(box, st.theta, h)
         n = max(int(evaluator.substeps_for(np.asarray(p)).max()), st.substeps)
@@ -178,7 +218,7 @@ def _jacobians(evaluator, box, states, options=None):
         st.jac_h = h
     ev = evaluator(np.asarray(pts), substeps=np.asarray(subs))
     k = 0
-    for i, st in enumerate(states):
+    for i, st in enumerate(rest):
         p = len(spans[i])
         jac = np.zeros((evaluator.residual.n, p))
         for j in range(p):
@@ -188,6 +228,42 @@ def _jacobians(evaluator, box, states, options=None):
         st.jac = jac
         st.evaluations += 2 * p
         k += 2 * p
+
+
+def _coloured_jacobians(evaluator, box, states, owners, options=None):
+    """The coloured stencils of :func:`_jacobians`, all in one evaluation: sets ``jac`` of each
+    state whose stencil ran and stayed clear of contact; returns which did."""
+    pts, subs, spans = [], [], []
+    for st in states:
+        h = fd_step(st.radius, options)
+        p, sp = _coloured_stencil(box, st.theta, h)
+        n = max(int(evaluator.substeps_for(np.asarray(p)).max()), st.substeps)
+        pts += p
+        subs += [n] * len(p)
+        spans.append(sp)
+        st.jac_h = h
+    ev = evaluator(np.asarray(pts), substeps=np.asarray(subs))
+    clear = evaluator.clear(ev.residuals)
+    done = []
+    k = 0
+    for st, sp in zip(states, spans):
+        p_n, o_f = st.theta.shape
+        rows = slice(k, k + 2 * p_n)
+        k += 2 * p_n
+        st.evaluations += 2 * p_n
+        if not (ev.ok[rows].all() and clear[rows].all()):
+            done.append(False)
+            continue
+        jac = np.zeros((evaluator.residual.n, p_n * o_f))
+        for i in range(p_n):
+            diff = ev.residuals[rows.start + 2 * i + 1] - ev.residuals[rows.start + 2 * i]
+            for o in range(o_f):
+                if sp[i, o] > 0:
+                    mine = owners == o
+                    jac[mine, i * o_f + o] = diff[mine] / sp[i, o]
+        st.jac = jac
+        done.append(True)
+    return done
 
 
 def jacobian(evaluator, box, theta, h, substeps=1, options=None):

@@ -82,6 +82,61 @@ def test_residual_blocks_belong_to_their_objects(two_balls):
     assert blocks[1, 1] == blocks[0, 1] and blocks[1, 0] > 1e3 * blocks[0, 0]
 
 
+def test_coloured_jacobian_equals_the_full_stencil_and_costs_a_fraction(two_balls):
+    """Objects that never come within reach of contact move only with their own parameters, so
+    one stencil that moves a parameter of every object at once gives every object's column (2 P_n
+    runs instead of 2 P_n O_f). It must equal the full stencil's Jacobian; a stencil that is not
+    clear of contact is run again in full, and after COLOUR_MISSES such misses no longer tried."""
+    from jaxplush.fitting import search
+    from jaxplush.fitting.evaluate import Evaluator
+    prob, objective, truth = two_balls
+    box = objective.box
+    theta = truth + np.array([[0.05, -0.03], [0.02, 0.04]])
+    ev = Evaluator(prob, share=objective.evaluator, calibration=objective.evaluator.calibration())
+    assert ev.owners() is not None and ev.clear(ev(theta[None]).residuals)[0]
+    before = ev.evaluations
+    coloured = search.jacobian(ev, box, theta, 1e-3)
+    assert ev.evaluations - before == 2 * theta.shape[0]                # 4 runs, not 8
+    full_ev = Evaluator(prob, share=objective.evaluator, calibration=objective.evaluator.calibration())
+    full_ev.colour_misses = search.COLOUR_MISSES                        # colouring off
+    before = full_ev.evaluations
+    full = search.jacobian(full_ev, box, theta, 1e-3)
+    assert full_ev.evaluations - before == 2 * theta.size
+    # each column: exact zeros on the other ball's rows in both, the same values on its own
+    owner = ev.owners()
+    for j in range(theta.size):
+        o = j % theta.shape[1]
+        assert np.max(np.abs(full[owner != o, j])) == 0.0 and np.max(np.abs(coloured[owner != o, j])) == 0.0
+        np.testing.assert_allclose(coloured[:, j], full[:, j], rtol=0, atol=1e-6 * np.linalg.norm(full[:, j]))
+    # a stencil that comes near contact is run again in full (the same Jacobian), and counted
+    ev.clear = lambda r: np.zeros(len(r), bool)
+    before = ev.evaluations
+    again = search.jacobian(ev, box, theta, 1e-3)
+    assert ev.evaluations - before == 2 * theta.shape[0] + 2 * theta.size and ev.colour_misses == 1
+    np.testing.assert_allclose(again, full, rtol=0, atol=1e-6 * np.linalg.norm(full))
+    search.jacobian(ev, box, theta, 1e-3)
+    before = ev.evaluations
+    search.jacobian(ev, box, theta, 1e-3)                               # two misses: full stencils only
+    assert ev.colour_misses == search.COLOUR_MISSES and ev.evaluations - before == 2 * theta.size
+
+
+def test_clear_of_contact_sees_objects_within_reach(two_balls):
+    from jaxplush.model import contact
+    prob, _, _ = two_balls
+    frames = np.asarray(prob.target.data, np.float64)                  # the balls hang 0.6 m apart
+    assert objects.clear_of_contact(prob, frames)
+    vobj = np.asarray(prob.sim.topology.vertex_object)
+    reach = contact.near_limits(prob.sim.topology, prob.sim.terms.contact)[0]
+    gap = frames[:, vobj == 1, 0].min() - frames[:, vobj == 0, 0].max()   # along x, between their boxes
+    near = frames.copy()
+    near[:, vobj == 1, 0] -= gap - 0.5 * reach                          # b within reach of a in one frame span
+    assert not objects.clear_of_contact(prob, near)
+    far = frames.copy()
+    far[:, vobj == 1, 0] -= gap - 4.0 * reach
+    both = objects.clear_of_contact(prob, np.stack([far, near]))
+    assert both.tolist() == [True, False]
+
+
 def test_point_cloud_points_go_to_the_nearest_object(two_balls):
     prob, objective, truth = two_balls
     frames = objective.evaluator(truth[None], keep_frames=True).frames[0]
