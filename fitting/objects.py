@@ -70,7 +70,7 @@ def residual_objects(prob, frames=None):
     return np.concatenate(out)
 
 
-#: Extra clearance, as a fraction of a pair's query reach, that :func:`clear_of_contact` asks for.
+#: Extra clearance, as a fraction of a pair's contact reach, that :func:`clear_of_contact` asks for.
 CLEARANCE_SAFETY = 0.5
 
 
@@ -78,14 +78,15 @@ def clear_of_contact(prob, frames):
     """Whether no two objects came within reach of soft-soft contact in ``frames`` ((T, V, 3)
     positions at the target's frames, or (N, T, V, 3) for N runs: (N,) bools).
 
-    A pair is clear when, at every frame, every vertex of each object lies outside the other's
-    bounding box inflated by the pair's query reach (:func:`jaxplush.model.contact.near_limits`:
-    2 delta + the longest edge + the skin, beyond which no contact is evaluated at all) plus
-    twice the largest move of any vertex between two frames (the frames do not show the steps
-    between them) and :data:`CLEARANCE_SAFETY` of the reach. In a run where every pair is clear,
-    each object's motion depends on its own parameters only. A scene without soft-soft contact
+    The reach of a pair is 2 delta + the longest rest edge: a vertex farther than that from every
+    vertex of the other object is farther than 2 delta from its surface, where the contact force
+    is below e^-20 of its scale (:mod:`jaxplush.model.contact`), far below float32 rounding. A
+    pair is clear when, at every frame, every vertex of each object lies outside the other's
+    bounding box inflated by 1 + :data:`CLEARANCE_SAFETY` times the reach plus how far the two
+    objects' vertices move (the largest chord, each object's own) over the frame intervals on
+    either side: the frames do not show the steps between them. In a run where every pair is
+    clear, each object moves with its own parameters only. A scene without soft-soft contact
     between objects is always clear."""
-    from jaxplush.model import contact as _contact
     x = np.asarray(frames, np.float64)
     single = x.ndim == 3
     x = x[None] if single else x
@@ -95,15 +96,23 @@ def clear_of_contact(prob, frames):
         return bool(out[0]) if single else out
     topo = prob.sim.topology
     vobj = np.asarray(topo.vertex_object, np.int64)
-    reach = _contact.near_limits(topo, cfg)
-    move = np.abs(np.diff(x, axis=1)).max(axis=(1, 2, 3)) if x.shape[1] > 1 else np.zeros(len(x))
-    for (a, b), lim in zip(cfg.pairs, reach):
-        margin = (1.0 + CLEARANCE_SAFETY) * float(lim) + 2.0 * move               # (N,)
+    longest = np.zeros(int(vobj.max()) + 1)
+    np.maximum.at(longest, np.asarray(topo.edge_object, np.int64), np.asarray(topo.rest_length, np.float64))
+
+    def moves(xo):
+        """(N, T) the object's largest vertex move over the frame intervals next to each frame."""
+        chord = np.abs(np.diff(xo, axis=1)).max(axis=(2, 3)) if xo.shape[1] > 1 else np.zeros((len(xo), 0))
+        pad = np.zeros((len(xo), 1))
+        return np.maximum(np.concatenate([pad, chord], 1), np.concatenate([chord, pad], 1))
+
+    for (a, b), delta in zip(cfg.pairs, cfg.thickness):
+        reach = 2.0 * float(delta) + max(longest[a], longest[b])
         xa, xb = x[:, :, vobj == a], x[:, :, vobj == b]
+        margin = (1.0 + CLEARANCE_SAFETY) * reach + moves(xa) + moves(xb)          # (N, T)
 
         def outside(p, q):
-            lo = q.min(axis=2, keepdims=True) - margin[:, None, None, None]
-            hi = q.max(axis=2, keepdims=True) + margin[:, None, None, None]
+            m = margin[:, :, None, None]
+            lo, hi = q.min(axis=2, keepdims=True) - m, q.max(axis=2, keepdims=True) + m
             return np.any((p < lo) | (p > hi), axis=-1).all(axis=(1, 2))
         out &= outside(xa, xb) & outside(xb, xa)
     return bool(out[0]) if single else out

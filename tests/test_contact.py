@@ -641,7 +641,7 @@ def test_carried_lists_hold_every_vertex_in_reach():
     sim = jaxplush.make_simulator(scene, 2e-4)
     p = sim.params()
     cfg = sim.terms.contact
-    reach = contact.near_limits(sim.topology, cfg)[0] - contact.skin_distance(sim.topology, cfg)
+    reach = contact._near_limits(sim.topology, cfg)[0] - contact.skin_distance(sim.topology, cfg)
     co = sim.internal.coherent
 
     @jax.jit

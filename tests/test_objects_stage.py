@@ -121,15 +121,18 @@ def test_coloured_jacobian_equals_the_full_stencil_and_costs_a_fraction(two_ball
 
 
 def test_clear_of_contact_sees_objects_within_reach(two_balls):
-    from jaxplush.model import contact
     prob, _, _ = two_balls
     frames = np.asarray(prob.target.data, np.float64)                  # the balls hang 0.6 m apart
     assert objects.clear_of_contact(prob, frames)
-    vobj = np.asarray(prob.sim.topology.vertex_object)
-    reach = contact.near_limits(prob.sim.topology, prob.sim.terms.contact)[0]
+    topo = prob.sim.topology
+    vobj = np.asarray(topo.vertex_object)
+    reach = 2 * prob.sim.terms.contact.thickness[0] + float(np.max(topo.rest_length))   # 2 delta + an edge
     gap = frames[:, vobj == 1, 0].min() - frames[:, vobj == 0, 0].max()   # along x, between their boxes
     near = frames.copy()
-    near[:, vobj == 1, 0] -= gap - 0.5 * reach                          # b within reach of a in one frame span
+    near[:, vobj == 1, 0] -= gap - 0.5 * reach                          # b within reach of a
+    assert not objects.clear_of_contact(prob, near)
+    near = frames.copy()                                                # 1.2 reach apart: inside the safety
+    near[:, vobj == 1, 0] -= gap - 1.2 * reach
     assert not objects.clear_of_contact(prob, near)
     far = frames.copy()
     far[:, vobj == 1, 0] -= gap - 4.0 * reach

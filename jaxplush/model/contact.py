@@ -28,7 +28,7 @@ Candidates (static shapes, no N_A x F_B work):
 2. narrow phase: each candidate vertex finds the nearest candidate vertex of the other object
    (a cap_A x cap_B distance table, its argmin one packed integer min). A candidate whose nearest
    vertex is farther than 2 delta + an edge + s cannot come within the force's reach before the
-   next search (:func:`near_limits`); the others, the queries, of every pair are compacted to
+   next search (:func:`_near_limits`); the others, the queries, of every pair are compacted to
    the front of one list, which the force runs in blocks of :data:`QUERY_BLOCK`, only as many as
    hold queries (:func:`_blockwise`), so its cost follows the contact patch, not the capacities
    (the broad phase's box and sphere hold several times more vertices). The closest face is
@@ -560,7 +560,7 @@ def make_contact(topo, cfg, h=None):
 
     skin = skin_distance(topo, cfg) if cfg.pairs else 0.0
 
-    near_limit = near_limits(topo, cfg)
+    near_limit = _near_limits(topo, cfg)
 
     def search(xs):
         return _search(xs, topo, cfg, tab.margin, skin, near_limit)
@@ -792,15 +792,15 @@ def _friction(v, mass, idx, n, w, mag, vec, friction, h, tiny):
     return _sub(vec, _scale(vt, ft))
 
 
-def _search(xs, topo, cfg, margins, skin, near_limits):
+def _search(xs, topo, cfg, margins, skin, _near_limits):
     """The candidate queries of every pair and direction at positions xs (no gradient): a
     :class:`ContactCache`. The broad phase's candidates (:func:`_pair_candidates`) are kept as
     queries where their nearest vertex of the other object lies within the pair's
-    :func:`near_limits`, and the queries of all pairs are compacted to the front of one list of
+    :func:`_near_limits`, and the queries of all pairs are compacted to the front of one list of
     :func:`_list_length` slots (:func:`_blockwise` runs only the blocks that hold them)."""
     slices = topo.vertex_slices
     qs, valids, targets, counts, gaps = [], [], [], [], []
-    for (oa, ob), margin, near in zip(cfg.pairs, margins, near_limits):
+    for (oa, ob), margin, near in zip(cfg.pairs, margins, _near_limits):
         (a0, a1), (b0, b1) = slices[oa], slices[ob]
         cap_a, cap_b = cfg.capacity[oa], cfg.capacity[ob]
         ia, ib, n_a, n_b, near_a, near_b = _pair_candidates(xs, (a0, a1), (b0, b1), cap_a, cap_b, margin)
@@ -832,7 +832,7 @@ def _list_length(cfg):
     return -(-n // QUERY_BLOCK) * QUERY_BLOCK
 
 
-def near_limits(topo, cfg):
+def _near_limits(topo, cfg):
     """Per pair: how near its nearest vertex of the other object a candidate must be at the search
     to be a query, 2 delta + the longest rest edge + the skin s. A point within 2 delta of a face
     (beyond that the force is below e^-20 of its scale) is within an edge of one of its corners,
