@@ -121,6 +121,8 @@ class Evaluator:
         self._calibrate = calibrate
         self.notes = []               # messages about the run (a grown contact capacity)
         self.evaluations = 0          # points run (each substep retry counted)
+        self.colour_misses = 0        # coloured Jacobian stencils that came near contact (search.py)
+        self._owners = False          # residual owners, computed on first use (:meth:`owners`)
 
     # ------------------------------------------------------------------ stability
 
@@ -209,7 +211,7 @@ class Evaluator:
         """(n,) the fitted object each residual belongs to (-1: an object not fitted), when the
         residuals are vertex positions of more than one fitted object; else None. What a coloured
         finite-difference Jacobian (:func:`jaxplush.fitting.search.jacobian`) needs."""
-        if not hasattr(self, "_owners"):
+        if self._owners is False:
             from jaxplush.fitting import objects as _objects
             prob = self.prob
             self._owners = (_objects.residual_objects(prob) if len(prob.objects) > 1

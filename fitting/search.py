@@ -195,28 +195,19 @@ def _jacobians(evaluator, box, states, options=None):
     is not clear gets the full stencil (a second evaluation)."""
     owners = evaluator.owners() if hasattr(evaluator, "owners") else None
     rest = list(states)
-    if owners is not None and getattr(evaluator, "colour_misses", 0) < COLOUR_MISSES:
+    misses = getattr(evaluator, "colour_misses", 0)            # stand-in evaluators have no colouring
+    if owners is not None and misses < COLOUR_MISSES:
         # only states whose own run (when known) kept the objects apart
         try_ = [st for st in states if st.theta.ndim == 2 and st.theta.shape[1] > 1 and
                 (st.residual is None or evaluator.clear(np.asarray(st.residual)[None])[0])]
         if try_:
             done = _coloured_jacobians(evaluator, box, try_, owners, options)
-            evaluator.colour_misses = getattr(evaluator, "colour_misses", 0) + done.count(False)
+            evaluator.colour_misses = misses + done.count(False)
             ok = {id(st) for st, d in zip(try_, done) if d}
             rest = [st for st in states if id(st) not in ok]
     if not rest:
         return
-    pts, owner, spans, subs = [], [], [], []
-    for i, st in enumerate(rest):
-        h = fd_step(st.radius, options)
-        p, sp = _stencil(box, st.theta, h)
-        n = max(int(evaluator.substeps_for(np.asarray(p)).max()), st.substeps)
-        pts += p
-        owner += [i] * len(p)
-        spans.append(sp)
-        subs += [n] * len(p)
-        st.jac_h = h
-    ev = evaluator(np.asarray(pts), substeps=np.asarray(subs))
+    ev, spans = _run_stencils(evaluator, box, rest, _stencil, options)
     k = 0
     for i, st in enumerate(rest):
         p = len(spans[i])
@@ -230,19 +221,26 @@ def _jacobians(evaluator, box, states, options=None):
         k += 2 * p
 
 
-def _coloured_jacobians(evaluator, box, states, owners, options=None):
-    """The coloured stencils of :func:`_jacobians`, all in one evaluation: sets ``jac`` of each
-    state whose stencil ran and stayed clear of contact; returns which did."""
+def _run_stencils(evaluator, box, states, stencil, options=None):
+    """Run every state's ``stencil(box, theta, h)`` points at its own step h (recorded as
+    ``jac_h``) in one evaluation, each stencil at the substeps its points need (at least its
+    centre's); returns (the :class:`Evaluation`, each stencil's spans)."""
     pts, subs, spans = [], [], []
     for st in states:
         h = fd_step(st.radius, options)
-        p, sp = _coloured_stencil(box, st.theta, h)
+        p, sp = stencil(box, st.theta, h)
         n = max(int(evaluator.substeps_for(np.asarray(p)).max()), st.substeps)
         pts += p
         subs += [n] * len(p)
         spans.append(sp)
         st.jac_h = h
-    ev = evaluator(np.asarray(pts), substeps=np.asarray(subs))
+    return evaluator(np.asarray(pts), substeps=np.asarray(subs)), spans
+
+
+def _coloured_jacobians(evaluator, box, states, owners, options=None):
+    """The coloured stencils of :func:`_jacobians`, all in one evaluation: sets ``jac`` of each
+    state whose stencil ran and stayed clear of contact; returns which did."""
+    ev, spans = _run_stencils(evaluator, box, states, _coloured_stencil, options)
     clear = evaluator.clear(ev.residuals)
     done = []
     k = 0
