@@ -23,7 +23,8 @@ dropped onto a floor, or hanging side by side from a pinned vertex; soft-soft co
 several), the report's damping, dashpot, drag or a mix of two, floor friction in half the floor
 scenes, heights, tilts, masses, and a start drawn log-uniformly in x0.5..x2 for every fitted
 parameter (the default of jaxplush-fit: k_structural, the damping model's and nmol) of every
-object. dt is the largest of 5e-4, 4e-4, 2.5e-4, 2e-4, 1.25e-4, 1e-4, 5e-5 s below 0.8 of the truth's
+object (a truth that cannot be simulated at any dt, e.g. a coarse torus crushed inside out
+under a stack, is drawn again, at most twice, and the summary lists it). dt is the largest of 5e-4, 4e-4, 2.5e-4, 2e-4, 1.25e-4, 1e-4, 5e-5 s below 0.8 of the truth's
 closed-form stability bound (``jaxplush.stepping.stability.bound``; the next one down, twice at
 most, when the truth's target blows up all the same), the target runs the case's
 duration (the top object lands and bounces; 0.5 s hanging) with about 50 frames, as exact
@@ -173,15 +174,25 @@ def budget(case):
     return RANDOM_BUDGET[1] if case["n_objects"] == 1 else RANDOM_BUDGET["several"]
 
 
+#: Draws of one random case in all: a truth that cannot be simulated at any dt of the ladder (a
+#: coarse torus crushed inside out under a stack, say) is no fitting case; the case is drawn again
+#: (from ``default_rng([seed, i, attempt])``), and the row says so.
+MAX_DRAWS = 3
+
+
 def draw_cases(n, seed, **kw):
     """The first ``n`` random cases of ``seed`` (case i from ``default_rng([seed, i])``)."""
+    return [redraw(i, seed, 0, **kw) for i in range(n)]
+
+
+def redraw(index, seed, attempt, **kw):
+    """Case ``index`` of ``seed``, draw ``attempt`` (0: ``default_rng([seed, index])``; later ones
+    ``default_rng([seed, index, attempt])``)."""
     from jaxplush.fitting.scenarios import draw_case
-    cases = []
-    for i in range(n):
-        case = draw_case(np.random.default_rng([seed, i]), **kw)
-        case.update(index=i, seed=seed)
-        cases.append(case)
-    return cases
+    key = [seed, index] + ([attempt] if attempt else [])
+    case = draw_case(np.random.default_rng(key), **kw)
+    case.update(index=index, seed=seed, attempt=attempt, draw_kw=kw)
+    return case
 
 
 def auto_dt(scene):
@@ -274,7 +285,16 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
     t = time.perf_counter()
     try:
         truth, target, start = random_case_files(d, case, dt=dt, steps=steps)
-    except Exception as e:  # the truth itself cannot be simulated: a failed case, never dropped
+    except Exception as e:
+        from jaxplush.errors import SimulationError
+        attempt = case.get("attempt", 0) + 1
+        if isinstance(e, SimulationError) and dt is None and attempt < MAX_DRAWS:
+            # the truth cannot be simulated at any dt of the ladder: no fitting case; draw again
+            again = redraw(case["index"], case.get("seed", 0), attempt, **case.get("draw_kw", {}))
+            out = run_random_case(d, again, dt=dt, steps=steps, stop_after=stop_after)
+            out["redrawn"] = [f"{row['description']}: {str(e)[:160]}"] + out.get("redrawn", [])
+            return out
+        # a truth that still cannot be simulated: a failed case, never dropped
         row.update(dt=case.get("dt"), steps=case.get("steps"), status="no target", exit=None, wall=0.0,
                    max_error=float("inf"), errors={}, verdict="failed", reason="other",
                    detail=f"target: {type(e).__name__}: {str(e)[:200]}")
@@ -407,6 +427,11 @@ def _summary(rows):
                      f"max {max(several):.1f} s")
     if rows:
         lines.append(f"max time: {max(r['wall'] for r in rows):.1f} s")
+    redrawn = [r for r in rows if r.get("redrawn")]
+    if redrawn:
+        lines.append(f"cases drawn again (their first truth could not be simulated at any dt): {len(redrawn)}")
+        for r in redrawn:
+            lines += [f"  case {r['index']}: {x}" for x in r["redrawn"]]
     fails = {k: [r for r in rows if r["verdict"] == "failed" and r["reason"] == k] for k in REASONS}
     counts = ", ".join(f"{k} {len(v)}" for k, v in fails.items() if v) or "none"
     lines.append(f"failures by reason: {counts}")

@@ -64,8 +64,9 @@ from jaxplush.fitting.options import CheckpointOptions, FitOptions, SearchOption
 from jaxplush.fitting.problem import (ALIASES, Problem, _common_settings, build_problem,  # noqa: F401
                                       canonical_names, check_mass_fit, default_params, parse_bounds)
 from jaxplush.fitting.recovery import RECOVERY_TRUTH, recovery_scene_text, synthetic_recovery  # noqa: F401
-from jaxplush.fitting.result import (FitResult, _history, _judge, _motion, _result,  # noqa: F401
+from jaxplush.fitting.result import (FitResult, _history, _judge, _motion, _predictability_at, _result,  # noqa: F401
                                      identifiability_at, measure_predictability, rounding_drift)
+from jaxplush.fitting import shooting as _shooting
 from jaxplush.fitting.shooting import plan_shooting
 
 
@@ -184,13 +185,14 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
         if opts.checkpoint.resume else None
     if opts.predictability:                 # every input checked (a resumed checkpoint too)
         prob = measure_predictability(prob, report)
-    prob = plan_shooting(prob, opts.shooting, report)
+    full = prob
+    prob = planned = plan_shooting(prob, opts.shooting, report)
     last = [prior]
 
     def write(state, status):
         best = lmfit.best_search(state)
         extra = {} if best is None else dict(theta=best.theta, loss=float(best.loss))
-        _io.save_checkpoint(checkpoint_path, prob, state, settings, status,
+        _io.save_checkpoint(checkpoint_path, planned, state, settings, status,
                             iterations=int(state.evaluations), **extra)
 
     def save(run):
@@ -205,6 +207,17 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
             return callback(dict(iteration=local.rounds, loss=b.loss, values=prob.values(b.theta), grad_norm=np.nan))
     try:
         run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, callback=user_cb)
+        replanned = _replan(full, prob, run.best.theta, opts, report)
+        if replanned is not None:
+            # the start's horizon cut the fit short; the fitted values predict further: fit again
+            # from them over what they predict (locally: the global stage has done its work)
+            first = run
+            prob, note = replanned
+            notes = list(notes) + [note]
+            local = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
+            run, ev = lmfit.run(prob, box, local, progress=progress, callback=user_cb, start=first.best.theta)
+            run.evaluations += first.evaluations
+            run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
     except KeyboardInterrupt:
         if last[0] is not None and checkpoint_path is not None:
             write(last[0], "interrupted")
@@ -214,11 +227,36 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
         result = _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall)
     except KeyboardInterrupt:
         if checkpoint_path is not None:
-            write(lmfit.light_copy(run.state), "interrupted")
+            # (the checkpoint holds the first fit's state: a resumed fit plans again from it)
+            write(last[0] if replanned is not None else lmfit.light_copy(run.state), "interrupted")
         raise
     if checkpoint_path is not None:
         _io.save_fit(result, checkpoint_path)
     return result
+
+
+def _replan(full, prob, theta, opts, report=None):
+    """The problem planned again from the predictability at the fitted values theta, when the plan
+    made at the start values cut the fit short (a point-cloud target cut at the start's horizon,
+    or multiple shooting) and the fitted values predict more of the target (more frames, or longer
+    segments): (the problem, a note saying so); else None. A start far from the truth (near its
+    stability limit, say) can be much less predictable than the result."""
+    if not opts.predictability or opts.shooting != "auto" or full.predictability is None:
+        return None
+    if not _shooting.restricted(full, prob):
+        return None
+    pred = _predictability_at(full, theta)
+    if pred is None:
+        return None
+    sh, again = _shooting.plan(dataclasses.replace(full, predictability=pred), "auto")
+    new = dataclasses.replace(again, shooting=sh)
+    if _shooting.span(new) <= _shooting.span(prob):
+        return None
+    note = (f"fitted again from the first fit's values, which predict further than the start values: "
+            f"{pred.text()}; shooting: {sh.reason}")
+    if report is not None:
+        report(note)
+    return new, note
 
 
 def _driver_state(state):

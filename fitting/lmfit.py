@@ -116,7 +116,7 @@ def default_stages(prob, opts, progress=None):
     return out
 
 
-def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None):
+def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None, start=None):
     """Global stage, then Levenberg-Marquardt from the best ``starts`` candidates (successive
     halving to ``keep``), over horizons of growing length; then the Jacobian and gradients at
     the best point of the full problem (and, for a noisy target, the smoothing stage):
@@ -133,6 +133,8 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
       save: ``save(run)`` after every step, with the driver's :class:`~jaxplush.fitting.stages.RunState`.
       callback: ``callback(local)`` after every local iteration with the local stage's state (its
         ``states`` and ``rounds``); returning True stops the search.
+      start: where the global stage starts (log values; None: ``prob.theta0``, which stays the
+        start the fit's gradient ratio and start loss refer to).
 
     Returns:
       (:class:`LMRun`, the :class:`jaxplush.fitting.evaluate.Evaluator` of the full problem, its notes
@@ -145,7 +147,8 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     hs = objective.horizons(horizons(prob.target.n_frames, opts.continuation))
     state = resume if resume is not None else _stages.RunState()
     try:
-        _stages.run_stages(objective, prob.theta0, stages, state=state,
+        _stages.run_stages(objective, prob.theta0 if start is None else np.asarray(start, np.float64), stages,
+                           state=state,
                            hooks=_stages.Hooks(before=show.before, after=show.after, save=save))
     finally:
         show.close()

@@ -43,7 +43,8 @@ class FitResult:
       optimizer, lr, normalisation ("noise"/"motion"), scale2 (m²), noise.
       scene_text, scene_path, target_path, wall_time (s), warnings.
       predictability: :class:`jaxplush.Predictability` of the start values over the target,
-        measured before fitting (None: not measured); the outcome's ``floor`` is the
+        measured before fitting (None: not measured), or of the first fit's values where the fit
+        was planned again from them (its ``warnings`` say so); the outcome's ``floor`` is the
         reproducibility floor it was judged against.
     """
 

@@ -345,6 +345,20 @@ def plan(prob, setting="auto", refine=REFINE):
                     res_ms, res_single), prob
 
 
+def span(prob):
+    """How much of the target a planned problem fits at a stretch: (frames fitted, frames per
+    segment; a single-shooting problem's segment is all of them). Larger tuples fit more."""
+    n = int(prob.target.n_frames)
+    sh = prob.shooting
+    return n, (int(sh.segment_frames) if sh is not None and sh.on else n)
+
+
+def restricted(full, prob):
+    """Whether the planned problem fits less than the full one at a stretch (a point-cloud target
+    cut at the horizon, or multiple shooting)."""
+    return span(prob) < (int(full.target.n_frames),) * 2
+
+
 def plan_shooting(prob, setting, report=None):
     """The problem with :attr:`~jaxplush.fitting.problem.Problem.shooting` planned (:func:`plan`);
     ``report`` (if given) gets the line that says what was chosen."""

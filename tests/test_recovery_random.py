@@ -153,6 +153,30 @@ def test_one_tiny_case_gives_an_honest_record(bench, tmp_path):
     assert summary[0] == f"recovered {int(ok)}/1 (positions {int(ok)}/1, clouds 0/0)"
 
 
+def test_a_truth_that_cannot_be_simulated_is_drawn_again_and_listed(bench, tmp_path, monkeypatch):
+    """A truth that blows up at every dt is no fitting case: the case is drawn again from its own
+    generator (at most MAX_DRAWS draws), every discarded draw is listed, and a case that never
+    gives a truth is a failure ("no target"), never dropped."""
+    from jaxplush.errors import SimulationError
+    seen = []
+
+    def crushed(d, case, **kw):
+        seen.append((case["attempt"], S.describe_case(case)))
+        raise SimulationError(10, 0, "torus0", "the enclosed volume became zero or negative")
+
+    monkeypatch.setattr(bench, "random_case_files", crushed)
+    case = bench.draw_cases(1, 11, max_objects=1)[0]
+    row = bench.run_random_case(str(tmp_path), case, stop_after=0)
+    assert [a for a, _ in seen] == list(range(bench.MAX_DRAWS))
+    assert seen[0][1] == S.describe_case(case)
+    assert bench.redraw(0, 11, 1, max_objects=1)["objects"] != case["objects"]
+    assert row["status"] == "no target" and row["verdict"] == "failed" and row["reason"] == "other"
+    assert len(row["redrawn"]) == bench.MAX_DRAWS - 1 and "volume" in row["redrawn"][0]
+    assert row["redrawn"][0].startswith(seen[0][1])
+    assert any("drawn again" in line for line in bench._summary([row]))
+    json.dumps(row, default=float)
+
+
 def test_the_verdict_follows_status_error_time_and_reports(bench):
     """The verdict's rules on hand-made records: within tolerance and time is recovered; then
     floor, horizon, identifiability, time and other, in that order."""

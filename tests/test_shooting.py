@@ -261,3 +261,35 @@ def test_fit_options_validate_shooting(value, ok):
     else:
         with pytest.raises(JaxplushError, match="shooting must be"):
             O.validate(opts, "lm")
+
+
+def test_a_fit_cut_short_by_the_start_horizon_fits_again_over_what_its_result_predicts(monkeypatch):
+    """A start far from the truth (near its stability limit, say) can be far less predictable than
+    the truth. Its horizon cuts a point-cloud target short; the fitted values predict the whole
+    target, so the fit plans again from them and fits every frame, and says so."""
+    scene = icosphere_scene(k=200.0, mass=0.05, nmol=0.002, dashpot=0.05, floor=-0.15)
+    target = make_target(scene, 250, 1e-3, 25)
+    cloud = dataclasses.replace(target, positions=None, points=target.positions[:, ::2])
+    p = scene.params
+    start = scene.replace(params=p._replace(k_structural=p.k_structural * 1.3, nmol=p.nmol * 0.8))
+    measure = F.measure_predictability
+
+    def short_at_the_start(prob, report=None):      # as if the start's two runs drifted apart at once
+        prob = measure(prob)
+        pred = dataclasses.replace(prob.predictability, horizon_time=float(cloud.times[3]) + 1e-9)
+        return dataclasses.replace(prob, predictability=pred)
+
+    monkeypatch.setattr(F, "measure_predictability", short_at_the_start)
+    lines = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = F.fit(start, cloud, ("k_structural", "nmol"), noise_free=True, identifiability=False,
+                    samples=8, report=lines.append)
+    cut = [x for x in lines if x.startswith("shooting: single shooting within the predictable horizon")]
+    again = [x for x in lines if x.startswith("fitted again from the first fit's values")]
+    assert cut and "the first 4 of 10 frames" in cut[0]
+    assert again and "for the whole run" in again[0]
+    assert res.problem.target.n_frames == 10 and any(n.startswith("fitted again") for n in res.warnings)
+    assert res.predictability.horizon_time == math.inf
+    for name, truth in (("k_structural", p.k_structural), ("nmol", p.nmol)):
+        assert res.values[name][0] == pytest.approx(float(truth[0]), rel=1e-2)
