@@ -288,6 +288,42 @@ class Residual(NamedTuple):
     per_frame: int
 
 
+def edge_wings(faces):
+    """The dihedral stencil of a closed, consistently wound mesh: (E, 4) int32 rows (a, b, c, d),
+    one per unique edge a-b, with c the third corner of the face that runs a -> b and d that of
+    the face that runs b -> a."""
+    faces = np.asarray(faces, np.int64)
+    third = {}
+    for f in faces:
+        for i in range(3):
+            third[(int(f[i]), int(f[(i + 1) % 3]))] = int(f[(i + 2) % 3])
+    rows = [(a, b, c, third[(b, a)]) for (a, b), c in third.items() if a < b and (b, a) in third]
+    return np.asarray(rows, np.int32).reshape(-1, 4)
+
+
+def vertex_mean_curvature(x, faces, wings):
+    """(V,) discrete mean curvature (1/m) of a closed mesh at every vertex, positive where the
+    surface is convex: a quarter of the sum over the vertex's edges of length x signed dihedral
+    angle, over a third of the area of its faces (1/R on a sphere of radius R, 1/(2R) on a
+    cylinder; mean curvature is (k1 + k2) / 2).
+
+    Args: x (V, 3) positions; faces (F, 3) outward faces; wings (E, 4) (:func:`edge_wings`).
+    """
+    faces, wings = jnp.asarray(faces), jnp.asarray(wings)
+    a, b, c, d = (x[wings[:, i]] for i in range(4))
+    e = b - a
+    n1, n2 = jnp.cross(e, c - a), jnp.cross(d - a, e)        # outward normals of the two wings
+    sin = jnp.sum(jnp.cross(n1, n2) * e, axis=-1) / jnp.maximum(jnp.linalg.norm(e, axis=-1), 1e-30)
+    theta = jnp.arctan2(sin, jnp.sum(n1 * n2, axis=-1))     # > 0 where the edge is convex
+    w = 0.25 * jnp.linalg.norm(e, axis=-1) * theta
+    n = x.shape[0]
+    num = jnp.zeros(n, x.dtype).at[wings[:, 0]].add(w).at[wings[:, 1]].add(w)
+    fa = x[faces]
+    area = 0.5 * jnp.linalg.norm(jnp.cross(fa[:, 1] - fa[:, 0], fa[:, 2] - fa[:, 0]), axis=-1) / 3.0
+    den = jnp.zeros(n, x.dtype).at[faces[:, 0]].add(area).at[faces[:, 1]].add(area).at[faces[:, 2]].add(area)
+    return num / jnp.maximum(den, jnp.finfo(x.dtype).tiny)
+
+
 def make_residual(target, topology, loss):
     """The :class:`Residual` of a :class:`Loss` built by :func:`make_loss` for the same target."""
     data = np.asarray(target.data, np.float64)
@@ -304,9 +340,19 @@ def make_residual(target, topology, loss):
         coarse = coarse_vertices(topology.x0, -(-topology.n_vertices // 8))
         ring = np.asarray(topology.ring, np.int32)
 
+        # isotropic noise of sigma puts a sample of a curved surface outside it by sigma² H on
+        # average (H the mean curvature there): each distance has that expected offset taken off,
+        # with H of the simulated frame at the point's nearest vertex (else a convex shape's fit
+        # leans to whatever inflates it or rounds it off)
+        wings = edge_wings(faces)
+        sigma2 = float(loss.scale2) if loss.normalisation == "noise" else 0.0
+
         def one(x, p):
             near = nearest_vertices_walk(x, p, coarse, ring)
-            return point_surface_signed_distance(x, p, faces, vf, near)
+            d = point_surface_signed_distance(x, p, faces, vf, near)
+            if not sigma2:
+                return d
+            return d - jnp.asarray(sigma2, x.dtype) * vertex_mean_curvature(x, faces, wings)[near]
 
         def fn(frames):
             y = jnp.asarray(data, frames.dtype)

@@ -326,3 +326,53 @@ def test_point_residuals_are_signed_distances_to_the_surface():
         # the icosphere's faces lie inside the sphere: outside points are 3-4.7 mm away, inside 1.4-3 mm
         assert 0.001 < np.abs(s).min() and np.abs(s).max() < 0.005
 
+
+
+def test_mean_curvature_of_a_sphere_and_a_torus_converges_to_the_analytic():
+    """The discrete mean curvature (edge length x dihedral angle over vertex area) is 1/R on a
+    sphere, and on a torus follows (R + 2r cos phi) / (2r (R + r cos phi)), negative on the inner
+    rim, closer at the finer mesh."""
+    import jax.numpy as jnp
+    import trimesh
+    from jaxplush.fitting import losses as L
+    from jaxplush.fitting.scenarios import shape_mesh
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    h = np.asarray(L.vertex_mean_curvature(jnp.asarray(m.vertices), m.faces, L.edge_wings(m.faces)))
+    assert np.mean(h) == pytest.approx(20.0, rel=0.01) and np.std(h) < 0.03 * 20.0
+    errs = []
+    for level in (3, 4):
+        v, f = shape_mesh("torus", level)
+        h = np.asarray(L.vertex_mean_curvature(jnp.asarray(v), f, L.edge_wings(f)))
+        big, small = 0.08, 0.035
+        cos = (np.linalg.norm(v[:, [0, 2]], axis=1) - big) / small
+        exact = (big + 2 * small * cos) / (2 * small * (big + small * cos))
+        errs.append(np.max(np.abs(h - exact)) / np.max(np.abs(exact)))
+        assert np.all(np.sign(h[np.abs(exact) > 1.0]) == np.sign(exact[np.abs(exact) > 1.0]))
+    assert errs[0] < 0.03 and errs[1] < errs[0] / 2
+
+
+def test_noisy_samples_of_a_curved_surface_leave_the_cloud_residual_unbiased():
+    """Isotropic noise of sigma puts a sample of a sphere of radius R outside it by sigma²/R on
+    average. The cloud residual takes that offset off: over many samples its mean is zero within
+    its standard error, where the plain signed distance's is sigma²/R."""
+    import types
+    import jax.numpy as jnp
+    from conftest import icosphere_scene
+    from jaxplush.fitting import losses as L
+    radius, sigma, n = 0.05, 0.002, 60000
+    scene = icosphere_scene(subdivisions=4, radius=radius)
+    topo = jaxplush.make_simulator(scene, 1e-4).topology
+    x = np.asarray(topo.x0, np.float64)
+    rng = np.random.default_rng(5)
+    face = topo.faces[rng.integers(0, len(topo.faces), n)]
+    w = rng.dirichlet(np.ones(3), n)
+    p = np.einsum("nk,nkc->nc", w, x[face]) + sigma * rng.normal(size=(n, 3))
+    target = types.SimpleNamespace(data=p[None], kind="points")
+    se = sigma / np.sqrt(n)
+    means = {}
+    for how, scale2 in (("noise", sigma ** 2), ("motion", 1.0)):
+        res = L.make_residual(target, topo, types.SimpleNamespace(scale2=scale2, normalisation=how))
+        d = np.asarray(res.fn(jnp.asarray(x, jnp.float32)[None]), np.float64) * np.sqrt(n * scale2)
+        means[how] = float(np.mean(d))
+    assert abs(means["motion"] - sigma ** 2 / radius) < 4 * se             # 8e-5 m, 9 standard errors
+    assert abs(means["noise"]) < 4 * se
