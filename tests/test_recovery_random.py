@@ -197,5 +197,12 @@ def test_the_verdict_follows_status_error_time_and_reports(bench):
         ("failed", "identifiability")
     assert v(exit=4, status="poor_fit", identifiability_warnings=["J^T J is ill-conditioned"]) == \
         ("failed", "identifiability")
+    # a converged fit outside the tolerance: identifiability when the fit's own standard error of
+    # that parameter is at least half the tolerance (the noise alone can put it there), else other
+    miss = dict(errors={"dashpot[c]": 0.063, "k_structural[c]": -0.0015})
+    assert v(**miss, max_error=0.063, stderr={"dashpot[c]": 0.021, "k_structural[c]": 0.0007}) == \
+        ("failed", "identifiability")
+    assert v(**miss, max_error=0.063, stderr={"dashpot[c]": 0.01, "k_structural[c]": 0.0007}) == ("failed", "other")
+    assert v(**miss, max_error=0.063) == ("failed", "other")
     assert v(exit=4, status="stalled", wall=200.0) == ("failed", "time")
     assert v(exit=4, status="stalled") == ("failed", "other")
