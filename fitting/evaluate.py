@@ -116,7 +116,9 @@ class Evaluator:
         self._bsims = share._bsims if share is not None else {}
         self.chunk_frames = int(chunk_frames) if chunk_frames else None
         self._single = {}
-        self._res_fn = jax.jit(jax.vmap(self.residual.fn))
+        # residuals in chunks of frames, by one compiled function per chunk length and width that
+        # the evaluators of a fit's horizons share (the target data is an argument, not a constant)
+        self._res_fns = share._res_fns if share is not None else {}
         self._calibration = calibration
         self._calibrate = calibrate
         self.notes = []               # messages about the run (a grown contact capacity)
@@ -232,15 +234,30 @@ class Evaluator:
         return ok & _objects.clear_of_contact(prob, np.where(ok[:, None, None, None], frames, 0.0))
 
     def _residuals(self, frames):
-        """(N, n) float64 residuals of (N, T, V, 3) frames, jitted over pieces of one batch (one
-        compile; XLA spreads each piece over the cores)."""
-        piece = self.batch
+        """(N, n) float64 residuals of (N, T, V, 3) frames, jitted over pieces of one batch (XLA
+        spreads each piece over the cores), or of the narrow batch for a few points (as the batched
+        simulator runs them: a local search's calls hold a few points, and residuals of padded
+        copies cost as much as real ones; a point cloud's cost as much as its simulation)."""
         n_pts = len(frames)
+        narrow = max(1, self.batch // 4)
+        piece = narrow if n_pts <= narrow else self.batch
         pad = -n_pts % piece
         x = np.concatenate([frames, np.repeat(frames[-1:], pad, axis=0)]) if pad else frames
+        dtype = self.prob.sim.dtype
+        res = self.residual
+        t = x.shape[1]
+        size = self.chunk_frames or t
         out = []
         for i in range(0, len(x), piece):
-            out.append(np.asarray(self._res_fn(jnp.asarray(x[i:i + piece], self.prob.sim.dtype)), np.float64))
+            cols = []
+            for a in range(0, t, size):
+                c = min(size, t - a)
+                key = (piece, c, res.kind, res.normalisation, res.scale2)
+                if key not in self._res_fns:
+                    self._res_fns[key] = jax.jit(jax.vmap(res.frame_fn, in_axes=(0, None)))
+                cols.append(np.asarray(self._res_fns[key](jnp.asarray(x[i:i + piece, a:a + c], dtype),
+                                                          jnp.asarray(res.data[a:a + c], dtype)), np.float64))
+            out.append(np.concatenate(cols, axis=1) * res.norm)
         return np.concatenate(out)[:n_pts]
 
     def _frames(self, thetas, n):

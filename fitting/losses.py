@@ -278,6 +278,11 @@ class Residual(NamedTuple):
       fn: ``frames (T, V, 3) -> (n,)`` normalised residuals with sum(r²) = the loss (jax).
       n: number of residuals; kind, scale2, normalisation: as in :class:`Loss`.
       per_frame: residuals per frame (3 V for positions, M for points).
+      frame_fn: ``(frames (C, V, 3), data (C, M, 3)) -> (C * per_frame,)`` the same residuals of any
+        C frames against their target data, before the normalisation (m): frames are independent,
+        so residuals of a target's frames in chunks are the residuals of the whole (one compiled
+        function serves every horizon of a fit).
+      norm: the normalisation, 1 / sqrt(T M s²); data: (T, M, 3) float64 target frames.
     """
 
     fn: Callable
@@ -286,42 +291,81 @@ class Residual(NamedTuple):
     scale2: float
     normalisation: str
     per_frame: int
+    frame_fn: Callable = None
+    norm: float = 1.0
+    data: object = None
 
 
-def edge_wings(faces):
-    """The dihedral stencil of a closed, consistently wound mesh: (E, 4) int32 rows (a, b, c, d),
-    one per unique edge a-b, with c the third corner of the face that runs a -> b and d that of
-    the face that runs b -> a."""
+def curvature_tables(faces, n_vertices):
+    """The stencil of :func:`vertex_mean_curvature` for a closed, outward-wound mesh: (faces
+    (F, 3); wings (E, 4): per unique edge a-b, with c the third corner of the face running a -> b
+    and d that of the face running b -> a; vertex_edges (V, K) and vertex_faces (V, K): each
+    vertex's edges and faces, padded with E and F, which index an appended zero)."""
     faces = np.asarray(faces, np.int64)
     third = {}
     for f in faces:
         for i in range(3):
             third[(int(f[i]), int(f[(i + 1) % 3]))] = int(f[(i + 2) % 3])
-    rows = [(a, b, c, third[(b, a)]) for (a, b), c in third.items() if a < b and (b, a) in third]
-    return np.asarray(rows, np.int32).reshape(-1, 4)
+    wings = np.asarray([(a, b, c, third[(b, a)]) for (a, b), c in third.items() if a < b and (b, a) in third],
+                       np.int64).reshape(-1, 4)
+    ve = [[] for _ in range(n_vertices)]
+    for e, (a, b) in enumerate(wings[:, :2]):
+        ve[a].append(e)
+        ve[b].append(e)
+    vf = [[] for _ in range(n_vertices)]
+    for fi, f in enumerate(faces):
+        for v in f:
+            vf[int(v)].append(fi)
+
+    def pad(rows, fill):
+        k = max(1, max(len(r) for r in rows))
+        return np.asarray([r + [fill] * (k - len(r)) for r in rows], np.int32)
+
+    return faces.astype(np.int32), wings.astype(np.int32), pad(ve, len(wings)), pad(vf, len(faces))
 
 
-def vertex_mean_curvature(x, faces, wings):
-    """(V,) discrete mean curvature (1/m) of a closed mesh at every vertex, positive where the
-    surface is convex: a quarter of the sum over the vertex's edges of length x signed dihedral
-    angle, over a third of the area of its faces (1/R on a sphere of radius R, 1/(2R) on a
-    cylinder; mean curvature is (k1 + k2) / 2).
+def vertex_mean_curvature(x, tables):
+    """(..., V) discrete mean curvature (1/m) of a closed mesh at every vertex of x (..., V, 3),
+    positive where the surface is convex: a quarter of the sum over the vertex's edges of length x
+    signed dihedral angle, over a third of the area of its faces (1/R on a sphere of radius R,
+    1/(2R) on a cylinder; mean curvature is (k1 + k2) / 2).
 
-    Args: x (V, 3) positions; faces (F, 3) outward faces; wings (E, 4) (:func:`edge_wings`).
+    Each edge's angle and each face's area is computed once, and the sums over a vertex's edges
+    and faces are gathers (a scatter is slow on a CPU). It runs on components laid out (3, V,
+    frames), so that every gather moves rows of frames: 7x faster on a CPU than the same
+    arithmetic vmapped over frames.
+
+    Args: x (..., V, 3) positions; tables: :func:`curvature_tables` of the mesh.
     """
-    faces, wings = jnp.asarray(faces), jnp.asarray(wings)
-    a, b, c, d = (x[wings[:, i]] for i in range(4))
-    e = b - a
-    n1, n2 = jnp.cross(e, c - a), jnp.cross(d - a, e)        # outward normals of the two wings
-    sin = jnp.sum(jnp.cross(n1, n2) * e, axis=-1) / jnp.maximum(jnp.linalg.norm(e, axis=-1), 1e-30)
-    theta = jnp.arctan2(sin, jnp.sum(n1 * n2, axis=-1))     # > 0 where the edge is convex
-    w = 0.25 * jnp.linalg.norm(e, axis=-1) * theta
-    n = x.shape[0]
-    num = jnp.zeros(n, x.dtype).at[wings[:, 0]].add(w).at[wings[:, 1]].add(w)
-    fa = x[faces]
-    area = 0.5 * jnp.linalg.norm(jnp.cross(fa[:, 1] - fa[:, 0], fa[:, 2] - fa[:, 0]), axis=-1) / 3.0
-    den = jnp.zeros(n, x.dtype).at[faces[:, 0]].add(area).at[faces[:, 1]].add(area).at[faces[:, 2]].add(area)
-    return num / jnp.maximum(den, jnp.finfo(x.dtype).tiny)
+    faces, wings, vertex_edges, vertex_faces_ = (np.asarray(t) for t in tables)
+    lead = x.shape[:-2]
+    comp = jnp.transpose(x.reshape((-1,) + x.shape[-2:]), (2, 1, 0))      # (3, V, N)
+    xs = tuple(comp[k] for k in range(3))                                  # 3 x (V, N)
+
+    def at(idx):
+        return tuple(c[idx] for c in xs)
+
+    def sub(u, v):
+        return tuple(p - q for p, q in zip(u, v))
+
+    def cross(u, v):
+        return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
+
+    def dot(u, v):
+        return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+    a, b, c, d = (at(wings[:, i]) for i in range(4))
+    e = sub(b, a)
+    n1, n2 = cross(e, sub(c, a)), cross(sub(d, a), e)           # outward normals of the two wings
+    length = jnp.sqrt(dot(e, e))
+    theta = jnp.arctan2(dot(cross(n1, n2), e) / jnp.maximum(length, 1e-30), dot(n1, n2))  # > 0: convex
+    zero = jnp.zeros((1,) + theta.shape[1:], x.dtype)
+    w = jnp.concatenate([0.25 * length * theta, zero])
+    p, q, r = (at(faces[:, i]) for i in range(3))
+    n = cross(sub(q, p), sub(r, p))
+    third = jnp.concatenate([jnp.sqrt(dot(n, n)) / 6.0, zero])          # a third of each face's area
+    h = w[vertex_edges].sum(axis=1) / jnp.maximum(third[vertex_faces_].sum(axis=1), jnp.finfo(x.dtype).tiny)
+    return jnp.moveaxis(h, -1, 0).reshape(lead + (x.shape[-2],))
 
 
 def make_residual(target, topology, loss):
@@ -330,9 +374,8 @@ def make_residual(target, topology, loss):
     t, m = data.shape[:2]
     norm = 1.0 / np.sqrt(t * m * loss.scale2)
     if target.kind == "positions":
-        def fn(frames):
-            y = jnp.asarray(data, frames.dtype)
-            return ((frames - y) * jnp.asarray(norm, frames.dtype)).reshape(-1)
+        def frame_fn(frames, y):
+            return (frames - y).reshape(-1)
         per_frame = 3 * m
     else:
         faces = np.asarray(topology.faces, np.int32)
@@ -344,19 +387,21 @@ def make_residual(target, topology, loss):
         # average (H the mean curvature there): each distance has that expected offset taken off,
         # with H of the simulated frame at the point's nearest vertex (else a convex shape's fit
         # leans to whatever inflates it or rounds it off)
-        wings = edge_wings(faces)
+        curv = curvature_tables(faces, topology.n_vertices)
         sigma2 = float(loss.scale2) if loss.normalisation == "noise" else 0.0
 
-        def one(x, p):
+        def one(x, p, h):
             near = nearest_vertices_walk(x, p, coarse, ring)
             d = point_surface_signed_distance(x, p, faces, vf, near)
-            if not sigma2:
-                return d
-            return d - jnp.asarray(sigma2, x.dtype) * vertex_mean_curvature(x, faces, wings)[near]
+            return d if h is None else d - jnp.asarray(sigma2, x.dtype) * h[near]
 
-        def fn(frames):
-            y = jnp.asarray(data, frames.dtype)
-            d = jax.vmap(one)(frames, y)
-            return (d * jnp.asarray(norm, frames.dtype)).reshape(-1)
+        def frame_fn(frames, y):
+            if sigma2:
+                return jax.vmap(one)(frames, y, vertex_mean_curvature(frames, curv)).reshape(-1)
+            return jax.vmap(lambda x, p: one(x, p, None))(frames, y).reshape(-1)
         per_frame = m
-    return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame)
+
+    def fn(frames):
+        return frame_fn(frames, jnp.asarray(data, frames.dtype)) * jnp.asarray(norm, frames.dtype)
+    return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame,
+                    frame_fn=frame_fn, norm=float(norm), data=data)
