@@ -214,8 +214,8 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
             first = run
             prob, note = replanned
             notes = list(notes) + [note]
-            local = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
-            run, ev = lmfit.run(prob, box, local, progress=progress, callback=user_cb, start=first.best.theta)
+            local_only = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
+            run, ev = lmfit.run(prob, box, local_only, progress=progress, callback=user_cb, start=first.best.theta)
             run.evaluations += first.evaluations
             run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
     except KeyboardInterrupt:

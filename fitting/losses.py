@@ -332,8 +332,9 @@ def vertex_mean_curvature(x, tables):
 
     Each edge's angle and each face's area is computed once, and the sums over a vertex's edges
     and faces are gathers (a scatter is slow on a CPU). It runs on components laid out (3, V,
-    frames), so that every gather moves rows of frames: 7x faster on a CPU than the same
-    arithmetic vmapped over frames.
+    frames), so that every gather moves rows of frames: on 1600 frames of a 642-vertex mesh,
+    0.27 s against 0.66 s for the same arithmetic vmapped over frames (0.09 s of it without the
+    transposes in and out).
 
     Args: x (..., V, 3) positions; tables: :func:`curvature_tables` of the mesh.
     """
