@@ -521,11 +521,24 @@ def _make_force_fn(topo, terms, temperature):
 
 # --------------------------------------------------------------------------- rollout
 
+def lanes(state):
+    """The number of points (lanes) an internal state holds: its positions' last axis."""
+    return int(state.x[0].shape[-1])
+
+
+def take_lanes(tree, m):
+    """The first ``m`` lanes of a batched pytree whose leaves carry the batch on their last axis
+    (params (O, B), an internal state's (V, B) components)."""
+    return jax.tree_util.tree_map(lambda a: a[..., :m], tree)
+
+
 def initial_health(bsim, state, step0=0):
-    """A fresh :class:`jaxplush.stepping.rollouts.Health` (batched) for ``state`` (internal) at step ``step0`` (scalar or (B,))."""
-    shape = (bsim.topology.n_objects, bsim.batch)
+    """A fresh :class:`jaxplush.stepping.rollouts.Health` (batched) for ``state`` (internal, any
+    number of lanes) at step ``step0`` (scalar or per lane)."""
+    b = lanes(state)
+    shape = (bsim.topology.n_objects, b)
     neg = jnp.full(shape, -1, jnp.int32)
-    good_step = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (bsim.batch,))
+    good_step = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (b,))
     return Health(jnp.zeros(shape, jnp.int32), neg, neg, state, good_step)
 
 
@@ -652,10 +665,12 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     """Run ``n_frames * save_every`` steps of every point, checking health every ``save_every``.
 
     Compiled once per (simulator, n_frames, save_every, observe); new parameter values, states
-    or ``aux`` reuse it. The batch runs as ceil(batch / bsim.chunk) independent chunks (the last
-    one padded with copies of the last point), one compiled call each, dispatched from a pool of
-    threads (one per CPU core) so that they run concurrently; points are independent, so the
-    result is that of one call on the whole batch (to rounding).
+    or ``aux`` reuse it. The B points (lanes) run as ceil(B / bsim.chunk) independent chunks (the
+    last one padded with copies of the last point), one compiled call each, dispatched from a pool
+    of threads (one per CPU core) so that they run concurrently; points are independent, so the
+    result is that of one call on the whole batch (to rounding). B is the state's lane count
+    (:func:`lanes`): ``bsim.batch``, or any other number (:func:`take_lanes` of a full batch),
+    with no new compile.
 
     Args:
       bsim: :class:`BatchedSimulator`.
@@ -675,14 +690,19 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     """
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
-    step0 = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (bsim.batch,))
+    batch = lanes(state)
+    step0 = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (batch,))
     if health is None:
         health = initial_health(bsim, state, step0)
     static = dict(n_frames=int(n_frames), save_every=int(save_every), observe=observe)
-    n = -(-bsim.batch // (bsim.chunk or bsim.batch))
-    if n == 1:
+    chunk = bsim.chunk or bsim.batch
+    n = -(-batch // chunk)
+    if batch == chunk:
         return _core_jit(bsim, params, state, health, step0, aux, **static)
-    parts = _split((params, state, health, step0), n, bsim.chunk)
+    # any other number of lanes runs as chunks of the compiled width (the last one padded): one
+    # compiled core serves every lane count, so a call of a few points costs what its chunks do,
+    # not the whole batch
+    parts = _split((params, state, health, step0), n, chunk)
     out = [None] * n
     todo = iter(range(1, n))
     lock = threading.Lock()
@@ -703,7 +723,7 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     work()
     for h in helpers:
         h.result()
-    return _join(out, bsim.batch)
+    return _join(out, batch)
 
 
 def positions_observer(params, i, x, aux):

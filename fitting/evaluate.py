@@ -321,7 +321,12 @@ class Evaluator:
             p = bsim.params(Params(*(np.stack([np.asarray(getattr(values[i], f), np.float64) for i in idx], axis=1)
                                      for f in Params._fields)))
             state = init(p) if x0 is None else init(p, np.asarray(x0)[idx], np.asarray(v0)[idx])
-            first = 0 if step0 is None else np.asarray(step0, np.int64)[idx]
+            # only as many lanes as whole chunks need: the same compiled rollout runs them (17
+            # points in a batch of 32 and chunks of 8 cost 3 chunks, not 4)
+            m = min(b, -(-live // bsim.chunk) * bsim.chunk)
+            if m < b:
+                p, state = batched.take_lanes((p, state), m)
+            first = 0 if step0 is None else np.asarray(step0, np.int64)[idx[:m]]
             health = batched.initial_health(bsim, state, first)
             chunks = []
             done = 0

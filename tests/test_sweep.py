@@ -217,6 +217,27 @@ def test_rollout_in_concurrent_chunks_matches_one_call():
     np.testing.assert_allclose(batched.positions(h3.good_state), batched.positions(h1.good_state), rtol=0, atol=1e-6)
 
 
+def test_fewer_lanes_than_the_batch_run_as_its_chunks_with_no_new_compile():
+    # a simulator built for 8 points in chunks of 2 runs 3 of them (its first lanes): the same
+    # compiled core (2 chunks, the last padded), the same frames and health as those lanes of the
+    # whole batch
+    scene = _ball()
+    ks = np.array([[150.0, 200.0, 250.0, 300.0, 350.0, 400.0, 450.0, 500.0]])
+    bsim = batched.make_batched_simulator(scene, DT, 8, chunk=2)
+    pb = bsim.params(scene.params._replace(k_structural=ks))
+    state = bsim.init_fn(pb)
+    full_x, full_f, full_h = batched.rollout(bsim, pb, state, 3, 20, observe=batched.positions_observer)
+    n0 = batched._core_jit._cache_size()
+    p3, s3 = batched.take_lanes((pb, state), 3)
+    assert batched.lanes(s3) == 3
+    x3, f3, h3 = batched.rollout(bsim, p3, s3, 3, 20, observe=batched.positions_observer)
+    assert batched._core_jit._cache_size() == n0                   # no new compilation
+    assert np.asarray(f3).shape == (3, 3, scene.n_vertices, 3)
+    np.testing.assert_array_equal(np.asarray(f3), np.asarray(full_f)[:, :3])
+    np.testing.assert_array_equal(batched.positions(x3), batched.positions(full_x)[:3])
+    np.testing.assert_array_equal(np.asarray(h3.code), np.asarray(full_h.code)[:, :3])
+
+
 def test_default_chunk_splits_large_batches():
     for b in (1, 7, 16, 17, 33, 64, 100):
         c = batched.default_chunk(b)
