@@ -95,6 +95,10 @@ class LocalOptions:
       noise_stop: ... or when the Gauss-Newton step is at most this fraction of every parameter's
         standard error (residual variance x (JᵀJ)⁻¹): further steps move the result by less than its noise;
       noise_stop_h: ... judged only with a difference step at most this small (a local Jacobian).
+      resolve_h: the step of a second Jacobian at the optimum, taken when the search's own (at
+        its last step, often ``h_min``) leaves a parameter combination within its rounding
+        noise: the report then rests on this one (rounding weighs h / resolve_h as much), and
+        only combinations that a step of this size cannot tell from rounding are undetermined.
     """
 
     keep: int = 2
@@ -113,6 +117,7 @@ class LocalOptions:
     pred_tol: float = 1e-4
     noise_stop: float = 0.1
     noise_stop_h: float = 0.02
+    resolve_h: float = 0.01
 
 
 @dataclasses.dataclass(frozen=True)
