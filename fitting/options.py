@@ -82,9 +82,7 @@ class LocalOptions:
       start_distance: the global stage's candidates that start searches lie at least this
         fraction of the box's widest side apart (max-norm).
       max_rescues: restarts from an axis scan (:func:`jaxplush.fitting.search.rescue`) per search and stage.
-      scan_points: points of an axis scan across the box, in all (at least 4 per parameter).
-      scan_near: offsets (log space) of the axis scan's points on either side of the stalled
-        point, on every axis: a minimum a few percent away, too narrow for the box scan.
+      scan_points: points of an axis scan, in all (at least 4 per parameter).
       rescue_gain: a scan point must lower the loss by this fraction to restart a search there.
       h_min, h_max: smallest and largest central-difference step of the Jacobian (the step is
         the trust radius / 4, clipped to them).
@@ -109,7 +107,6 @@ class LocalOptions:
     start_distance: float = 0.1
     max_rescues: int = 2
     scan_points: int = 30
-    scan_near: tuple = (0.01, 0.03, 0.1)
     rescue_gain: float = 1e-3
     h_min: float = 1e-3
     h_max: float = 0.05

@@ -294,31 +294,21 @@ def _steps(jac, r, mus, radius, box, theta):
     return out
 
 
-def scan_points(box, theta, n_total=_LOCAL.scan_points, near=_LOCAL.scan_near):
-    """Points on lines through theta along each parameter's axis: across the whole box, and at
-    the offsets ``near`` on either side of theta (log space; inside the box):
-    (points (M, *theta.shape), the trust radius (M,) a search restarted at each would take: the
-    box scan's spacing on its axis, or the offset), ``n_total`` box points in all (split evenly
-    over the parameters; one batch of the evaluator with the offsets), at least 4 per axis."""
+def scan_points(box, theta, n_total=_LOCAL.scan_points):
+    """Points on lines through theta along each parameter's axis across the whole box:
+    (points (M, *theta.shape), spacing per axis (P,)), ``n_total`` in all (split evenly over the
+    parameters; one batch of the evaluator), at least 4 per axis."""
     flat = np.asarray(theta, np.float64).ravel()
     lo, hi = box.lo.ravel(), box.hi.ravel()
     per = max(4, n_total // flat.size)
-    pts, radius = [], []
+    pts, spacing = [], []
     for j in range(flat.size):
-        spacing = (hi[j] - lo[j]) / (per - 1)
         for v in np.linspace(lo[j], hi[j], per):
             t = flat.copy()
             t[j] = v
             pts.append(t.reshape(np.shape(theta)))
-            radius.append(spacing)
-        for d in near:
-            for v in (flat[j] - d, flat[j] + d):
-                if lo[j] <= v <= hi[j]:
-                    t = flat.copy()
-                    t[j] = v
-                    pts.append(t.reshape(np.shape(theta)))
-                    radius.append(float(d))
-    return np.asarray(pts), np.asarray(radius)
+        spacing.append((hi[j] - lo[j]) / (per - 1))
+    return np.asarray(pts), np.asarray(spacing)
 
 
 def rescue(evaluator, box, states, limit=2, options=None):
@@ -326,26 +316,24 @@ def rescue(evaluator, box, states, limit=2, options=None):
 
     A search stalls when no step down to ``xtol`` lowers the loss although the gradient is not
     small: the loss of a body in hard floor contact jumps where a contact event moves by a step,
-    and the search stands on such a jump, not at an optimum; or the Jacobian's column of a
-    weakly determined parameter is rounding (a chaotic motion), so its steps along it are noise.
-    Every stalled state gets one scan along each parameter's axis, across the box and at the
-    offsets ``scan_near`` of ``options`` (:class:`LocalOptions`; :func:`scan_points`, all
-    states in one evaluation); where a scan point is lower by more than ``rescue_gain`` of the
-    loss, the search restarts there with that point's radius as its trust radius (the jump goes
-    into its history). A search is restarted at most ``limit`` times, and is not scanned again
-    once a scan found nothing lower. Returns the states restarted."""
+    and the search stands on such a jump, not at an optimum. Every stalled state gets one scan
+    across the box along each parameter's axis (:func:`scan_points`, all states in one
+    evaluation); where a scan point is lower by more than ``rescue_gain`` of ``options``
+    (:class:`LocalOptions`; its ``scan_points`` size the scan), the search restarts
+    there with the scan's spacing as its trust radius (the jump goes into its history). A search
+    is restarted at most ``limit`` times, and is not scanned again once a scan found nothing
+    lower. Returns the states restarted."""
     o = options or _LOCAL
     states = [st for st in states if st.stopped == Stop.STALLED and st.rescues < limit]
     if not states:
         return []
-    pts, owner, radius = [], [], []
+    pts, owner, spacing = [], [], []
     for i, st in enumerate(states):
-        p, rad = scan_points(box, st.theta, o.scan_points, o.scan_near)
+        p, sp = scan_points(box, st.theta, o.scan_points)
         pts.append(p)
         owner += [i] * len(p)
-        radius.append(rad)
+        spacing.append(sp)
     pts = np.concatenate(pts)
-    radius = np.concatenate(radius)
     ev = evaluator(pts)
     owner = np.asarray(owner)
     restarted = []
@@ -356,14 +344,14 @@ def rescue(evaluator, box, states, limit=2, options=None):
         loss = np.where(ev.ok[idx], ev.loss[idx], np.inf)
         j = int(idx[np.argmin(loss)])
         if not (ev.loss[j] < (1.0 - o.rescue_gain) * st.loss):
-            st.reason += "; an axis scan (across the box and nearby) found nothing lower"
+            st.reason += "; an axis scan across the box found nothing lower"
             st.rescues = limit
             continue
         old = st.loss
         st.theta = pts[j].copy()
         st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
         st.jac, st.mu = None, o.mu0
-        st.radius = float(radius[j])
+        st.radius = float(np.max(spacing[i]))
         st.done, st.stopped = False, Stop.NONE
         st.reason = f"restarted from an axis scan (loss {old:.4g} -> {st.loss:.4g})"
         st.history.append((st.loss, st.theta.copy()))

@@ -204,47 +204,6 @@ def test_a_search_stalled_on_a_jump_restarts_from_an_axis_scan():
     assert S.rescue(ev, box, [st], limit=2) == [] and st.evaluations == 1 + len(S.scan_points(box, st.theta)[0])
 
 
-class _NarrowWell:
-    """An evaluator stand-in: residual 0.3 everywhere but in a well of half-width 0.02 (log space)
-    at theta = 0.04, where it falls linearly to 0: a minimum a few percent from a stalled point
-    (as a weakly determined parameter's, whose Jacobian column is rounding), between the points
-    of an axis scan across the box."""
-
-    class residual:
-        n = 1
-
-    def substeps_for(self, thetas):
-        return np.ones(len(thetas), int)
-
-    def __call__(self, thetas, substeps=None):
-        from jaxplush.fitting.evaluate import Evaluation
-        t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)[:, :1]
-        r = 0.3 * np.minimum(np.abs(t - 0.04) / 0.02, 1.0)
-        n = len(thetas)
-        return Evaluation(r, np.sum(r ** 2, axis=1), np.ones(n, bool), np.ones(n, int), np.zeros(n, bool))
-
-
-def test_the_axis_scan_of_a_stalled_search_looks_nearby_too():
-    from jaxplush.fitting import options as O, search as S
-    ev, box = _NarrowWell(), S.Box(np.array([[-2.0]]), np.array([[2.0]]))
-
-    def stalled():
-        st = S.start_states(ev, np.array([[[0.0]]]))[0]
-        st.done, st.stopped = True, "stalled"
-        return st
-
-    # the scan across the box alone steps over the well
-    st = stalled()
-    assert S.rescue(ev, box, [st], limit=2, options=O.LocalOptions(scan_near=())) == [] and st.done
-    # with the offsets (1%, 3%, 10% in log space) it lands in it and restarts with that radius
-    st = stalled()
-    assert S.rescue(ev, box, [st], limit=2) == [st] and not st.done, st.reason
-    assert st.theta[0, 0] == pytest.approx(0.03) and st.radius == pytest.approx(0.03) and st.loss < 0.03
-    while not st.done:
-        S.lm_round(ev, box, [st], max_iter=40)
-    assert abs(st.theta[0, 0] - 0.04) < 1e-3, (st.theta, st.reason)
-
-
 class _RippledResiduals:
     """An evaluator stand-in: residuals of a linear model with noise, r = A (theta - t) + e, plus a
     ripple q sin(2 pi theta_0 / lam) cos(2 pi theta_1 / lam) whose wavelength is a third of the
