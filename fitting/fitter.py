@@ -279,8 +279,8 @@ def _resolve_again(prob, box, run, ev, local, report, drift, factor, notes):
     (every parameter within 0.01%) were called undetermined. A step 10x larger carries a tenth
     of that noise and still truncates at about h²: what it cannot resolve is not determined to
     about a percent."""
-    from jaxplush.fitting.search import jacobian
-    h = float(local.resolve_h)
+    from jaxplush.fitting.search import fd_step, jacobian
+    h = fd_step(4.0 * float(local.resolve_h), local)        # the step jacobian() takes: within [h_min, h_max]
     if drift is None or not h > float(run.jac_step):
         return report
     best = run.best

@@ -609,7 +609,7 @@ def test_a_combination_the_search_step_cannot_resolve_is_measured_again_at_a_lar
     a combination whose effect is within 3x that noise is unresolved there. The report then
     takes a second Jacobian at ``resolve_h`` (1e-2), where the noise is 10x smaller: a weak but
     real combination (here a unit step along it moves the residuals by 2% of the strong
-    ones', 7x the noise at 1e-2 and 0.7x at 1e-3) is resolved and its parameters determined; an
+    ones', 7.5x the noise at 1e-2 and 0.75x at 1e-3) is resolved and its parameters determined; an
     exactly degenerate pair (two equal columns) stays unresolved at any step."""
     from types import SimpleNamespace
     from jaxplush.fitting import identifiability as I, options as O, search as S
