@@ -542,8 +542,30 @@ def initial_health(bsim, state, step0=0):
     return Health(jnp.zeros(shape, jnp.int32), neg, neg, state, good_step)
 
 
-def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe):
+def contact_pairs(bsim):
+    """The object pairs (a, b) with soft-soft contact between them (() without it)."""
+    cfg = bsim.terms.contact
+    return tuple(cfg.pairs) if cfg is not None and cfg.pairs else ()
+
+
+def _pair_separation(bsim, x):
+    """(n_pairs, B) separation of every contact pair's bounding boxes (the largest gap along an
+    axis; negative where they overlap) at internal positions x (3 (V, B) arrays). An object's
+    surface lies within its vertices' box, so every point of one object is at least this far
+    from the other's surface."""
+    slices = bsim.topology.vertex_slices
+    lo = [[xc[a:b].min(axis=0) for xc in x] for a, b in slices]
+    hi = [[xc[a:b].max(axis=0) for xc in x] for a, b in slices]
+    seps = []
+    for a, b in contact_pairs(bsim):
+        gap = [jnp.maximum(lo[b][c] - hi[a][c], lo[a][c] - hi[b][c]) for c in range(3)]
+        seps.append(jnp.maximum(jnp.maximum(gap[0], gap[1]), gap[2]))
+    return jnp.stack(seps)
+
+
+def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe, separation=False):
     coherent = bsim.coherent
+    track = bool(separation) and bool(contact_pairs(bsim))
     if coherent is None:
         def one(s, cache):
             return bsim.step_fn(params, s), cache
@@ -565,6 +587,10 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
         unfold = lambda st: State(tuple(a.reshape(v, b) for a in st.x), st.v)              # noqa: E731
 
         def body(c, _):
+            if track:                  # the closest the pairs' boxes came, after every step
+                (cache, sep) = c[1]
+                s, cache = one(unfold(c[0]), cache)
+                return (fold(s), (cache, jnp.minimum(sep, _pair_separation(bsim, s.x)))), None
             s, cache = one(unfold(c[0]), c[1])
             return (fold(s), cache), None
         s, cache = jax.lax.scan(body, (fold(s), cache), None, length=save_every)[0]
@@ -573,6 +599,8 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
     def frame(carry, i):
         s, cache, h = carry
         s, cache = steps(s, cache)
+        if track:
+            cache, sep = cache
         step = step0 + (i + 1) * save_every                                  # (B,)
         if coherent is None:
             code = bsim.status_fn(params, s.x)
@@ -582,9 +610,14 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
                                              cache.overflow.T)
         h = h.advance(code, step, s)
         out = None if observe is None else observe(params, i, s.x, aux)
-        return (s, cache, h), out
+        return (s, (cache, sep) if track else cache, h), out
 
-    (state, _, health), out = jax.lax.scan(frame, (state, cache0, health), jnp.arange(n_frames, dtype=jnp.int32))
+    if track:
+        cache0 = (cache0, _pair_separation(bsim, state.x))
+    (state, cache, health), out = jax.lax.scan(frame, (state, cache0, health), jnp.arange(n_frames, dtype=jnp.int32))
+    if separation:
+        sep = cache[1] if track else jnp.full((0, lanes(state)), jnp.inf, state.x[0].dtype)
+        return state, out, health, sep
     return state, out, health
 
 
@@ -623,7 +656,7 @@ class _LazyJit:
         return getattr(self._get(), name)
 
 
-_core_jit = _LazyJit(_core, ("bsim", "n_frames", "save_every", "observe"))
+_core_jit = _LazyJit(_core, ("bsim", "n_frames", "save_every", "observe", "separation"))
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2))
@@ -640,13 +673,17 @@ def _split(tree, n, chunk):
 
 @functools.partial(jax.jit, static_argnums=1)
 def _join(parts, batch):
-    """Inverse of _split for rollout outputs (padding dropped): state and health leaves joined on
-    their last axis, observations (frames first, then the batch) on axis 1."""
+    """Inverse of _split for rollout outputs (padding dropped): state and health leaves (and the
+    separations, if any) joined on their last axis, observations (frames first, then the batch)
+    on axis 1."""
     def cat(axis):
         return lambda *a: jax.lax.slice_in_dim(jnp.concatenate(a, axis=axis), 0, batch, axis=axis)
-    (states, outs, healths) = zip(*parts)
+    (states, outs, healths) = list(zip(*parts))[:3]
     out = None if outs[0] is None else jax.tree_util.tree_map(cat(1), *outs)
-    return (jax.tree_util.tree_map(cat(-1), *states), out, jax.tree_util.tree_map(cat(-1), *healths))
+    joined = (jax.tree_util.tree_map(cat(-1), *states), out, jax.tree_util.tree_map(cat(-1), *healths))
+    if len(parts[0]) > 3:
+        joined += (cat(-1)(*[p[3] for p in parts]),)
+    return joined
 
 
 _pool_lock = threading.Lock()
@@ -661,7 +698,8 @@ def _executor():
         return _pool
 
 
-def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0, observe=None, aux=None):
+def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0, observe=None, aux=None,
+            separation=False):
     """Run ``n_frames * save_every`` steps of every point, checking health every ``save_every``.
 
     Compiled once per (simulator, n_frames, save_every, observe); new parameter values, states
@@ -684,9 +722,14 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
         frames. Every output leaf must have the batch on its leading axis (as
         :func:`positions_observer`'s (B, V, 3)). Default: no per-frame output.
       aux: traced data passed to ``observe`` (e.g. target frames), shared by all points.
+      separation: also return, per soft-soft contact pair and point, the smallest separation of
+        the two objects' bounding boxes over every step of the call, its start included
+        (:func:`contact_pairs` order; (0, B) without such pairs): where it exceeds a pair's
+        contact reach, neither object felt the other.
 
     Returns:
-      (final internal state, stacked observations (frames, B, ...) or None, health).
+      (final internal state, stacked observations (frames, B, ...) or None, health), and the
+      separations ((n_pairs, B)) with ``separation``.
     """
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
@@ -694,7 +737,7 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     step0 = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (batch,))
     if health is None:
         health = initial_health(bsim, state, step0)
-    static = dict(n_frames=int(n_frames), save_every=int(save_every), observe=observe)
+    static = dict(n_frames=int(n_frames), save_every=int(save_every), observe=observe, separation=bool(separation))
     chunk = bsim.chunk or bsim.batch
     n = -(-batch // chunk)
     if batch == chunk:

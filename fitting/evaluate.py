@@ -56,6 +56,11 @@ class Evaluation(NamedTuple):
       substeps: (N,) int, the substeps it ran with.
       clamped: (N,) bool, the volume clamp was active at a target frame.
       frames: (N, T, V, 3) float64 simulated positions at the target frames, if asked for.
+      separation: (N,) float64, with soft-soft contact between several objects on the batched
+        simulator: the closest the bounding boxes of any contact pair came over every step of the
+        run, in units of that pair's contact reach (2 thicknesses); NaN where not measured (a
+        point run one at a time), None without such pairs. Above 1 + CLEARANCE_SAFETY
+        (:mod:`jaxplush.fitting.objects`), no object felt another.
     """
 
     residuals: np.ndarray
@@ -64,6 +69,7 @@ class Evaluation(NamedTuple):
     substeps: np.ndarray
     clamped: np.ndarray
     frames: np.ndarray | None = None
+    separation: np.ndarray | None = None
 
 
 def _runs(steps):
@@ -125,6 +131,12 @@ class Evaluator:
         self.evaluations = 0          # points run (each substep retry counted)
         self.colour_misses = 0        # coloured Jacobian stencils that came near contact (search.py)
         self._owners = False          # residual owners, computed on first use (:meth:`owners`)
+        # per contact pair, its reach (2 thicknesses): the batched runs measure how close pairs
+        # come, in these units (Evaluation.separation)
+        cfg = sim.terms.contact
+        self._contact = self.batched and cfg is not None and bool(cfg.pairs)
+        self._reach = (2.0 * np.asarray(cfg.thickness, np.float64)[:, None]
+                       if self.batched and len(prob.objects) > 1 and cfg is not None and cfg.pairs else None)
 
     # ------------------------------------------------------------------ stability
 
@@ -182,18 +194,21 @@ class Evaluator:
         res = np.full((n_pts, self.residual.n), np.nan)
         ok = np.zeros(n_pts, bool)
         clamped = np.zeros(n_pts, bool)
+        separation = None if self._reach is None else np.full(n_pts, np.nan)
         frames = None
         todo = np.arange(n_pts)
         while todo.size:
             retry = []
             for n in np.unique(subs[todo]):
                 idx = todo[subs[todo] == n]
-                fr, good, clamp = self._frames(thetas[idx], int(n))
+                fr, good, clamp, sep = self._frames(thetas[idx], int(n))
                 if good.any():
                     r = self._residuals(fr[good])
                     res[idx[good]] = r
                     ok[idx[good]] = np.isfinite(r).all(axis=1)
                     clamped[idx[good]] = clamp[good]
+                    if separation is not None:
+                        separation[idx[good]] = sep[good]
                     if keep_frames:
                         if frames is None:
                             frames = np.full((n_pts,) + fr.shape[1:], np.nan)
@@ -205,7 +220,7 @@ class Evaluator:
             todo = np.asarray(retry, np.int64)
         loss = np.where(ok, np.sum(np.where(np.isfinite(res), res, 0.0) ** 2, axis=1), np.inf)
         res[~ok] = np.nan
-        return Evaluation(res, loss, ok, subs, clamped, frames)
+        return Evaluation(res, loss, ok, subs, clamped, frames, separation)
 
     # ------------------------------------------------------------------ per-object structure
 
@@ -220,13 +235,53 @@ class Evaluator:
                             and prob.target.kind == "positions" else None)
         return self._owners
 
-    def clear(self, residuals):
+    def colourable(self):
+        """Whether coloured Jacobian stencils (:func:`jaxplush.fitting.search.jacobian`) can serve this
+        problem: several fitted objects, and residuals that each belong to one of them, fixed for
+        a position target (:meth:`owners`), or read off each run's frames for a point cloud
+        (:meth:`point_owners`)."""
+        return len(self.prob.objects) > 1 and (self.owners() is not None or self.residual.near_fn is not None)
+
+    def point_owners(self, frames):
+        """(N, n) for a point-cloud target: the fitted object (an index into ``prob.objects``; -1: an
+        object not fitted) of the vertex each point's residual is measured from, in N runs' frames
+        ((N, T, V, 3), as :meth:`__call__` keeps them). A point's residual depends on that object's
+        motion alone."""
+        res = self.residual
+        vobj = np.asarray(self.prob.sim.topology.vertex_object, np.int64)
+        fitted = np.full(int(vobj.max()) + 1, -1, np.int64)
+        fitted[list(self.prob.objects)] = np.arange(len(self.prob.objects))
+        x = np.asarray(frames)
+        t = x.shape[1]
+        size = self.chunk_frames or t
+        key = ("near", size)
+        if key not in self._res_fns:
+            self._res_fns[key] = jax.jit(res.near_fn)
+        dtype = self.prob.sim.dtype
+        out = np.empty((len(x), res.n), np.int64)
+        for i in range(len(x)):
+            cols = []
+            for a in range(0, t, size):
+                c = min(size, t - a)
+                xs, ys = x[i, a:a + c], res.data[a:a + c]
+                if c < size:                      # padded as in _residuals: one compiled function
+                    xs = np.concatenate([xs, np.repeat(xs[-1:], size - c, axis=0)])
+                    ys = np.concatenate([ys, np.repeat(ys[-1:], size - c, axis=0)])
+                near = np.asarray(self._res_fns[key](jnp.asarray(xs, dtype), jnp.asarray(ys, dtype)))
+                cols.append(near[:c * res.per_frame])
+            out[i] = fitted[vobj[np.concatenate(cols)]]
+        return out
+
+    def clear(self, residuals, separation=None):
         """(N,) whether, in the runs behind N rows of position residuals, no two objects came within
-        reach of contact (:func:`jaxplush.fitting.objects.clear_of_contact`; the frames are rebuilt
-        from the residuals and the target). Failed rows (NaN) are not clear."""
+        reach of contact: from the ``separation`` measured at every step where given and finite
+        (:class:`Evaluation`), else from the frames (:func:`jaxplush.fitting.objects.clear_of_contact`;
+        rebuilt from the residuals and the target). Failed rows (NaN) are not clear."""
         from jaxplush.fitting import objects as _objects
         prob = self.prob
         r = np.asarray(residuals, np.float64)
+        if separation is not None and np.isfinite(separation).all():
+            return np.isfinite(r).all(axis=1) & _objects.clear_by_separation(separation)
         data = np.asarray(prob.target.data, np.float64)
         t, m = data.shape[:2]
         frames = data[None] + r.reshape((len(r),) + data.shape) * np.sqrt(t * m * prob.loss.scale2)
@@ -252,28 +307,55 @@ class Evaluator:
             cols = []
             for a in range(0, t, size):
                 c = min(size, t - a)
-                key = (piece, c, res.kind, res.normalisation, res.scale2)
+                xs, ys = x[i:i + piece, a:a + c], res.data[a:a + c]
+                if c < size:
+                    # a last, shorter chunk padded to the chunk length with copies of its last frame
+                    # (one compiled function for every chunk); the padding's columns are dropped
+                    xs = np.concatenate([xs, np.repeat(xs[:, -1:], size - c, axis=1)], axis=1)
+                    ys = np.concatenate([ys, np.repeat(ys[-1:], size - c, axis=0)], axis=0)
+                key = (piece, size, res.kind, res.normalisation, res.scale2)
                 if key not in self._res_fns:
                     self._res_fns[key] = jax.jit(jax.vmap(res.frame_fn, in_axes=(0, None)))
-                cols.append(np.asarray(self._res_fns[key](jnp.asarray(x[i:i + piece, a:a + c], dtype),
-                                                          jnp.asarray(res.data[a:a + c], dtype)), np.float64))
+                r = np.asarray(self._res_fns[key](jnp.asarray(xs, dtype), jnp.asarray(ys, dtype)), np.float64)
+                cols.append(r[:, :c * res.per_frame])
             out.append(np.concatenate(cols, axis=1) * res.norm)
         return np.concatenate(out)[:n_pts]
 
     def _frames(self, thetas, n):
-        """(frames (N, T, V, 3) float64, ok (N,), clamped (N,)) at ``n`` substeps."""
+        """(frames (N, T, V, 3) float64, ok (N,), clamped (N,), separation (N,): NaN where not
+        measured) at ``n`` substeps."""
         self.evaluations += len(thetas)
         if self.batched:
             return self._frames_batched(thetas, n)
-        return self._frames_single(thetas, n)
+        return self._frames_single(thetas, n) + (np.full(len(thetas), np.nan),)
+
+    def _chunk(self):
+        """Points per compiled call of the batched simulator: 4 with soft-soft contact between
+        objects of at most :data:`LARGE_MESH` vertices in all, whose contact search runs faster in
+        chunks of 4 (measured: 56 against 68 us per point-step at 802 vertices, 32 points; at
+        1926 vertices, 16 points, chunks of 8 are faster: 190 against 210); else 8 with a dashpot
+        (which gathers velocities too: a chunk of 16 outgrows the caches) and 16 without
+        (benchmarks/RESULTS.md)."""
+        if self._contact and self.prob.scene.n_vertices <= LARGE_MESH:
+            return 4
+        return 8 if self.prob.sim.terms.dashpot else 16
+
+    def _width(self, left):
+        """The batch width of a call with ``left`` points still to run: the full batch, or a narrow
+        one (a quarter) for a remainder that fits in it (a local search's calls hold a few points,
+        and a padded wide batch would simulate copies), unless the full batch runs in chunks as
+        narrow as the narrow batch's: then it runs a few points as cheaply (only the lanes their
+        chunks need), with no simulator of its own to compile."""
+        narrow = max(1, self.batch // 4)
+        if left > narrow or max(1, min(self.batch // 2, self._chunk())) <= max(1, min(narrow // 2, self._chunk())):
+            return self.batch
+        return narrow
 
     def _bsim(self, n, b):
         """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b`` (built once)."""
         key = (n, b, self.prob.sim.terms, self.prob.target.dt)
         if key not in self._bsims:
-            # two chunks, one per core; the dashpot gathers velocities too, and a chunk of 16 points
-            # then outgrows the caches: chunks of 8 run it faster (benchmarks/RESULTS.md)
-            chunk = max(1, min(b // 2, 8 if self.prob.sim.terms.dashpot else 16))
+            chunk = max(1, min(b // 2, self._chunk()))
             bsim = batched.make_batched_simulator(self.prob.scene, self.prob.target.dt, b,
                                                   terms=self.prob.sim.terms, substeps=n, chunk=chunk)
             self._bsims[key] = (bsim, jax.jit(bsim.init_fn))
@@ -284,35 +366,36 @@ class Evaluator:
         contact candidates overflowed (health code ``CONTACT_OVERFLOW``) are run again: the capacity
         is doubled (:meth:`_grow_contact`, a warning names it; later batches compile with it) and they rerun batched, up to :data:`MAX_CAPACITY_GROWTHS` times;
         any still overflowing then run one at a time (:meth:`_frames_single`, which grows on)."""
-        fr, good, clamp, over = self._run_batches(thetas, n)
+        fr, good, clamp, over, sep = self._run_batches(thetas, n)
         for _ in range(MAX_CAPACITY_GROWTHS):
             idx = np.flatnonzero(over)
             if not idx.size or not self._grow_contact(thetas[idx[0]]):
                 break
-            fr[idx], good[idx], clamp[idx], over[idx] = self._run_batches(thetas[idx], n)
+            fr[idx], good[idx], clamp[idx], over[idx], sep[idx] = self._run_batches(thetas[idx], n)
         idx = np.flatnonzero(over)
         if idx.size:
             fr[idx], good[idx], clamp[idx] = self._frames_single(thetas[idx], n)
-        return fr, good, clamp
+            sep[idx] = np.nan
+        return fr, good, clamp, sep
 
     def _run_batches(self, thetas, n):
-        """(frames, ok, clamped, overflowed (N,)) of the points run in batches, as they come."""
-        return self._run_lanes([self.prob.params_at(th) for th in thetas], n, self.runs)
+        """(frames, ok, clamped, overflowed (N,), separation (N,)) of the points run in batches."""
+        return self._run_lanes([self.prob.params_at(th) for th in thetas], n, self.runs, separation=True)
 
-    def _run_lanes(self, values, n, runs, x0=None, v0=None, step0=None):
+    def _run_lanes(self, values, n, runs, x0=None, v0=None, step0=None, separation=False):
         """(frames (N, T, V, 3), ok, clamped, overflowed) of N independent runs ("lanes") on the
         batched simulator at ``n`` substeps: lane i with parameter values ``values[i]``
         (:class:`Params` of numpy arrays), from positions ``x0[i]`` and velocities ``v0[i]``
         ((N, V, 3); None: the scene's start) at step ``step0[i]`` (None: 0), saving frames in
-        ``runs`` [(gap, count), ...] (steps between frames, frames)."""
-        out, good, clamp, over = [], [], [], []
+        ``runs`` [(gap, count), ...] (steps between frames, frames). With ``separation``, also
+        (N,) the closest any contact pair came over the run's steps, in units of its reach
+        (:class:`Evaluation`; NaN without such pairs)."""
+        out, good, clamp, over, seps = [], [], [], [], []
+        track = separation and self._reach is not None
         n_lanes = len(values)
         start = 0
         while start < n_lanes:
-            left = n_lanes - start
-            # full batches, and a narrow one (a quarter) for a remainder that fits in it: a local
-            # search's calls hold a few points, and a padded wide batch would simulate copies
-            b = self.batch if left > self.batch // 4 else max(1, self.batch // 4)
+            b = self._width(n_lanes - start)
             bsim, init = self._bsim(n, b)
             idx = np.arange(start, min(start + b, n_lanes))
             start += len(idx)
@@ -330,23 +413,39 @@ class Evaluator:
             health = batched.initial_health(bsim, state, first)
             chunks = []
             done = 0
-            for gap, count in runs:
+            closest = np.inf
+            for g, (gap, count) in enumerate(runs):
                 size = self.chunk_frames or count
                 while count > 0:
                     n_fr = min(size, count)
-                    state, obs, health = batched.rollout(bsim, p, state, n_fr, gap, health=health, step0=first + done,
-                                                         observe=batched.positions_observer)
-                    chunks.append(np.asarray(obs, np.float64))            # (n_fr, B, V, 3)
+                    # the last piece of a chunked run is run at the full chunk length, past the
+                    # target's end: the same compiled rollout as every other piece (a shorter scan
+                    # is a new compile, seconds each, for every width), for a few frames more; the
+                    # frames past the end are dropped and their health ignored (below)
+                    # (a padded last piece: its separation covers the steps past the end too,
+                    # which errs on the safe side)
+                    run_fr = size if self.chunk_frames and g == len(runs) - 1 else n_fr
+                    state, obs, health, *sep = batched.rollout(
+                        bsim, p, state, run_fr, gap, health=health, step0=first + done,
+                        observe=batched.positions_observer, separation=track)
+                    if track:
+                        closest = np.minimum(closest, np.min(np.asarray(sep[0], np.float64) / self._reach, axis=0))
+                    chunks.append(np.asarray(obs[:n_fr], np.float64))     # (n_fr, B, V, 3)
                     done += gap * n_fr
                     count -= n_fr
             fr = np.concatenate(chunks, axis=0).transpose(1, 0, 2, 3)[:live]
-            failed = np.asarray(health.failed)[:live]
-            warn = (np.asarray(health.warn_step) >= 0).any(axis=0)[:live]
+            end = np.asarray(first) + done                                # the last target step, per lane
+            bad = np.asarray(health.bad_step)
+            seen = (bad >= 0) & (bad <= end)                               # (O, B): failures up to the end
+            warn = np.asarray(health.warn_step)
+            failed = seen.any(axis=0)[:live]
             out.append(fr)
             good.append(~failed & np.isfinite(fr).all(axis=(1, 2, 3)))
-            clamp.append(warn)
-            over.append((np.asarray(health.code) == diagnostics.CONTACT_OVERFLOW).any(axis=0)[:live])
-        return np.concatenate(out), np.concatenate(good), np.concatenate(clamp), np.concatenate(over)
+            clamp.append(((warn >= 0) & (warn <= end)).any(axis=0)[:live])
+            over.append((seen & (np.asarray(health.code) == diagnostics.CONTACT_OVERFLOW)).any(axis=0)[:live])
+            seps.append(np.broadcast_to(closest, (m,))[:live] if track else np.full(live, np.nan))
+        result = np.concatenate(out), np.concatenate(good), np.concatenate(clamp), np.concatenate(over)
+        return result + (np.concatenate(seps),) if separation else result
 
     def _single_fn(self, n):
         if n not in self._single:

@@ -283,6 +283,9 @@ class Residual(NamedTuple):
         so residuals of a target's frames in chunks are the residuals of the whole (one compiled
         function serves every horizon of a fit).
       norm: the normalisation, 1 / sqrt(T M s²); data: (T, M, 3) float64 target frames.
+      near_fn: points only (else None): ``(frames (C, V, 3), data (C, M, 3)) -> (C * M,)`` int32,
+        the vertex each point's residual is measured from (its nearest vertex, as ``frame_fn``
+        finds it): the residual depends on that vertex's object alone.
     """
 
     fn: Callable
@@ -294,6 +297,7 @@ class Residual(NamedTuple):
     frame_fn: Callable = None
     norm: float = 1.0
     data: object = None
+    near_fn: Callable = None
 
 
 def curvature_tables(faces, n_vertices):
@@ -402,7 +406,11 @@ def make_residual(target, topology, loss):
             return jax.vmap(lambda x, p: one(x, p, None))(frames, y).reshape(-1)
         per_frame = m
 
+        def near_fn(frames, y):
+            return jax.vmap(lambda x, p: nearest_vertices_walk(x, p, coarse, ring))(frames, y).reshape(-1)
+
     def fn(frames):
         return frame_fn(frames, jnp.asarray(data, frames.dtype)) * jnp.asarray(norm, frames.dtype)
     return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame,
-                    frame_fn=frame_fn, norm=float(norm), data=data)
+                    frame_fn=frame_fn, norm=float(norm), data=data,
+                    near_fn=None if target.kind == "positions" else near_fn)

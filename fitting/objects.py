@@ -74,19 +74,31 @@ def residual_objects(prob, frames=None):
 CLEARANCE_SAFETY = 0.5
 
 
+def clear_by_separation(separation):
+    """(N,) bool: runs whose contact pairs never came within 1 + :data:`CLEARANCE_SAFETY` of their
+    reach, from the separation the batched simulator measures at every step
+    (:class:`jaxplush.fitting.evaluate.Evaluation`: the closest approach of two objects' bounding
+    boxes, in units of the pair's reach, 2 thicknesses); NaN (not measured) is not clear."""
+    s = np.asarray(separation, np.float64)
+    return np.isfinite(s) & (s > 1.0 + CLEARANCE_SAFETY)
+
+
 def clear_of_contact(prob, frames):
     """Whether no two objects came within reach of soft-soft contact in ``frames`` ((T, V, 3)
     positions at the target's frames, or (N, T, V, 3) for N runs: (N,) bools).
 
-    The reach of a pair is 2 delta + the longest rest edge: a vertex farther than that from every
-    vertex of the other object is farther than 2 delta from its surface, where the contact force
-    is below e^-20 of its scale (:mod:`jaxplush.model.contact`), far below float32 rounding. A
-    pair is clear when, at every frame, every vertex of each object lies outside the other's
-    bounding box inflated by 1 + :data:`CLEARANCE_SAFETY` times the reach plus how far the two
-    objects' vertices move (the largest chord, each object's own) over the frame intervals on
-    either side: the frames do not show the steps between them. In a run where every pair is
-    clear, each object moves with its own parameters only. A scene without soft-soft contact
-    between objects is always clear."""
+    The reach of a pair is 2 delta (its contact thickness): a vertex farther than that from the
+    other object's surface feels a contact force below about 2e-10 of the force at touching
+    (:mod:`jaxplush.model.contact`: the ramp softplus(beta (delta - s)) / beta, beta = 10 / delta),
+    and at 1 + :data:`CLEARANCE_SAFETY` times the reach below 1e-17 of it, far below float32
+    rounding. The other object's surface (its triangles) lies inside the bounding box of its
+    vertices, so a vertex outside that box inflated by a margin is farther than the margin from
+    the surface, however coarse its triangles. A pair is clear when, at every frame, every vertex
+    of each object lies outside the other's bounding box inflated by (1 + CLEARANCE_SAFETY) x
+    the reach plus how far the two objects' vertices move (the largest chord, each object's own)
+    over the frame intervals on either side: the frames do not show the steps between them. In
+    a run where every pair is clear, each object moves with its own parameters only. A scene
+    without soft-soft contact between objects is always clear."""
     x = np.asarray(frames, np.float64)
     single = x.ndim == 3
     x = x[None] if single else x
@@ -94,10 +106,7 @@ def clear_of_contact(prob, frames):
     out = np.ones(len(x), bool)
     if cfg is None or not cfg.pairs:
         return bool(out[0]) if single else out
-    topo = prob.sim.topology
-    vobj = np.asarray(topo.vertex_object, np.int64)
-    longest = np.zeros(int(vobj.max()) + 1)
-    np.maximum.at(longest, np.asarray(topo.edge_object, np.int64), np.asarray(topo.rest_length, np.float64))
+    vobj = np.asarray(prob.sim.topology.vertex_object, np.int64)
 
     def moves(xo):
         """(N, T) the object's largest vertex move over the frame intervals next to each frame."""
@@ -106,7 +115,7 @@ def clear_of_contact(prob, frames):
         return np.maximum(np.concatenate([pad, chord], 1), np.concatenate([chord, pad], 1))
 
     for (a, b), delta in zip(cfg.pairs, cfg.thickness):
-        reach = 2.0 * float(delta) + max(longest[a], longest[b])
+        reach = 2.0 * float(delta)
         xa, xb = x[:, :, vobj == a], x[:, :, vobj == b]
         margin = (1.0 + CLEARANCE_SAFETY) * reach + moves(xa) + moves(xb)          # (N, T)
 

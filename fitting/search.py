@@ -140,6 +140,14 @@ class LMState:
     substeps: int = 1
     evaluations: int = 0
     rescues: int = 0              # axis scans (:func:`rescue`) done in this stage
+    separation: float = math.nan  # the run at theta: how close objects came (Evaluation.separation)
+
+
+def _separation(ev, i):
+    """Point i's measured separation of an evaluation (NaN: not measured; stand-in evaluations
+    have none)."""
+    sep = getattr(ev, "separation", None)
+    return math.nan if sep is None else float(sep[i])
 
 
 def fd_step(radius, options=None):
@@ -187,19 +195,30 @@ def _jacobians(evaluator, box, states, options=None):
     one evaluation; a stencil runs at the substeps its points need (at least its centre's).
     Columns whose stencil fails are zero.
 
-    With several fitted objects and a position target (``evaluator.owners()``), the stencil is
-    first *coloured*: each parameter is moved for every object at once (2 P_n points instead of
-    2 P_n O_f), and each object's column is read off its own vertices' residuals. That is exact
-    when the objects do not interact, which is checked in every run of the stencil
-    (``evaluator.clear``: no two objects within reach of contact); a state whose coloured stencil
-    is not clear gets the full stencil (a second evaluation)."""
-    owners = evaluator.owners() if hasattr(evaluator, "owners") else None
+    With several fitted objects (``evaluator.colourable()``), the stencil is first *coloured*:
+    each parameter is moved for every object at once (2 P_n points instead of 2 P_n O_f), and
+    each object's column is read off its own residuals: its vertices' for a position target, for
+    a point cloud the points measured from its vertices (``evaluator.point_owners``), which must
+    be the same points in every run of the stencil. That is exact when the objects do not
+    interact, which is checked in every run of the stencil (no two objects within reach of
+    contact); a state whose coloured stencil is not clear gets the full stencil (a second
+    evaluation)."""
+    colourable = getattr(evaluator, "colourable", None)        # stand-in evaluators have no colouring
+    owners = evaluator.owners() if colourable is not None and colourable() else None
+    points = colourable is not None and owners is None and colourable()
     rest = list(states)
-    misses = getattr(evaluator, "colour_misses", 0)            # stand-in evaluators have no colouring
-    if owners is not None and misses < COLOUR_MISSES:
-        # only states whose own run (when known) kept the objects apart
-        try_ = [st for st in states if st.theta.ndim == 2 and st.theta.shape[1] > 1 and
-                (st.residual is None or evaluator.clear(np.asarray(st.residual)[None])[0])]
+    misses = getattr(evaluator, "colour_misses", 0)
+    if (owners is not None or points) and misses < COLOUR_MISSES:
+        # only states whose own run kept the objects apart, where its frames tell (positions, on an
+        # evaluator that cannot measure the separation at every step)
+        # (its separation, measured at every step, where known; else its frames, for positions)
+        from jaxplush.fitting.objects import clear_by_separation
+
+        def apart(st):
+            if np.isfinite(st.separation):
+                return bool(clear_by_separation([st.separation])[0])
+            return points or st.residual is None or bool(evaluator.clear(np.asarray(st.residual)[None])[0])
+        try_ = [st for st in states if st.theta.ndim == 2 and st.theta.shape[1] > 1 and apart(st)]
         if try_:
             done = _coloured_jacobians(evaluator, box, try_, owners, options)
             evaluator.colour_misses = misses + done.count(False)
@@ -221,7 +240,7 @@ def _jacobians(evaluator, box, states, options=None):
         k += 2 * p
 
 
-def _run_stencils(evaluator, box, states, stencil, options=None):
+def _run_stencils(evaluator, box, states, stencil, options=None, keep_frames=False):
     """Run every state's ``stencil(box, theta, h)`` points at its own step h (recorded as
     ``jac_h``) in one evaluation, each stencil at the substeps its points need (at least its
     centre's); returns (the :class:`Evaluation`, each stencil's spans)."""
@@ -234,14 +253,26 @@ def _run_stencils(evaluator, box, states, stencil, options=None):
         subs += [n] * len(p)
         spans.append(sp)
         st.jac_h = h
+    if keep_frames:
+        return evaluator(np.asarray(pts), substeps=np.asarray(subs), keep_frames=True), spans
     return evaluator(np.asarray(pts), substeps=np.asarray(subs)), spans
 
 
 def _coloured_jacobians(evaluator, box, states, owners, options=None):
     """The coloured stencils of :func:`_jacobians`, all in one evaluation: sets ``jac`` of each
     state whose stencil ran and stayed clear of contact; returns which did."""
-    ev, spans = _run_stencils(evaluator, box, states, _coloured_stencil, options)
-    clear = evaluator.clear(ev.residuals)
+    points = owners is None                    # a point cloud: owners from each run's frames
+    ev, spans = _run_stencils(evaluator, box, states, _coloured_stencil, options, keep_frames=points)
+    if points:
+        from jaxplush.fitting.objects import clear_by_separation, clear_of_contact
+        frames = np.zeros((1, 1, 1, 3)) if ev.frames is None else np.where(ev.ok[:, None, None, None], ev.frames, 0.0)
+        if ev.separation is not None and np.isfinite(ev.separation[ev.ok]).all():
+            clear = ev.ok & clear_by_separation(ev.separation)
+        else:
+            clear = ev.ok & (clear_of_contact(evaluator.prob, frames) if ev.ok.any() else False)
+        point_owners = evaluator.point_owners(frames) if ev.ok.any() else None
+    else:
+        clear = evaluator.clear(ev.residuals, ev.separation)
     done = []
     k = 0
     for st, sp in zip(states, spans):
@@ -252,6 +283,11 @@ def _coloured_jacobians(evaluator, box, states, owners, options=None):
         if not (ev.ok[rows].all() and clear[rows].all()):
             done.append(False)
             continue
+        if points:
+            owners = point_owners[rows.start]
+            if not (point_owners[rows] == owners).all():    # a point changed object: not exact
+                done.append(False)
+                continue
         jac = np.zeros((evaluator.residual.n, p_n * o_f))
         for i in range(p_n):
             diff = ev.residuals[rows.start + 2 * i + 1] - ev.residuals[rows.start + 2 * i]
@@ -350,6 +386,7 @@ def rescue(evaluator, box, states, limit=2, options=None):
         old = st.loss
         st.theta = pts[j].copy()
         st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
+        st.separation = _separation(ev, j)
         st.jac, st.mu = None, o.mu0
         st.radius = float(np.max(spacing[i]))
         st.done, st.stopped = False, Stop.NONE
@@ -368,7 +405,8 @@ def start_states(evaluator, thetas, losses=None, options=None):
     out = []
     for i, th in enumerate(thetas):
         st = LMState(theta=th.copy(), loss=float(ev.loss[i]), residual=ev.residuals[i],
-                     substeps=int(ev.substeps[i]), evaluations=1, mu=o.mu0, radius=o.radius0)
+                     substeps=int(ev.substeps[i]), evaluations=1, mu=o.mu0, radius=o.radius0,
+                     separation=_separation(ev, i))
         if not ev.ok[i]:
             st.done, st.stopped = True, Stop.FAILED
             st.reason = "the start of the local search does not run (blows up at every substep count)"
@@ -469,6 +507,7 @@ def _take_step(st, ev, idx, trials, xtol, ftol):
         rel = (st.loss - new) / max(st.loss, 1e-300)
         st.theta, st.loss = trial, new
         st.residual, st.substeps = ev.residuals[best], int(ev.substeps[best])
+        st.separation = _separation(ev, best)
         st.jac = None
         st.mu = mu * (1 / 3 if rho > 0.75 else (1.0 if rho > 0.25 else 2.0))
         if rho > 0.75:

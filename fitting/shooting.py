@@ -179,19 +179,20 @@ class ShootingEvaluator(Evaluator):
         return out
 
     def _segments(self, thetas, n):
-        """(frames (N, T, V, 3), ok, clamped) of :meth:`Evaluator._frames`, run as segments."""
+        """(frames (N, T, V, 3), ok, clamped, separation) of :meth:`Evaluator._frames`, run as
+        segments (a point's separation: the least of its segments')."""
         n_pts, n_seg, seg = len(thetas), len(self.nodes), self.segment_frames
         values, x0, v0, step0 = self._lanes(thetas)
         v0 = self._refine(values, x0, v0, step0, n)
-        fr, good, clamp, over = self._run_lanes(values, n, [(self.gap, seg)], x0, v0, step0)
+        fr, good, clamp, over, sep = self._run_lanes(values, n, [(self.gap, seg)], x0, v0, step0, separation=True)
         for _ in range(MAX_CAPACITY_GROWTHS):
             lanes = np.flatnonzero(over)
             if not lanes.size or not self._grow_contact(thetas[lanes[0] // n_seg]):
                 break
             pts = np.unique(lanes // n_seg)
             redo = (pts[:, None] * n_seg + np.arange(n_seg)).ravel()
-            fr[redo], good[redo], clamp[redo], over[redo] = self._run_lanes(
-                [values[i] for i in redo], n, [(self.gap, seg)], x0[redo], v0[redo], step0[redo])
+            fr[redo], good[redo], clamp[redo], over[redo], sep[redo] = self._run_lanes(
+                [values[i] for i in redo], n, [(self.gap, seg)], x0[redo], v0[redo], step0[redo], separation=True)
         if over.any():
             self.notes.append("contact candidates still overflowed in some segments after growing the capacity")
         T = self.n_steps_frames
@@ -203,7 +204,8 @@ class ShootingEvaluator(Evaluator):
         full = np.empty((n_pts, self.prob.target.n_frames) + out.shape[2:])
         full[:, self._frame_rows] = out
         full[:, np.setdiff1d(np.arange(self.prob.target.n_frames), self._frame_rows)] = self.observed[0]
-        return (full, good.reshape(n_pts, n_seg).all(axis=1), clamp.reshape(n_pts, n_seg).any(axis=1))
+        return (full, good.reshape(n_pts, n_seg).all(axis=1), clamp.reshape(n_pts, n_seg).any(axis=1),
+                sep.reshape(n_pts, n_seg).min(axis=1))
 
     def __call__(self, thetas, substeps=None, keep_frames=False):
         """As :meth:`Evaluator.__call__`; the frames kept (``keep_frames``) are the single-shooting

@@ -252,7 +252,7 @@ def start_residuals(ev, states, local):
         return
     fresh = _search.start_states(ev, np.asarray([s.theta for s in need]), options=local)
     for s, f in zip(need, fresh):
-        s.residual, s.substeps, s.loss = f.residual, f.substeps, f.loss
+        s.residual, s.substeps, s.loss, s.separation = f.residual, f.substeps, f.loss, f.separation
         if f.done:
             s.done, s.stopped, s.reason = f.done, f.stopped, f.reason
         if not s.history:

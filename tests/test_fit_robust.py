@@ -88,6 +88,43 @@ def test_a_fit_that_cannot_reach_the_data_is_not_called_converged(drop):
     assert "standard errors: not meaningful" in res.table()
 
 
+def test_a_shorter_last_chunk_of_frames_reuses_the_compiled_rollout_and_ignores_what_lies_past_the_end():
+    """An evaluator that runs the target's frames in chunks (one compiled rollout for every horizon
+    of a fit) runs a last, shorter chunk at the full chunk length, with no new compile: its frames
+    and residuals are those of a run in one piece, and a blow-up in the frames past the target's
+    end does not fail the point (its substeps stay 1), while one inside the target does."""
+    from jaxplush.fitting import batched
+    truth = _drop()
+    target = make_target(truth, 120, DT, 4)                       # 30 frames, 4 steps apart
+    with pytest.warns(UserWarning):
+        prob = F.build_problem(truth, target)
+    th0 = np.asarray(prob.theta0)
+    stiff = th0.copy()
+    stiff[0] += np.log(8.0)                     # k x8: limit just below dt, slow growth at 1 substep
+    one_piece = Evaluator(prob.truncated(12))(np.stack([th0, stiff]), substeps=[1, 1])
+    assert one_piece.ok[0] and one_piece.substeps.tolist()[0] == 1
+    # the frame at which the k x8 point first fails at one substep
+    fail = next(n for n in range(2, 13) if Evaluator(prob.truncated(n))(stiff[None], substeps=[1]).substeps[0] > 1)
+    assert fail >= 5, fail
+    inside = fail - 1                           # the longest target it runs through
+    chunk = inside - 2 if inside > 4 else inside - 1
+    assert inside % chunk and -(-inside // chunk) * chunk >= fail  # its padding reaches the failure
+    full = Evaluator(prob.truncated(chunk), chunk_frames=chunk)
+    full(th0[None])                                                # compiles the chunk's rollout
+    n0 = batched._core_jit._cache_size()
+    short = Evaluator(prob.truncated(inside), chunk_frames=chunk, share=full)
+    e = short(np.stack([th0, stiff]), substeps=[1, 1], keep_frames=True)
+    assert batched._core_jit._cache_size() == n0                   # the shorter chunk: no new compile
+    assert e.ok.all() and e.substeps.tolist() == [1, 1]            # the failure past the end is ignored
+    ref = Evaluator(prob.truncated(inside))(np.stack([th0, stiff]), substeps=[1, 1], keep_frames=True)
+    scale = np.abs(ref.frames).max()
+    assert np.abs(e.frames - ref.frames).max() <= 1e-5 * scale
+    np.testing.assert_allclose(e.loss, ref.loss, rtol=1e-4, atol=1e-12)
+    assert e.residuals.shape == ref.residuals.shape
+    # one frame more, and the failure is inside the target: the point is retried with substeps
+    assert Evaluator(prob.truncated(fail), chunk_frames=chunk, share=full)(stiff[None], substeps=[1]).substeps[0] > 1
+
+
 @pytest.mark.heavy
 def test_every_evaluated_point_runs_stably_with_substeps():
     """Points whose explicit stability limit is below the target's dt run with substeps (h = dt/n)

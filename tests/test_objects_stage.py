@@ -109,7 +109,7 @@ def test_coloured_jacobian_equals_the_full_stencil_and_costs_a_fraction(two_ball
         assert np.max(np.abs(full[owner != o, j])) == 0.0 and np.max(np.abs(coloured[owner != o, j])) == 0.0
         np.testing.assert_allclose(coloured[:, j], full[:, j], rtol=0, atol=1e-6 * np.linalg.norm(full[:, j]))
     # a stencil that comes near contact is run again in full (the same Jacobian), and counted
-    ev.clear = lambda r: np.zeros(len(r), bool)
+    ev.clear = lambda r, separation=None: np.zeros(len(r), bool)
     before = ev.evaluations
     again = search.jacobian(ev, box, theta, 1e-3)
     assert ev.evaluations - before == 2 * theta.shape[0] + 2 * theta.size and ev.colour_misses == 1
@@ -120,13 +120,60 @@ def test_coloured_jacobian_equals_the_full_stencil_and_costs_a_fraction(two_ball
     assert ev.colour_misses == search.COLOUR_MISSES and ev.evaluations - before == 2 * theta.size
 
 
+def test_coloured_jacobian_of_a_point_cloud_reads_each_point_off_its_own_object(two_balls):
+    """A point cloud has no vertex correspondence, but each point's residual is measured from one
+    vertex (its nearest), so it moves with that vertex's object alone: a coloured stencil gives
+    every object's column from the points each run measures from that object, and must equal the
+    full stencil. A stencil in which a point changes object is run again in full."""
+    from jaxplush.fitting import search
+    from jaxplush.fitting.evaluate import Evaluator
+    prob0, _, truth = two_balls
+    target = make_target(_scene(TRUE_K, [_nmol(k) for k in TRUE_K]), STEPS, DT, EVERY, point_cloud=True, n_points=60,
+                         noise=0.002, seed=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prob = F.build_problem(prob0.scene, target, ("k_structural", "nmol"))
+    box = lmfit.default_box(prob)
+    theta = truth + np.array([[0.05, -0.03], [0.02, 0.04]])
+    ev = Evaluator(prob)
+    assert ev.owners() is None and ev.colourable()
+    e = ev(theta[None], keep_frames=True)
+    owner = ev.point_owners(e.frames)[0]
+    # the points measured from ball a are those on ball a's side (x < 0), every one of them owned
+    x = np.asarray(target.data, np.float64)[..., 0].ravel()
+    assert np.array_equal(owner, np.where(x < 0, 0, 1))
+    before = ev.evaluations
+    coloured = search.jacobian(ev, box, theta, 1e-3)
+    assert ev.evaluations - before == 2 * theta.shape[0]                # 4 runs, not 8
+    full_ev = Evaluator(prob, share=ev, calibration=ev.calibration())
+    full_ev.colour_misses = search.COLOUR_MISSES                        # colouring off
+    full = search.jacobian(full_ev, box, theta, 1e-3)
+    for j in range(theta.size):
+        o = j % theta.shape[1]
+        assert np.max(np.abs(full[owner != o, j])) == 0.0 and np.max(np.abs(coloured[owner != o, j])) == 0.0
+        assert np.linalg.norm(full[:, j]) > 0
+        np.testing.assert_allclose(coloured[:, j], full[:, j], rtol=0, atol=1e-6 * np.linalg.norm(full[:, j]))
+    # a point that changes object in one run of the stencil: the full stencil, counted as a miss
+    real = ev.point_owners
+
+    def switched(frames):
+        out = real(frames)
+        out[1, 0] = 1 - out[1, 0]
+        return out
+    ev.point_owners = switched
+    before = ev.evaluations
+    again = search.jacobian(ev, box, theta, 1e-3)
+    assert ev.evaluations - before == 2 * theta.shape[0] + 2 * theta.size and ev.colour_misses == 1
+    np.testing.assert_allclose(again, full, rtol=0, atol=1e-6 * np.linalg.norm(full))
+
+
 def test_clear_of_contact_sees_objects_within_reach(two_balls):
     prob, _, _ = two_balls
     frames = np.asarray(prob.target.data, np.float64)                  # the balls hang 0.6 m apart
     assert objects.clear_of_contact(prob, frames)
     topo = prob.sim.topology
     vobj = np.asarray(topo.vertex_object)
-    reach = 2 * prob.sim.terms.contact.thickness[0] + float(np.max(topo.rest_length))   # 2 delta + an edge
+    reach = 2 * prob.sim.terms.contact.thickness[0]                     # 2 delta, whatever the edges
     gap = frames[:, vobj == 1, 0].min() - frames[:, vobj == 0, 0].max()   # along x, between their boxes
     near = frames.copy()
     near[:, vobj == 1, 0] -= gap - 0.5 * reach                          # b within reach of a
@@ -138,6 +185,55 @@ def test_clear_of_contact_sees_objects_within_reach(two_balls):
     far[:, vobj == 1, 0] -= gap - 4.0 * reach
     both = objects.clear_of_contact(prob, np.stack([far, near]))
     assert both.tolist() == [True, False]
+
+
+def test_objects_clear_of_contact_move_with_their_own_parameters_alone(two_balls):
+    """The physics behind the clearance test: two balls hanging 4 contact thicknesses apart, closer
+    than the contact's thickness plus an edge length of their coarse meshes, each move with their
+    own parameters only (ball a's frames do not change when ball b's stiffness does)."""
+    from jaxplush.fitting.evaluate import Evaluator
+    prob0, _, truth = two_balls
+    sc = prob0.scene
+    delta = prob0.sim.terms.contact.thickness[0]
+    edge = float(np.max(prob0.sim.topology.rest_length))
+    vobj = np.asarray(prob0.sim.topology.vertex_object)
+    x0 = np.asarray(prob0.sim.topology.x0, np.float64)
+    gap0 = x0[vobj == 1, 0].min() - x0[vobj == 0, 0].max()
+    gap = 4.0 * delta                                                   # clear by thickness,
+    assert gap < 1.5 * (2.0 * delta + edge)                             # not by thickness + an edge
+    ks, nmols = (tuple(float(v) for v in row) for row in np.exp(truth))
+    text_a = icosphere_text(name="a", k=ks[0], nmol=nmols[0], damping=1000.0, mass=0.1,
+                            translate=(-0.3, 1, 0), fixed=(int(np.argmax(x0[vobj == 0, 1])),))
+    text_b = icosphere_text(name="b", k=ks[1], nmol=nmols[1], damping=1000.0, mass=0.1,
+                            translate=(0.3 - (gap0 - gap), 1, 0), fixed=(int(np.argmax(x0[vobj == 1, 1])),),
+                            offset=42, header=False)
+    scene = jaxplush.parse_scene(text_a + text_b, "<two close balls>")
+    target = make_target(scene, STEPS, DT, EVERY)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prob = F.build_problem(scene, target, ("k_structural", "nmol"), noise_free=True)
+    frames = np.asarray(target.data, np.float64)
+    assert objects.clear_of_contact(prob, frames)
+    moved = truth.copy()
+    moved[0, 1] += 0.3                                                  # ball b 35% stiffer
+    ev = Evaluator(prob)
+    e = ev(np.stack([truth, moved]), keep_frames=True)
+    assert e.ok.all()
+    change = np.abs(e.frames[1] - e.frames[0]).max(axis=(0, 2))        # per vertex
+    assert change[vobj == 1].max() > 1e-4 and change[vobj == 0].max() <= 1e-6 * change[vobj == 1].max()
+    # the batched runs measure how close the boxes came at every step, in units of the reach: as
+    # a run saving every step shows it
+    every = jaxplush.simulate(scene, STEPS, DT, 1, check_dt=False).positions.astype(np.float64)
+    lo_a, hi_a = every[:, vobj == 0].min(axis=1), every[:, vobj == 0].max(axis=1)
+    lo_b, hi_b = every[:, vobj == 1].min(axis=1), every[:, vobj == 1].max(axis=1)
+    closest = np.max(np.maximum(lo_b - hi_a, lo_a - hi_b), axis=1).min() / (2 * delta)
+    assert 1.5 < closest < 2.5
+    assert abs(e.separation[0] - closest) <= 1e-4 * closest
+    assert objects.clear_by_separation(e.separation).all() and ev.clear(e.residuals, e.separation).all()
+    # closer than the contact's thickness allows: not clear
+    near = frames.copy()
+    near[:, vobj == 1, 0] -= gap - 0.5 * delta
+    assert not objects.clear_of_contact(prob, near)
 
 
 def test_point_cloud_points_go_to_the_nearest_object(two_balls):
