@@ -99,13 +99,27 @@ def test_a_shorter_last_chunk_of_frames_reuses_the_compiled_rollout_and_ignores_
     with pytest.warns(UserWarning):
         prob = F.build_problem(truth, target)
     th0 = np.asarray(prob.theta0)
-    stiff = th0.copy()
-    stiff[0] += np.log(8.0)                     # k x8: limit just below dt, slow growth at 1 substep
-    one_piece = Evaluator(prob.truncated(12))(np.stack([th0, stiff]), substeps=[1, 1])
-    assert one_piece.ok[0] and one_piece.substeps.tolist()[0] == 1
-    # the frame at which the k x8 point first fails at one substep
-    fail = next(n for n in range(2, 13) if Evaluator(prob.truncated(n))(stiff[None], substeps=[1]).substeps[0] > 1)
-    assert fail >= 5, fail
+    whole = Evaluator(prob)
+
+    def first_failure(theta):
+        """The first frame at which a run of theta at one substep fails (None: it runs through)."""
+        bsim, init = whole._bsim(1, whole._width(1))
+        p = bsim.params(prob.params_at(theta))
+        _, _, h = batched.rollout(bsim, p, init(p), target.n_frames, 4)
+        bad = np.asarray(h.bad_step)[:, 0]
+        return int(bad[bad >= 0].min()) // 4 if (bad >= 0).any() else None
+
+    # a stiffness just past the explicit limit at dt: its instability grows from rounding, which
+    # differs between CPUs, so the factor is the first of a few whose run fails after 5 frames
+    for factor in (8.0, 9.0, 10.0, 11.0, 12.0, 14.0, 16.0):
+        stiff = th0.copy()
+        stiff[0] += np.log(factor)
+        fail = first_failure(stiff)
+        if fail is not None and 5 <= fail <= 29:
+            break
+    assert fail is not None and 5 <= fail <= 29, (factor, fail)
+    assert Evaluator(prob.truncated(fail))(stiff[None], substeps=[1]).substeps[0] > 1
+    assert Evaluator(prob.truncated(fail - 1))(stiff[None], substeps=[1]).substeps[0] == 1
     inside = fail - 1                           # the longest target it runs through
     chunk = inside - 2 if inside > 4 else inside - 1
     assert inside % chunk and -(-inside // chunk) * chunk >= fail  # its padding reaches the failure
