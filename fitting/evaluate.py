@@ -280,8 +280,9 @@ class Evaluator:
         from jaxplush.fitting import objects as _objects
         prob = self.prob
         r = np.asarray(residuals, np.float64)
-        if separation is not None and np.isfinite(separation).all():
-            return np.isfinite(r).all(axis=1) & _objects.clear_by_separation(separation)
+        ran = np.isfinite(r).all(axis=1)
+        if separation is not None and np.isfinite(np.asarray(separation)[ran]).all():
+            return ran & _objects.clear_by_separation(separation)
         data = np.asarray(prob.target.data, np.float64)
         t, m = data.shape[:2]
         frames = data[None] + r.reshape((len(r),) + data.shape) * np.sqrt(t * m * prob.loss.scale2)
