@@ -272,6 +272,24 @@ class Evaluator:
             out[i] = fitted[vobj[np.concatenate(cols)]]
         return out
 
+    def clear_by_separation(self, separation):
+        """(N,) bool: runs that stayed clear of contact by their measured ``separation``
+        (:func:`jaxplush.fitting.objects.clear_by_separation`; NaN: not clear)."""
+        from jaxplush.fitting import objects as _objects
+        return _objects.clear_by_separation(separation)
+
+    def clear_frames(self, frames, ok, separation=None):
+        """(N,) whether N runs ((N, T, V, 3) frames; ``ok``: which ran) stayed clear of contact: by
+        their measured ``separation`` where every run that ran has one, else by the frames
+        (:func:`jaxplush.fitting.objects.clear_of_contact`). Runs that did not run are not clear."""
+        from jaxplush.fitting import objects as _objects
+        ok = np.asarray(ok, bool)
+        if not ok.any():
+            return ok.copy()
+        if separation is not None and np.isfinite(np.asarray(separation)[ok]).all():
+            return ok & _objects.clear_by_separation(separation)
+        return ok & _objects.clear_of_contact(self.prob, frames)
+
     def clear(self, residuals, separation=None):
         """(N,) whether, in the runs behind N rows of position residuals, no two objects came within
         reach of contact: from the ``separation`` measured at every step where given and finite

@@ -212,11 +212,9 @@ def _jacobians(evaluator, box, states, options=None):
         # only states whose own run kept the objects apart, where its frames tell (positions, on an
         # evaluator that cannot measure the separation at every step)
         # (its separation, measured at every step, where known; else its frames, for positions)
-        from jaxplush.fitting.objects import clear_by_separation
-
         def apart(st):
             if np.isfinite(st.separation):
-                return bool(clear_by_separation([st.separation])[0])
+                return bool(evaluator.clear_by_separation([st.separation])[0])
             return points or st.residual is None or bool(evaluator.clear(np.asarray(st.residual)[None])[0])
         try_ = [st for st in states if st.theta.ndim == 2 and st.theta.shape[1] > 1 and apart(st)]
         if try_:
@@ -264,12 +262,8 @@ def _coloured_jacobians(evaluator, box, states, owners, options=None):
     points = owners is None                    # a point cloud: owners from each run's frames
     ev, spans = _run_stencils(evaluator, box, states, _coloured_stencil, options, keep_frames=points)
     if points:
-        from jaxplush.fitting.objects import clear_by_separation, clear_of_contact
-        frames = np.zeros((1, 1, 1, 3)) if ev.frames is None else np.where(ev.ok[:, None, None, None], ev.frames, 0.0)
-        if ev.separation is not None and np.isfinite(ev.separation[ev.ok]).all():
-            clear = ev.ok & clear_by_separation(ev.separation)
-        else:
-            clear = ev.ok & (clear_of_contact(evaluator.prob, frames) if ev.ok.any() else False)
+        frames = None if ev.frames is None else np.where(ev.ok[:, None, None, None], ev.frames, 0.0)
+        clear = evaluator.clear_frames(frames, ev.ok, ev.separation)
         point_owners = evaluator.point_owners(frames) if ev.ok.any() else None
     else:
         clear = evaluator.clear(ev.residuals, ev.separation)
