@@ -86,6 +86,15 @@ def _runs(steps):
     return [tuple(r) for r in out]
 
 
+def _pad_frames(a, size, axis):
+    """``a`` padded to ``size`` frames along ``axis`` with copies of its last frame."""
+    short = size - a.shape[axis]
+    if short <= 0:
+        return a
+    last = np.take(a, [-1], axis=axis)
+    return np.concatenate([a, np.repeat(last, short, axis=axis)], axis=axis)
+
+
 def _pow2_at_least(n):
     return 1 << max(int(math.ceil(n)) - 1, 0).bit_length()
 
@@ -136,7 +145,7 @@ class Evaluator:
         cfg = sim.terms.contact
         self._contact = self.batched and cfg is not None and bool(cfg.pairs)
         self._reach = (2.0 * np.asarray(cfg.thickness, np.float64)[:, None]
-                       if self.batched and len(prob.objects) > 1 and cfg is not None and cfg.pairs else None)
+                       if self._contact and len(prob.objects) > 1 else None)
 
     # ------------------------------------------------------------------ stability
 
@@ -247,10 +256,10 @@ class Evaluator:
         object not fitted) of the vertex each point's residual is measured from, in N runs' frames
         ((N, T, V, 3), as :meth:`__call__` keeps them). A point's residual depends on that object's
         motion alone."""
+        from jaxplush.fitting import objects as _objects
         res = self.residual
         vobj = np.asarray(self.prob.sim.topology.vertex_object, np.int64)
-        fitted = np.full(int(vobj.max()) + 1, -1, np.int64)
-        fitted[list(self.prob.objects)] = np.arange(len(self.prob.objects))
+        fitted = _objects.fitted_index(self.prob)
         x = np.asarray(frames)
         t = x.shape[1]
         size = self.chunk_frames or t
@@ -263,10 +272,7 @@ class Evaluator:
             cols = []
             for a in range(0, t, size):
                 c = min(size, t - a)
-                xs, ys = x[i, a:a + c], res.data[a:a + c]
-                if c < size:                      # padded as in _residuals: one compiled function
-                    xs = np.concatenate([xs, np.repeat(xs[-1:], size - c, axis=0)])
-                    ys = np.concatenate([ys, np.repeat(ys[-1:], size - c, axis=0)])
+                xs, ys = _pad_frames(x[i, a:a + c], size, 0), _pad_frames(res.data[a:a + c], size, 0)
                 near = np.asarray(self._res_fns[key](jnp.asarray(xs, dtype), jnp.asarray(ys, dtype)))
                 cols.append(near[:c * res.per_frame])
             out[i] = fitted[vobj[np.concatenate(cols)]]
@@ -286,9 +292,8 @@ class Evaluator:
         ok = np.asarray(ok, bool)
         if not ok.any():
             return ok.copy()
-        if separation is not None and np.isfinite(np.asarray(separation)[ok]).all():
-            return ok & _objects.clear_by_separation(separation)
-        return ok & _objects.clear_of_contact(self.prob, frames)
+        measured = _clear_measured(ok, separation)
+        return measured if measured is not None else ok & _objects.clear_of_contact(self.prob, frames)
 
     def clear(self, residuals, separation=None):
         """(N,) whether, in the runs behind N rows of position residuals, no two objects came within
@@ -298,9 +303,9 @@ class Evaluator:
         from jaxplush.fitting import objects as _objects
         prob = self.prob
         r = np.asarray(residuals, np.float64)
-        ran = np.isfinite(r).all(axis=1)
-        if separation is not None and np.isfinite(np.asarray(separation)[ran]).all():
-            return ran & _objects.clear_by_separation(separation)
+        measured = _clear_measured(np.isfinite(r).all(axis=1), separation)
+        if measured is not None:
+            return measured
         data = np.asarray(prob.target.data, np.float64)
         t, m = data.shape[:2]
         frames = data[None] + r.reshape((len(r),) + data.shape) * np.sqrt(t * m * prob.loss.scale2)
@@ -326,12 +331,9 @@ class Evaluator:
             cols = []
             for a in range(0, t, size):
                 c = min(size, t - a)
-                xs, ys = x[i:i + piece, a:a + c], res.data[a:a + c]
-                if c < size:
-                    # a last, shorter chunk padded to the chunk length with copies of its last frame
-                    # (one compiled function for every chunk); the padding's columns are dropped
-                    xs = np.concatenate([xs, np.repeat(xs[:, -1:], size - c, axis=1)], axis=1)
-                    ys = np.concatenate([ys, np.repeat(ys[-1:], size - c, axis=0)], axis=0)
+                # a last, shorter chunk is padded to the chunk length (one compiled function for
+                # every chunk); the padding's columns are dropped
+                xs, ys = _pad_frames(x[i:i + piece, a:a + c], size, 1), _pad_frames(res.data[a:a + c], size, 0)
                 key = (piece, size, res.kind, res.normalisation, res.scale2)
                 if key not in self._res_fns:
                     self._res_fns[key] = jax.jit(jax.vmap(res.frame_fn, in_axes=(0, None)))
@@ -366,15 +368,19 @@ class Evaluator:
         narrow as the narrow batch's: then it runs a few points as cheaply (only the lanes their
         chunks need), with no simulator of its own to compile."""
         narrow = max(1, self.batch // 4)
-        if left > narrow or max(1, min(self.batch // 2, self._chunk())) <= max(1, min(narrow // 2, self._chunk())):
+        if left > narrow or self._chunk_of(self.batch) <= self._chunk_of(narrow):
             return self.batch
         return narrow
+
+    def _chunk_of(self, b):
+        """The chunk of a batched simulator of width ``b``: two chunks at least, one per core."""
+        return max(1, min(b // 2, self._chunk()))
 
     def _bsim(self, n, b):
         """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b`` (built once)."""
         key = (n, b, self.prob.sim.terms, self.prob.target.dt)
         if key not in self._bsims:
-            chunk = max(1, min(b // 2, self._chunk()))
+            chunk = self._chunk_of(b)
             bsim = batched.make_batched_simulator(self.prob.scene, self.prob.target.dt, b,
                                                   terms=self.prob.sim.terms, substeps=n, chunk=chunk)
             self._bsims[key] = (bsim, jax.jit(bsim.init_fn))
@@ -523,6 +529,15 @@ class Evaluator:
         warnings.warn(msg, stacklevel=4)
         self.notes.append(msg)
         return True
+
+
+def _clear_measured(ok, separation):
+    """``ok & clear_by_separation(separation)`` when every run that ran (``ok``) has a measured
+    separation; else None (the frames must tell)."""
+    from jaxplush.fitting import objects as _objects
+    if separation is None or not np.isfinite(np.asarray(separation)[ok]).all():
+        return None
+    return ok & _objects.clear_by_separation(separation)
 
 
 def _values_text(vals):

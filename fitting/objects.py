@@ -42,6 +42,14 @@ def suits(prob):
     return len(prob.objects) > 1 and prob.target.kind == "positions"
 
 
+def fitted_index(prob):
+    """(O,) each scene object's index among the fitted objects (``prob.objects``), -1 if not fitted."""
+    n = int(np.max(np.asarray(prob.sim.topology.vertex_object))) + 1
+    fitted = np.full(n, -1, np.int64)
+    fitted[list(prob.objects)] = np.arange(len(prob.objects))
+    return fitted
+
+
 def residual_objects(prob, frames=None):
     """(n,) the fitted object (an index into ``prob.objects``) that each residual belongs to, -1 for
     residuals of objects that are not fitted.
@@ -52,8 +60,7 @@ def residual_objects(prob, frames=None):
     simulated frames at the target's steps, e.g. the rollout at the start values; required).
     """
     vobj = np.asarray(prob.sim.topology.vertex_object, np.int64)
-    fitted = np.full(int(vobj.max()) + 1, -1, np.int64)
-    fitted[list(prob.objects)] = np.arange(len(prob.objects))
+    fitted = fitted_index(prob)
     target = prob.target
     if target.kind == "positions":
         per_vertex = fitted[vobj]                                        # (V,)

@@ -209,9 +209,8 @@ def _jacobians(evaluator, box, states, options=None):
     rest = list(states)
     misses = getattr(evaluator, "colour_misses", 0)
     if (owners is not None or points) and misses < COLOUR_MISSES:
-        # only states whose own run kept the objects apart, where its frames tell (positions, on an
-        # evaluator that cannot measure the separation at every step)
-        # (its separation, measured at every step, where known; else its frames, for positions)
+        # only states whose own run kept the objects apart: by its separation, measured at every
+        # step, where known; else by its frames (positions; a point cloud's are not kept)
         def apart(st):
             if np.isfinite(st.separation):
                 return bool(evaluator.clear_by_separation([st.separation])[0])
