@@ -371,7 +371,7 @@ def _make_contact(topo, terms, h):
         # rebuilds them): the search costs only the points that need it, as in the single scene
         xl = _lanes(x)
         stale = jax.vmap(ops.stale)(cache, xl)
-        walked = jax.lax.cond(jnp.any(cache.valid), lambda c: jax.vmap(ops.walk)(c, xl), lambda c: c, cache)
+        walked = ops.walk_lanes(cache, xl)
 
         def rebuild_one(c):
             out, todo = c

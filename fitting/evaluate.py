@@ -206,11 +206,12 @@ class Evaluator:
         separation = None if self._reach is None else np.full(n_pts, np.nan)
         frames = None
         todo = np.arange(n_pts)
+        inverted = np.full(n_pts, -1, np.int64)          # the step a point's volume inverted at, -1: not so
         while todo.size:
             retry = []
             for n in np.unique(subs[todo]):
                 idx = todo[subs[todo] == n]
-                fr, good, clamp, sep = self._frames(thetas[idx], int(n))
+                fr, good, clamp, sep, inv = self._frames(thetas[idx], int(n))
                 if good.any():
                     r = self._residuals(fr[good])
                     res[idx[good]] = r
@@ -222,8 +223,13 @@ class Evaluator:
                         if frames is None:
                             frames = np.full((n_pts,) + fr.shape[1:], np.nan)
                         frames[idx[good]] = fr[good]
-                for i in idx[~good]:
-                    if subs[i] < MAX_SUBSTEPS:
+                for i, at in zip(idx[~good], inv[~good]):
+                    # a volume that inverted no later with twice the substeps was crushed, not
+                    # unstable: more substeps would only cost more (seconds per retry at 2000
+                    # vertices with contact)
+                    persistent = at >= 0 and 0 <= inverted[i] and at <= inverted[i]
+                    inverted[i] = at
+                    if subs[i] < MAX_SUBSTEPS and not persistent:
                         subs[i] *= 2
                         retry.append(i)
             todo = np.asarray(retry, np.int64)
@@ -344,11 +350,13 @@ class Evaluator:
 
     def _frames(self, thetas, n):
         """(frames (N, T, V, 3) float64, ok (N,), clamped (N,), separation (N,): NaN where not
-        measured) at ``n`` substeps."""
+        measured, inverted (N,): the step of a failure that was an inverted volume alone, -1
+        otherwise) at ``n`` substeps."""
         self.evaluations += len(thetas)
         if self.batched:
             return self._frames_batched(thetas, n)
-        return self._frames_single(thetas, n) + (np.full(len(thetas), np.nan),)
+        fr, good, clamp, inv = self._frames_single(thetas, n)
+        return fr, good, clamp, np.full(len(thetas), np.nan), inv
 
     def _chunk(self):
         """Points per compiled call of the batched simulator: 4 with soft-soft contact between
@@ -391,31 +399,34 @@ class Evaluator:
         contact candidates overflowed (health code ``CONTACT_OVERFLOW``) are run again: the capacity
         is doubled (:meth:`_grow_contact`, a warning names it; later batches compile with it) and they rerun batched, up to :data:`MAX_CAPACITY_GROWTHS` times;
         any still overflowing then run one at a time (:meth:`_frames_single`, which grows on)."""
-        fr, good, clamp, over, sep = self._run_batches(thetas, n)
+        fr, good, clamp, over, sep, inv = self._run_batches(thetas, n)
         for _ in range(MAX_CAPACITY_GROWTHS):
             idx = np.flatnonzero(over)
             if not idx.size or not self._grow_contact(thetas[idx[0]]):
                 break
-            fr[idx], good[idx], clamp[idx], over[idx], sep[idx] = self._run_batches(thetas[idx], n)
+            fr[idx], good[idx], clamp[idx], over[idx], sep[idx], inv[idx] = self._run_batches(thetas[idx], n)
         idx = np.flatnonzero(over)
         if idx.size:
-            fr[idx], good[idx], clamp[idx] = self._frames_single(thetas[idx], n)
+            fr[idx], good[idx], clamp[idx], inv[idx] = self._frames_single(thetas[idx], n)
             sep[idx] = np.nan
-        return fr, good, clamp, sep
+        return fr, good, clamp, sep, inv
 
     def _run_batches(self, thetas, n):
-        """(frames, ok, clamped, overflowed (N,), separation (N,)) of the points run in batches."""
-        return self._run_lanes([self.prob.params_at(th) for th in thetas], n, self.runs, separation=True)
+        """(frames, ok, clamped, overflowed (N,), separation (N,), inverted (N,)) of the points run
+        in batches."""
+        return self._run_lanes([self.prob.params_at(th) for th in thetas], n, self.runs, separation=True,
+                               failures=True)
 
-    def _run_lanes(self, values, n, runs, x0=None, v0=None, step0=None, separation=False):
+    def _run_lanes(self, values, n, runs, x0=None, v0=None, step0=None, separation=False, failures=False):
         """(frames (N, T, V, 3), ok, clamped, overflowed) of N independent runs ("lanes") on the
         batched simulator at ``n`` substeps: lane i with parameter values ``values[i]``
         (:class:`Params` of numpy arrays), from positions ``x0[i]`` and velocities ``v0[i]``
         ((N, V, 3); None: the scene's start) at step ``step0[i]`` (None: 0), saving frames in
         ``runs`` [(gap, count), ...] (steps between frames, frames). With ``separation``, also
         (N,) the closest any contact pair came over the run's steps, in units of its reach
-        (:class:`Evaluation`; NaN without such pairs)."""
-        out, good, clamp, over, seps = [], [], [], [], []
+        (:class:`Evaluation`; NaN without such pairs); with ``failures``, then (N,) the step at
+        which a lane failed by an inverted volume alone (-1: it did not, or failed otherwise)."""
+        out, good, clamp, over, seps, invs = [], [], [], [], [], []
         track = separation and self._reach is not None
         n_lanes = len(values)
         start = 0
@@ -467,10 +478,15 @@ class Evaluator:
             out.append(fr)
             good.append(~failed & np.isfinite(fr).all(axis=(1, 2, 3)))
             clamp.append(((warn >= 0) & (warn <= end)).any(axis=0)[:live])
-            over.append((seen & (np.asarray(health.code) == diagnostics.CONTACT_OVERFLOW)).any(axis=0)[:live])
+            code = np.asarray(health.code)
+            over.append((seen & (code == diagnostics.CONTACT_OVERFLOW)).any(axis=0)[:live])
+            inv = seen & (code == diagnostics.INVERTED)
+            only = inv.any(axis=0) & ~(seen & ~inv).any(axis=0)
+            invs.append(np.where(only, np.where(inv, bad, np.iinfo(np.int64).max).min(axis=0), -1)[:live])
             seps.append(np.broadcast_to(closest, (m,))[:live] if track else np.full(live, np.nan))
         result = np.concatenate(out), np.concatenate(good), np.concatenate(clamp), np.concatenate(over)
-        return result + (np.concatenate(seps),) if separation else result
+        result += (np.concatenate(seps),) if separation else ()
+        return result + (np.concatenate(invs),) if failures else result
 
     def _single_fn(self, n):
         if n not in self._single:
@@ -484,7 +500,8 @@ class Evaluator:
         return self._single[n]
 
     def _frames_single(self, thetas, n):
-        out, good, clamp = [], [], []
+        """(frames, ok, clamped, inverted) of :meth:`_frames`, one point at a time."""
+        out, good, clamp, inv = [], [], [], []
         for th in thetas:
             for _ in range(2):
                 sim, fn = self._single_fn(n)
@@ -500,7 +517,10 @@ class Evaluator:
             out.append(fr)
             good.append(ok)
             clamp.append(bool((codes == diagnostics.VOLUME_CLAMPED).any()))
-        return np.stack(out), np.asarray(good), np.asarray(clamp)
+            failed = codes[bad[0]] if bad is not None else None
+            only = failed is not None and set(failed[failed >= diagnostics.ERROR].tolist()) == {diagnostics.INVERTED}
+            inv.append(int(self.steps[bad[0]]) if only else -1)
+        return np.stack(out), np.asarray(good), np.asarray(clamp), np.asarray(inv, np.int64)
 
     def _grow_contact(self, theta):
         """After a run at theta whose contact candidates overflowed (health code

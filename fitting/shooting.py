@@ -179,8 +179,9 @@ class ShootingEvaluator(Evaluator):
         return out
 
     def _segments(self, thetas, n):
-        """(frames (N, T, V, 3), ok, clamped, separation) of :meth:`Evaluator._frames`, run as
-        segments (a point's separation: the least of its segments')."""
+        """(frames (N, T, V, 3), ok, clamped, separation, inverted) of :meth:`Evaluator._frames`,
+        run as segments (a point's separation: the least of its segments'; inverted: -1, every
+        failure retried with more substeps)."""
         n_pts, n_seg, seg = len(thetas), len(self.nodes), self.segment_frames
         values, x0, v0, step0 = self._lanes(thetas)
         v0 = self._refine(values, x0, v0, step0, n)
@@ -205,7 +206,7 @@ class ShootingEvaluator(Evaluator):
         full[:, self._frame_rows] = out
         full[:, np.setdiff1d(np.arange(self.prob.target.n_frames), self._frame_rows)] = self.observed[0]
         return (full, good.reshape(n_pts, n_seg).all(axis=1), clamp.reshape(n_pts, n_seg).any(axis=1),
-                sep.reshape(n_pts, n_seg).min(axis=1))
+                sep.reshape(n_pts, n_seg).min(axis=1), np.full(n_pts, -1, np.int64))
 
     def __call__(self, thetas, substeps=None, keep_frames=False):
         """As :meth:`Evaluator.__call__`; the frames kept (``keep_frames``) are the single-shooting

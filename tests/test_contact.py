@@ -597,7 +597,7 @@ def test_carried_candidate_lists_give_the_search_every_step_result():
     assert np.max(np.abs(fa - fb)) < 1e-4             # m, over 750 steps and a collision
 
 
-def test_contact_cache_is_rebuilt_past_half_the_skin_and_walks_otherwise():
+def test_contact_cache_is_rebuilt_when_a_watched_vertex_moves_half_the_skin_or_another_comes_near():
     scene, n = two_balls(sub=2, gap=0.0)
     sim = jaxplush.make_simulator(scene, 1e-4)
     skin = contact.skin_distance(sim.topology, sim.terms.contact)
@@ -619,13 +619,27 @@ def test_contact_cache_is_rebuilt_past_half_the_skin_and_walks_otherwise():
             cand = np.concatenate([[t], ring[t]])
             d = np.sum((xn[cand] - xn[q]) ** 2, axis=1)
             assert np.isclose(np.sum((xn[t1] - xn[q]) ** 2), d.min(), rtol=1e-5, atol=1e-12)
-    # one vertex moved past half the skin: rebuilt at the new positions (a fresh search)
-    x2 = x.at[1, 0].add(0.6 * skin)
+    # one vertex near the other ball (watched) moved past half the skin: rebuilt at the new
+    # positions (a fresh search)
+    watch = np.asarray(cache.watch)
+    xa, xb = np.asarray(x)[:, :n], np.asarray(x)[:, n:]
+    near = int(np.argmin(np.sum((xa - xb.mean(axis=1, keepdims=True)) ** 2, axis=0)))
+    far = int(np.argmax(np.sum((xa - xb.mean(axis=1, keepdims=True)) ** 2, axis=0)))
+    assert watch[near] and not watch[far] and 0 < watch.sum() < len(watch)
+    x2 = x.at[1, near].add(0.6 * skin)
     c2 = update(cache, x2)
     fresh = ops.init(x2)
     np.testing.assert_array_equal(np.asarray(c2.x_ref), np.asarray(x2))
     for a, b in zip(c2, fresh):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # a vertex far from the other ball moves freely (no rebuild: the lists stay), until it comes
+    # near the other ball's box and sphere (rebuilt)
+    x3 = x.at[1, far].add(3.0 * skin)
+    assert not bool(ops.stale(cache, x3))
+    np.testing.assert_array_equal(np.asarray(update(cache, x3).x_ref), np.asarray(x))
+    x4 = x.at[:, far].set(xb.mean(axis=1) + np.asarray([0.0, 0.0, 1.05]) * np.ptp(xb, axis=1).max() / 2)
+    assert bool(ops.stale(cache, x4))
+    np.testing.assert_array_equal(np.asarray(update(cache, x4).x_ref), np.asarray(x4))
     # an overflow flag stays set, through a walk and through a rebuild that does not overflow
     flagged = cache._replace(overflow=jnp.asarray([False, True]))
     for x_new in (x1, x2):
@@ -744,3 +758,24 @@ def test_small_cushion_pile_holds_and_settles(tmp_path):
     # about 0.7 m/s while they inflate and land)
     assert speed[-10:].max() < 0.05 and speed[-10:].max() < 0.1 * speed.max()
     assert max(max_penetration(scene, pos[i]) for i in range(0, len(pos), 20)) <= 1e-3
+
+
+@pytest.mark.parametrize("caps,counts", [((60, 60), (51, 40)), ((60, 60), (69, 70)), ((130, 100), (100, 1)),
+                                         ((200, 200), (150, 130))])
+def test_tiled_nearest_search_equals_the_whole_table(caps, counts):
+    """The nearest-candidate search builds its distance tables in tiles, only those within the
+    counts: the same nearest vertices as the whole table, for counts below and above (an
+    overflow) the capacities."""
+    rng = np.random.default_rng(sum(caps) + sum(counts))
+    (cap_a, cap_b), (n_a, n_b) = caps, counts
+    pa = tuple(jnp.asarray(rng.normal(size=cap_a), jnp.float32) for _ in range(3))
+    pb = tuple(jnp.asarray(rng.normal(size=cap_b), jnp.float32) for _ in range(3))
+    ja, jb = jax.jit(contact._nearest_tiled)(pa, pb, jnp.int32(n_a), jnp.int32(n_b))
+    pa, pb = np.stack(pa), np.stack(pb)
+    m_a, m_b = min(n_a, cap_a), min(n_b, cap_b)
+    d2 = np.sum((pa[:, :m_a, None] - pb[:, None, :m_b]) ** 2, axis=0)          # (m_a, m_b)
+    # the nearest distance (an index may differ on a near-tie: the packed keys drop the lowest bits)
+    jb, ja = np.asarray(jb)[:m_a], np.asarray(ja)[:m_b]
+    assert jb.max() < m_b and ja.max() < m_a
+    np.testing.assert_allclose(d2[np.arange(m_a), jb], d2.min(axis=1), rtol=1e-4)
+    np.testing.assert_allclose(d2[ja, np.arange(m_b)], d2.min(axis=0), rtol=1e-4)

@@ -139,6 +139,42 @@ def test_a_shorter_last_chunk_of_frames_reuses_the_compiled_rollout_and_ignores_
     assert Evaluator(prob.truncated(fail), chunk_frames=chunk, share=full)(stiff[None], substeps=[1]).substeps[0] > 1
 
 
+def test_a_volume_that_inverts_no_later_with_more_substeps_is_not_retried_again():
+    """A point that fails is retried with twice the substeps, unless its failure was an inverted
+    volume that twice the substeps did not delay: that object was crushed, not unstable, and each
+    retry of a large contact scene costs seconds. A blow-up (not an inversion), or an inversion
+    that more substeps delayed, is retried on, up to MAX_SUBSTEPS."""
+    from jaxplush.fitting import evaluate
+    truth = _drop()
+    with pytest.warns(UserWarning):
+        prob = F.build_problem(truth, make_target(truth, 100, DT, 25))
+    ev = Evaluator(prob)
+    tv = prob.target.data.shape
+    # per point: the substeps it first runs through, and how each earlier count fails
+    # ("inv", step): an inverted volume at that step; ("nan", -): a blow-up
+    plan = {0: (None, lambda n: ("inv", 40)),                # crushed at every substep count
+            1: (4, lambda n: ("nan", -1)),                   # unstable below 4 substeps
+            2: (8, lambda n: ("inv", 20 * n)),               # an inversion that substeps delay
+            3: (1, None)}
+    calls = []
+
+    def frames(thetas, n):
+        calls.append((n, len(thetas)))
+        idx = [int(round(th[0, 0] * 10)) for th in thetas]
+        ok = np.asarray([plan[i][0] is not None and n >= plan[i][0] for i in idx])
+        inv = np.asarray([-1 if k or plan[i][1](n)[0] != "inv" else plan[i][1](n)[1] for i, k in zip(idx, ok)])
+        return (np.zeros((len(idx),) + tv), ok, np.zeros(len(idx), bool), np.full(len(idx), np.nan), inv)
+
+    ev._frames = frames
+    ev._residuals = lambda fr: np.zeros((len(fr), ev.residual.n))
+    thetas = np.zeros((4,) + np.shape(prob.theta0))
+    thetas[:, 0, 0] = np.arange(4) / 10
+    e = ev(thetas, substeps=[1, 1, 1, 1])
+    assert e.ok.tolist() == [False, True, True, True]
+    assert e.substeps.tolist() == [2, 4, 8, 1]         # the crushed point stops after one retry
+    assert max(n for n, _ in calls) == 8 < evaluate.MAX_SUBSTEPS
+
+
 @pytest.mark.heavy
 def test_every_evaluated_point_runs_stably_with_substeps():
     """Points whose explicit stability limit is below the target's dt run with substeps (h = dt/n)
