@@ -651,8 +651,8 @@ QUERY_BLOCK = 64
 
 def _blockwise(valid, f, add):
     """f (any pytree: a force, the queries' targets) with ``add(f, i)`` applied for each block i of
-    QUERY_BLOCK query slots that holds a valid query. A search compacts the valid queries of all pairs to the front of the list
-    (:func:`_search`), so the blocks run are the first ceil(n / QUERY_BLOCK) for n valid queries
+    QUERY_BLOCK query slots that holds a valid query. A search compacts the valid queries of all
+    pairs to the front of the list (:func:`_search`), so the blocks run are the first ceil(n / QUERY_BLOCK) for n valid queries
     (the most of any point when ``valid`` is batched, (B, Q)): the narrow phase costs what the
     contact needs, not the capacities. A loop of static length over ``lax.cond`` (one compiled
     block; differentiable in both modes)."""
@@ -1031,7 +1031,6 @@ def _pair_candidates(xs, sa, sb, cap_a, cap_b, margin):
     n_a, n_b = jnp.sum(in_a), jnp.sum(in_b)
     ia = jnp.nonzero(in_a, size=cap_a, fill_value=0)[0]
     ib = jnp.nonzero(in_b, size=cap_b, fill_value=0)[0]
-    va, vb = jnp.arange(cap_a) < n_a, jnp.arange(cap_b) < n_b
 
     def nearest():
         return _nearest_tiled(_gather(xa, ia), _gather(xb, ib), n_a, n_b)
@@ -1072,9 +1071,7 @@ def _nearest_tiled(pa, pb, n_a, n_b):
         qq = tuple(jax.lax.dynamic_slice_in_dim(c, j * t, t) for c in q)
         d2 = sum((pc[:, None] - qc[None, :]) ** 2 for pc, qc in zip(pp, qq))
         ok = ((i * t + rows) < n_p)[:, None] & ((j * t + rows) < n_q)[None, :]
-        key = jax.lax.bitcast_convert_type(jnp.where(ok, d2, jnp.inf), itype)
-        key = (key & ~itype((1 << bits) - 1)) | (iota + itype(j) * t)
-        return jnp.min(key, axis=1)
+        return jnp.min(_packed_keys(jnp.where(ok, d2, jnp.inf), iota + itype(j) * t, bits), axis=1)
 
     def tile(carry, i, j):
         ka, kb = carry
@@ -1104,10 +1101,16 @@ def _packed_argmin(d2, axis):
     n = d2.shape[axis]
     bits = max(1, int(n - 1).bit_length())
     itype = jnp.int32 if d2.dtype == jnp.float32 else jnp.int64
-    key = jax.lax.bitcast_convert_type(d2, itype)
     iota = jax.lax.broadcasted_iota(itype, d2.shape, axis % d2.ndim)
-    key = (key & ~itype((1 << bits) - 1)) | iota
-    return (jnp.min(key, axis=axis) & ((1 << bits) - 1)).astype(jnp.int32)
+    return (jnp.min(_packed_keys(d2, iota, bits), axis=axis) & ((1 << bits) - 1)).astype(jnp.int32)
+
+
+def _packed_keys(d2, index, bits):
+    """Integer keys of non-negative values d2 that order like them, with ``index`` (of the key's
+    integer type, < 2**bits) in their lowest ``bits`` bits: their minimum's low bits are the index
+    of the least value (:func:`_packed_argmin`)."""
+    itype = index.dtype.type
+    return (jax.lax.bitcast_convert_type(d2, itype) & ~itype((1 << bits) - 1)) | index
 
 
 # --------------------------------------------------------------------------- outside jit
