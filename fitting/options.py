@@ -161,13 +161,17 @@ class SmoothingOptions:
       iterations: designs at most (``smooth_iterations``).
       stop: it stops once the smoothed Gauss-Newton step is within this many standard errors (``smooth_stop``).
       sigma: (lo, hi) bounds on a standard error used to size the design, log space (``smooth_sigma``).
+      grow: while the model's step reaches past the design, the next design (and the step it may
+        take) is twice as wide, up to this factor; it is back to 1 once a step stays inside, or
+        when the new centre's loss is above the last one's (``smooth_grow``).
     """
 
     points: int = dataclasses.field(default=31, metadata={"flat": "smooth_points"})
     width: float = dataclasses.field(default=6.0, metadata={"flat": "smooth_width"})
-    iterations: int = dataclasses.field(default=5, metadata={"flat": "smooth_iterations"})
+    iterations: int = dataclasses.field(default=10, metadata={"flat": "smooth_iterations"})
     stop: float = dataclasses.field(default=1.0, metadata={"flat": "smooth_stop"})
     sigma: tuple = dataclasses.field(default=(1e-4, 0.05), metadata={"flat": "smooth_sigma"})
+    grow: float = dataclasses.field(default=8.0, metadata={"flat": "smooth_grow"})
 
 
 @dataclasses.dataclass(frozen=True)

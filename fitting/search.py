@@ -568,7 +568,10 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=
     the fields of ``options``, :class:`SmoothingOptions`), fits an affine model of the residual vector over them (:func:`regression`),
     which averages the ripple out, and steps to that model's Gauss-Newton optimum (cut to the
     design's half-width, kept in the box). The standard errors come from the model and size the
-    next design. It stops once the step is within ``stop`` standard errors, or after
+    next design; while the step reaches past the design (a start many standard errors off), the
+    next design is twice as wide, up to ``grow`` times, so the stage crosses the distance in a
+    few designs, and it is back at the errors' scale once a step stays inside or the model's loss
+    at the new centre rose. It stops once the step is within ``stop`` standard errors, or after
     ``iterations`` designs.
 
     Args:
@@ -591,9 +594,9 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=
     u = qmc.Sobol(x.size, scramble=True, seed=seed).random_base2(m)[:o.points] * 2.0 - 1.0
     u = np.vstack([np.zeros((1, x.size)), u])
     lo, hi = box.lo.ravel(), box.hi.ravel()
-    path, evaluations, out = [], 0, None
+    path, evaluations, out, scale, last_model = [], 0, None, 1.0, np.inf
     for _ in range(o.iterations):
-        half = o.width * np.clip(sigma, *sigma_range)
+        half = scale * o.width * np.clip(sigma, *sigma_range)
         pts = np.clip(x[None] + u * half[None], lo, hi)
         ev = evaluator(pts.reshape((-1,) + shape))
         evaluations += len(pts)
@@ -602,6 +605,11 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=
             break
         path.append((float(ev.loss[0]), x.reshape(shape).copy()))
         a, b = regression(pts[ok], ev.residuals[ok], x)
+        model = float(a @ a)             # the smoothed loss at the centre (a single point's carries the ripple)
+        if model > last_model:
+            scale = 1.0                  # the last long step overshot: back to the standard errors' scale
+            half = o.width * np.clip(sigma, *sigma_range)
+        last_model = model
         step, sig = gauss_newton(b, a)
         if sig is None:
             break
@@ -611,6 +619,9 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=
         sized = bool(np.all(half >= 0.5 * o.width * np.clip(sig, *sigma_range)))
         converged = sized and bool(np.all(np.abs(step) <= o.stop * sig))
         cut = np.clip(x + np.clip(step, -half, half), lo, hi)
+        # far from the optimum the step reaches past the design: widen the next one (a trust
+        # region that grows while the model's direction holds), else back to the errors' scale
+        scale = min(2.0 * scale, o.grow) if np.any(np.abs(step) > half) else 1.0
         out = Smoothed(theta=cut.reshape(shape), centre=x.reshape(shape).copy(), jac=b, residual=a,
                        step=step, stderr=sig, converged=converged, path=path, evaluations=evaluations)
         if progress is not None:

@@ -326,13 +326,15 @@ class _RippledResiduals:
 
 
 @pytest.mark.parametrize("offset, narrow, amp", [((4.0, -3.0), 1.0, 0.2), ((4.0, -3.0), 10.0, 0.2),
-                                                  ((0.5, -0.5), 10.0, 0.0)])
+                                                  ((0.5, -0.5), 10.0, 0.0), ((90.0, -70.0), 1.0, 0.2)])
 def test_the_smoothing_stage_averages_a_ripple_out(offset, narrow, amp):
     """From 4 and 3 standard errors off, the smoothing stage (a regression model of the residuals
     over a design at the scale of the standard errors) reaches the optimum of the model beneath the
     ripple within one standard error, and its standard errors are the model's to 25%. A first
     design sized by a Jacobian 10x too steep (the ripple's slope) is widened, not trusted, even
-    where its step would already be within the standard errors (half a standard error off)."""
+    where its step would already be within the standard errors (half a standard error off). From
+    90 and 70 standard errors off (further than its designs at +-6 could walk in its 10 designs),
+    its designs grow while the step reaches past them, and it still ends within one."""
     from jaxplush.fitting import search as S
     ev = _RippledResiduals(amp=amp)
     box = S.Box(np.full((2, 1), -2.0), np.full((2, 1), 2.0))
