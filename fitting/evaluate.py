@@ -185,7 +185,7 @@ class Evaluator:
 
     # ------------------------------------------------------------------ running
 
-    def __call__(self, thetas, substeps=None, keep_frames=False):
+    def __call__(self, thetas, substeps=None, keep_frames=False, retries=None):
         """Evaluate N points.
 
         Args:
@@ -193,6 +193,9 @@ class Evaluator:
           substeps: (N,) substeps to start from (default: predicted, :meth:`substeps_for`);
             a point that blows up is retried with twice as many, up to :data:`MAX_SUBSTEPS`.
           keep_frames: also return the simulated frames.
+          retries: a point is retried at most this many times (None: up to :data:`MAX_SUBSTEPS`).
+            A global search's design needs no point at any price: each further substep count is
+            one more compiled simulator (5-20 s with contact), for a point or two.
 
         Returns:
           :class:`Evaluation`.
@@ -207,6 +210,7 @@ class Evaluator:
         frames = None
         todo = np.arange(n_pts)
         inverted = np.full(n_pts, -1, np.int64)          # the step a point's volume inverted at, -1: not so
+        tries = np.zeros(n_pts, np.int64)
         while todo.size:
             retry = []
             for n in np.unique(subs[todo]):
@@ -229,8 +233,9 @@ class Evaluator:
                     # vertices with contact)
                     persistent = at >= 0 and 0 <= inverted[i] and at <= inverted[i]
                     inverted[i] = at
-                    if subs[i] < MAX_SUBSTEPS and not persistent:
+                    if subs[i] < MAX_SUBSTEPS and not persistent and (retries is None or tries[i] < retries):
                         subs[i] *= 2
+                        tries[i] += 1
                         retry.append(i)
             todo = np.asarray(retry, np.int64)
         loss = np.where(ok, np.sum(np.where(np.isfinite(res), res, 0.0) ** 2, axis=1), np.inf)
@@ -369,16 +374,19 @@ class Evaluator:
             return 4
         return 8 if self.prob.sim.terms.dashpot else 16
 
-    def _width(self, left):
-        """The batch width of a call with ``left`` points still to run: the full batch, or a narrow
-        one (a quarter) for a remainder that fits in it (a local search's calls hold a few points,
-        and a padded wide batch would simulate copies), unless the full batch runs in chunks as
-        narrow as the narrow batch's: then it runs a few points as cheaply (only the lanes their
-        chunks need), with no simulator of its own to compile."""
+    def _width(self, left, n=1):
+        """The batch width of a call with ``left`` points still to run at ``n`` substeps: the full
+        batch, or a narrow one (a quarter) for a remainder that fits in it (a local search's calls
+        hold a few points, and a padded wide batch would simulate copies), unless the full batch
+        runs in chunks as narrow as the narrow batch's: then it runs a few points as cheaply (only
+        the lanes their chunks need), with no simulator of its own to compile. Runs at more than
+        one substep (the few points the stability limit or a blow-up sends there) always take the
+        narrow width, in as many calls as they need: one compiled simulator per substep count,
+        not two (a compile costs 5-20 s with contact, more than the calls; benchmarks/RESULTS.md)."""
         narrow = max(1, self.batch // 4)
-        if left > narrow or self._chunk_of(self.batch) <= self._chunk_of(narrow):
+        if self._chunk_of(self.batch) <= self._chunk_of(narrow):
             return self.batch
-        return narrow
+        return self.batch if left > narrow and n == 1 else narrow
 
     def _chunk_of(self, b):
         """The chunk of a batched simulator of width ``b``: two chunks at least, one per core."""
@@ -431,7 +439,7 @@ class Evaluator:
         n_lanes = len(values)
         start = 0
         while start < n_lanes:
-            b = self._width(n_lanes - start)
+            b = self._width(n_lanes - start, n)
             bsim, init = self._bsim(n, b)
             idx = np.arange(start, min(start + b, n_lanes))
             start += len(idx)

@@ -196,7 +196,8 @@ class PerObjectGlobal:
     points evaluated, each ``local.start_distance`` of the box's width from those before (as a
     :class:`~jaxplush.fitting.stages.GlobalStage`'s).
 
-    Attributes: samples, per_object, rounds, zoom, starts, seed; local
+    Attributes: samples, per_object, rounds, zoom, starts, seed, retries (as
+    :class:`~jaxplush.fitting.stages.GlobalStage`'s); local
     (:class:`jaxplush.fitting.options.LocalOptions`: the spacing, and the searches' radius and mu);
     progress: ``progress(n)`` after each batch of n points (or None).
     """
@@ -209,6 +210,7 @@ class PerObjectGlobal:
     seed: int = 0
     local: LocalOptions = LocalOptions()
     progress: object = None
+    retries: int | None = None
 
     def evaluations(self, n_objects):
         """Points this stage evaluates at most for ``n_objects`` fitted objects (the first round's
@@ -228,7 +230,7 @@ class PerObjectGlobal:
         return residual_objects(prob, e.frames[0])
 
     def _run(self, objective, thetas):
-        ev = objective.evaluator(thetas)
+        ev = objective.evaluator(thetas) if self.retries is None else objective.evaluator(thetas, retries=self.retries)
         if self.progress is not None:
             self.progress(len(thetas))
         return ev

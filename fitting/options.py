@@ -52,12 +52,18 @@ class SearchOptions:
       starts: local Levenberg-Marquardt starts from its best candidates (default
         :data:`DEFAULT_STARTS`, 5).
       seed: the Sobol scrambling seed.
+      retries: a design point that blows up at the substeps its stability limit predicts is run
+        again with twice as many at most this many times (``global_retries``; None: up to
+        :data:`jaxplush.fitting.evaluate.MAX_SUBSTEPS`, as a local search's points are). The
+        design does not need every point, and each further substep count is one more compiled
+        simulator (5-20 s with soft-soft contact) for a point or two at the box's wild corners.
     """
 
     bounds: object = None
     samples: int | None = None
     starts: int | None = None
     seed: int = 0
+    retries: int | None = dataclasses.field(default=1, metadata={"flat": "global_retries"})
 
     @property
     def n_samples(self):
@@ -285,7 +291,7 @@ def _tuning_shortcuts():
 
 #: Flat keyword -> (group, field) for the fields of FitOptions' groups.
 SHORTCUTS = {"bounds": ("search", "bounds"), "samples": ("search", "samples"), "starts": ("search", "starts"),
-             "seed": ("search", "seed"), "checkpoint_path": ("checkpoint", "path"),
+             "seed": ("search", "seed"), "global_retries": ("search", "retries"), "checkpoint_path": ("checkpoint", "path"),
              "checkpoint_every": ("checkpoint", "every"), "resume": ("checkpoint", "resume"),
              **_tuning_shortcuts()}
 
@@ -325,6 +331,8 @@ def validate(opts, optimizer):
     for name, val in (("samples", s.samples), ("starts", s.starts)):
         if val is not None and (not _is_whole(val) or int(val) < (0 if name == "samples" else 1)):
             raise JaxplushError(f"{name} must be an integer >= {0 if name == 'samples' else 1}, got {val!r}")
+    if s.retries is not None and (not _is_whole(s.retries) or int(s.retries) < 0):
+        raise JaxplushError(f"global_retries must be None or an integer >= 0, got {s.retries!r}")
     c = opts.checkpoint
     if c.every is not None and (not _is_whole(c.every) or int(c.every) < 1):
         raise JaxplushError(f"checkpoint_every must be >= 1, got {c.every}")

@@ -208,10 +208,10 @@ class ShootingEvaluator(Evaluator):
         return (full, good.reshape(n_pts, n_seg).all(axis=1), clamp.reshape(n_pts, n_seg).any(axis=1),
                 sep.reshape(n_pts, n_seg).min(axis=1), np.full(n_pts, -1, np.int64))
 
-    def __call__(self, thetas, substeps=None, keep_frames=False):
+    def __call__(self, thetas, substeps=None, keep_frames=False, retries=None):
         """As :meth:`Evaluator.__call__`; the frames kept (``keep_frames``) are the single-shooting
         rollout's (the fitted motion), the residuals multiple shooting's."""
-        e = super().__call__(thetas, substeps=substeps)
+        e = super().__call__(thetas, substeps=substeps, retries=retries)
         if not keep_frames:
             return e
         whole = Evaluator(self.prob, calibration=self.calibration(), share=self)(thetas, substeps=e.substeps,

@@ -160,7 +160,7 @@ class GlobalStage:
     in one step; its ``states`` are :class:`jaxplush.fitting.search.LMState` s at the best
     ``starts`` of them, each ``local.start_distance`` of the box's width from those before.
 
-    Attributes: samples, starts, seed (:class:`jaxplush.fitting.options.SearchOptions`);
+    Attributes: samples, starts, seed, retries (:class:`jaxplush.fitting.options.SearchOptions`);
     local: :class:`jaxplush.fitting.options.LocalOptions` (the spacing, and the searches' radius and mu);
     progress: ``progress(n)`` after the design ran (or None).
     """
@@ -170,6 +170,7 @@ class GlobalStage:
     seed: int = 0
     local: LocalOptions = LocalOptions()
     progress: object = None
+    retries: int | None = None
 
     def init(self, objective, theta, state=None):
         return GlobalState(theta=np.asarray(theta, np.float64))
@@ -177,7 +178,7 @@ class GlobalStage:
     def step(self, objective, s):
         box, o = objective.box, self.local
         s.result = _search.global_stage(objective.evaluator, box, s.theta, self.samples, self.seed,
-                                        progress=self.progress)
+                                        progress=self.progress, retries=self.retries)
         width = float(np.max(box.hi - box.lo))
         chosen = s.result.best(self.starts, o.start_distance * width)
         s.states = [_search.LMState(theta=s.result.thetas[i].copy(), loss=float(s.result.loss[i]), mu=o.mu0,

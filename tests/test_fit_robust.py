@@ -173,6 +173,13 @@ def test_a_volume_that_inverts_no_later_with_more_substeps_is_not_retried_again(
     assert e.ok.tolist() == [False, True, True, True]
     assert e.substeps.tolist() == [2, 4, 8, 1]         # the crushed point stops after one retry
     assert max(n for n, _ in calls) == 8 < evaluate.MAX_SUBSTEPS
+    # a global design's points get one retry at most: the points that need more substeps than
+    # that are lost (the design does not need them), and no simulator past 2 substeps is run
+    calls.clear()
+    e = ev(thetas, substeps=[1, 1, 1, 1], retries=1)
+    assert e.ok.tolist() == [False, False, False, True]
+    assert np.isinf(e.loss[:3]).all() and e.substeps.tolist() == [2, 2, 2, 1]
+    assert sorted({n for n, _ in calls}) == [1, 2]
 
 
 @pytest.mark.heavy
