@@ -382,7 +382,7 @@ class Evaluator:
         the lanes their chunks need), with no simulator of its own to compile. Runs at more than
         one substep (the few points the stability limit or a blow-up sends there) always take the
         narrow width, in as many calls as they need: one compiled simulator per substep count,
-        not two (a compile costs 5-20 s with contact, more than the calls; benchmarks/RESULTS.md)."""
+        not two (a compile costs 5-20 s with contact; benchmarks/RESULTS.md)."""
         narrow = max(1, self.batch // 4)
         if self._chunk_of(self.batch) <= self._chunk_of(narrow):
             return self.batch

@@ -169,7 +169,7 @@ class SmoothingOptions:
       sigma: (lo, hi) bounds on a standard error used to size the design, log space (``smooth_sigma``).
       grow: while the model's step reaches past the design, the next design (and the step it may
         take) is twice as wide, up to this factor; it is back to 1 once a step stays inside, or
-        when the new centre's loss is above the last one's (``smooth_grow``).
+        when the regression's smoothed loss at the new centre is above the last one's (``smooth_grow``).
     """
 
     points: int = dataclasses.field(default=31, metadata={"flat": "smooth_points"})
