@@ -105,6 +105,10 @@ class LocalOptions:
         its last step, often ``h_min``) leaves a parameter combination within its rounding
         noise: the report then rests on this one (rounding weighs h / resolve_h as much), and
         only combinations that a step of this size cannot tell from rounding are undetermined.
+      floor_step: a search on a noise-free position target stops once its residual RMS is at most
+        the model's reproducibility floor over the fitted frames (two runs that differ only by
+        rounding differ by as much) and its Gauss-Newton step is at most this (max-norm): no
+        further step can be told from rounding (None: never; flat name ``local_floor_step``).
     """
 
     keep: int = 2
@@ -124,6 +128,7 @@ class LocalOptions:
     noise_stop: float = 0.1
     noise_stop_h: float = 0.02
     resolve_h: float = 0.01
+    floor_step: float | None = dataclasses.field(default=1e-3, metadata={"flat": "local_floor_step"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -382,9 +387,12 @@ def _validate_tuning(opts, optimizer):
                 if not _is_whole(v) or v < (0 if name in ("max_rescues",) else 1):
                     raise JaxplushError(f"{name} must be a whole number >= {0 if name == 'max_rescues' else 1}, "
                                         f"got {v!r}")
+            elif v is None and name == "local_floor_step":
+                continue
             elif not (_is_positive(v) or (v == 0 and name in ("local_xtol", "local_ftol", "pred_tol", "noise_stop",
                                                              "continuation_noise_stop", "rescue_gain"))):
-                raise JaxplushError(f"{name} must be a number > 0, got {v!r}")
+                raise JaxplushError(f"{name} must be a number > 0{' or None' if name == 'local_floor_step' else ''}, "
+                                    f"got {v!r}")
 
 
 def _is_positive(v):

@@ -110,6 +110,7 @@ class Stop(_StrEnum):
     SCREENED = "screened"           # set aside by the driver (it cannot win)
     NOISE = "noise"                 # the Gauss-Newton step is within the standard errors
     PREDICTED = "predicted"         # the Gauss-Newton model predicts a negligible decrease
+    FLOOR = "floor"                 # at the reproducibility floor, the Gauss-Newton step negligible
     FAILED = "failed"               # the start does not run
     CALLBACK = "callback"           # the user's callback asked to stop
 

@@ -233,11 +233,12 @@ def _judge(prob, theta, **kw):
 def rounding_drift(prob):
     """The float32 rollout's own rounding drift over the fitted frames (RMS m), from the
     predictability measured at the start values: over the whole target, or with multiple
-    shooting over one segment's length; None when not measured."""
+    shooting over one segment's length; None when not measured. A truncated problem
+    (:meth:`Problem.truncated`) counts only the frames up to its last."""
     pred = prob.predictability
     if pred is None:
         return None
-    use = pred.times > 0
+    use = (pred.times > 0) & (np.asarray(pred.steps) <= int(prob.target.steps[-1]))
     sh = prob.shooting
     if sh is not None and sh.on and prob.target.n_frames > 1:
         span = float(np.median(np.diff(np.asarray(prob.target.times, np.float64)))) * sh.segment_frames

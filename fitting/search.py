@@ -434,12 +434,13 @@ def _gn_within_noise(jac, r):
     return float(np.max(np.abs(step) / se))
 
 
-def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=None):
+def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=None, floor=None):
     """One Levenberg-Marquardt iteration of every unfinished state (two evaluations in all: the
     Jacobians that are missing, then three trial steps per state). ``options``
     (:class:`LocalOptions`, None: the defaults) hold the stopping rules; a state stops once its
     Gauss-Newton step is at most ``noise_stop`` (default ``options.noise_stop``) of every
-    parameter's standard error."""
+    parameter's standard error, or once its loss is at most ``floor`` (the model's reproducibility
+    floor as a loss; None: not known) and its Gauss-Newton step at most ``options.floor_step``."""
     o = options or _LOCAL
     noise_stop = o.noise_stop if noise_stop is None else noise_stop
     active = []
@@ -467,6 +468,12 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
             st.reason = (f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors (<= {noise_stop:g}): "
                          "the optimum is resolved to the noise")
             continue
+        gn = _floor_step(st, floor, o.floor_step)
+        if gn is not None:
+            st.done, st.stopped = True, Stop.FLOOR
+            st.reason = (f"the loss {st.loss:.4g} is at the model's reproducibility floor ({floor:.4g}) and the "
+                         f"Gauss-Newton step is {gn:.2g} (<= {o.floor_step:g}): no step can be told from rounding")
+            continue
         t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
         best_pred = max(x[2] for x in t)
         if best_pred <= o.pred_tol * st.loss and st.jac_h <= o.h_min * (1 + 1e-9):
@@ -484,6 +491,18 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
         idx = np.nonzero(owner == i)[0]
         if idx.size:
             _take_step(st, ev, idx, trials, o.xtol, o.ftol)
+
+
+def _floor_step(st, floor, limit):
+    """The largest |Gauss-Newton step| (log space) of a state whose loss is at most ``floor``
+    and whose step is at most ``limit``; None otherwise (or when either is None)."""
+    if floor is None or limit is None or not st.loss <= floor:
+        return None
+    step, _ = gauss_newton(st.jac, st.residual)
+    if step is None:
+        return None
+    size = float(np.max(np.abs(step))) if step.size else 0.0
+    return size if size <= limit else None
 
 
 def _take_step(st, ev, idx, trials, xtol, ftol):

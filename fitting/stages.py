@@ -92,6 +92,22 @@ class Objective:
             evs[id(self._evaluator)] = self._evaluator
         return sum(e.evaluations for e in evs.values())
 
+    def floor(self):
+        """The model's reproducibility floor over this objective's frames as a normalised loss
+        (:func:`jaxplush.fitting.result.rounding_drift`, measured at the start values; with multiple
+        shooting, the shooting floor of its segments), for a noise-free position target; None otherwise, or when it was not measured."""
+        from jaxplush.fitting import losses as _losses
+        from jaxplush.fitting.result import rounding_drift
+        prob = self.prob
+        if prob.target.kind != "positions" or (prob.noise is not None and prob.noise > 0):
+            return None
+        sh = prob.shooting
+        # multiple shooting: the floor of its segments (what the outcome judges it by)
+        drift = sh.floor if sh is not None and sh.on else rounding_drift(prob)
+        if drift is None or not math.isfinite(drift):
+            return None
+        return drift * drift * _losses.COMPONENTS[prob.target.kind] / prob.loss.scale2
+
     def residuals(self, theta):
         """(n,) residuals at one point (sum of squares: the loss), and whether it ran."""
         e = self.evaluator(np.asarray(theta, np.float64)[None])
@@ -232,7 +248,9 @@ class LocalLM:
         o = self.options
         ev, box, states = objective.evaluator, objective.box, s.states
         start_residuals(ev, states, o)          # those a resumed checkpoint left out (recomputed, identically)
-        _search.lm_round(ev, box, states, self.max_iter, o, noise_stop=self.noise_stop)
+        floor = getattr(objective, "floor", None)
+        _search.lm_round(ev, box, states, self.max_iter, o, noise_stop=self.noise_stop,
+                         floor=floor() if floor is not None else None)
         s.rounds += 1
         # a search that stalls on a jump of the loss restarts from the lowest point of a scan
         _search.rescue(ev, box, states, o.max_rescues, o)

@@ -445,8 +445,10 @@ def test_fit_options_and_keywords_are_checked_before_anything_is_built():
     with pytest.raises(JaxplushError, match="unknown option 'colour'"):
         F.fit(None, None, options=FitOptions(), colour="red")
     assert FitOptions().replace(global_retries=None).search.retries is None
+    assert FitOptions().replace(local_floor_step=None).local.floor_step is None
     bad = [(dict(iterations=0), "iterations must be >= 1"), (dict(samples=-1), "samples must be an integer >= 0"),
            (dict(global_retries=-1), "global_retries must be None or an integer >= 0"),
+           (dict(local_floor_step=-1e-3), "local_floor_step must be a number > 0 or None"),
            (dict(starts=0), "starts must be an integer >= 1"), (dict(resume=True), "resume needs a checkpoint_path"),
            (dict(checkpoint_every=0), "checkpoint_every must be >= 1"), (dict(patience=0), "patience must be"),
            (dict(gtol=-1.0), "gtol must be a number >= 0"),

@@ -472,3 +472,51 @@ def test_noisy_samples_of_a_curved_surface_leave_the_cloud_residual_unbiased():
         means[how] = float(np.mean(d))
     assert abs(means["motion"] - sigma ** 2 / radius) < 4 * se             # 8e-5 m, 9 standard errors
     assert abs(means["noise"]) < 4 * se
+
+
+class _RoundedLoss:
+    """An evaluator stand-in with rounding noise: residuals r_i = a_i (theta - 1) + eps sin(1e5 (i+1) theta),
+    a loss that is rough below eps² per residual, as a float32 rollout's is near the truth."""
+
+    eps, n = 1e-6, 20
+
+    class residual:
+        n = 20
+
+    def substeps_for(self, thetas):
+        return np.ones(len(thetas), int)
+
+    def __call__(self, thetas, substeps=None):
+        from jaxplush.fitting.evaluate import Evaluation
+        t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)[:, :1]
+        i = np.arange(1, self.n + 1)[None]
+        r = np.linspace(0.5, 1.5, self.n)[None] * (t - 1.0) + self.eps * np.sin(1e5 * i * t)
+        n = len(thetas)
+        return Evaluation(r, np.sum(r ** 2, axis=1), np.ones(n, bool), np.ones(n, int), np.zeros(n, bool))
+
+
+def test_a_noise_free_search_stops_at_the_reproducibility_floor():
+    """A search whose loss is at the model's reproducibility floor and whose Gauss-Newton step is
+    negligible stops there (Stop.FLOOR), in fewer evaluations than without the floor and as close
+    to the optimum; a loss below the floor with a large step does not stop; floor_step None never does."""
+    from jaxplush.fitting import search as S
+    from jaxplush.fitting.options import LocalOptions
+    ev, box = _RoundedLoss(), S.Box(np.array([[-2.0]]), np.array([[2.0]]))
+    floor = 2.0 * ev.n * ev.eps ** 2
+
+    def run(start, floor, options=None):
+        states = S.start_states(ev, np.array([[[start]]]))
+        while not all(st.done for st in states):
+            S.lm_round(ev, box, states, max_iter=40, options=options, floor=floor)
+        return states[0]
+
+    plain, at_floor = run(0.3, None), run(0.3, floor)
+    assert at_floor.stopped == outcome.Stop.FLOOR and "reproducibility floor" in at_floor.reason
+    assert plain.stopped != outcome.Stop.FLOOR
+    assert at_floor.loss <= floor and abs(at_floor.theta[0, 0] - 1.0) < 1e-3
+    assert at_floor.evaluations < plain.evaluations
+    # a loss under a (huge) floor but a Gauss-Newton step of 0.7: the search goes on to the optimum
+    far = run(0.3, 1e6)
+    assert far.iteration >= 1 and abs(far.theta[0, 0] - 1.0) < 1e-3
+    never = run(0.3, floor, LocalOptions(floor_step=None))
+    assert never.stopped != outcome.Stop.FLOOR
