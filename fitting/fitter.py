@@ -284,7 +284,8 @@ def _resolve_again(prob, box, run, ev, local, report, drift, factor, notes):
     if drift is None or not h > float(run.jac_step):
         return report
     best = run.best
-    jac = jacobian(ev, box, best.theta, h, int(best.substeps or 1), local)
+    jac = jacobian(ev, box, best.theta, h, int(best.substeps or 1), local,
+                   separation=getattr(best, "separation", math.nan))
     if jac is None or not np.all(np.isfinite(jac)) or not np.any(jac):
         return report
     again = _ident.analyse(jac * factor, np.nan_to_num(run.residual) * factor, prob.labels, noise=prob.noise,

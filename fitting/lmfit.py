@@ -187,7 +187,8 @@ def _result(objective, state, opts):
             paths[-1].append((history, reason))
     th0 = np.asarray(objective.prob.theta0, np.float64)
     if lin.start_ok:
-        jac0 = _search.jacobian(ev, box, th0, local.h_max, lin.start_substeps, local)
+        jac0 = _search.jacobian(ev, box, th0, local.h_max, lin.start_substeps, local,
+                                separation=lin.start_separation)
         grad0 = 2.0 * jac0.T @ lin.start_residual
     else:
         grad0 = np.full(th0.size, np.inf)

@@ -229,20 +229,22 @@ def evaluator(prob, **kw):
 
 
 def _floor(prob, segment_frames, refine):
-    """The shooting floor (module docstring) of ``segment_frames`` frames at the start values, m,
-    or None when the start's own rollout does not run."""
+    """(the shooting floor (module docstring) of ``segment_frames`` frames at the start values, m,
+    or None when the start's own rollout does not run; how close the objects came in that rollout,
+    :attr:`jaxplush.fitting.evaluate.Evaluation.separation`, NaN where not measured)."""
     ev = Evaluator(prob)
     e = ev(prob.theta0[None], keep_frames=True)
+    sep = math.nan if e.separation is None else float(e.separation[0])
     if not e.ok[0]:
-        return None
+        return None, sep
     own = dataclasses.replace(prob.target, positions=e.frames[0], noise=None)
     twin = dataclasses.replace(prob, target=own)
     ms = ShootingEvaluator(twin, segment_frames, refine, calibration=ev.calibration(), share=ev)
     d = ms(prob.theta0[None], substeps=e.substeps, keep_frames=False)
     if not d.ok[0]:
-        return None
+        return None, sep
     # the residuals are normalised by the target's scale: back to metres per coordinate
-    return _losses.rms_metres(float(d.loss[0]), prob.loss.scale2, "positions")
+    return _losses.rms_metres(float(d.loss[0]), prob.loss.scale2, "positions"), sep
 
 
 #: Central-difference step (log space) of :func:`resolution`'s Jacobian: wide enough to see past
@@ -250,15 +252,16 @@ def _floor(prob, segment_frames, refine):
 RESOLUTION_STEP = 0.02
 
 
-def resolution(ev, theta, floor):
+def resolution(ev, theta, floor, separation=math.nan):
     """The largest standard error of a log-parameter at theta if every residual of ``ev`` carried
     noise of RMS ``floor`` (m): sqrt of the largest diagonal entry of s² (JᵀJ)⁻¹, J the
-    central-difference Jacobian (:data:`RESOLUTION_STEP`); inf where J is singular, None where the
-    stencil does not run."""
+    central-difference Jacobian (:data:`RESOLUTION_STEP`; ``separation``: how close the objects came
+    in the run at theta, as :func:`jaxplush.fitting.search.jacobian` takes it); inf where J is
+    singular, None where the stencil does not run."""
     from jaxplush.fitting import search as _search
     theta = np.asarray(theta, np.float64)
     box = _search.Box(theta - 1.0, theta + 1.0)
-    jac = _search.jacobian(ev, box, theta, RESOLUTION_STEP)
+    jac = _search.jacobian(ev, box, theta, RESOLUTION_STEP, separation=separation)
     if not np.isfinite(jac).all() or not np.any(jac):
         return None
     prob = ev.prob
@@ -308,7 +311,7 @@ def plan(prob, setting="auto", refine=REFINE):
         if reason is not None:
             raise JaxplushError(f"--shooting {setting}: multiple shooting cannot run: {reason}")
         seg = max(MIN_SEGMENT, int(setting))
-        floor = _floor(prob, seg, refine)
+        floor, _ = _floor(prob, seg, refine)
         return Shooting(seg, floor, single, refine, f"multiple shooting in segments of {seg} frames (asked for)"
                         + ("" if floor is None else f"; shooting floor {floor * 1e3:.3g} mm")), prob
     if pred is None or not math.isfinite(pred.horizon_time):
@@ -327,15 +330,15 @@ def plan(prob, setting="auto", refine=REFINE):
         return Shooting(None, single_floor=single, reason=(
             f"single shooting (its floor, {single * 1e3:.3g} mm, is below half of what a converged fit "
             f"needs, {need * 1e3:.3g} mm)")), prob
-    floor = _floor(prob, seg, refine)
+    floor, sep = _floor(prob, seg, refine)
     if floor is None or single is None or floor >= single:
         why = ("the shooting floor could not be measured" if floor is None or single is None else
                f"node states estimated from the frames ({floor * 1e3:.3g} mm) are no better than "
                f"single shooting's floor ({single * 1e3:.3g} mm)")
         return Shooting(None, floor, single, refine, f"single shooting ({why})"), prob
     ms = ShootingEvaluator(prob, seg, refine)
-    res_ms = resolution(ms, prob.theta0, floor)
-    res_single = resolution(Evaluator(prob, calibration=ms.calibration(), share=ms), prob.theta0, single)
+    res_ms = resolution(ms, prob.theta0, floor, sep)
+    res_single = resolution(Evaluator(prob, calibration=ms.calibration(), share=ms), prob.theta0, single, sep)
     floors = f"shooting floor {floor * 1e3:.3g} mm against single shooting's {single * 1e3:.3g} mm"
     if res_ms is None or res_single is None or not res_ms < res_single:
         why = ("the parameters' resolution could not be measured" if res_ms is None or res_single is None else

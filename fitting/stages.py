@@ -300,8 +300,8 @@ def screen(states, rounds, screening, local):
 class LinearState:
     """A :class:`Linearise` stage's state: the best search (``best``, a
     :class:`jaxplush.fitting.search.LMState`), the residuals and Jacobian at its point, and the
-    residuals (``start_residual``; ``start_ok``: it ran; ``start_substeps``) and loss ``loss0`` of the
-    start values; ``ran``: stepped."""
+    residuals (``start_residual``; ``start_ok``: it ran; ``start_substeps``; ``start_separation``:
+    how close its objects came) and loss ``loss0`` of the start values; ``ran``: stepped."""
 
     best: object
     residual: np.ndarray | None = None
@@ -311,6 +311,7 @@ class LinearState:
     start_substeps: int = 1
     loss0: float = math.nan
     ran: bool = False
+    start_separation: float = math.nan
 
 
 @dataclasses.dataclass(frozen=True)
@@ -334,8 +335,10 @@ class Linearise:
         centre = ev(np.asarray([b.theta, np.asarray(objective.prob.theta0, np.float64)]))
         s.residual, s.loss0 = centre.residuals[0], float(centre.loss[1])
         s.start_residual, s.start_ok, s.start_substeps = centre.residuals[1], bool(centre.ok[1]), int(centre.substeps[1])
+        s.start_separation = _search._separation(centre, 1)
         n_sub = max(int(centre.substeps[0]), b.substeps)
-        s.jac = _search.jacobian(ev, objective.box, b.theta, self.local.h_min, n_sub, self.local)
+        s.jac = _search.jacobian(ev, objective.box, b.theta, self.local.h_min, n_sub, self.local,
+                                 separation=_search._separation(centre, 0))
         s.ran = True
         return s
 

@@ -108,6 +108,13 @@ def test_coloured_jacobian_equals_the_full_stencil_and_costs_a_fraction(two_ball
         o = j % theta.shape[1]
         assert np.max(np.abs(full[owner != o, j])) == 0.0 and np.max(np.abs(coloured[owner != o, j])) == 0.0
         np.testing.assert_allclose(coloured[:, j], full[:, j], rtol=0, atol=1e-6 * np.linalg.norm(full[:, j]))
+    # a centre whose own run came within reach of contact (its separation, as a search state or
+    # the shooting plan knows it) goes straight to the full stencil: no coloured attempt, no miss
+    before = ev.evaluations
+    near = search.jacobian(ev, box, theta, 1e-3, separation=0.0)
+    assert not ev.clear_by_separation([0.0])[0] and ev.clear_by_separation([100.0])[0]
+    assert ev.evaluations - before == 2 * theta.size and ev.colour_misses == 0
+    np.testing.assert_allclose(near, full, rtol=0, atol=1e-6 * np.linalg.norm(full))
     # a stencil that comes near contact is run again in full (the same Jacobian), and counted
     ev.clear = lambda r, separation=None: np.zeros(len(r), bool)
     before = ev.evaluations
