@@ -387,12 +387,16 @@ def _validate_tuning(opts, optimizer):
                 if not _is_whole(v) or v < (0 if name in ("max_rescues",) else 1):
                     raise JaxplushError(f"{name} must be a whole number >= {0 if name == 'max_rescues' else 1}, "
                                         f"got {v!r}")
-            elif v is None and name == "local_floor_step":
+            elif v is None and _optional(f):
                 continue
             elif not (_is_positive(v) or (v == 0 and name in ("local_xtol", "local_ftol", "pred_tol", "noise_stop",
                                                              "continuation_noise_stop", "rescue_gain"))):
-                raise JaxplushError(f"{name} must be a number > 0{' or None' if name == 'local_floor_step' else ''}, "
-                                    f"got {v!r}")
+                raise JaxplushError(f"{name} must be a number > 0{' or None' if _optional(f) else ''}, got {v!r}")
+
+
+def _optional(field):
+    """Whether a tuning field may be None (its annotation says ``| None``)."""
+    return "None" in str(field.type)
 
 
 def _is_positive(v):

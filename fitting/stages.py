@@ -95,7 +95,8 @@ class Objective:
     def floor(self):
         """The model's reproducibility floor over this objective's frames as a normalised loss
         (:func:`jaxplush.fitting.result.rounding_drift`, measured at the start values; with multiple
-        shooting, the shooting floor of its segments), for a noise-free position target; None otherwise, or when it was not measured."""
+        shooting, the shooting floor of its segments), for a noise-free position target; None
+        otherwise, or when it was not measured."""
         from jaxplush.fitting import losses as _losses
         from jaxplush.fitting.result import rounding_drift
         prob = self.prob

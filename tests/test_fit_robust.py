@@ -260,9 +260,9 @@ def test_a_noise_free_fit_whose_gauss_newton_step_is_tiny_is_optimal():
     assert noisy.status == "stalled"
 
 
-class _SteppedLoss:
-    """An evaluator stand-in with a jump: residual r = |theta - 1|, plus 0.5 for 0.2 <= theta < 0.6.
-    Just below 0.2 every step toward the minimum at 1 crosses the jump and raises the loss."""
+class _OneParameterLoss:
+    """An evaluator stand-in of one parameter: residuals ``self.r(t)`` ((N, 1) -> (N, n)) at every
+    point, all of them run at one substep."""
 
     class residual:
         n = 1
@@ -272,10 +272,17 @@ class _SteppedLoss:
 
     def __call__(self, thetas, substeps=None):
         from jaxplush.fitting.evaluate import Evaluation
-        t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)[:, :1]
-        r = (t - 1.0) - 0.5 * ((t >= 0.2) & (t < 0.6))
+        r = self.r(np.asarray(thetas, np.float64).reshape(len(thetas), -1)[:, :1])
         n = len(thetas)
         return Evaluation(r, np.sum(r ** 2, axis=1), np.ones(n, bool), np.ones(n, int), np.zeros(n, bool))
+
+
+class _SteppedLoss(_OneParameterLoss):
+    """An evaluator stand-in with a jump: residual r = |theta - 1|, plus 0.5 for 0.2 <= theta < 0.6.
+    Just below 0.2 every step toward the minimum at 1 crosses the jump and raises the loss."""
+
+    def r(self, t):
+        return (t - 1.0) - 0.5 * ((t >= 0.2) & (t < 0.6))
 
 
 def test_a_search_stalled_on_a_jump_restarts_from_an_axis_scan():
@@ -474,25 +481,18 @@ def test_noisy_samples_of_a_curved_surface_leave_the_cloud_residual_unbiased():
     assert abs(means["noise"]) < 4 * se
 
 
-class _RoundedLoss:
-    """An evaluator stand-in with rounding noise: residuals r_i = a_i (theta - 1) + eps sin(1e5 (i+1) theta),
-    a loss that is rough below eps² per residual, as a float32 rollout's is near the truth."""
+class _RoundedLoss(_OneParameterLoss):
+    """An evaluator stand-in with rounding noise: residuals r_i = a_i (theta - 1) + eps sin(1e5 i theta),
+    i = 1..20, a loss that is rough below eps² per residual, as a float32 rollout's is near the truth."""
 
     eps, n = 1e-6, 20
 
     class residual:
         n = 20
 
-    def substeps_for(self, thetas):
-        return np.ones(len(thetas), int)
-
-    def __call__(self, thetas, substeps=None):
-        from jaxplush.fitting.evaluate import Evaluation
-        t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)[:, :1]
+    def r(self, t):
         i = np.arange(1, self.n + 1)[None]
-        r = np.linspace(0.5, 1.5, self.n)[None] * (t - 1.0) + self.eps * np.sin(1e5 * i * t)
-        n = len(thetas)
-        return Evaluation(r, np.sum(r ** 2, axis=1), np.ones(n, bool), np.ones(n, int), np.zeros(n, bool))
+        return np.linspace(0.5, 1.5, self.n)[None] * (t - 1.0) + self.eps * np.sin(1e5 * i * t)
 
 
 def test_a_noise_free_search_stops_at_the_reproducibility_floor():
