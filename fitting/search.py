@@ -22,8 +22,9 @@ vector r (sum(r²) = loss) with a trust radius in log space:
 * J by central differences at step h = clip(radius / 4, h_min, h_max) (2 P runs, one batch);
 * three trial steps (JᵀJ + mu diag(JᵀJ)) delta = -Jᵀ r for mu/10, mu and 10 mu, each cut to the
   trust radius and projected into the box, run together; the best one is accepted if it
-  lowers the loss (mu and the radius follow the ratio of actual to predicted decrease), else
-  mu grows tenfold and the radius shrinks fourfold;
+  lowers the loss (mu and the radius follow the ratio of actual to predicted decrease; a step
+  that beats its prediction also doubles a radius below ``radius0``, since the radius sets the
+  difference step too), else mu grows tenfold and the radius shrinks fourfold;
 * it stops when an accepted step changes theta by less than ``xtol`` or the loss by less than
   ``ftol`` (relative), when the radius falls below ``xtol`` without an accepted step (stalled),
   or at ``max_iter`` iterations. The outcome is judged afterwards (jaxplush.fitting.fitter), not here.
@@ -493,7 +494,7 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
     for i, st in enumerate(active):
         idx = np.nonzero(owner == i)[0]
         if idx.size:
-            _take_step(st, ev, idx, trials, o.xtol, o.ftol)
+            _take_step(st, ev, idx, trials, o.xtol, o.ftol, o.radius0)
 
 
 def _floor_step(st, floor, limit):
@@ -508,10 +509,15 @@ def _floor_step(st, floor, limit):
     return size if size <= limit else None
 
 
-def _take_step(st, ev, idx, trials, xtol, ftol):
+def _take_step(st, ev, idx, trials, xtol, ftol, grow_to=_LOCAL.radius0):
     """Accept the best of a state's evaluated trial steps (rows ``idx`` of ``ev`` and ``trials``) if
     it lowers the loss, adapting mu and the trust radius, else shrink the radius; sets the stops
-    on ``xtol`` (step), ``ftol`` (relative loss change) and a radius below ``xtol`` (stalled)."""
+    on ``xtol`` (step), ``ftol`` (relative loss change) and a radius below ``xtol`` (stalled).
+
+    A step that does better than the model promised (ratio above 0.75) also doubles a radius
+    below ``grow_to`` (a fresh search's): the radius sets the Jacobian's difference step too,
+    and a small one (a later horizon starts with one) resolves rounding ripple rather than the
+    slope, so the steps it gives stay short while each does better than predicted."""
     st.evaluations += len(idx)
     st.iteration += 1
     best = int(idx[np.argmin(np.where(ev.ok[idx], ev.loss[idx], np.inf))])
@@ -527,7 +533,7 @@ def _take_step(st, ev, idx, trials, xtol, ftol):
         st.jac = None
         st.mu = mu * (1 / 3 if rho > 0.75 else (1.0 if rho > 0.25 else 2.0))
         if rho > 0.75:
-            st.radius = max(st.radius, 2.0 * size)
+            st.radius = max(st.radius, 2.0 * size, min(2.0 * st.radius, grow_to))
         elif rho < 0.25:
             st.radius = max(size / 2.0, xtol / 2)
         st.history.append((st.loss, st.theta.copy()))

@@ -607,14 +607,16 @@ class _RoundingModel:
         return Evaluation(res, (res ** 2).sum(1), np.ones(n, bool), np.ones(n, np.int64), np.zeros(n, bool))
 
 
-@pytest.mark.parametrize("weak, resolved", [(0.02, True), (0.0, False)])
-def test_a_combination_the_search_step_cannot_resolve_is_measured_again_at_a_larger_step(weak, resolved):
+@pytest.mark.parametrize("weak, resolved, measured", [(0.02, True, 1), (0.004, True, 2), (0.0, False, 2)])
+def test_a_combination_the_search_step_cannot_resolve_is_measured_again_at_a_larger_step(weak, resolved, measured):
     """The search's last Jacobian (step h_min = 1e-3) carries rounding noise drift / (2 h):
     a combination whose effect is within 3x that noise is unresolved there. The report then
     takes a second Jacobian at ``resolve_h`` (1e-2), where the noise is 10x smaller: a weak but
     real combination (here a unit step along it moves the residuals by 2% of the strong
-    ones', 7.5x the noise at 1e-2 and 0.75x at 1e-3) is resolved and its parameters determined; an
-    exactly degenerate pair (two equal columns) stays unresolved at any step."""
+    ones', 7.5x the noise at 1e-2 and 0.75x at 1e-3) is resolved and its parameters determined.
+    One five times weaker (1.5x the noise at 1e-2) is measured once more, at the step its
+    measured effect asks for (within h_max), and resolved there; an exactly degenerate pair (two
+    equal columns) stays unresolved at any step."""
     from types import SimpleNamespace
     from jaxplush.fitting import identifiability as I, options as O, search as S
     rng = np.random.default_rng(3)
@@ -640,6 +642,10 @@ def test_a_combination_the_search_step_cannot_resolve_is_measured_again_at_a_lar
     notes = []
     again = F._resolve_again(prob, box, run, model, local, first, drift, 1.0, notes)
     assert notes and f"measured again at step {local.resolve_h:g}" in notes[0]
+    assert len(notes) == measured, notes
+    if measured > 1:
+        h = float(notes[1].split("measured again at step ")[1].split(" ")[0])
+        assert local.resolve_h < h <= local.h_max, notes
     if resolved:
         assert not again.unresolved and not again.undetermined, again.summary()
         assert np.all(np.isfinite(again.stderr))

@@ -495,6 +495,46 @@ class _RoundedLoss(_OneParameterLoss):
         return np.linspace(0.5, 1.5, self.n)[None] * (t - 1.0) + self.eps * np.sin(1e5 * i * t)
 
 
+class _RippledSlope(_OneParameterLoss):
+    """An evaluator stand-in whose small difference steps see ripple: residuals r_i = a_i (theta - 1)
+    + eps sin(1e5 i theta), i = 1..20, with eps large enough (0.1) that a central difference at
+    step 0.0125 measures mostly ripple and one at 0.05 mostly slope, as a float32 rollout of a
+    sensitive motion does over a long horizon."""
+
+    eps, n = 0.1, 20
+
+    class residual:
+        n = 20
+
+    def r(self, t):
+        i = np.arange(1, self.n + 1)[None]
+        return np.linspace(0.5, 1.5, self.n)[None] * (t - 1.0) + self.eps * np.sin(1e5 * i * t)
+
+
+def test_a_step_that_beats_its_prediction_widens_a_small_trust_radius():
+    """A search that starts with a small trust radius (a later horizon starts with 0.05) takes its
+    Jacobian at a small difference step, which measures ripple as much as slope: its Gauss-Newton
+    steps fall short, and each does better than predicted (ratio 1-2). Such a step doubles the
+    radius, up to a fresh search's ``radius0``, so the difference step grows out of the ripple and the
+    search reaches the optimum; one whose radius may not grow this way (``radius0`` = 0.05) stalls
+    in the ripple short of it (or gets there later)."""
+    from jaxplush.fitting import search as S
+    from jaxplush.fitting.options import LocalOptions
+    ev, box = _RippledSlope(), S.Box(np.array([[-2.0]]), np.array([[2.0]]))
+
+    def search(options):
+        st = S.start_states(ev, np.array([[[0.3]]]), options=options)[0]
+        st.radius = 0.05
+        while not st.done and abs(st.theta[0, 0] - 1.0) > 0.05:
+            S.lm_round(ev, box, [st], max_iter=60, options=options)
+        return st
+
+    grown, fixed = search(LocalOptions()), search(LocalOptions(radius0=0.05))
+    assert abs(grown.theta[0, 0] - 1.0) <= 0.05 and grown.stopped == outcome.Stop.NONE, grown.reason
+    # without the growth, the short steps end in the ripple: stalled short of the optimum, or slower
+    assert abs(fixed.theta[0, 0] - 1.0) > 0.05 or fixed.iteration > grown.iteration, (fixed.reason, fixed.theta)
+
+
 def test_a_noise_free_search_stops_at_the_reproducibility_floor():
     """A search whose loss is at the model's reproducibility floor and whose Gauss-Newton step is
     negligible stops there (Stop.FLOOR), in fewer evaluations than without the floor and as close
