@@ -92,7 +92,8 @@ class LocalOptions:
       rescue_gain: a scan point must lower the loss by this fraction to restart a search there.
       h_min, h_max: smallest and largest central-difference step of the Jacobian (the step is
         the trust radius / 4, clipped to them).
-      radius0, mu0: trust radius and Levenberg-Marquardt damping of a fresh search.
+      radius0, mu0: trust radius and Levenberg-Marquardt damping of a fresh search (a step that
+        does better than predicted doubles a smaller radius, up to ``radius0``).
       xtol: a search stops when an accepted step is at most this (max-norm), and stalls when the
         trust radius falls below it without one (flat name ``local_xtol``).
       ftol: ... or when the relative loss change of an accepted step is at most this (``local_ftol``).
