@@ -286,8 +286,8 @@ def _resolve_again(prob, box, run, ev, local, report, drift, factor, notes):
     twice RESOLVE_FACTOR x its noise (at most ``h_max``). Seed 19 case 8 of the recovery
     benchmark (two pinned 642-vertex objects, the report's damping; drift 0.52 mm), every
     parameter within 0.2% of the truth: all six combinations unresolved at steps 0.001 and 0.01
-    (measured effects 0.02-0.04 m per e-fold, mostly noise), two resolved at 0.05 (effects
-    0.008-0.017 m against a noise of 0.0052 m)."""
+    (sensitivities 0.02-0.04 m per e-fold, mostly noise), two resolved at 0.05 (sensitivities
+    0.008-0.017 m per e-fold against a noise of 0.0052 m)."""
     from jaxplush.fitting.search import fd_step, jacobian
     if drift is None:
         return report

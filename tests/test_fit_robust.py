@@ -495,20 +495,12 @@ class _RoundedLoss(_OneParameterLoss):
         return np.linspace(0.5, 1.5, self.n)[None] * (t - 1.0) + self.eps * np.sin(1e5 * i * t)
 
 
-class _RippledSlope(_OneParameterLoss):
-    """An evaluator stand-in whose small difference steps see ripple: residuals r_i = a_i (theta - 1)
-    + eps sin(1e5 i theta), i = 1..20, with eps large enough (0.1) that a central difference at
-    step 0.0125 measures mostly ripple and one at 0.05 mostly slope, as a float32 rollout of a
+class _RippledSlope(_RoundedLoss):
+    """:class:`_RoundedLoss` with ripple large enough (eps 0.1) that a central difference at step
+    0.0125 measures mostly ripple and one at 0.05 mostly slope, as a float32 rollout of a
     sensitive motion does over a long horizon."""
 
-    eps, n = 0.1, 20
-
-    class residual:
-        n = 20
-
-    def r(self, t):
-        i = np.arange(1, self.n + 1)[None]
-        return np.linspace(0.5, 1.5, self.n)[None] * (t - 1.0) + self.eps * np.sin(1e5 * i * t)
+    eps = 0.1
 
 
 def test_a_step_that_beats_its_prediction_widens_a_small_trust_radius():
