@@ -18,7 +18,10 @@ Model of a segment (frames on an even grid, H seconds apart; every vertex observ
   that does not bring the next frame closer is not taken;
 * each segment is simulated to the next node; its frames, the next node's included, are the
   residuals: the position gap at every node (where one segment ends and the next restarts) is a
-  residual like any frame's.
+  residual like any frame's;
+* a final frame off the grid (a run that also saves its last step) is simulated by the last
+  segment, which then ends on the last grid frame: the segments are laid out from the end, and
+  the first one is the short one.
 
 Where one rollout's floor is below half of what a converged fit needs (the outcome's rule:
 1.25 x the noise, or 1% of the motion), nothing is measured: one rollout can converge. Otherwise,
@@ -83,15 +86,30 @@ class Shooting:
         return self.segment_frames is not None
 
 
-def even_gap(target):
-    """The steps between frames when the target's frames lie on an even grid from step 0 (a frame
-    at step 0 allowed), else None."""
+def frame_grid(target):
+    """(gap, tail) when the target's frames lie on an even grid from step 0 (a frame at step 0
+    allowed): ``gap`` steps between frames, and ``tail`` the steps from the last grid frame to a
+    final frame off the grid (0: none; a run that saves its final step too, as ``jaxplush
+    simulate`` does when the steps are not a multiple of the saving interval, ends with one,
+    fewer than ``gap`` steps on); else None."""
     steps = np.asarray(target.steps, np.int64)
     steps = steps[steps > 0]
     if steps.size < 2:
         return None
     gap = int(steps[0])
-    return gap if np.array_equal(steps, gap * np.arange(1, steps.size + 1)) else None
+    if np.array_equal(steps, gap * np.arange(1, steps.size + 1)):
+        return gap, 0
+    grid, last = steps[:-1], int(steps[-1])
+    tail = last - gap * grid.size
+    if grid.size >= 2 and np.array_equal(grid, gap * np.arange(1, grid.size + 1)) and 0 < tail < gap:
+        return gap, tail
+    return None
+
+
+def even_gap(target):
+    """The steps between frames of the target's grid (:func:`frame_grid`), or None."""
+    g = frame_grid(target)
+    return None if g is None else g[0]
 
 
 def why_not(prob):
@@ -113,7 +131,8 @@ class ShootingEvaluator(Evaluator):
     shooting's (every target frame, each simulated by its segment).
 
     Args:
-      prob: :class:`jaxplush.fitting.fitter.Problem` with a position target on an even grid.
+      prob: :class:`jaxplush.fitting.fitter.Problem` with a position target on an even grid
+        (:func:`frame_grid`).
       segment_frames: frames per segment (>= :data:`MIN_SEGMENT`).
       refine: node-velocity refinements per evaluation (0: central differences alone).
       **kw: as :class:`Evaluator`.
@@ -128,13 +147,25 @@ class ShootingEvaluator(Evaluator):
         self.segment_frames = max(MIN_SEGMENT, int(segment_frames))
         self.refine = int(refine)
         t = prob.target
-        self.gap = even_gap(t)
+        self.gap, self.tail = frame_grid(t)
         keep = np.asarray(t.steps) > 0
         x0 = np.asarray(prob.sim.topology.x0, np.float64)
+        frames = np.asarray(t.positions, np.float64)[keep]
+        if self.tail:
+            frames = frames[:-1]
         # observed positions at steps 0, gap, 2 gap, ...: the scene's start, then the target's frames
-        self.observed = np.concatenate([x0[None], np.asarray(t.positions, np.float64)[keep]])
-        self.n_steps_frames = len(self.observed) - 1
-        self.nodes = np.arange(0, self.n_steps_frames, self.segment_frames)
+        # on the grid (an off-grid final frame is not a node)
+        self.observed = np.concatenate([x0[None], frames])
+        self.n_steps_frames = T = len(self.observed) - 1
+        if self.tail:
+            # every lane saves one frame more, ``tail`` steps after its last: the segments are
+            # aligned to end at the last grid frame, so that the last segment's extra frame is the
+            # off-grid final frame (the first segment is the short one)
+            self.segment_frames = min(self.segment_frames, T)
+            self.nodes = np.r_[0, np.arange(T, 0, -self.segment_frames)[::-1][:-1]].astype(np.int64)
+        else:
+            self.nodes = np.arange(0, T, self.segment_frames)
+        self._runs = [(self.gap, self.segment_frames)] + ([(self.tail, 1)] if self.tail else [])
         self.h_frame = self.gap * t.dt
         obs = self.observed
         v = np.zeros((len(self.nodes),) + x0.shape)
@@ -185,7 +216,7 @@ class ShootingEvaluator(Evaluator):
         n_pts, n_seg, seg = len(thetas), len(self.nodes), self.segment_frames
         values, x0, v0, step0 = self._lanes(thetas)
         v0 = self._refine(values, x0, v0, step0, n)
-        fr, good, clamp, over, sep = self._run_lanes(values, n, [(self.gap, seg)], x0, v0, step0, separation=True)
+        fr, good, clamp, over, sep = self._run_lanes(values, n, self._runs, x0, v0, step0, separation=True)
         for _ in range(MAX_CAPACITY_GROWTHS):
             lanes = np.flatnonzero(over)
             if not lanes.size or not self._grow_contact(thetas[lanes[0] // n_seg]):
@@ -193,15 +224,18 @@ class ShootingEvaluator(Evaluator):
             pts = np.unique(lanes // n_seg)
             redo = (pts[:, None] * n_seg + np.arange(n_seg)).ravel()
             fr[redo], good[redo], clamp[redo], over[redo], sep[redo] = self._run_lanes(
-                [values[i] for i in redo], n, [(self.gap, seg)], x0[redo], v0[redo], step0[redo], separation=True)
+                [values[i] for i in redo], n, self._runs, x0[redo], v0[redo], step0[redo], separation=True)
         if over.any():
             self.notes.append("contact candidates still overflowed in some segments after growing the capacity")
         T = self.n_steps_frames
-        out = np.empty((n_pts, T) + self.observed.shape[1:])
-        fr = fr.reshape((n_pts, n_seg, seg) + fr.shape[2:])
+        out = np.empty((n_pts, T + (1 if self.tail else 0)) + self.observed.shape[1:])
+        fr = fr.reshape((n_pts, n_seg) + fr.shape[1:])
+        ends = np.r_[self.nodes[1:], T]
         for j, k in enumerate(self.nodes):
-            m = min(seg, T - k)
+            m = min(seg, ends[j] - k)
             out[:, k:k + m] = fr[:, j, :m]
+        if self.tail:
+            out[:, T] = fr[:, -1, seg]          # the last segment ends at T (__init__)
         full = np.empty((n_pts, self.prob.target.n_frames) + out.shape[2:])
         full[:, self._frame_rows] = out
         full[:, np.setdiff1d(np.arange(self.prob.target.n_frames), self._frame_rows)] = self.observed[0]
@@ -281,9 +315,10 @@ def segment_frames_for(prob):
     pred = prob.predictability
     if pred is None or not math.isfinite(pred.horizon_time):
         return None
-    h = even_gap(prob.target) * prob.target.dt if even_gap(prob.target) else None
-    if h is None:
+    gap = even_gap(prob.target)
+    if gap is None:
         return None
+    h = gap * prob.target.dt
     return max(MIN_SEGMENT, int(pred.horizon_time / h))
 
 

@@ -162,17 +162,40 @@ def test_a_floor_below_what_convergence_needs_keeps_one_rollout(bean):
     assert sh.floor is not None and "below half" not in sh.reason
 
 
+def test_a_final_frame_off_the_grid_is_shot_by_the_last_segment(free_fall):
+    """A run that also saves its final step (205 steps saved every 10) ends with a frame 5 steps
+    past the grid: the segments are laid out from the end, so the last one simulates that frame,
+    and a free fall still lands on the parabola at every frame, the off-grid one included."""
+    scene, _ = free_fall
+    target = make_target(scene, 205, 5e-4, 10)
+    assert S.frame_grid(target) == (10, 5) and S.even_gap(target) == 10
+    prob = _problem(scene, target)
+    ev = S.ShootingEvaluator(prob, 6, refine=0)
+    assert ev.n_steps_frames == 20 and list(ev.nodes) == [0, 2, 8, 14]
+    e = ev(prob.theta0[None], keep_frames=True)
+    motion = np.sqrt(np.mean((target.positions - scene.vertices) ** 2))
+    assert e.ok[0] and losses.rms_metres(e.loss[0], prob.loss.scale2, "positions") < 1e-5 * motion
+    # the residuals see the off-grid frame: moved by 1 mm, it alone carries a residual, as in
+    # single shooting
+    moved = target.positions.copy()
+    moved[-1] += 1e-3
+    off = _problem(scene, dataclasses.replace(target, positions=moved))
+    shot = S.ShootingEvaluator(off, 6, refine=0)(off.theta0[None]).residuals[0].reshape(moved.shape)
+    whole = Evaluator(off)(off.theta0[None]).residuals[0].reshape(moved.shape)
+    assert np.abs(whole[-1]).min() > 1e3 * np.abs(whole[:-1]).max()
+    np.testing.assert_allclose(shot, whole, atol=1e-3 * np.abs(whole[-1]).max())
+
+
 def test_frames_off_an_even_grid_say_so(bean):
-    """A target whose last frame lies off the even grid (a run that saves its final step too)
-    cannot be cut into equal segments: auto keeps one rollout and says why, never that the motion
-    is predictable."""
+    """A target whose frames are not on one even grid (a frame missing in the middle) cannot be cut
+    into equal segments: auto keeps one rollout and says why, never that the motion is
+    predictable."""
     scene, target = bean
-    keep = np.r_[np.arange(target.n_frames - 1)]
-    odd = dataclasses.replace(target, positions=np.concatenate([target.positions[keep], target.positions[-1:]]),
-                              steps=np.r_[target.steps[keep], target.steps[-1] - 3],
-                              times=np.r_[target.times[keep], (target.steps[-1] - 3) * target.dt])
+    keep = np.r_[np.arange(target.n_frames // 2), np.arange(target.n_frames // 2 + 1, target.n_frames)]
+    odd = dataclasses.replace(target, positions=target.positions[keep], steps=target.steps[keep],
+                              times=target.times[keep])
     prob = F.measure_predictability(_problem(scene, odd))
-    assert S.even_gap(odd) is None and math.isfinite(prob.predictability.horizon_time)
+    assert S.frame_grid(odd) is None and math.isfinite(prob.predictability.horizon_time)
     sh, _ = S.plan(prob, "auto")
     assert not sh.on and "not on an even grid" in sh.reason and "predictable" not in sh.reason
 
