@@ -584,11 +584,14 @@ class _RoundingModel:
     """A stand-in evaluator: residuals r(theta) = A theta plus a pseudo-random 'rounding' term of
     RMS ``drift`` / sqrt 2 that changes completely with any change of theta (as a float32
     rollout's does): two runs lie ``drift`` apart (RMS), and a central-difference Jacobian column
-    at step h carries noise drift / (2 h)."""
+    at step h carries noise drift / (2 h). With ``cubic`` (a vector of residuals), the residuals
+    also move by ``cubic`` (theta_0 - theta_2)^3: no slope at theta = 0 along that combination,
+    but a secant that grows with the step."""
 
-    def __init__(self, a, drift):
+    def __init__(self, a, drift, cubic=None):
         from types import SimpleNamespace
         self.a, self.drift = np.asarray(a, np.float64), float(drift)
+        self.cubic = np.zeros(self.a.shape[0]) if cubic is None else np.asarray(cubic, np.float64)
         self.residual = SimpleNamespace(n=self.a.shape[0])
 
     def substeps_for(self, points):
@@ -601,7 +604,8 @@ class _RoundingModel:
         for t in pts:
             seed = np.frombuffer(np.round(t, 12).tobytes(), np.uint32)
             rng = np.random.default_rng(seed)
-            res.append(self.a @ t + self.drift / np.sqrt(2) * rng.standard_normal(self.a.shape[0]))
+            res.append(self.a @ t + self.cubic * (t[0] - t[2]) ** 3
+                       + self.drift / np.sqrt(2) * rng.standard_normal(self.a.shape[0]))
         res = np.asarray(res)
         n = len(pts)
         return Evaluation(res, (res ** 2).sum(1), np.ones(n, bool), np.ones(n, np.int64), np.zeros(n, bool))
@@ -637,7 +641,8 @@ def test_a_combination_the_search_step_cannot_resolve_is_measured_again_at_a_lar
     labels = ("p0", "p1", "p2")
     first = I.analyse(jac, residual, labels, jac_noise=I.fd_noise(drift, local.h_min))
     assert first.unresolved and {"p0", "p2"} <= set(first.undetermined)      # at 1e-3 both cases are lost
-    run = SimpleNamespace(best=SimpleNamespace(theta=theta, substeps=1), jac_step=local.h_min, residual=residual)
+    run = SimpleNamespace(best=SimpleNamespace(theta=theta, substeps=1), jac_step=local.h_min, residual=residual,
+                          jac=jac)
     prob = SimpleNamespace(labels=labels, noise=None)
     notes = []
     again = F._resolve_again(prob, box, run, model, local, first, drift, 1.0, notes)
@@ -652,3 +657,45 @@ def test_a_combination_the_search_step_cannot_resolve_is_measured_again_at_a_lar
     else:
         assert again.unresolved and {"p0", "p2"} <= set(again.undetermined), again.summary()
         assert "p1" not in again.undetermined
+
+
+def test_a_larger_step_that_measures_another_slope_does_not_resolve_a_combination():
+    """Two equal columns (p0 and p2 determined only together) and residuals cubic along p0 - p2:
+    no slope there, so the combination is unresolved, but a central difference at step h sees a
+    secant of h². At 1e-3 that secant is 0.6x the Jacobian's noise (unresolved); at 1e-2, 100x
+    larger, it would pass as 60x the smaller noise there and the pair would be called determined.
+    The two Jacobians differ along the combination by far more than their noise: the report keeps
+    it unresolved and says why. Without the cubic term the same pair stays unresolved by the
+    ladder (the parametrised test above): here only the check keeps it."""
+    from types import SimpleNamespace
+    from jaxplush.fitting import identifiability as I, options as O, search as S
+    rng = np.random.default_rng(3)
+    n = 4000
+    q, _ = np.linalg.qr(rng.standard_normal((n, 3)))
+    a = q * np.sqrt(n) * np.array([1.0, 0.5, 1.0])
+    a[:, 2] = a[:, 0]
+    local = O.LocalOptions()
+    drift = 1e-4
+    noise_b = I.fd_noise(drift, local.resolve_h)
+    # along d = (1, 0, -1)/sqrt 2 a step-h Jacobian sees sqrt 2 c h² u: 60x noise_b at resolve_h
+    c = 60.0 * noise_b / (np.sqrt(2) * local.resolve_h ** 2)
+    cubic = c * q[:, 2] * np.sqrt(n)                            # RMS c
+    model = _RoundingModel(a, drift, cubic)
+    box = S.Box(lo=np.full((3, 1), -5.0), hi=np.full((3, 1), 5.0))
+    theta = np.zeros((3, 1))
+    jac = S.jacobian(model, box, theta, local.h_min, 1, local)
+    residual = model(theta[None]).residuals[0]
+    labels = ("p0", "p1", "p2")
+    first = I.analyse(jac, residual, labels, jac_noise=I.fd_noise(drift, local.h_min))
+    assert first.unresolved and {"p0", "p2"} <= set(first.undetermined)
+    # the larger step alone would call the pair determined
+    wide = S.jacobian(model, box, theta, local.resolve_h, 1, local)
+    assert not I.analyse(wide, residual, labels, jac_noise=noise_b).unresolved
+    run = SimpleNamespace(best=SimpleNamespace(theta=theta, substeps=1), jac_step=local.h_min, residual=residual,
+                          jac=jac)
+    notes = []
+    again = F._resolve_again(SimpleNamespace(labels=labels, noise=None), box, run, model, local, first, drift, 1.0,
+                             notes)
+    assert again.unresolved and {"p0", "p2"} <= set(again.undetermined), again.summary()
+    assert "p1" not in again.undetermined
+    assert len(notes) == 1 and "differs from the one at step" in notes[0], notes
