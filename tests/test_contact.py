@@ -127,6 +127,22 @@ def test_scene_keywords_are_parsed():
     assert default.stiffness is None and default.self_objects == ()
 
 
+
+def test_headroom_near_a_whole_object_takes_the_whole_object():
+    """The fit's headroom doubles each object's candidate capacity, at most to its vertex count;
+    a doubled capacity within an eighth of the count becomes the count (the same cost, and it
+    cannot overflow: 640 of 642 overflowed mid-fit and its growth to 642 recompiled everything)."""
+    scene, _ = two_balls(sub=0, extra_scene="contact_capacity 3\n")              # 12 vertices each
+    terms = model.Terms.for_scene(scene)
+    sizes = contact.object_sizes(scene)
+    assert sizes == (12, 12)
+    assert contact.with_headroom(terms, sizes).contact.capacity == (6, 6)         # half: kept
+    near = contact.with_capacity(terms, 11)                                       # 22 -> 12
+    assert contact.with_headroom(near, sizes).contact.capacity == (12, 12)
+    five = contact.with_capacity(terms, 5)                                        # 10 of 12 (0.83): kept
+    assert contact.with_headroom(five, sizes).contact.capacity == (10, 10)
+    assert contact.with_headroom(five, sizes, factor=1, least=11).contact.capacity == (12, 12)  # 11 of 12
+
 @pytest.mark.parametrize("line, message", [
     ("floor_friction -1", "'floor_friction' -1 must be >= 0"),
     ("floor_restitution 1.5", "must be between 0 and 1"),

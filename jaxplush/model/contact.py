@@ -181,10 +181,19 @@ def with_headroom(terms, sizes, factor=2, least=0):
     ``least``), each at most its vertex count ``sizes[o]`` (:func:`object_sizes`); unchanged
     without soft-soft contact. A fit ranges over parameters that squash objects into each other
     far more than the scene's own values: headroom given once costs less than the reruns and
-    compiles of growing on overflow."""
+    compiles of growing on overflow. A capacity that comes within :data:`WHOLE_FRACTION` of its
+    object's vertex count is the vertex count: it then costs about the same and cannot overflow
+    (a 642-vertex object at 640 overflowed mid-fit, and the growth to 642 recompiled every
+    rollout)."""
     if not terms.contact:
         return terms
-    return with_capacity(terms, [max(factor * c, least) for c in terms.contact.capacity], sizes)
+    caps = [max(factor * c, least) for c in terms.contact.capacity]
+    caps = [n if c >= WHOLE_FRACTION * n else c for c, n in zip(caps, sizes)]
+    return with_capacity(terms, caps, sizes)
+
+
+#: :func:`with_headroom` gives an object its whole vertex count from this fraction of it on.
+WHOLE_FRACTION = 0.875
 
 
 def object_sizes(scene):
