@@ -127,7 +127,6 @@ def test_scene_keywords_are_parsed():
     assert default.stiffness is None and default.self_objects == ()
 
 
-
 def test_headroom_near_a_whole_object_takes_the_whole_object():
     """The fit's headroom doubles each object's candidate capacity, at most to its vertex count;
     a doubled capacity within an eighth of the count becomes the count (the same cost, and it
@@ -142,6 +141,7 @@ def test_headroom_near_a_whole_object_takes_the_whole_object():
     five = contact.with_capacity(terms, 5)                                        # 10 of 12 (0.83): kept
     assert contact.with_headroom(five, sizes).contact.capacity == (10, 10)
     assert contact.with_headroom(five, sizes, factor=1, least=11).contact.capacity == (12, 12)  # 11 of 12
+
 
 @pytest.mark.parametrize("line, message", [
     ("floor_friction -1", "'floor_friction' -1 must be >= 0"),
