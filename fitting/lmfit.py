@@ -209,10 +209,11 @@ def best_search(run):
 
 def light_copy(run):
     """A copy of the driver's state that later steps do not change, without the searches' residuals
-    and Jacobians (which a resumed fit recomputes, identically): what a checkpoint holds."""
+    and differenced Jacobians (which a resumed fit recomputes, identically): what a checkpoint
+    holds. A secant-updated Jacobian (``updates`` > 0) cannot be recomputed and is kept."""
     def strip(x):
         if isinstance(x, _search.LMState):
-            return dataclasses.replace(x, residual=None, jac=None)
+            return dataclasses.replace(x, residual=None, jac=x.jac if x.updates else None)
         if dataclasses.is_dataclass(x) and not isinstance(x, type):
             return dataclasses.replace(x, **{f.name: strip(getattr(x, f.name))
                                              for f in dataclasses.fields(x) if f.init})

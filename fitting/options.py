@@ -110,6 +110,10 @@ class LocalOptions:
         the model's reproducibility floor over the fitted frames (two runs that differ only by
         rounding differ by as much) and its Gauss-Newton step is at most this (max-norm): no
         further step can be told from rounding (None: never; flat name ``local_floor_step``).
+      secant_updates: iterations a search may take on a Jacobian updated from its own steps (a
+        Broyden secant update, r(x + s) - r(x) = J s, after each accepted step) before it is
+        differenced again (2 P rollouts); a stop judged on the Jacobian, or a step that fails, on
+        an updated Jacobian differences it first. 0 (the default): every iteration differences.
     """
 
     keep: int = 2
@@ -130,6 +134,7 @@ class LocalOptions:
     noise_stop_h: float = 0.02
     resolve_h: float = 0.01
     floor_step: float | None = dataclasses.field(default=1e-3, metadata={"flat": "local_floor_step"})
+    secant_updates: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -385,9 +390,9 @@ def _validate_tuning(opts, optimizer):
                 if not ok or (group == "smoothing" and len(v) != 2):
                     raise JaxplushError(f"{name} must be increasing positive numbers, got {v!r}")
             elif isinstance(f.default, int):
-                if not _is_whole(v) or v < (0 if name in ("max_rescues",) else 1):
-                    raise JaxplushError(f"{name} must be a whole number >= {0 if name == 'max_rescues' else 1}, "
-                                        f"got {v!r}")
+                low = 0 if name in ("max_rescues", "secant_updates") else 1
+                if not _is_whole(v) or v < low:
+                    raise JaxplushError(f"{name} must be a whole number >= {low}, got {v!r}")
             elif v is None and _optional(f):
                 continue
             elif not (_is_positive(v) or (v == 0 and name in ("local_xtol", "local_ftol", "pred_tol", "noise_stop",

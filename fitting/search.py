@@ -143,6 +143,7 @@ class LMState:
     evaluations: int = 0
     rescues: int = 0              # axis scans (:func:`rescue`) done in this stage
     separation: float = math.nan  # the run at theta: how close objects came (Evaluation.separation)
+    updates: int = 0              # secant updates of ``jac`` since it was differenced (:func:`lm_round`)
 
 
 def _separation(ev, i):
@@ -385,7 +386,7 @@ def rescue(evaluator, box, states, limit=2, options=None):
         st.theta = pts[j].copy()
         st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
         st.separation = _separation(ev, j)
-        st.jac, st.mu = None, o.mu0
+        st.jac, st.updates, st.mu = None, 0, o.mu0
         st.radius = float(np.max(spacing[i]))
         st.done, st.stopped = False, Stop.NONE
         st.reason = f"restarted from an axis scan (loss {old:.4g} -> {st.loss:.4g})"
@@ -461,29 +462,44 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
             active.append(st)
     if not active:
         return
-    need = [st for st in active if st.jac is None or st.jac_h != fd_step(st.radius, o)]
+    limit = secant_limit(o)
+
+    def differenced(st):
+        # a secant-updated Jacobian serves up to ``limit`` iterations, whatever the radius
+        if st.jac is None:
+            return True
+        if st.updates:
+            return st.updates >= limit
+        return st.jac_h != fd_step(st.radius, o)
+
+    need = [st for st in active if differenced(st)]
     if need:
         _jacobians(evaluator, box, need, o)
+        for st in need:
+            st.updates = 0
     trials, owner = [], []
     for i, st in enumerate(active):
+        stop = None
         within = _gn_within_noise(st.jac, st.residual) if st.jac_h <= o.noise_stop_h else None
         if within is not None and within <= noise_stop:
-            st.done, st.stopped = True, Stop.NOISE
-            st.reason = (f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors (<= {noise_stop:g}): "
-                         "the optimum is resolved to the noise")
-            continue
-        gn = _floor_step(st, floor, o.floor_step)
+            stop = (Stop.NOISE, f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors "
+                                f"(<= {noise_stop:g}): the optimum is resolved to the noise")
+        gn = None if stop else _floor_step(st, floor, o.floor_step)
         if gn is not None:
-            st.done, st.stopped = True, Stop.FLOOR
-            st.reason = (f"the loss {st.loss:.4g} is at the model's reproducibility floor ({floor:.4g}) and the "
-                         f"Gauss-Newton step is {gn:.2g} (<= {o.floor_step:g}): no step can be told from rounding")
-            continue
-        t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
-        best_pred = max(x[2] for x in t)
-        if best_pred <= o.pred_tol * st.loss and st.jac_h <= o.h_min * (1 + 1e-9):
-            st.done, st.stopped = True, Stop.PREDICTED
-            st.reason = (f"the Gauss-Newton model predicts a decrease of at most {best_pred / st.loss:.2g} of the "
-                         f"loss {st.loss:.4g} (<= {o.pred_tol:g})")
+            stop = (Stop.FLOOR, f"the loss {st.loss:.4g} is at the model's reproducibility floor ({floor:.4g}) and the "
+                                f"Gauss-Newton step is {gn:.2g} (<= {o.floor_step:g}): no step can be told from rounding")
+        t = None
+        if stop is None:
+            t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
+            best_pred = max(x[2] for x in t)
+            if best_pred <= o.pred_tol * st.loss and st.jac_h <= o.h_min * (1 + 1e-9):
+                stop = (Stop.PREDICTED, f"the Gauss-Newton model predicts a decrease of at most "
+                                        f"{best_pred / st.loss:.2g} of the loss {st.loss:.4g} (<= {o.pred_tol:g})")
+        if stop is not None:
+            if st.updates:
+                st.jac = None            # judged on a secant update: difference the Jacobian, judge again
+            else:
+                st.done, (st.stopped, st.reason) = True, stop
             continue
         trials += t
         owner += [i] * len(t)
@@ -494,7 +510,21 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
     for i, st in enumerate(active):
         idx = np.nonzero(owner == i)[0]
         if idx.size:
-            _take_step(st, ev, idx, trials, o.xtol, o.ftol, o.radius0)
+            _take_step(st, ev, idx, trials, o.xtol, o.ftol, o.radius0, secant=limit > 0)
+
+
+def secant_limit(options=None):
+    """Iterations a search may take on a secant-updated Jacobian (:class:`LocalOptions` ``secant_updates``)."""
+    return int((options or _LOCAL).secant_updates)
+
+
+def broyden(jac, step, dr):
+    """The Jacobian (n, P) updated so that it maps ``step`` (P,) to the residuals' change ``dr``
+    (n,) and is unchanged on every direction orthogonal to it (Broyden's rank-one secant update)."""
+    ss = float(step @ step)
+    if not ss > 0.0:
+        return jac
+    return jac + np.outer(dr - jac @ step, step / ss)
 
 
 def _floor_step(st, floor, limit):
@@ -509,10 +539,14 @@ def _floor_step(st, floor, limit):
     return size if size <= limit else None
 
 
-def _take_step(st, ev, idx, trials, xtol, ftol, grow_to=_LOCAL.radius0):
+def _take_step(st, ev, idx, trials, xtol, ftol, grow_to=_LOCAL.radius0, secant=False):
     """Accept the best of a state's evaluated trial steps (rows ``idx`` of ``ev`` and ``trials``) if
     it lowers the loss, adapting mu and the trust radius, else shrink the radius; sets the stops
     on ``xtol`` (step), ``ftol`` (relative loss change) and a radius below ``xtol`` (stalled).
+
+    With ``secant``, an accepted step updates the Jacobian (:func:`broyden`) instead of dropping
+    it. A step taken on an updated Jacobian that fails is not held against the search (its
+    radius and mu stay): the Jacobian is differenced and the next round tries again.
 
     A step that does better than the model promised (ratio above 0.75) also doubles a radius
     below ``grow_to`` (a fresh search's): the radius sets the Jacobian's difference step too,
@@ -524,13 +558,19 @@ def _take_step(st, ev, idx, trials, xtol, ftol, grow_to=_LOCAL.radius0):
     trial, step, pred, mu = trials[best]
     new = float(ev.loss[best])
     size = float(np.max(np.abs(step))) if step.size else 0.0
+    updated = st.updates > 0                 # this step was taken on a secant-updated Jacobian
     if ev.ok[best] and new < st.loss:
         rho = (st.loss - new) / pred if pred > 0 else 0.0
         rel = (st.loss - new) / max(st.loss, 1e-300)
+        if secant and st.jac is not None and st.residual is not None:
+            st.jac = broyden(st.jac, np.asarray(step, np.float64).ravel(),
+                             np.asarray(ev.residuals[best], np.float64) - np.asarray(st.residual, np.float64))
+            st.updates += 1
+        else:
+            st.jac, st.updates = None, 0
         st.theta, st.loss = trial, new
         st.residual, st.substeps = ev.residuals[best], int(ev.substeps[best])
         st.separation = _separation(ev, best)
-        st.jac = None
         st.mu = mu * (1 / 3 if rho > 0.75 else (1.0 if rho > 0.25 else 2.0))
         if rho > 0.75:
             st.radius = max(st.radius, 2.0 * size, min(2.0 * st.radius, grow_to))
@@ -543,6 +583,8 @@ def _take_step(st, ev, idx, trials, xtol, ftol, grow_to=_LOCAL.radius0):
         elif rel <= ftol:
             st.done, st.stopped = True, Stop.LOSS
             st.reason = f"relative loss change {rel:.2g} <= ftol {ftol:g}"
+    elif updated:
+        st.jac, st.updates = None, 0             # the updated Jacobian failed: difference it, same radius
     else:
         st.mu = max(mu, st.mu) * 10.0
         st.radius = (size if size > 0 else st.radius) / 4.0

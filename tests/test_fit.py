@@ -474,6 +474,8 @@ def test_the_default_fits_tuning_knobs_are_options_that_a_resume_checks(small, t
     assert opts.local == LocalOptions(keep=1, xtol=1e-5) and opts.continuation == ContinuationOptions(
         horizons=(0.5, 1.0)) and opts.smoothing == SmoothingOptions(points=15)
     for kw, msg in [(dict(keep=0), "keep must be a whole number >= 1"), (dict(h_min=-1.0), "h_min must be a number > 0"),
+                    (dict(secant_updates=-1), "secant_updates must be a whole number >= 0"),
+                    (dict(secant_updates=1.5), "secant_updates must be a whole number >= 0"),
                     (dict(horizons=(0.5, 0.25)), "horizons must be increasing"),
                     (dict(optimizer="adam", smooth_points=15), "smoothing options apply to the default fit"),
                     (dict(local=dict(keep=1)), "local must be a fitting.LocalOptions")]:

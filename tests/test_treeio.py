@@ -98,3 +98,28 @@ def test_a_checkpoint_of_the_older_format_is_refused_with_a_message(tmp_path):
         g.attrs["phase"] = "local"
     with pytest.raises(JaxplushError, match="written by an older jaxplush; run without --resume"):
         _io.load_checkpoint(out, None, {})
+
+
+def test_a_dataclass_field_the_file_lacks_takes_its_default(tmp_path):
+    """A state written before a field with a default existed (a search without ``updates``) reads
+    back with that default; a field without a default cannot be made up."""
+    import json
+    st = LMState(theta=np.ones((2, 1)), loss=0.5, updates=3)
+    with h5py.File(tmp_path / "t.h5", "w") as f:
+        write_tree(f.create_group("state"), dict(search=st))
+        g = f["state/0"]                 # (a dict keeps its values under their indices)
+        leaves = json.loads(g.attrs["__leaves__"])
+        del leaves["updates"]
+        del g.attrs["updates"]
+        g.attrs["__leaves__"] = json.dumps(leaves)
+    with h5py.File(tmp_path / "t.h5", "r") as f:
+        back = read_tree(f["state"])["search"]
+    assert back.updates == 0 and back.loss == 0.5 and np.array_equal(back.theta, st.theta)
+    with h5py.File(tmp_path / "t.h5", "a") as f:
+        g = f["state/0"]                 # (a dict keeps its values under their indices)
+        leaves = json.loads(g.attrs["__leaves__"])
+        del leaves["loss"]
+        del g.attrs["loss"]
+        g.attrs["__leaves__"] = json.dumps(leaves)
+    with h5py.File(tmp_path / "t.h5", "r") as f, pytest.raises((TreeError, KeyError, TypeError)):
+        read_tree(f["state"])
