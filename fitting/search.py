@@ -462,7 +462,7 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
             active.append(st)
     if not active:
         return
-    limit = secant_limit(o)
+    limit = int(o.secant_updates)    # iterations a secant-updated Jacobian may serve
 
     def differenced(st):
         # a secant-updated Jacobian serves up to ``limit`` iterations, whatever the radius
@@ -511,11 +511,6 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
         idx = np.nonzero(owner == i)[0]
         if idx.size:
             _take_step(st, ev, idx, trials, o.xtol, o.ftol, o.radius0, secant=limit > 0)
-
-
-def secant_limit(options=None):
-    """Iterations a search may take on a secant-updated Jacobian (:class:`LocalOptions` ``secant_updates``)."""
-    return int((options or _LOCAL).secant_updates)
 
 
 def broyden(jac, step, dr):

@@ -170,19 +170,17 @@ def _read_node(group):
         if not dataclasses.is_dataclass(cls):
             raise TreeError(f"{cls} is not a dataclass")
         fields = dataclasses.fields(cls)
-
-        def written(f):
-            # a field with a default that the file lacks (written before the field existed) takes it
-            has_default = f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
-            return name_in(f.name) or not has_default
-
-        def name_in(name):
-            return name in leaves or name in group
-
-        obj = cls(**{f.name: child(f.name) for f in fields if f.init and written(f)})
+        values = {}
         for f in fields:
-            if not f.init and name_in(f.name):
-                object.__setattr__(obj, f.name, child(f.name))
+            if f.name in leaves or f.name in group:
+                values[f.name] = child(f.name)
+            elif f.init and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise TreeError(f"{cls.__name__} lacks its field {f.name!r}")
+            # else: a field written before it existed takes its default
+        obj = cls(**{f.name: values[f.name] for f in fields if f.init and f.name in values})
+        for f in fields:
+            if not f.init and f.name in values:
+                object.__setattr__(obj, f.name, values[f.name])
         return obj
     raise TreeError(f"unknown node kind {kind!r}")
 
