@@ -215,7 +215,7 @@ class PerObjectGlobal:
     def evaluations(self, n_objects):
         """Points this stage evaluates at most for ``n_objects`` fitted objects (the first round's
         start included)."""
-        return 1 + self.rounds * (self.samples + self.per_object ** n_objects)
+        return 1 + self.rounds * (self.samples + self.per_object ** n_objects) if self.samples > 0 else 1
 
     def init(self, objective, theta, state=None):
         return PerObjectState(theta=np.asarray(theta, np.float64))
@@ -237,6 +237,13 @@ class PerObjectGlobal:
 
     def step(self, objective, s):
         box = objective.box
+        if self.samples <= 0:
+            # no design (a fit that continues from a point, e.g. replanned over a longer horizon):
+            # the start alone, as GlobalStage's, without blocks to compose or a box to zoom into
+            ev = self._run(objective, s.theta[None])
+            s.result = _search.GlobalResult(s.theta[None].copy(), ev.loss, ev.ok, ev.substeps)
+            s.rounds = self.rounds
+            return self._finish(objective, s)
         if s.owner is None:
             s.owner = self._owner(objective, s)
         n_obj = s.theta.shape[-1]
@@ -260,13 +267,16 @@ class PerObjectGlobal:
         s.result = new if s.result is None else _search.GlobalResult(
             *(np.concatenate([getattr(s.result, f), getattr(new, f)]) for f in ("thetas", "loss", "ok", "substeps")))
         s.rounds += 1
-        if s.rounds >= self.rounds:
-            o = self.local
-            width = float(np.max(box.hi - box.lo))
-            chosen = s.result.best(self.starts, o.start_distance * width)
-            s.states = [_search.LMState(theta=s.result.thetas[i].copy(), loss=float(s.result.loss[i]), mu=o.mu0,
-                                        radius=o.radius0) for i in chosen]
-            s.done = True
+        return self._finish(objective, s) if s.rounds >= self.rounds else s
+
+    def _finish(self, objective, s):
+        """The searches' starts: the best ``starts`` points, spaced (as GlobalStage's)."""
+        box, o = objective.box, self.local
+        width = float(np.max(box.hi - box.lo))
+        chosen = s.result.best(self.starts, o.start_distance * width)
+        s.states = [_search.LMState(theta=s.result.thetas[i].copy(), loss=float(s.result.loss[i]), mu=o.mu0,
+                                    radius=o.radius0) for i in chosen]
+        s.done = True
         return s
 
     def terminate(self, objective, s):

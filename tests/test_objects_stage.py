@@ -287,6 +287,21 @@ def test_per_object_candidates_beat_the_full_design_with_as_many_runs(two_balls)
     assert error(best_po) < 0.6 * error(best_gl), (error(best_po), error(best_gl))
 
 
+def test_per_object_stage_without_samples_starts_from_its_start_alone(two_balls):
+    """A fit that continues from a point (``samples=0``, as the default fit's replanning runs its
+    stages again over a longer horizon) evaluates the start alone and hands it on, as the
+    full-dimensional GlobalStage does (it used to zoom into an empty design and fail)."""
+    prob, objective, _ = two_balls
+    theta = prob.theta0 + 0.1
+    stage = objects.PerObjectGlobal(samples=0, rounds=3, starts=5)
+    (po,) = stages.run_stages(objective, theta, [stage])
+    assert len(po.result.thetas) == stage.evaluations(2) == 1
+    assert len(po.states) == 1
+    np.testing.assert_array_equal(po.states[0].theta, theta)
+    (gl,) = stages.run_stages(objective, theta, [stages.GlobalStage(samples=0, starts=5)])
+    assert po.states[0].loss == gl.states[0].loss
+
+
 def test_per_object_stage_then_local_lm_recovers_the_truth(two_balls):
     prob, objective, truth = two_balls
     out = stages.run_stages(objective, prob.theta0,
