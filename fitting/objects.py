@@ -240,8 +240,8 @@ class PerObjectGlobal:
         if self.samples <= 0:
             # no design (a fit that continues from a point, e.g. replanned over a longer horizon):
             # the start alone, as GlobalStage's, without blocks to compose or a box to zoom into
-            ev = self._run(objective, s.theta[None])
-            s.result = _search.GlobalResult(s.theta[None].copy(), ev.loss, ev.ok, ev.substeps)
+            s.result = _search.global_stage(objective.evaluator, box, s.theta, 0, self.seed,
+                                            progress=self.progress, retries=self.retries)
             s.rounds = self.rounds
             return self._finish(objective, s)
         if s.owner is None:
