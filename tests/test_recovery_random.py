@@ -14,6 +14,7 @@ import sys
 import numpy as np
 import pytest
 
+import jax
 import jaxplush
 from jaxplush.fitting import outcome
 from jaxplush.fitting import scenarios as S
@@ -206,3 +207,40 @@ def test_the_verdict_follows_status_error_time_and_reports(bench):
     assert v(**miss, max_error=0.063) == ("failed", "other")
     assert v(exit=4, status="stalled", wall=200.0) == ("failed", "time")
     assert v(exit=4, status="stalled") == ("failed", "other")
+
+
+def test_roughness_case_variants_are_the_drawn_scene_with_one_change(bench):
+    """benchmarks/roughness.py --case: its scene variants parse, and each changes only what it
+    says (one object alone; a set contact thickness; the smooth penalty floor)."""
+    path, x64 = list(sys.path), jax.config.jax_enable_x64
+    try:
+        spec = importlib.util.spec_from_file_location(
+            "roughness_under_test", os.path.join(os.path.dirname(_BENCH), "roughness.py"))
+        rough = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(rough)
+    finally:
+        sys.path[:] = path
+    case = next(c for c in bench.draw_cases(40, 29) if c["n_objects"] == 3 and c["setting"] == "floor")
+    text = S.case_scene_text(case)
+    drawn = jaxplush.parse_scene(text, "drawn")
+    assert rough._case_text(text, "drawn", 0, 0.02) == text
+    for o in range(3):
+        alone = jaxplush.parse_scene(rough._case_text(text, "alone", o, 0.02), "alone")
+        assert alone.n_objects == 1 and alone.object_names[0] == drawn.object_names[o]
+        mine = np.asarray(drawn.object_id) == o
+        np.testing.assert_array_equal(alone.vertices, drawn.vertices[mine])
+        first = int(np.argmax(mine))
+        faces = drawn.faces[np.all(mine[drawn.faces], axis=1)] - first
+        np.testing.assert_array_equal(alone.faces, faces)
+        for a, b in zip(alone.params, drawn.params):
+            np.testing.assert_array_equal(a, np.asarray(b)[o:o + 1])
+        assert alone.floor == drawn.floor and alone.floor_model == "projection"
+    thick = jaxplush.parse_scene(rough._case_text(text, "thick", 0, 0.02), "thick")
+    assert thick.contact_thickness == pytest.approx(0.02) and drawn.contact_thickness is None
+    smooth = jaxplush.parse_scene(rough._case_text(text, "thick+smooth", 0, 0.02), "smooth")
+    assert smooth.floor_model == "smooth" and smooth.contact_thickness == pytest.approx(0.02)
+    np.testing.assert_array_equal(smooth.vertices, drawn.vertices)
+    np.testing.assert_array_equal(smooth.faces, drawn.faces)
+    for a, b in zip(smooth.params, drawn.params):
+        np.testing.assert_array_equal(a, b)
+    assert jax.config.jax_enable_x64 == x64          # importing the script left the precision alone
