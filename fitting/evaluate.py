@@ -488,9 +488,7 @@ class Evaluator:
             clamp.append(((warn >= 0) & (warn <= end)).any(axis=0)[:live])
             code = np.asarray(health.code)
             over.append((seen & (code == diagnostics.CONTACT_OVERFLOW)).any(axis=0)[:live])
-            inv = seen & (code == diagnostics.INVERTED)
-            only = inv.any(axis=0) & ~(seen & ~inv).any(axis=0)
-            invs.append(np.where(only, np.where(inv, bad, np.iinfo(np.int64).max).min(axis=0), -1)[:live])
+            invs.append(first_inversion(seen, code, bad)[:live])
             seps.append(np.broadcast_to(closest, (m,))[:live] if track else np.full(live, np.nan))
         result = np.concatenate(out), np.concatenate(good), np.concatenate(clamp), np.concatenate(over)
         result += (np.concatenate(seps),) if separation else ()
@@ -557,6 +555,16 @@ class Evaluator:
         warnings.warn(msg, stacklevel=4)
         self.notes.append(msg)
         return True
+
+
+def first_inversion(seen, code, bad_step):
+    """(B,) the first step at which an object of each lane inverted, where inversion is the only
+    failure seen in that lane (``seen``: (O, B) failures up to the target's end; ``code``: the
+    health codes; ``bad_step``: each object's failing step, any integer dtype), else -1."""
+    bad = np.asarray(bad_step, np.int64)           # the sentinel below does not fit in int32
+    inv = seen & (np.asarray(code) == diagnostics.INVERTED)
+    only = inv.any(axis=0) & ~(seen & ~inv).any(axis=0)
+    return np.where(only, np.where(inv, bad, np.iinfo(np.int64).max).min(axis=0), -1)
 
 
 def _clear_measured(ok, separation):

@@ -335,3 +335,18 @@ def test_the_default_fit_of_two_objects_uses_it_and_resumes(two_balls, tmp_path)
         warnings.simplefilter("ignore")
         one = F.build_problem(prob.scene, prob.target, ("k_structural",), objects=["a"], noise_free=True)
     assert not objects.suits(one)
+
+
+def test_first_inversion_names_the_inverted_objects_step_in_a_lane_with_a_healthy_object():
+    """An inversion in one object of a lane whose other objects stay healthy is reported at its
+    step, whatever the integer type the health carries (int32 from the engine): the int64
+    sentinel for the healthy object must not wrap to -1 or overflow."""
+    from jaxplush.fitting.evaluate import first_inversion
+    from jaxplush.stepping import diagnostics as D
+    bad = np.array([[7, -1, 12, 5], [-1, -1, 9, -1]], np.int32)           # (O=2, B=4)
+    code = np.array([[D.INVERTED, 0, D.INVERTED, D.INVERTED], [0, 0, D.INVERTED, 0]], np.int32)
+    seen = bad >= 0
+    np.testing.assert_array_equal(first_inversion(seen, code, bad), [7, -1, 9, 5])
+    other = code.copy()
+    other[1, 2] = D.INVERTED + 1                                            # another failure too
+    np.testing.assert_array_equal(first_inversion(seen, other, bad), [7, -1, -1, 5])
