@@ -413,7 +413,8 @@ def potential_energy(topo, params, x, temperature, gravity=None, gas=True, floor
     if gas:
         u = u + jnp.sum(gas_energy(topo, params, x, temperature))
     if gravity is not None:
-        u = u - jnp.sum(vertex_mass(topo, params) * (x @ jnp.asarray(gravity, x.dtype)))
+        height = jnp.matmul(x, jnp.asarray(gravity, x.dtype), precision=jax.lax.Precision.HIGHEST)
+        u = u - jnp.sum(vertex_mass(topo, params) * height)
     if floor is not None:
         u = u + smooth_floor_energy(topo, floor, params, x[:, 1])
     return u

@@ -80,7 +80,8 @@ def energy_terms(sim, params, state):
     spring = jnp.sum(0.5 * params.k_structural[topo.edge_object] * (l - topo.rest_length) ** 2)
     zero = jnp.zeros((), x.dtype)
     gas = jnp.sum(model.gas_energy(topo, params, x, sim.scene.temperature)) if sim.terms.gas else zero
-    grav = -jnp.sum(model.vertex_mass(topo, params) * (x @ jnp.asarray(sim.scene.gravity, x.dtype)))
+    height = jnp.matmul(x, jnp.asarray(sim.scene.gravity, x.dtype), precision=jax.lax.Precision.HIGHEST)
+    grav = -jnp.sum(model.vertex_mass(topo, params) * height)
     floor = zero
     if sim.terms.floor_smooth:
         floor = model.smooth_floor_energy(topo, sim.terms.floor_smooth, params, x[:, 1])
