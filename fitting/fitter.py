@@ -382,7 +382,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     gn_step, stderr = gauss_newton(run.jac, run.residual)
     # the identifiability report (its undetermined parameters set the status), with the rounding
     # noise of a finite-difference Jacobian from the measured reproducibility drift
-    factor = math.sqrt(prob.target.n_frames * prob.target.data.shape[1] * scale2)
+    factor = math.sqrt(int(prob.target.observed.sum()) * scale2)
     # (the drift was measured at the start values, which can be far less predictable than the
     # fitted ones: a torus from x0.5 drifts 0.086 mm, 0.0003 mm at the truth. A run at the fitted
     # values reproduces the target's to the residual RMS, so two runs near them differ by rounding

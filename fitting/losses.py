@@ -52,8 +52,17 @@ def pairwise_sq_distances(x, p):
     """
     c = jax.lax.stop_gradient(jnp.mean(p, axis=0))
     xc, pc = x - c, p - c
-    d2 = jnp.sum(xc * xc, axis=1)[:, None] + jnp.sum(pc * pc, axis=1)[None, :] - 2.0 * jnp.matmul(xc, pc.T, precision=HIGHEST)
+    cross = jnp.matmul(xc, pc.T, precision=HIGHEST)
+    d2 = jnp.sum(xc * xc, axis=1)[:, None] + jnp.sum(pc * pc, axis=1)[None, :] - 2.0 * cross
     return jnp.maximum(d2, 0.0)
+
+
+def observed_points(p):
+    """(valid (M,) bool, p with its NaN rows, a point cloud's padding, put at the origin): the
+    padding then takes part in no distance and no gradient (a NaN would reach both through
+    ``jnp.where``'s untaken branch)."""
+    valid = jnp.all(jnp.isfinite(p), axis=-1)
+    return valid, jnp.where(valid[..., None], p, 0.0)
 
 
 def chamfer(x, p):
@@ -61,10 +70,13 @@ def chamfer(x, p):
 
     Args:
       x: (V, 3) simulated vertex positions.
-      p: (M, 3) target points (M unrelated to V).
+      p: (M, 3) target points (M unrelated to V); rows of NaN are absent (a frame's padding).
     """
+    valid, p = observed_points(p)
     d2 = pairwise_sq_distances(x, p)
-    return jnp.mean(jnp.min(d2, axis=1)) + jnp.mean(jnp.min(d2, axis=0))
+    near_point = jnp.min(jnp.where(valid[None, :], d2, jnp.inf), axis=1)
+    near_vertex = jnp.min(d2, axis=0)
+    return jnp.mean(near_point) + jnp.sum(jnp.where(valid, near_vertex, 0.0)) / jnp.sum(valid)
 
 
 def vertex_faces(faces, n_vertices):
@@ -128,11 +140,30 @@ def point_surface_signed_distance(x, p, faces, vfaces, near):
     return jnp.where(side < 0, -dist, dist)
 
 
-def point_surface(faces, n_vertices):
-    """``(x (V, 3), p (M, 3)) -> mean squared point-to-surface distance`` (m²) for a mesh's faces."""
+def point_surface(faces, n_vertices, weight=None):
+    """``(x (V, 3), p (M, 3)) -> mean squared point-to-surface distance`` (m²) for a mesh's faces.
+
+    ``weight`` (for point clouds with NaN padding, frames of different sizes): the frame's value
+    is instead the sum over its observed points times ``weight``; with weight T / N (N points
+    observed over T frames), the mean over the frames weighs every observed point alike."""
     vf = vertex_faces(faces, n_vertices)
     faces = np.asarray(faces, np.int32)
-    return lambda x, p: jnp.mean(point_surface_distance2(x, p, faces, vf))
+    if weight is None:
+        return lambda x, p: jnp.mean(point_surface_distance2(x, p, faces, vf))
+
+    def ragged(x, p):
+        valid, p = observed_points(p)
+        d2 = point_surface_distance2(x, p, faces, vf)
+        return jnp.sum(jnp.where(valid, d2, 0.0)) * jnp.asarray(weight, d2.dtype)
+    return ragged
+
+
+def point_weight(target):
+    """T / N for a point cloud with NaN padding (N observed points over T frames; see
+    :func:`point_surface`), None otherwise."""
+    if not target.ragged:
+        return None
+    return target.n_frames / float(target.observed.sum())
 
 
 def frame_distance(kind):
@@ -164,12 +195,13 @@ class Loss(NamedTuple):
     kind: str
 
 
-def _frame_mean_sq(kind, faces=None, n_vertices=None):
-    """``(x (V, 3), y) -> d_j``: the frame's mean squared distance (m²) for a target kind."""
+def _frame_mean_sq(kind, faces=None, n_vertices=None, weight=None):
+    """``(x (V, 3), y) -> d_j``: the frame's mean squared distance (m²) for a target kind
+    (``weight``: :func:`point_weight`)."""
     if kind == "positions":
         return squared_distance
     if kind == "points":
-        return point_surface(faces, n_vertices)
+        return point_surface(faces, n_vertices, weight)
     raise ValueError(f"unknown target kind {kind!r}; expected 'positions' or 'points'")
 
 
@@ -181,7 +213,8 @@ def rest_distance(target, x_rest, faces=None):
     """Mean over the target's frames of the frame distance (m²) between the rest shape and the
     target (float64)."""
     with jax.enable_x64(True):
-        f = jax.jit(jax.vmap(_frame_mean_sq(target.kind, faces, len(x_rest)), in_axes=(None, 0)))
+        f = jax.jit(jax.vmap(_frame_mean_sq(target.kind, faces, len(x_rest), point_weight(target)),
+                             in_axes=(None, 0)))
         return float(jnp.mean(f(jnp.asarray(x_rest, jnp.float64), jnp.asarray(target.data, jnp.float64))))
 
 
@@ -219,7 +252,7 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     """
     scale2, how, _ = loss_scale(target, topology, noise, noise_free)
     n = target.n_frames
-    dist = _frame_mean_sq(target.kind, topology.faces, topology.n_vertices)
+    dist = _frame_mean_sq(target.kind, topology.faces, topology.n_vertices, point_weight(target))
     inv = 1.0 / (n * scale2)
     volumes = None
     if check_volume:
@@ -381,7 +414,7 @@ def make_residual(target, topology, loss):
     """The :class:`Residual` of a :class:`Loss` built by :func:`make_loss` for the same target."""
     data = np.asarray(target.data, np.float64)
     t, m = data.shape[:2]
-    norm = 1.0 / np.sqrt(t * m * loss.scale2)
+    norm = 1.0 / np.sqrt(int(target.observed.sum()) * loss.scale2)     # t m, but for a cloud's padding
     if target.kind == "positions":
         def frame_fn(frames, y):
             return (frames - y).reshape(-1)
@@ -400,9 +433,11 @@ def make_residual(target, topology, loss):
         sigma2 = float(loss.scale2) if loss.normalisation == "noise" else 0.0
 
         def one(x, p, h):
+            valid, p = observed_points(p)                                # padding: residual 0
             near = nearest_vertices_walk(x, p, coarse, ring)
             d = point_surface_signed_distance(x, p, faces, vf, near)
-            return d if h is None else d - jnp.asarray(sigma2, x.dtype) * h[near]
+            d = d if h is None else d - jnp.asarray(sigma2, x.dtype) * h[near]
+            return jnp.where(valid, d, 0.0)
 
         def frame_fn(frames, y):
             if sigma2:
@@ -411,7 +446,8 @@ def make_residual(target, topology, loss):
         per_frame = m
 
         def near_fn(frames, y):
-            return jax.vmap(lambda x, p: nearest_vertices_walk(x, p, coarse, ring))(frames, y).reshape(-1)
+            return jax.vmap(lambda x, p: nearest_vertices_walk(x, p, coarse, ring))(
+                frames, observed_points(y)[1]).reshape(-1)
 
     def fn(frames):
         return frame_fn(frames, jnp.asarray(data, frames.dtype)) * jnp.asarray(norm, frames.dtype)

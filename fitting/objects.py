@@ -69,6 +69,7 @@ def residual_objects(prob, frames=None):
         raise ValueError("a point-cloud target needs simulated frames to assign its points to objects")
     out = []
     for x, p in zip(np.asarray(frames, np.float64), np.asarray(target.data, np.float64)):
+        p = np.where(np.isfinite(p), p, 0.0)        # a cloud's NaN padding (its residuals are 0)
         near = np.empty(len(p), np.int64)
         for a in range(0, len(p), 512):
             d2 = np.sum((p[a:a + 512, None, :] - x[None, :, :]) ** 2, axis=-1)

@@ -262,7 +262,9 @@ def _report(prob, frames, jac):
 
 
 def _nearest_residual(x, p):
-    """(V, 3) vector from each vertex to its nearest target point (numpy, chunked)."""
+    """(V, 3) vector from each vertex to its nearest target point (numpy, chunked; a cloud's NaN
+    padding left out)."""
+    p = p[np.isfinite(p).all(axis=1)]
     out = np.empty_like(x)
     for a in range(0, len(x), 512):
         d2 = ((x[a:a + 512, None, :] - p[None, :, :]) ** 2).sum(-1)

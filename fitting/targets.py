@@ -6,7 +6,10 @@ A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io.trajector
 * ``positions`` float [T, V, 3]: the scene's vertices, in the scene's order, at T frames; or
 * ``points`` float [T, M, 3]: a point cloud per frame (a scan; M unrelated to V, no
   correspondence), fitted by each point's distance to the simulated surface (sweeps: a
-  symmetric Chamfer distance; :mod:`jaxplush.fitting.losses`),
+  symmetric Chamfer distance; :mod:`jaxplush.fitting.losses`). Frames may hold different
+  numbers of points: a row of three NaNs is no point (padding), so a frame with fewer points
+  ends in NaN rows (:func:`jaxplush.io.capture.depth_capture` writes captures this way). A row
+  with some NaN coordinates, or an infinity, is an error,
 
 and ``times`` float [T] (s, increasing). The frames may be any subset of the rollout (only the
 final shape, say) and may be noisy. Optional: attribute ``dt`` (the target's time step, used
@@ -77,6 +80,17 @@ class Target:
     @property
     def n_frames(self):
         return len(self.steps)
+
+    @property
+    def observed(self):
+        """(T, V or M) bool: the rows that hold an observation (False: a point cloud's NaN padding)."""
+        d = self.data
+        return np.ones(d.shape[:2], bool) if self.points is None else np.isfinite(d).all(axis=2)
+
+    @property
+    def ragged(self):
+        """True for a point cloud whose frames hold different numbers of points (NaN padding)."""
+        return self.points is not None and not bool(self.observed.all())
 
     def select(self, frames):
         """A target with only the given frames (indices or a boolean mask, in order)."""
@@ -288,14 +302,20 @@ def _target_dt(path, dt_attr, dt):
 
 
 def _check_data_values(path, kind, data, scene):
-    """Finite values, within TARGET_FAR scene sizes of the scene's centre."""
-    bad = ~np.isfinite(data).all(axis=2)
+    """Finite values (points: or rows of three NaNs, padding), within TARGET_FAR scene sizes of the
+    scene's centre."""
+    pad = np.isnan(data).all(axis=2) if kind == "points" else np.zeros(data.shape[:2], bool)
+    bad = ~np.isfinite(data).all(axis=2) & ~pad
     if bad.any():
         t, i = (int(a[0]) for a in np.nonzero(bad))
         what = "vertex" if kind == "positions" else "point"
-        raise TrajectoryError(path, f"'{kind}' has non-finite values (first at frame {t}, {what} {i})")
+        raise TrajectoryError(path, f"'{kind}' has non-finite values (first at frame {t}, {what} {i})"
+                              + ("; a point that is absent must be NaN in all three coordinates"
+                                 if kind == "points" and np.isnan(data[t, i]).any() else ""))
+    if pad.all():
+        raise TrajectoryError(path, "'points' holds no points: every row is NaN padding")
     extent = float(max(np.max(np.ptp(scene.vertices, axis=0)), 1e-6))
-    far = float(np.max(np.abs(data - scene.vertices.mean(axis=0))))
+    far = float(np.max(np.abs(data[~pad] - scene.vertices.mean(axis=0))))
     if far > TARGET_FAR * extent:
         raise TrajectoryError(path, f"'{kind}' reaches {far:.3g} m from the scene's centre, {far / extent:.3g} times "
                                     f"the scene's size ({extent:.3g} m): wrong units, or a target of another scene?")
