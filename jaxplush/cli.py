@@ -1,4 +1,4 @@
-"""Command line: ``jaxplush simulate | render | info``.
+"""Command line: ``jaxplush simulate | render | info | capture``.
 
 Every user error prints one clear message (no traceback), exits non-zero and leaves no
 partial output.
@@ -66,6 +66,20 @@ def _parser():
     i.add_argument("--exact", action="store_true",
                    help="also estimate the exact explicit limit by power iteration (compiles; a few seconds) "
                         "instead of only the closed-form safe bound")
+    c = sub.add_parser("capture", help="what one depth camera would record of a trajectory: a point-cloud "
+                                       "fit target (partial, noisy, frames of different sizes)")
+    c.add_argument("trajectory", help="trajectory .h5 from 'jaxplush simulate'")
+    c.add_argument("--out", required=True, help="output target (.h5), points padded with NaN rows")
+    c.add_argument("--eye", required=True, help="camera position X,Y,Z in m")
+    c.add_argument("--look-at", default=None,
+                   help="the point the camera looks at, X,Y,Z in m (default: the first frame's centre)")
+    c.add_argument("--up", default="0,1,0", help="the image's up direction X,Y,Z (default 0,1,0)")
+    c.add_argument("--fov", type=float, default=60.0, help="vertical field of view, degrees (default 60)")
+    c.add_argument("--size", default="64x48", help="image WIDTHxHEIGHT in pixels, one ray each (default 64x48)")
+    c.add_argument("--noise", type=float, default=0.0, help="depth noise sigma along each ray, m (default 0)")
+    c.add_argument("--dropout", type=float, default=0.0,
+                   help="probability that a pixel's hit returns nothing (default 0)")
+    c.add_argument("--seed", type=int, default=0, help="seed of the noise and dropout (default 0)")
     return p
 
 
@@ -79,6 +93,8 @@ def main(argv=None):
             return _simulate(args)
         if args.cmd == "render":
             return _render(args)
+        if args.cmd == "capture":
+            return _capture(args)
         return _info(args)
     except JaxplushError as e:
         print(f"jaxplush {args.cmd}: error: {e}", file=sys.stderr)
@@ -264,3 +280,65 @@ def _info_predictability(scene, args):
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _vector(text, option):
+    """Three comma-separated numbers, or a JaxplushError naming ``option``."""
+    from jaxplush.errors import JaxplushError
+    try:
+        v = [float(t) for t in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 3 or not all(np.isfinite(v)):
+        raise JaxplushError(f"{option} must be three finite numbers X,Y,Z, got {text!r}")
+    return tuple(v)
+
+
+def _capture(args):
+    from jaxplush.errors import JaxplushError
+    from jaxplush.io.capture import Camera, depth_capture
+    from jaxplush.io.trajectory import load_trajectory
+    check_output_path(args.out, (".h5", ".hdf5"))
+    eye, up = _vector(args.eye, "--eye"), _vector(args.up, "--up")
+    look = None if args.look_at is None else _vector(args.look_at, "--look-at")
+    size = args.size.lower().split("x")
+    if len(size) != 2 or not all(t.isdigit() and int(t) >= 1 for t in size):
+        raise JaxplushError(f"--size must be WIDTHxHEIGHT in whole pixels, e.g. 64x48, got {args.size!r}")
+    traj = load_trajectory(args.trajectory)
+    pos = np.asarray(traj["positions"], np.float64)
+    if look is None:
+        look = tuple(float(a) for a in pos[0].mean(axis=0))
+    try:
+        camera = Camera(eye=eye, target=look, up=up, fov_deg=args.fov, width=int(size[0]), height=int(size[1]))
+        cap = depth_capture(pos, traj["faces"], camera, noise=args.noise, dropout=args.dropout, seed=args.seed)
+    except ValueError as e:
+        raise JaxplushError(f"{args.trajectory}: {e}") from None
+    if cap.counts.max() == 0:
+        raise JaxplushError(f"the camera at {args.eye} looking at {','.join(f'{a:g}' for a in look)} sees no "
+                            f"object in any of the {len(pos)} frames: check --eye, --look-at and --fov")
+    _write_capture(args, traj, cap)
+    print(f"captured {len(pos)} frames of {args.trajectory} with a {camera.width}x{camera.height} depth camera: "
+          f"{cap.counts.min()}-{cap.counts.max()} points a frame (mean {cap.counts.mean():.0f}), depth noise "
+          f"{args.noise:g} m, dropout {args.dropout:g}; wrote {args.out}")
+    return 0
+
+
+def _write_capture(args, traj, cap):
+    """The capture as a point-cloud fit target, with the trajectory's scene and parameters."""
+    import jaxplush
+    from jaxplush.errors import JaxplushError
+    from jaxplush.fitting.targets import Target, _grid_steps
+    from jaxplush.types import PARAM_NAMES
+    attrs = traj["attrs"]
+    if "dt" not in attrs or "times" not in traj:
+        raise JaxplushError(f"{args.trajectory}: needs 'times' and the attribute 'dt' (a 'jaxplush simulate' output)")
+    times = np.asarray(traj["times"], np.float64)
+    dt = float(attrs["dt"])
+    steps = _grid_steps(args.trajectory, times, dt, traj["times"].dtype)
+    scene = None
+    if "scene" in attrs:
+        scene = jaxplush.parse_scene(str(attrs["scene"]), str(attrs.get("scene_path", args.trajectory)))
+    params = {n: np.asarray(attrs[n], np.float64) for n in PARAM_NAMES if n in attrs}
+    target = Target(positions=None, points=cap.points, steps=steps, times=times, dt=dt, path=args.out,
+                    noise=float(args.noise) if args.noise > 0 else None, params=params)
+    target.save(args.out, scene)

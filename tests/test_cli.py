@@ -418,3 +418,51 @@ def test_an_ordinary_run_is_not_announced(work, capsys):
     args = argparse.Namespace(steps=cli.PROBE_ABOVE + 1, dt=work["dt"], integrator="verlet", substeps=1)
     cli._warn_if_long(jaxplush.load_scene(work["scene"]), args)
     assert capsys.readouterr().err == ""
+
+
+# ------------------------------------------------------------------------------------------- capture
+
+def test_capture_writes_a_point_cloud_target_of_what_the_camera_sees(work, tmp_path):
+    from jaxplush.fitting.targets import load_target
+    out = tmp_path / "scan.h5"
+    rc, stdout, err = run_cli("capture", work["traj"], "--eye", "0,0.25,0.8", "--size", "40x30", "--fov", "40",
+                              "--noise", "0.001", "--dropout", "0.2", "--seed", "3", "--out", out)
+    assert rc == 0, err
+    assert "points a frame" in stdout and str(out) in stdout
+    scene = jaxplush.load_scene(work["scene"])
+    target = load_target(out, scene)
+    with h5py.File(work["traj"]) as f:
+        times = f["times"][()]
+    assert target.kind == "points" and target.noise == 0.001 and np.allclose(target.times, times)
+    counts = target.observed.sum(axis=1)
+    assert counts.min() > 50
+    # every observed point lies within a few noise sigmas of the ball's frame it was taken of
+    with h5py.File(work["traj"]) as f:
+        pos = f["positions"][()]
+    for j in (0, len(times) - 1):
+        p = target.points[j, :counts[j]]
+        centre = pos[j].mean(axis=0)
+        r = np.linalg.norm(p - centre, axis=1)
+        assert r.max() < np.linalg.norm(pos[j] - centre, axis=1).max() + 0.005
+    # the truth's parameters travel with it, as a simulated target's do
+    assert target.params["k_structural"][0] == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("args, phrases", [
+    (("--eye", "0,0.25"), ("--eye must be three finite numbers",)),
+    (("--eye", "0,0.25,0.8", "--size", "40by30"), ("--size must be WIDTHxHEIGHT",)),
+    (("--eye", "0,0.25,0.8", "--look-at", "0,0.25,2"), ("sees no object",)),
+    (("--eye", "0,0.25,0.8", "--dropout", "1"), ("dropout must lie in [0, 1)",)),
+    (("--eye", "0,0.25,0.8", "--fov", "0"), ("fov_deg must lie in (0, 180)",)),
+])
+def test_capture_refuses_bad_cameras_and_writes_nothing(work, tmp_path, args, phrases):
+    out = tmp_path / "scan.h5"
+    rc, _, err = run_cli("capture", work["traj"], *args, "--out", out)
+    assert_clean_error(rc, err, cli.EXIT_USAGE, *phrases)
+    assert listing(tmp_path) == []
+
+
+def test_capture_of_a_missing_trajectory_is_a_clean_error(tmp_path):
+    rc, _, err = run_cli("capture", tmp_path / "nope.h5", "--eye", "0,0,1", "--out", tmp_path / "scan.h5")
+    assert_clean_error(rc, err, cli.EXIT_USAGE, "nope.h5")
+    assert listing(tmp_path) == []
