@@ -58,11 +58,14 @@ def pairwise_sq_distances(x, p):
 
 
 def observed_points(p):
-    """(valid (M,) bool, p with its NaN rows, a point cloud's padding, put at the origin): the
-    padding then takes part in no distance and no gradient (a NaN would reach both through
-    ``jnp.where``'s untaken branch)."""
+    """(valid (M,) bool, p with its NaN rows, a point cloud's padding, put at the centroid of the
+    observed points): the padding then takes part in no distance and no gradient (a NaN would reach
+    both through ``jnp.where``'s untaken branch), and the cloud's centroid, about which
+    :func:`pairwise_sq_distances` expands, is the observed points' own."""
     valid = jnp.all(jnp.isfinite(p), axis=-1)
-    return valid, jnp.where(valid[..., None], p, 0.0)
+    zeroed = jnp.where(valid[..., None], p, 0.0)
+    centre = jnp.sum(zeroed, axis=-2, keepdims=True) / jnp.maximum(jnp.sum(valid, axis=-1), 1)[..., None, None]
+    return valid, jnp.where(valid[..., None], p, centre)
 
 
 def chamfer(x, p):
@@ -161,9 +164,11 @@ def point_surface(faces, n_vertices, weight=None):
 def point_weight(target):
     """T / N for a point cloud with NaN padding (N observed points over T frames; see
     :func:`point_surface`), None otherwise."""
-    if not target.ragged:
+    if target.kind != "points":
         return None
-    return target.n_frames / float(target.observed.sum())
+    data = np.asarray(target.data)
+    observed = np.isfinite(data).all(axis=2)
+    return None if observed.all() else len(data) / float(observed.sum())
 
 
 def frame_distance(kind):
@@ -414,7 +419,8 @@ def make_residual(target, topology, loss):
     """The :class:`Residual` of a :class:`Loss` built by :func:`make_loss` for the same target."""
     data = np.asarray(target.data, np.float64)
     t, m = data.shape[:2]
-    norm = 1.0 / np.sqrt(int(target.observed.sum()) * loss.scale2)     # t m, but for a cloud's padding
+    observed = int(np.isfinite(data).all(axis=2).sum()) if target.kind == "points" else t * m   # a cloud's padding
+    norm = 1.0 / np.sqrt(observed * loss.scale2)
     if target.kind == "positions":
         def frame_fn(frames, y):
             return (frames - y).reshape(-1)

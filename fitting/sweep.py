@@ -25,7 +25,8 @@ centroid height (y) and largest vertex displacement from the rest shape, the hea
     L = (1/T) sum_j d(x(t_j), y_j),
 
 d the mean squared vertex distance for a ``positions`` target or the symmetric Chamfer distance
-(:func:`jaxplush.fitting.losses.chamfer`) for a ``points`` target, in m² (not normalised). A point whose
+(:func:`jaxplush.fitting.losses.chamfer`, over each frame's observed points: rows of NaN are a
+frame's padding) for a ``points`` target, in m² (not normalised). A point whose
 rollout blew up keeps its last healthy state as final positions (``final_step`` says which
 step), a NaN loss and summaries, and its failure is listed in ``fail_code``/``fail_step``; it is
 never silently returned as NaN positions.
@@ -235,8 +236,14 @@ def _target_frames(target, scene, steps):
     if np.any(tsteps < 0) or tsteps.max() > steps:
         raise SweepError(f"target frames reach step {int(tsteps.max())} but the sweep runs {steps} steps; "
                          f"use steps >= {int(tsteps.max())}")
-    if not np.all(np.isfinite(data)):
-        raise SweepError("target frames contain non-finite values")
+    pad = np.isnan(data).all(axis=2) if kind == "points" else np.zeros(data.shape[:2], bool)
+    if not np.all(np.isfinite(data[~pad])):
+        raise SweepError("target frames contain non-finite values" + (
+            " (a point cloud's absent points are rows of NaN in all three coordinates)" if kind == "points" else ""))
+    empty = np.flatnonzero(pad.all(axis=1))
+    if empty.size:
+        raise SweepError(f"target frame {int(empty[0])} (step {int(tsteps[empty[0]])}) holds no points: "
+                         "a Chamfer distance needs at least one; leave the frame out")
     return kind, tsteps, data
 
 

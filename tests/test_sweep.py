@@ -311,6 +311,46 @@ def test_loss_landscape_has_its_minimum_at_the_true_parameters(truth_target):
     np.testing.assert_allclose(res.loss[i], direct, rtol=1e-4)
 
 
+def test_a_point_cloud_padded_with_nan_rows_gives_the_same_losses(truth_target):
+    """Frames of different sizes (a depth camera's captures) are padded with NaN rows: padding
+    changes no loss, a frame's absent points are left out of it, and a frame left with no points,
+    or a partly NaN row, is refused."""
+    from jaxplush.fitting.sweep import SweepError
+    from jaxplush.fitting.targets import Target
+    scene, target = truth_target
+    rng = np.random.default_rng(1)
+    cloud = np.stack([y[rng.permutation(len(y))] for y in target.positions[1:]])
+    padded = np.concatenate([cloud, np.full((len(cloud), 11, 3), np.nan)], axis=1)
+    fewer = padded.copy()
+    n = cloud.shape[1]
+    fewer[0, n - 9:n] = np.nan                                       # frame 0: 9 points fewer
+    kw = dict(steps=target.steps[1:], times=target.times[1:], dt=DT, path="<memory>")
+    grid = {"nmol": [1e-3, TRUE_NMOL, 3e-3], "k": [TRUE_K]}
+
+    def run(points):
+        return sweep(scene, grid, steps=400, dt=DT, progress=False, target=Target(positions=None, points=points, **kw))
+    plain, pad, short = run(cloud), run(padded), run(fewer)
+    # equal up to float32 rounding of |x|² + |p|² - 2 x.p (its floor, about 2e-10 m² here, sets the truth's loss)
+    np.testing.assert_allclose(pad.loss, plain.loss, rtol=1e-5, atol=1e-6 * plain.loss.max())
+    traj = jaxplush.simulate(scene, 400, DT, 200, params=_point_params(scene, nmol=[3e-3], k_structural=[TRUE_K]),
+                             check_dt=False)
+    d = []
+    for j, (x, p) in enumerate(zip(traj.positions[1:], cloud)):
+        p = p[:-9] if j == 0 else p
+        d2 = np.sum((x[:, None] - p[None]) ** 2, axis=2)
+        d.append(d2.min(axis=1).mean() + d2.min(axis=0).mean())
+    np.testing.assert_allclose(short.loss[2], np.mean(d), rtol=3e-4)
+    assert abs(short.loss[2] / plain.loss[2] - 1) > 1e-3             # frame 0's 9 points are gone
+    bad = padded.copy()
+    bad[1, 0, 2] = np.nan
+    with pytest.raises(SweepError, match="absent points are rows of NaN"):
+        run(bad)
+    bad = padded.copy()
+    bad[1] = np.nan
+    with pytest.raises(SweepError, match="frame 1 .* holds no points"):
+        run(bad)
+
+
 def test_point_cloud_target_uses_the_chamfer_distance(truth_target):
     from jaxplush.fitting.targets import Target
     scene, target = truth_target
