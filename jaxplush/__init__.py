@@ -21,6 +21,9 @@ Lower level: ``sim = make_simulator(scene, dt)``; ``params = sim.params()``;
 
 __version__ = "0.1.0"
 
+from jaxplush import _xla
+_xla.disable_ynn_fusion()        # before anything starts a backend: XLA reads XLA_FLAGS once
+
 from jaxplush.errors import JaxplushError, SceneError, SimulationError, TrajectoryError
 from jaxplush.io.trajectory import load_trajectory, save_trajectory
 from jaxplush.stepping.rollouts import Health, rollout

@@ -90,3 +90,42 @@ def test_the_check_sees_a_product_left_at_the_default():
     with pytest.raises(AssertionError, match="default precision"):
         _assert_full(lambda m: m @ m.T, a)
     assert _assert_full(lambda m: jnp.matmul(m, m.T, precision=HIGHEST), a) == 1
+
+
+def test_fused_reductions_of_broadcast_operands_compile_to_what_they_compute():
+    """jaxlib 0.10.2's XLA:CPU YNNPACK fusions got this 80% wrong under jit (jaxplush._xla turns them
+    off when it is imported); jit and eager must agree, and both match float64 numpy."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(512, 1, 3)).astype(np.float32)
+    b = rng.normal(size=(1, 1280, 3)).astype(np.float32)
+
+    def f(a, b):
+        return jnp.sum(b * (a + b), -1) * jnp.sum(a * a, -1)
+    ref = np.sum(b.astype(np.float64) * (a + b), -1) * np.sum(a.astype(np.float64) ** 2, -1)
+    scale = np.abs(ref).max()
+    for out in (f(a, b), jax.jit(f)(a, b)):
+        assert np.max(np.abs(np.asarray(out, np.float64) - ref)) < 1e-5 * scale
+
+
+def _python(code, env=None):
+    import os
+    import subprocess
+    import sys
+    e = dict(os.environ)
+    e.pop("XLA_FLAGS", None)
+    e.update(env or {})
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=e, timeout=120)
+
+
+def test_importing_jaxplush_turns_the_fusions_off_unless_told_otherwise_or_too_late():
+    from jaxplush import _xla
+    code = "import os, jaxplush; print(os.environ.get('XLA_FLAGS'))"
+    out = _python(code)
+    assert out.returncode == 0, out.stderr
+    assert _xla.FLAG in out.stdout
+    mine = "--xla_cpu_experimental_ynn_fusion_type=reduce"           # the user's own setting wins
+    out = _python(code, {"XLA_FLAGS": mine})
+    assert out.stdout.strip() == mine, out.stderr
+    late = _python("import jax.numpy as jnp; jnp.ones(2).sum(); import warnings; warnings.simplefilter('always'); "
+                   "import jaxplush")
+    assert late.returncode == 0 and "stay on" in late.stderr, late.stderr
