@@ -33,6 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxplush.fitting.targets import observed_rows
+
 #: matrix products ask for full float32 precision: a GPU's default (TF32 on NVIDIA) keeps 10 mantissa
 #: bits, which leaves millimetres of error in |x|² + |p|² - 2 x.p
 HIGHEST = jax.lax.Precision.HIGHEST
@@ -164,11 +166,8 @@ def point_surface(faces, n_vertices, weight=None):
 def point_weight(target):
     """T / N for a point cloud with NaN padding (N observed points over T frames; see
     :func:`point_surface`), None otherwise."""
-    if target.kind != "points":
-        return None
-    data = np.asarray(target.data)
-    observed = np.isfinite(data).all(axis=2)
-    return None if observed.all() else len(data) / float(observed.sum())
+    observed = observed_rows(target.kind, target.data)
+    return None if observed.all() else len(observed) / float(observed.sum())
 
 
 def frame_distance(kind):
@@ -419,8 +418,7 @@ def make_residual(target, topology, loss):
     """The :class:`Residual` of a :class:`Loss` built by :func:`make_loss` for the same target."""
     data = np.asarray(target.data, np.float64)
     t, m = data.shape[:2]
-    observed = int(np.isfinite(data).all(axis=2).sum()) if target.kind == "points" else t * m   # a cloud's padding
-    norm = 1.0 / np.sqrt(observed * loss.scale2)
+    norm = 1.0 / np.sqrt(observed_rows(target.kind, data).sum() * loss.scale2)   # t m, less a cloud's padding
     if target.kind == "positions":
         def frame_fn(frames, y):
             return (frames - y).reshape(-1)

@@ -42,6 +42,13 @@ GRID_TOLERANCE = 1e-3
 TARGET_FAR = 1e3
 
 
+def observed_rows(kind, data):
+    """(T, N) bool: the rows of a target's ``data`` (T, N, 3) that hold an observation: every
+    vertex of ``positions``, the finite rows of ``points`` (NaN rows are padding)."""
+    data = np.asarray(data)
+    return np.ones(data.shape[:2], bool) if kind == "positions" else np.isfinite(data).all(axis=2)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Target:
     """A validated fitting target (numpy).
@@ -84,8 +91,7 @@ class Target:
     @property
     def observed(self):
         """(T, V or M) bool: the rows that hold an observation (False: a point cloud's NaN padding)."""
-        d = self.data
-        return np.ones(d.shape[:2], bool) if self.points is None else np.isfinite(d).all(axis=2)
+        return observed_rows(self.kind, self.data)
 
     @property
     def ragged(self):

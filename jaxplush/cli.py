@@ -278,10 +278,6 @@ def _info_predictability(scene, args):
           f"steps ({pred.wall_time:.1f} s to measure)")
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def _vector(text, option):
     """Three comma-separated numbers, or a JaxplushError naming ``option``."""
     from jaxplush.errors import JaxplushError
@@ -296,6 +292,7 @@ def _vector(text, option):
 
 def _capture(args):
     from jaxplush.errors import JaxplushError
+    from jaxplush.fitting.targets import Target
     from jaxplush.io.capture import Camera, depth_capture
     from jaxplush.io.trajectory import load_trajectory
     check_output_path(args.out, (".h5", ".hdf5"))
@@ -305,6 +302,7 @@ def _capture(args):
     if len(size) != 2 or not all(t.isdigit() and int(t) >= 1 for t in size):
         raise JaxplushError(f"--size must be WIDTHxHEIGHT in whole pixels, e.g. 64x48, got {args.size!r}")
     traj = load_trajectory(args.trajectory)
+    meta, scene = _capture_metadata(args.trajectory, traj)      # checked before the casting
     pos = np.asarray(traj["positions"], np.float64)
     if look is None:
         look = tuple(float(a) for a in pos[0].mean(axis=0))
@@ -316,29 +314,33 @@ def _capture(args):
     if cap.counts.max() == 0:
         raise JaxplushError(f"the camera at {args.eye} looking at {','.join(f'{a:g}' for a in look)} sees no "
                             f"object in any of the {len(pos)} frames: check --eye, --look-at and --fov")
-    _write_capture(args, traj, cap)
+    Target(positions=None, points=cap.points, path=args.out, noise=float(args.noise) if args.noise > 0 else None,
+           **meta).save(args.out, scene)
     print(f"captured {len(pos)} frames of {args.trajectory} with a {camera.width}x{camera.height} depth camera: "
           f"{cap.counts.min()}-{cap.counts.max()} points a frame (mean {cap.counts.mean():.0f}), depth noise "
           f"{args.noise:g} m, dropout {args.dropout:g}; wrote {args.out}")
     return 0
 
 
-def _write_capture(args, traj, cap):
-    """The capture as a point-cloud fit target, with the trajectory's scene and parameters."""
+def _capture_metadata(path, traj):
+    """(Target fields steps, times, dt, params; the trajectory's Scene or None) of a trajectory."""
     import jaxplush
     from jaxplush.errors import JaxplushError
-    from jaxplush.fitting.targets import Target, _grid_steps
+    from jaxplush.fitting.targets import _grid_steps
     from jaxplush.types import PARAM_NAMES
     attrs = traj["attrs"]
     if "dt" not in attrs or "times" not in traj:
-        raise JaxplushError(f"{args.trajectory}: needs 'times' and the attribute 'dt' (a 'jaxplush simulate' output)")
+        raise JaxplushError(f"{path}: needs 'times' and the attribute 'dt' (a 'jaxplush simulate' output)")
     times = np.asarray(traj["times"], np.float64)
     dt = float(attrs["dt"])
-    steps = _grid_steps(args.trajectory, times, dt, traj["times"].dtype)
+    steps = _grid_steps(path, times, dt, traj["times"].dtype)
     scene = None
     if "scene" in attrs:
-        scene = jaxplush.parse_scene(str(attrs["scene"]), str(attrs.get("scene_path", args.trajectory)))
+        scene = jaxplush.parse_scene(str(attrs["scene"]), str(attrs.get("scene_path", path)))
     params = {n: np.asarray(attrs[n], np.float64) for n in PARAM_NAMES if n in attrs}
-    target = Target(positions=None, points=cap.points, steps=steps, times=times, dt=dt, path=args.out,
-                    noise=float(args.noise) if args.noise > 0 else None, params=params)
-    target.save(args.out, scene)
+    return dict(steps=steps, times=times, dt=dt, params=params), scene
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+

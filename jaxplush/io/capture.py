@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxplush.model.contact import _cross, _dot
+
 #: Rays tested per block (bounds the memory of the ray x triangle table).
 RAY_BLOCK = 512
 #: cos of the angle between a ray and a triangle's normal below which the ray grazes the triangle
@@ -118,7 +120,7 @@ def _first_hits(origin, dirs, tri):
     """(R,) distance along each unit ray to its first triangle hit (inf: none).
 
     Moeller-Trumbore for every ray against every triangle ``tri`` (F, 3, 3), in blocks of rays,
-    written out per component (x, y, z arrays) as the contact code is."""
+    written out per component (x, y, z arrays) with the contact code's helpers."""
     a, b, c = (tuple(tri[:, k, i] for i in range(3)) for k in range(3))
     e1 = tuple(bi - ai for ai, bi in zip(a, b))
     e2 = tuple(ci - ai for ai, ci in zip(a, c))
@@ -147,15 +149,10 @@ def _first_hits(origin, dirs, tri):
     return jax.lax.map(block, d.reshape(-1, RAY_BLOCK, 3)).reshape(-1)[:count]
 
 
-def _cross(u, v):
-    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
-
-
-def _dot(u, v):
-    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-
-
-_first_hits_jit = jax.jit(_first_hits)
+@jax.jit
+def _frames_first_hits(origin, dirs, tris):
+    """(T, R) :func:`_first_hits` of every frame's triangles ``tris`` (T, F, 3, 3), one compiled call."""
+    return jax.lax.map(lambda tri: _first_hits(origin, dirs, tri), tris)
 
 
 def depth_capture(frames, faces, camera, *, noise=0.0, dropout=0.0, seed=0):
@@ -191,9 +188,9 @@ def depth_capture(frames, faces, camera, *, noise=0.0, dropout=0.0, seed=0):
     rng = np.random.default_rng(seed)
     eye = np.asarray(camera.eye, np.float64)
     dirs = camera.rays()
+    hits = np.asarray(_frames_first_hits(jnp.asarray(eye), jnp.asarray(dirs), jnp.asarray(x[:, faces])), np.float64)
     kept = []
-    for xt in x:
-        t = np.asarray(_first_hits_jit(jnp.asarray(eye), jnp.asarray(dirs), jnp.asarray(xt[faces])), np.float64)
+    for t in hits:
         hit = np.isfinite(t)
         keep = hit & (rng.random(t.shape) >= dropout)
         depth = t[keep] + noise * rng.standard_normal(int(keep.sum()))
