@@ -177,7 +177,8 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
       terms: the :class:`jaxplush.model.forces.Terms` to compile (default: :func:`terms_for` the scene).
       substeps: Verlet steps of dt / substeps per ``step_fn`` call (as in make_simulator).
       chunk: points per compiled rollout call (:func:`rollout` runs the batch as independent
-        chunks, concurrently on the CPU's cores); default :func:`default_chunk` (16).
+        chunks, concurrently on the CPU's cores); default :func:`default_chunk` (16 on a CPU,
+        the whole batch on a GPU).
 
     Returns:
       :class:`BatchedSimulator` (float64 when ``jax_enable_x64`` is on, else float32).
@@ -387,14 +388,25 @@ def _make_contact(topo, terms, h):
     return _Contact(add, init, update, overflow)
 
 
+def on_cpu():
+    """Whether the default backend is XLA:CPU. The chunking, the thread pool and the compiler
+    options of this module are tuned for CPU cores and caches; on an accelerator a batch runs as
+    one compiled call (:func:`default_chunk`) with XLA's default options."""
+    return jax.default_backend() == "cpu"
+
+
 def default_chunk(batch):
-    """Points per compiled rollout call for a batch of ``batch``: the whole batch up to
-    :data:`MAX_CHUNK` points, else chunks of MAX_CHUNK (the last one padded), which run
-    concurrently, one per core. At 642 vertices (float32) a 16-point chunk's step keeps its
-    working set in a core's L2 cache and fills whole 512-bit vectors; wider and narrower chunks,
-    and widths that are no multiple of 8, cost more CPU time per point-step
-    (benchmarks/bench_sweep.py; figures in benchmarks/RESULTS.md)."""
-    return batch if batch <= MAX_CHUNK else MAX_CHUNK
+    """Points per compiled rollout call for a batch of ``batch``.
+
+    On XLA:CPU: the whole batch up to :data:`MAX_CHUNK` points, else chunks of MAX_CHUNK (the
+    last one padded), which run concurrently, one per core. At 642 vertices (float32) a 16-point
+    chunk's step keeps its working set in a core's L2 cache and fills whole 512-bit vectors;
+    wider and narrower chunks, and widths that are no multiple of 8, cost more CPU time per
+    point-step (benchmarks/bench_sweep.py; figures in benchmarks/RESULTS.md).
+
+    On any other backend (a GPU): the whole batch in one call. There a step is bound by launch
+    latency, so the widest call is the fastest (benchmarks/RESULTS.md, "GPU")."""
+    return batch if batch <= MAX_CHUNK or not on_cpu() else MAX_CHUNK
 
 
 def _n_cores():
@@ -631,8 +643,9 @@ ROLLOUT_COMPILER_OPTIONS = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experim
 
 
 class _LazyJit:
-    """``jax.jit(fn, compiler_options=ROLLOUT_COMPILER_OPTIONS)``, built at first use after
-    checking that this jax/XLA accepts the options (a tiny compile), else a plain jit."""
+    """``jax.jit(fn, compiler_options=ROLLOUT_COMPILER_OPTIONS)`` on XLA:CPU, built at first use
+    after checking that this jax/XLA accepts the options (a tiny compile), else (or on another
+    backend, for which these options mean nothing) a plain jit."""
 
     def __init__(self, fn, static_argnames):
         self._fn, self._static, self._jit = fn, static_argnames, None
@@ -641,9 +654,10 @@ class _LazyJit:
     def _get(self):
         with self._lock:
             if self._jit is None:
-                kw = dict(compiler_options=dict(ROLLOUT_COMPILER_OPTIONS))
+                kw = dict(compiler_options=dict(ROLLOUT_COMPILER_OPTIONS)) if on_cpu() else {}
                 try:
-                    jax.jit(lambda a: a + 1, **kw).lower(np.float32(0)).compile()
+                    if kw:
+                        jax.jit(lambda a: a + 1, **kw).lower(np.float32(0)).compile()
                 except Exception:                       # unknown option, or no compiler_options
                     kw = {}
                 self._jit = jax.jit(self._fn, static_argnames=self._static, **kw)

@@ -389,7 +389,10 @@ class Evaluator:
         return self.batch if left > narrow and n == 1 else narrow
 
     def _chunk_of(self, b):
-        """The chunk of a batched simulator of width ``b``: two chunks at least, one per core."""
+        """The chunk of a batched simulator of width ``b``: on a CPU, two chunks at least, one per
+        core; on another backend (a GPU) the whole width in one call (batched.default_chunk)."""
+        if not batched.on_cpu():
+            return b
         return max(1, min(b // 2, self._chunk()))
 
     def _bsim(self, n, b):

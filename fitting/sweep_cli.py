@@ -45,7 +45,8 @@ def _parser():
     p.add_argument("--steps", type=int, required=True, help="time steps per point")
     p.add_argument("--dt", type=float, default=None, help="time step, s (default: the target's)")
     p.add_argument("--save-every", type=int, default=None, help="also store every point's positions every K steps")
-    p.add_argument("--batch", type=int, default=64, help="points simulated together (default 64)")
+    p.add_argument("--batch", type=int, default=None,
+                   help="points simulated together (default 64 on a CPU, 1024 on a GPU)")
     p.add_argument("--out", required=True, help="output SWEEP.h5")
     p.add_argument("--plot", default=None, help="also plot the loss landscape (or the final volume without "
                                                 "--target) to this image (.png, .pdf, .svg)")
@@ -137,7 +138,7 @@ def _run(args):
         raise JaxplushError("--dt is required without --target")
     if args.save_every is not None and args.save_every < 1:
         raise JaxplushError(f"--save-every must be >= 1, got {args.save_every}")
-    if args.batch < 1:
+    if args.batch is not None and args.batch < 1:
         raise JaxplushError(f"--batch must be >= 1, got {args.batch}")
     check_output_path(args.out, (".h5", ".hdf5"), "--out")
     if args.plot is not None:

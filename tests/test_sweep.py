@@ -238,13 +238,43 @@ def test_fewer_lanes_than_the_batch_run_as_its_chunks_with_no_new_compile():
     np.testing.assert_array_equal(np.asarray(h3.code), np.asarray(full_h.code)[:, :3])
 
 
-def test_default_chunk_splits_large_batches():
+def test_default_chunk_splits_large_batches(monkeypatch):
+    monkeypatch.setattr(batched.jax, "default_backend", lambda: "cpu")    # the CPU's chunking
     for b in (1, 7, 16, 17, 33, 64, 100):
         c = batched.default_chunk(b)
         n = -(-b // c)                                                  # chunks
         assert 1 <= c <= batched.MAX_CHUNK and n * c - b < c          # padding: less than one chunk
     assert batched.default_chunk(5) == 5
     assert batched.make_batched_simulator(_ball(subdivisions=0), DT, 64).chunk == batched.MAX_CHUNK
+
+
+def test_batching_is_chosen_by_backend(monkeypatch):
+    # the chunks, thread pool and XLA:CPU options are CPU tuning: on another backend a batch runs
+    # in one call with default options, and a sweep's default batch is wider; a CPU keeps its
+    # tuning (whichever backend runs this test)
+    from jaxplush.fitting import evaluate
+    scene = _ball(subdivisions=0)
+    monkeypatch.setattr(batched.jax, "default_backend", lambda: "cpu")
+    assert batched.on_cpu() and sweep_mod.default_batch() == 64
+    assert batched.default_chunk(1024) == batched.MAX_CHUNK
+    monkeypatch.setattr(batched.jax, "default_backend", lambda: "gpu")
+    assert not batched.on_cpu()
+    assert batched.default_chunk(1024) == 1024 and batched.default_chunk(5) == 5
+    assert sweep_mod.default_batch() == sweep_mod.DEFAULT_ACCELERATOR_BATCH
+    assert batched.make_batched_simulator(scene, DT, 64).chunk == 64
+    assert sweep_mod._outer_batch(3000, 1024) == 1000               # 3 equal batches, one call each
+    seen, jit = [], batched.jax.jit
+    monkeypatch.setattr(batched.jax, "jit", lambda f, **kw: seen.append(kw) or jit(f, **kw))
+    lazy = batched._LazyJit(lambda a: a * 2, ())
+    assert float(lazy(np.float32(3))) == 6.0
+    assert seen and not any("compiler_options" in kw for kw in seen)
+    monkeypatch.setattr(batched.jax, "default_backend", lambda: "cpu")
+    seen.clear()
+    assert float(batched._LazyJit(lambda a: a * 2, ())(np.float32(3))) == 6.0
+    assert any(kw.get("compiler_options") == batched.ROLLOUT_COMPILER_OPTIONS for kw in seen)
+    monkeypatch.setattr(batched.jax, "default_backend", lambda: "gpu")
+    ev = evaluate.Evaluator.__new__(evaluate.Evaluator)
+    assert ev._chunk_of(32) == 32 and ev._chunk_of(7) == 7
 
 
 def test_folded_position_update_changes_no_result(monkeypatch):
