@@ -41,8 +41,12 @@ def _parser():
         description="Fit material parameters of a jaxplush scene to a target deformation (HDF5) by gradients "
                     "through the rollout. 'jaxplush-fit sweep ...' runs batched parameter sweeps.")
     p.add_argument("scene", help="extended-OBJ scene; its values of the fitted parameters are the start")
-    p.add_argument("target", help="target HDF5: 'positions' [T, V, 3] or 'points' [T, M, 3], and 'times' [T] "
-                                  "(any 'jaxplush simulate' output)")
+    p.add_argument("target", help="target HDF5: 'positions' [T, V, 3], 'points' [T, M, 3] or 'tracks' [T, M, 3] "
+                                  "(with 'track_vertex' or 'track_face' and 'track_barycentric'), and 'times' "
+                                  "[T] (any 'jaxplush simulate' output)")
+    p.add_argument("--target-kind", default=None, choices=("positions", "points", "tracks"),
+                   help="which frames of a target that holds several to fit (default: positions, else points, "
+                        "else tracks)")
     p.add_argument("--params", default=None,
                    help="comma-separated parameters to fit (k = k_structural; damping, dashpot, drag, nmol; "
                         "total_weight only with a warning). Default: the material parameters the scene switches "
@@ -126,7 +130,7 @@ def _fit(args):
     names = _fit_mod.canonical_names(args.params) if args.params is not None else None
     options = _options(args, names)
     scene = jaxplush.load_scene(args.scene)
-    target = load_target(args.target, scene, args.dt)
+    target = load_target(args.target, scene, args.dt, kind=args.target_kind)
     result = _run(args, lambda: _fit_mod.fit(scene, target, names, args.objects, optimizer=args.optimizer,
                                              options=options, progress=not args.quiet, report=_note))
     if result is None:

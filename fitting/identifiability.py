@@ -26,7 +26,8 @@ From J^T J:
 
 For point-cloud targets J is that of the simulated vertex positions and the residuals are the
 distances from each vertex to its nearest target point (the Gauss-Newton view of the
-vertex-to-cloud half of the Chamfer loss).
+vertex-to-cloud half of the Chamfer loss). For tracks targets J is mapped to the tracked points
+(linear in the vertices) and the residuals are the seen tracks' simulated minus observed positions.
 """
 
 from __future__ import annotations

@@ -73,6 +73,9 @@ def fingerprint(prob):
     scene_hash = hashlib.sha1(prob.scene.text.encode()).hexdigest()
     h = hashlib.sha1(np.ascontiguousarray(prob.target.data, np.float64).tobytes())
     h.update(np.asarray(prob.target.steps, np.int64).tobytes())
+    if prob.target.kind == "tracks":          # which points the tracks are
+        h.update(np.asarray(prob.target.track_vertices, np.int64).tobytes())
+        h.update(np.asarray(prob.target.track_weights, np.float64).tobytes())
     return scene_hash, h.hexdigest()
 
 

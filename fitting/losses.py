@@ -5,6 +5,9 @@
 * :func:`point_surface_distance2`: squared distance of every target point to the simulated
   surface, for ``points`` targets (a scan: M points with no correspondence to the V vertices).
 * :func:`chamfer`: the symmetric vertex-to-point Chamfer distance (used by sweeps).
+* :func:`track_positions`: the simulated positions of tracked points (vertices, or points on
+  faces by barycentric weights), for ``tracks`` targets: each observed track's squared
+  distance to its simulated position (rows of NaN, tracks not seen, left out).
 
 :func:`make_loss` builds the frame loss that :func:`jaxplush.fitting.gradients.rollout_loss` sums over
 the target frames, and :func:`make_residual` the same loss as a vector of residuals r with
@@ -13,13 +16,15 @@ sum(r²) = L (for Gauss-Newton and Levenberg-Marquardt). The loss is noise-aware
     L = (1 / T) sum_j d_j / s²,
 
 d_j the frame's mean squared distance (m²): per vertex |x_i - y_i|² for positions, per point its
-squared distance to the surface for points. With a known measurement noise sigma per
-coordinate, s² = 3 sigma² for positions and sigma² for points (a point's distance to the true
+squared distance to the surface for points, per observed track |track_positions(x) - y|² for
+tracks (with tracks not seen, or a ragged cloud, every observation weighs alike: d_j is the
+frame's sum times T / N, N observations over T frames). With a known measurement noise sigma per
+coordinate, s² = 3 sigma² for positions and tracks and sigma² for points (a point's distance to the true
 surface is its noise's normal component), so L ~ 1 when the model fits to the noise level;
 otherwise (noise-free or unknown) s² is the same mean between the scene's rest shape and the
 target, so L is the squared error relative to how far the target moves (L = 1 for "no better
 than standing still"). :func:`rms_metres` turns a loss back into the RMS residual per
-coordinate (positions) or per point distance (points), in metres, to compare with the noise.
+coordinate (positions, tracks) or per point distance (points), in metres, to compare with the noise.
 
 Frames whose objects are inverted (a gas object's volume <= 0, a blown-up rollout) get a NaN
 loss, so the optimiser sees the failure instead of a finite but meaningless number.
@@ -82,6 +87,28 @@ def chamfer(x, p):
     near_point = jnp.min(jnp.where(valid[None, :], d2, jnp.inf), axis=1)
     near_vertex = jnp.min(d2, axis=0)
     return jnp.mean(near_point) + jnp.sum(jnp.where(valid, near_vertex, 0.0)) / jnp.sum(valid)
+
+
+def track_positions(x, vertices, weights):
+    """(M, 3) positions of tracked points: sum_k weights[:, k] x[vertices[:, k]] (jax or numpy).
+
+    Args:
+      x: (V, 3) vertex positions; vertices: (M, 3) int vertex indices of each track (a vertex
+        track: [v, v, v]); weights: (M, 3) its barycentric weights (a vertex track: [1, 0, 0]).
+    """
+    return sum(weights[:, k, None] * x[vertices[:, k]] for k in range(3))
+
+
+def track_distance2(vertices, weights, weight=1.0):
+    """``(x (V, 3), y (M, 3)) -> sum over the observed tracks of |track_positions(x) - y|²`` times
+    ``weight`` (m²); rows of NaN in y (not seen) take part in no value and no gradient."""
+    vertices, weights = np.asarray(vertices, np.int32), np.asarray(weights, np.float64)
+
+    def dist(x, y):
+        valid = jnp.all(jnp.isfinite(y), axis=-1)
+        d = track_positions(x, vertices, jnp.asarray(weights, x.dtype)) - jnp.where(valid[:, None], y, 0.0)
+        return jnp.sum(jnp.where(valid, jnp.sum(d * d, axis=-1), 0.0)) * jnp.asarray(weight, x.dtype)
+    return dist
 
 
 def vertex_faces(faces, n_vertices):
@@ -165,9 +192,13 @@ def point_surface(faces, n_vertices, weight=None):
 
 def point_weight(target):
     """T / N for a point cloud with NaN padding (N observed points over T frames; see
-    :func:`point_surface`), None otherwise."""
+    :func:`point_surface`), None otherwise; for tracks always T / N."""
     observed = observed_rows(target.kind, target.data)
-    return None if observed.all() else len(observed) / float(observed.sum())
+    if target.kind != "tracks" and observed.all():
+        return None
+    if not observed.any():
+        raise ValueError(f"{target.path}: the target's frames hold no observation")
+    return len(observed) / float(observed.sum())
 
 
 def frame_distance(kind):
@@ -188,7 +219,7 @@ class Loss(NamedTuple):
       frame_steps: (T,) tuple of step indices.
       scale2: the normaliser s² (m²).
       normalisation: "noise" or "motion" (see the module docstring).
-      kind: "positions" or "points".
+      kind: "positions", "points" or "tracks".
     """
 
     loss_fn: Callable
@@ -199,26 +230,29 @@ class Loss(NamedTuple):
     kind: str
 
 
-def _frame_mean_sq(kind, faces=None, n_vertices=None, weight=None):
-    """``(x (V, 3), y) -> d_j``: the frame's mean squared distance (m²) for a target kind
-    (``weight``: :func:`point_weight`)."""
+def _frame_mean_sq(target, faces=None, n_vertices=None):
+    """``(x (V, 3), y) -> d_j``: the frame's mean squared distance (m²) for a target (its kind,
+    :func:`point_weight`, a tracks target's correspondence)."""
+    kind = target.kind
     if kind == "positions":
         return squared_distance
     if kind == "points":
-        return point_surface(faces, n_vertices, weight)
-    raise ValueError(f"unknown target kind {kind!r}; expected 'positions' or 'points'")
+        return point_surface(faces, n_vertices, point_weight(target))
+    if kind == "tracks":
+        return track_distance2(target.track_vertices, target.track_weights, point_weight(target))
+    raise ValueError(f"unknown target kind {kind!r}; expected 'positions', 'points' or 'tracks'")
 
 
-#: Residual components per residual: positions give (x, y, z) per vertex, points one distance.
-COMPONENTS = {"positions": 3, "points": 1}
+#: Residual components per residual: positions and tracks give (x, y, z) per vertex or track,
+#: points one distance.
+COMPONENTS = {"positions": 3, "points": 1, "tracks": 3}
 
 
 def rest_distance(target, x_rest, faces=None):
     """Mean over the target's frames of the frame distance (m²) between the rest shape and the
     target (float64)."""
     with jax.enable_x64(True):
-        f = jax.jit(jax.vmap(_frame_mean_sq(target.kind, faces, len(x_rest), point_weight(target)),
-                             in_axes=(None, 0)))
+        f = jax.jit(jax.vmap(_frame_mean_sq(target, faces, len(x_rest)), in_axes=(None, 0)))
         return float(jnp.mean(f(jnp.asarray(x_rest, jnp.float64), jnp.asarray(target.data, jnp.float64))))
 
 
@@ -234,8 +268,8 @@ def loss_scale(target, topology, noise=None, noise_free=False):
 
 
 def rms_metres(loss, scale2, kind):
-    """RMS residual in metres of a (normalised) loss: per coordinate for positions, per point
-    distance for points (each comparable with the noise sigma)."""
+    """RMS residual in metres of a (normalised) loss: per coordinate for positions and tracks, per
+    point distance for points (each comparable with the noise sigma)."""
     return float(np.sqrt(max(loss, 0.0) * scale2 / COMPONENTS[kind]))
 
 
@@ -256,7 +290,7 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     """
     scale2, how, _ = loss_scale(target, topology, noise, noise_free)
     n = target.n_frames
-    dist = _frame_mean_sq(target.kind, topology.faces, topology.n_vertices, point_weight(target))
+    dist = _frame_mean_sq(target, topology.faces, topology.n_vertices)
     inv = 1.0 / (n * scale2)
     volumes = None
     if check_volume:
@@ -318,12 +352,13 @@ class Residual(NamedTuple):
     Attributes:
       fn: ``frames (T, V, 3) -> (n,)`` normalised residuals with sum(r²) = the loss (jax).
       n: number of residuals; kind, scale2, normalisation: as in :class:`Loss`.
-      per_frame: residuals per frame (3 V for positions, M for points).
+      per_frame: residuals per frame (3 V for positions, M for points, 3 M for tracks).
       frame_fn: ``(frames (C, V, 3), data (C, M, 3)) -> (C * per_frame,)`` the same residuals of any
         C frames against their target data, before the normalisation (m): frames are independent,
         so residuals of a target's frames in chunks are the residuals of the whole (one compiled
         function serves every horizon of a fit).
-      norm: the normalisation, 1 / sqrt(T M s²); data: (T, M, 3) float64 target frames.
+      norm: the normalisation, 1 / sqrt(N s²) (N observed rows: T V, less a cloud's padding or the
+        tracks not seen); data: (T, M, 3) float64 target frames.
       near_fn: points only (else None): ``(frames (C, V, 3), data (C, M, 3)) -> (C * M,)`` int32,
         the vertex each point's residual is measured from (its nearest vertex, as ``frame_fn``
         finds it): the residual depends on that vertex's object alone.
@@ -419,9 +454,21 @@ def make_residual(target, topology, loss):
     data = np.asarray(target.data, np.float64)
     t, m = data.shape[:2]
     norm = 1.0 / np.sqrt(observed_rows(target.kind, data).sum() * loss.scale2)   # t m, less a cloud's padding
+    near_fn = None
     if target.kind == "positions":
         def frame_fn(frames, y):
             return (frames - y).reshape(-1)
+        per_frame = 3 * m
+    elif target.kind == "tracks":
+        tv, tw = np.asarray(target.track_vertices, np.int32), np.asarray(target.track_weights, np.float64)
+
+        def one_track(x, y):
+            valid = jnp.all(jnp.isfinite(y), axis=-1)                   # not seen: residual 0
+            d = track_positions(x, tv, jnp.asarray(tw, x.dtype)) - jnp.where(valid[:, None], y, 0.0)
+            return jnp.where(valid[:, None], d, 0.0)
+
+        def frame_fn(frames, y):
+            return jax.vmap(one_track)(frames, y).reshape(-1)
         per_frame = 3 * m
     else:
         faces = np.asarray(topology.faces, np.int32)
@@ -456,5 +503,4 @@ def make_residual(target, topology, loss):
     def fn(frames):
         return frame_fn(frames, jnp.asarray(data, frames.dtype)) * jnp.asarray(norm, frames.dtype)
     return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame,
-                    frame_fn=frame_fn, norm=float(norm), data=data,
-                    near_fn=None if target.kind == "positions" else near_fn)
+                    frame_fn=frame_fn, norm=float(norm), data=data, near_fn=near_fn)

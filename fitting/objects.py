@@ -19,8 +19,9 @@ composed the same way. Its ``states`` start the local searches
 
 Point-cloud targets have no vertex correspondence: each target point is assigned, frame by
 frame, to the object of its nearest vertex in the rollout at the start values (one more run);
-a point near two objects in contact counts for one of them only. :func:`suits` says whether a
-problem is one this stage is made for (several fitted objects, a position target).
+a point near two objects in contact counts for one of them only. Tracked points belong to the
+object of their vertices exactly. :func:`suits` says whether a problem is one this stage is made
+for (several fitted objects, a position or tracks target).
 """
 
 from __future__ import annotations
@@ -37,9 +38,9 @@ from jaxplush.fitting.outcome import Stop
 
 def suits(prob):
     """Whether :class:`PerObjectGlobal` suits a problem (:class:`jaxplush.fitting.fitter.Problem`):
-    more than one fitted object, and a target of vertex positions (whose residuals belong to
-    objects exactly)."""
-    return len(prob.objects) > 1 and prob.target.kind == "positions"
+    more than one fitted object, and a target of vertex positions or tracks (whose residuals belong
+    to objects exactly)."""
+    return len(prob.objects) > 1 and prob.target.kind in ("positions", "tracks")
 
 
 def fitted_index(prob):
@@ -55,7 +56,8 @@ def residual_objects(prob, frames=None):
     residuals of objects that are not fitted.
 
     Positions: the residuals are (frame, vertex, xyz) flattened (:func:`jaxplush.fitting.losses.make_residual`),
-    and each vertex belongs to its object (the topology's ``vertex_object``). Points: (frame,
+    and each vertex belongs to its object (the topology's ``vertex_object``). Tracks: (frame,
+    track, xyz), each track to the object of its vertices. Points: (frame,
     point), each point assigned to the object of its nearest vertex in ``frames`` ((T, V, 3), the
     simulated frames at the target's steps, e.g. the rollout at the start values; required).
     """
@@ -65,6 +67,9 @@ def residual_objects(prob, frames=None):
     if target.kind == "positions":
         per_vertex = fitted[vobj]                                        # (V,)
         return np.tile(np.repeat(per_vertex, 3), target.n_frames)
+    if target.kind == "tracks":
+        per_track = fitted[vobj[np.asarray(target.track_vertices, np.int64)[:, 0]]]     # (M,)
+        return np.tile(np.repeat(per_track, 3), target.n_frames)
     if frames is None:
         raise ValueError("a point-cloud target needs simulated frames to assign its points to objects")
     out = []
@@ -223,7 +228,7 @@ class PerObjectGlobal:
 
     def _owner(self, objective, s):
         prob = objective.prob
-        if prob.target.kind == "positions":
+        if prob.target.kind in ("positions", "tracks"):
             return residual_objects(prob)
         e = objective.evaluator(s.theta[None], keep_frames=True)
         if not e.ok[0]:       # no rollout to assign the points by: every block scored by the whole loss

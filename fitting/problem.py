@@ -302,11 +302,29 @@ def _fit_target(scene, target, dt):
     if target.kind == "positions" and target.positions.shape[1] != scene.n_vertices:
         raise JaxplushError(f"{target.path}: target has {target.positions.shape[1]} vertices, the scene "
                             f"{scene.n_vertices}")
+    if target.kind == "tracks":
+        _check_tracks(scene, target)
     keep = target.steps > 0
     if not keep.any():
         raise JaxplushError(f"{target.path}: the target holds only the initial frame (t = 0), which does not "
                             "depend on the parameters")
+    if not target.observed[keep].any():
+        raise JaxplushError(f"{target.path}: the target observes nothing after the initial frame (t = 0)")
     return target.select(keep)
+
+
+def _check_tracks(scene, target):
+    """A tracks target's correspondence ((M, 3) vertices and weights) fits the scene (numpy)."""
+    m = target.tracks.shape[1]
+    tv, tw = target.track_vertices, target.track_weights
+    if tv is None or tw is None or np.shape(tv) != (m, 3) or np.shape(tw) != (m, 3):
+        raise JaxplushError(f"{target.path}: a tracks target needs track_vertices and track_weights of shape "
+                            f"[{m}, 3], got {np.shape(tv) if tv is not None else None} and "
+                            f"{np.shape(tw) if tw is not None else None}")
+    tv = np.asarray(tv)
+    if tv.min() < 0 or tv.max() >= scene.n_vertices:
+        raise JaxplushError(f"{target.path}: track_vertices index vertices outside the scene's "
+                            f"0..{scene.n_vertices - 1}")
 
 
 def _fit_simulator(scene, fit_scene, target, method):

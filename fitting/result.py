@@ -256,9 +256,25 @@ def identifiability_at(prob, theta):
 def _report(prob, frames, jac):
     if prob.target.kind == "positions":
         residual = frames - prob.target.positions
+    elif prob.target.kind == "tracks":
+        residual, jac = _track_residual(prob.target, frames, jac)
     else:
         residual = np.concatenate([_nearest_residual(x, p) for x, p in zip(frames, prob.target.points)])
     return _ident.analyse(jac, residual, prob.labels, noise=prob.noise)
+
+
+def _track_residual(target, frames, jac):
+    """(residual (3 N,), jac (3 N, P)) of a tracks target's N observations: each seen track's
+    simulated minus observed position, and the frames' Jacobian (3 T V, P) mapped to the tracks'
+    positions (linear in the vertices) with the rows of tracks not seen left out."""
+    from jaxplush.fitting.losses import track_positions
+    t, v = frames.shape[:2]
+    tv, tw = np.asarray(target.track_vertices), np.asarray(target.track_weights, np.float64)
+    seen = target.observed                                              # (T, M)
+    sim = np.stack([track_positions(x, tv, tw) for x in frames])        # (T, M, 3)
+    j = np.asarray(jac, np.float64).reshape(t, v, 3, -1)
+    jt = np.stack([track_positions(x, tv, tw[..., None]) for x in j])   # (T, M, 3, P)
+    return (sim - target.tracks)[seen].reshape(-1), jt[seen].reshape(-1, j.shape[-1])
 
 
 def _nearest_residual(x, p):

@@ -114,8 +114,10 @@ def even_gap(target):
 
 def why_not(prob):
     """Why multiple shooting cannot run on this problem (a phrase), or None when it can."""
-    if prob.target.kind != "positions":
+    if prob.target.kind == "points":
         return "the target is point clouds (no vertex is observed, so there are no node states)"
+    if prob.target.kind == "tracks":
+        return "the target is tracked points (not every vertex is observed, so there are no node states)"
     if even_gap(prob.target) is None:
         return "the target's frames are not on an even grid"
     if prob.sim.integrator != "verlet":
@@ -353,7 +355,7 @@ def plan(prob, setting="auto", refine=REFINE):
         why = "not measured" if pred is None else "the positions stay predictable over the whole target"
         return Shooting(None, single_floor=single, reason=f"single shooting ({why})"), prob
     reason = why_not(prob)
-    if reason is not None and prob.target.kind == "points":
+    if reason is not None and prob.target.kind in ("points", "tracks"):
         return _points_within_horizon(prob, single)
     if reason is not None:
         return Shooting(None, single_floor=single, reason=f"single shooting ({reason})"), prob
@@ -420,12 +422,14 @@ def _reach(prob):
 
 
 def _points_within_horizon(prob, single):
-    """A point-cloud target cut at the predictable horizon (at least :data:`MIN_HORIZON_FRAMES` frames)."""
+    """A point-cloud or tracks target cut at the predictable horizon (at least :data:`MIN_HORIZON_FRAMES`
+    frames)."""
     t, pred = prob.target, prob.predictability
     keep = int(np.searchsorted(np.asarray(t.times, np.float64), pred.horizon_time, side="right"))
-    keep = max(min(MIN_HORIZON_FRAMES, t.n_frames), keep)
+    keep = max(min(MIN_HORIZON_FRAMES, t.n_frames), keep, int(np.argmax(t.observed.any(axis=1))) + 1)
     if keep >= t.n_frames:
         return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
     reason = (f"single shooting within the predictable horizon: the first {keep} of {t.n_frames} frames "
-              f"(up to {float(t.times[keep - 1]):.3g} s; a point-cloud target has no node states to shoot from)")
+              f"(up to {float(t.times[keep - 1]):.3g} s; a {'point-cloud' if t.kind == 'points' else 'tracks'} "
+              "target has no node states to shoot from)")
     return Shooting(None, single_floor=single, reason=reason), prob.truncated(keep)

@@ -95,12 +95,13 @@ class Objective:
     def floor(self):
         """The model's reproducibility floor over this objective's frames as a normalised loss
         (:func:`jaxplush.fitting.result.rounding_drift`, measured at the start values; with multiple
-        shooting, the shooting floor of its segments), for a noise-free position target; None
+        shooting, the shooting floor of its segments), for a noise-free position or tracks target
+        (the drift per coordinate of a vertex, or of a point interpolated between vertices); None
         otherwise, or when it was not measured."""
         from jaxplush.fitting import losses as _losses
         from jaxplush.fitting.result import rounding_drift
         prob = self.prob
-        if prob.target.kind != "positions" or (prob.noise is not None and prob.noise > 0):
+        if prob.target.kind not in ("positions", "tracks") or (prob.noise is not None and prob.noise > 0):
             return None
         sh = prob.shooting
         # multiple shooting: the floor of its segments (what the outcome judges it by)

@@ -9,7 +9,15 @@ A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io.trajector
   symmetric Chamfer distance; :mod:`jaxplush.fitting.losses`). Frames may hold different
   numbers of points: a row of three NaNs is no point (padding), so a frame with fewer points
   ends in NaN rows (:func:`jaxplush.io.capture.depth_capture` writes captures this way). A row
-  with some NaN coordinates, or an infinity, is an error,
+  with some NaN coordinates, or an infinity, is an error; or
+* ``tracks`` float [T, M, 3]: M tracked points with correspondence, each a vertex or a point
+  on a face, with one of ``track_vertex`` int [M] (vertex indices), ``track_face`` int [M]
+  with ``track_barycentric`` float [M, 3] (a face of the file's ``faces``, else of the scene's,
+  and the point's barycentric coordinates: >= 0 and summing to 1, within
+  :data:`BARYCENTRIC_TOLERANCE`), or ``track_vertices`` int [M, 3] with ``track_weights``
+  float [M, 3] (any three vertices and weights; what :meth:`Target.save` writes for surface
+  points). A row of three NaNs is a track not seen in that frame (occluded); a frame may see
+  none, but every track must be seen in some frame,
 
 and ``times`` float [T] (s, increasing). The frames may be any subset of the rollout (only the
 final shape, say) and may be noisy. Optional: attribute ``dt`` (the target's time step, used
@@ -19,7 +27,8 @@ against the scene when present).
 
 :func:`load_target` validates everything against the scene *before* anything is traced: the file
 is readable HDF5, the datasets exist and have the right shapes, vertex and object counts match
-the scene (or points are given), the times lie on the dt grid, and all values are finite. Each
+the scene (or points are given), track indices lie in the scene, the times lie on the dt grid,
+and all values are finite. Each
 problem raises :class:`jaxplush.errors.TrajectoryError` naming the file and the problem.
 
 Format: docs/formats.md §4 (with an h5py example that writes a valid target).
@@ -40,11 +49,16 @@ from jaxplush.io.trajectory import atomic_path, open_hdf5
 GRID_TOLERANCE = 1e-3
 #: A target farther than this many scene sizes from the scene's centre is refused (wrong units).
 TARGET_FAR = 1e3
+#: Barycentric coordinates of a track may be this far below 0, and their sum this far from 1.
+BARYCENTRIC_TOLERANCE = 1e-6
+#: The target kinds, in the order :func:`load_target` prefers them when a file holds several.
+KINDS = ("positions", "points", "tracks")
 
 
 def observed_rows(kind, data):
     """(T, N) bool: the rows of a target's ``data`` (T, N, 3) that hold an observation: every
-    vertex of ``positions``, the finite rows of ``points`` (NaN rows are padding)."""
+    vertex of ``positions``, the finite rows of ``points`` (NaN rows are padding) and ``tracks``
+    (NaN rows: not seen)."""
     data = np.asarray(data)
     return np.ones(data.shape[:2], bool) if kind == "positions" else np.isfinite(data).all(axis=2)
 
@@ -54,8 +68,8 @@ class Target:
     """A validated fitting target (numpy).
 
     Attributes:
-      positions: (T, V, 3) target vertex positions (m), or None for a point-cloud target.
-      points: (T, M, 3) target point clouds (m), or None for a positions target.
+      positions: (T, V, 3) target vertex positions (m), or None for another kind.
+      points: (T, M, 3) target point clouds (m), or None for another kind.
       steps: (T,) int64 step index of each frame on the ``dt`` grid (strictly increasing).
       times: (T,) frame times, s (as stored).
       dt: time step of the grid, s.
@@ -63,6 +77,9 @@ class Target:
       noise: measurement noise standard deviation per coordinate (m) if known, else None.
       params: dict name -> (O,) parameter values stored with the target (a simulated target
         records its true parameters), possibly empty.
+      tracks: (T, M, 3) tracked points (m; NaN rows: not seen in that frame), or None.
+      track_vertices: (M, 3) int64 the vertices each track interpolates (a vertex track: [v, v, v]).
+      track_weights: (M, 3) float64 their weights (barycentric; a vertex track: [1, 0, 0]).
     """
 
     positions: np.ndarray | None
@@ -73,16 +90,21 @@ class Target:
     path: str
     noise: float | None = None
     params: dict = dataclasses.field(default_factory=dict)
+    tracks: np.ndarray | None = None
+    track_vertices: np.ndarray | None = None
+    track_weights: np.ndarray | None = None
 
     @property
     def kind(self):
-        """"positions" or "points"."""
-        return "positions" if self.positions is not None else "points"
+        """"positions", "points" or "tracks"."""
+        if self.positions is not None:
+            return "positions"
+        return "tracks" if self.tracks is not None else "points"
 
     @property
     def data(self):
         """(T, V or M, 3) the target's frames, whichever kind."""
-        return self.positions if self.positions is not None else self.points
+        return {"positions": self.positions, "points": self.points, "tracks": self.tracks}[self.kind]
 
     @property
     def n_frames(self):
@@ -96,7 +118,7 @@ class Target:
     @property
     def ragged(self):
         """True for a point cloud whose frames hold different numbers of points (NaN padding)."""
-        return self.points is not None and not bool(self.observed.all())
+        return self.kind == "points" and not bool(self.observed.all())
 
     def select(self, frames):
         """A target with only the given frames (indices or a boolean mask, in order)."""
@@ -105,7 +127,7 @@ class Target:
             raise ValueError("a target needs at least one frame")
         sel = lambda a: None if a is None else a[idx]  # noqa: E731
         return dataclasses.replace(self, positions=sel(self.positions), points=sel(self.points),
-                                   steps=self.steps[idx], times=self.times[idx])
+                                   tracks=sel(self.tracks), steps=self.steps[idx], times=self.times[idx])
 
     def on_grid(self, dt):
         """This target with its frame steps recomputed for time step ``dt`` (validated)."""
@@ -115,14 +137,22 @@ class Target:
         steps = _grid_steps(self.path, self.times, dt, self.times.dtype)
         return dataclasses.replace(self, steps=steps, dt=dt)
 
-    def save(self, path, scene=None):
+    def save(self, path, scene=None, extra=None):
         """Write the target to ``path`` atomically in the trajectory schema.
 
-        With ``scene``, its faces, object ids and names and its scene text are stored too.
+        With ``scene``, its faces, object ids and names and its scene text are stored too. A
+        tracks target writes ``track_vertex`` when every track is a vertex, else
+        ``track_vertices`` and ``track_weights`` (exactly as held). ``extra``: more datasets to
+        write alongside (dict name -> array).
         """
         with atomic_path(path, ".h5") as tmp:
             with h5py.File(tmp, "w") as f:
                 f.create_dataset(self.kind, data=np.asarray(self.data), compression="gzip", compression_opts=1)
+                if self.kind == "tracks":
+                    for name, val in _track_datasets(self.track_vertices, self.track_weights).items():
+                        f.create_dataset(name, data=val)
+                for name, val in (extra or {}).items():
+                    f.create_dataset(name, data=np.asarray(val))
                 f.create_dataset("times", data=np.asarray(self.times, np.float64))
                 f.attrs["dt"] = float(self.dt)
                 f.attrs["steps"] = int(self.steps[-1])
@@ -143,11 +173,13 @@ def load_target(path, scene, dt=None, kind=None):
     """Read a target file and validate it against a scene.
 
     Args:
-      path: HDF5 file with ``positions`` [T, V, 3] or ``points`` [T, M, 3], and ``times`` [T].
+      path: HDF5 file with ``positions`` [T, V, 3], ``points`` [T, M, 3] or ``tracks`` [T, M, 3]
+        (with its correspondence), and ``times`` [T].
       scene: the :class:`jaxplush.scene.parse.Scene` that will be fitted.
       dt: the fit's time step (s); default: the file's ``dt`` attribute. Every frame time must
         be a multiple of it.
-      kind: "positions" or "points" to choose when a file holds both (default: positions).
+      kind: "positions", "points" or "tracks", to choose when a file holds several (default:
+        the first of them in that order).
 
     Returns:
       :class:`Target`.
@@ -179,17 +211,20 @@ def _dataset(path, fh, name, required=True):
 
 
 def _read(path, fh, kind):
-    if kind not in (None, "positions", "points"):
-        raise ValueError(f"kind must be 'positions' or 'points', got {kind!r}")
-    have = [k for k in ("positions", "points") if k in fh]
+    if kind not in (None,) + KINDS:
+        raise ValueError(f"kind must be 'positions', 'points' or 'tracks', got {kind!r}")
+    have = [k for k in KINDS if k in fh]
     if not have:
-        raise TrajectoryError(path, "missing dataset 'positions' (or 'points' for a point-cloud target)")
+        raise TrajectoryError(path, "missing dataset 'positions' (or 'points' for a point-cloud target, "
+                                    "'tracks' for tracked points)")
     kind = kind or have[0]
     if kind not in have:
         raise TrajectoryError(path, f"missing dataset '{kind}'")
     out = {"kind": kind}
-    for name, required in ((kind, True), ("times", True), ("faces", False), ("object_id", False),
-                           ("object_names", False)):
+    names = [(kind, True), ("times", True), ("faces", False), ("object_id", False), ("object_names", False)]
+    if kind == "tracks":
+        names += [(n, False) for n in TRACK_DATASETS]
+    for name, required in names:
         ds = _dataset(path, fh, name, required)
         if ds is not None:
             if ds.dtype.kind not in "fiu" and name != "object_names":
@@ -209,12 +244,13 @@ def _validate(path, raw, scene, dt):
     _check_data_shape(path, kind, data, scene)
     n_frames, n = data.shape[:2]
     _check_object_names(path, raw.get("object_names"), scene)
-    if kind == "positions":
-        _check_object_id(path, raw.get("object_id"), scene, n)
+    if kind in ("positions", "tracks"):
+        _check_object_id(path, raw.get("object_id"), scene, scene.n_vertices)
         faces = raw.get("faces")
         if faces is not None and not _same_faces(np.asarray(faces), scene.faces):
             raise TrajectoryError(path, f"'faces' differ from the scene {scene.path}'s: the target was "
                                         "made from a different mesh")
+    corr = _track_correspondence(path, raw, scene, n) if kind == "tracks" else (None, None)
     times = _check_times(path, raw["times"], n_frames, kind)
     dt = _target_dt(path, raw["dt_attr"], dt)
     steps = _grid_steps(path, times, dt, raw["times"].dtype)
@@ -223,7 +259,79 @@ def _validate(path, raw, scene, dt):
     noise = _noise_attr(path, raw["noise"])
     params = {k: v for k, v in raw["params"].items() if v.shape == (scene.n_objects,)}
     return Target(positions=data if kind == "positions" else None, points=data if kind == "points" else None,
-                  steps=steps, times=times, dt=dt, path=path, noise=noise, params=params)
+                  steps=steps, times=times, dt=dt, path=path, noise=noise, params=params,
+                  tracks=data if kind == "tracks" else None, track_vertices=corr[0], track_weights=corr[1])
+
+
+#: The correspondence datasets of a tracks target (docs/formats.md §4).
+TRACK_DATASETS = ("track_vertex", "track_face", "track_barycentric", "track_vertices", "track_weights")
+
+
+def _track_correspondence(path, raw, scene, m):
+    """(vertices (M, 3) int64, weights (M, 3) float64) of a tracks target's correspondence, checked
+    against the scene: one of track_vertex, track_face + track_barycentric, or track_vertices +
+    track_weights."""
+    given = [n for n in TRACK_DATASETS if n in raw]
+    forms = [f for f in (("track_vertex",), ("track_face", "track_barycentric"), ("track_vertices", "track_weights"))
+             if any(n in raw for n in f)]
+    if not forms:
+        raise TrajectoryError(path, "'tracks' needs its correspondence: dataset 'track_vertex' [M], or "
+                                    "'track_face' [M] with 'track_barycentric' [M, 3]")
+    if len(forms) > 1:
+        raise TrajectoryError(path, f"'tracks' has two correspondences ({', '.join(given)}): give either "
+                                    "'track_vertex' or 'track_face' with 'track_barycentric'")
+    form = forms[0]
+    for n in form:
+        if n not in raw:
+            raise TrajectoryError(path, f"missing dataset '{n}' (it goes with '{(set(form) - {n}).pop()}')")
+    if form == ("track_vertex",):
+        v = _index_dataset(path, "track_vertex", raw["track_vertex"], (m,), scene.n_vertices, "vertices")
+        return np.repeat(v[:, None], 3, axis=1), np.tile(np.array([1.0, 0.0, 0.0]), (m, 1))
+    if form[0] == "track_face":
+        faces = np.asarray(raw["faces"] if "faces" in raw else scene.faces, np.int64)
+        f = _index_dataset(path, "track_face", raw["track_face"], (m,), len(faces), "faces")
+        vertices, weights = faces[f], _weights_dataset(path, "track_barycentric", raw["track_barycentric"], m)
+    else:
+        vertices = _index_dataset(path, "track_vertices", raw["track_vertices"], (m, 3), scene.n_vertices, "vertices")
+        weights = _weights_dataset(path, "track_weights", raw["track_weights"], m)
+    return vertices, weights
+
+
+def _index_dataset(path, name, raw, shape, n, what):
+    """(shape) int64 indices in [0, n) from dataset ``name``."""
+    a = np.asarray(raw)
+    if a.shape != shape:
+        raise TrajectoryError(path, f"'{name}' must have shape {list(shape)} (one per track), got {list(a.shape)}")
+    bad = ~(np.isfinite(a) & (a == np.rint(a)) & (a >= 0) & (a < n)) if a.size else np.zeros(shape, bool)
+    if bad.any():
+        i = tuple(int(k[0]) for k in np.nonzero(bad))
+        raise TrajectoryError(path, f"'{name}' has {a[i]:g} at track {i[0]}: not an index of the scene's "
+                                    f"{n} {what} (0..{n - 1})")
+    return a.astype(np.int64)
+
+
+def _weights_dataset(path, name, raw, m):
+    """(M, 3) float64 barycentric weights from dataset ``name``: >= 0 and summing to 1 (within
+    BARYCENTRIC_TOLERANCE)."""
+    w = np.asarray(raw, np.float64)
+    if w.shape != (m, 3):
+        raise TrajectoryError(path, f"'{name}' must have shape [{m}, 3] (one row per track), got {list(w.shape)}")
+    tol = BARYCENTRIC_TOLERANCE
+    bad = ~np.isfinite(w).all(axis=1) | (w < -tol).any(axis=1) | (np.abs(w.sum(axis=1) - 1.0) > tol)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise TrajectoryError(path, f"'{name}' row {i} ({', '.join(f'{x:.9g}' for x in w[i])}) is not barycentric: "
+                                    f"weights must be >= 0 and sum to 1 (within {tol:g})")
+    return w
+
+
+def _track_datasets(vertices, weights):
+    """The datasets that store a correspondence: ``track_vertex`` where every track is a vertex
+    ([v, v, v] with weights [1, 0, 0]), else ``track_vertices`` and ``track_weights``."""
+    v, w = np.asarray(vertices, np.int64), np.asarray(weights, np.float64)
+    if np.all(v == v[:, :1]) and np.array_equal(w, np.tile([1.0, 0.0, 0.0], (len(w), 1))):
+        return {"track_vertex": v[:, 0]}
+    return {"track_vertices": v, "track_weights": w}
 
 
 def _check_data_shape(path, kind, data, scene):
@@ -308,18 +416,22 @@ def _target_dt(path, dt_attr, dt):
 
 
 def _check_data_values(path, kind, data, scene):
-    """Finite values (points: or rows of three NaNs, padding), within TARGET_FAR scene sizes of the
-    scene's centre."""
-    pad = np.isnan(data).all(axis=2) if kind == "points" else np.zeros(data.shape[:2], bool)
+    """Finite values (points, tracks: or rows of three NaNs, padding or not seen), within TARGET_FAR
+    scene sizes of the scene's centre; every track seen in some frame."""
+    pad = np.isnan(data).all(axis=2) if kind != "positions" else np.zeros(data.shape[:2], bool)
     bad = ~np.isfinite(data).all(axis=2) & ~pad
     if bad.any():
         t, i = (int(a[0]) for a in np.nonzero(bad))
-        what = "vertex" if kind == "positions" else "point"
+        what = {"positions": "vertex", "points": "point", "tracks": "track"}[kind]
         raise TrajectoryError(path, f"'{kind}' has non-finite values (first at frame {t}, {what} {i})"
-                              + ("; a point that is absent must be NaN in all three coordinates"
-                                 if kind == "points" and np.isnan(data[t, i]).any() else ""))
+                              + (f"; a {what} that is absent must be NaN in all three coordinates"
+                                 if kind != "positions" and np.isnan(data[t, i]).any() else ""))
     if pad.all():
-        raise TrajectoryError(path, "'points' holds no points: every row is NaN padding")
+        raise TrajectoryError(path, "'points' holds no points: every row is NaN padding" if kind == "points" else
+                              "'tracks' holds no points: every row is NaN (no track is ever seen)")
+    if kind == "tracks" and pad.all(axis=0).any():
+        i = int(np.argmax(pad.all(axis=0)))
+        raise TrajectoryError(path, f"'tracks' never sees track {i}: it is NaN in every frame (leave it out)")
     extent = float(max(np.max(np.ptp(scene.vertices, axis=0)), 1e-6))
     far = float(np.max(np.abs(data[~pad] - scene.vertices.mean(axis=0))))
     if far > TARGET_FAR * extent:
@@ -369,7 +481,7 @@ def _same_faces(a, b):
 
 
 def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise=0.0, point_cloud=False,
-                n_points=None, seed=0, sim=None):
+                n_points=None, tracks=None, seed=0, sim=None):
     """Simulate a synthetic target with known parameters (for tests, notebooks and benchmarks).
 
     Args:
@@ -383,6 +495,9 @@ def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise
       point_cloud: store ``points`` instead of ``positions``: per frame ``n_points`` points drawn
         uniformly (by area) on the simulated surface, then noised; no correspondence with vertices.
       n_points: points per frame (default: the vertex count).
+      tracks: an int M: store ``tracks`` instead of ``positions``: M points drawn once uniformly
+        (by area) on the rest surface, as (face, barycentric coordinates), followed through
+        every frame, then noised.
       seed: random seed of the noise and the samples.
       sim: a prebuilt simulator for ``scene`` and ``dt``.
 
@@ -411,21 +526,34 @@ def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise
     idx = np.arange(1, len(pos)) if frames is None else np.arange(len(pos))[frames]
     pos, steps_kept = pos[idx], np.asarray(saved, np.int64)[idx]
     rng = np.random.default_rng(seed)
-    if point_cloud:
+    tv = tw = None
+    if tracks is not None:
+        if point_cloud or int(tracks) < 1:
+            raise ValueError(f"tracks must be an int >= 1 and exclusive of point_cloud, got {tracks!r}")
+        face, tw = sample_barycentric(np.asarray(scene.vertices, np.float64), scene.faces, int(tracks), rng)
+        tv = np.asarray(scene.faces, np.int64)[face]
+        pos = np.einsum("mk,tmkc->tmc", tw, pos[:, tv])
+    elif point_cloud:
         pos = np.stack([sample_surface(x, scene.faces, n_points or scene.n_vertices, rng) for x in pos])
     if noise:
         pos = pos + rng.normal(0.0, noise, pos.shape)
     truth = {n: np.asarray(v, np.float64) for n, v in zip(p._fields, p.as_numpy())}
-    return Target(positions=None if point_cloud else pos, points=pos if point_cloud else None,
+    kind = "tracks" if tracks is not None else "points" if point_cloud else "positions"
+    return Target(positions=pos if kind == "positions" else None, points=pos if kind == "points" else None,
                   steps=steps_kept, times=steps_kept * float(dt), dt=float(dt), path="<memory>",
-                  noise=float(noise) if noise else 0.0, params=truth)
+                  noise=float(noise) if noise else 0.0, params=truth,
+                  tracks=pos if kind == "tracks" else None, track_vertices=tv, track_weights=tw)
 
 
 def sample_surface(x, faces, n, rng):
     """(n, 3) points drawn uniformly by area on the triangle mesh (x (V, 3), faces (F, 3))."""
-    a, b, c = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    f = rng.choice(len(faces), size=n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    return (1 - s)[:, None] * a[f] + (s * (1 - r2))[:, None] * b[f] + (s * r2)[:, None] * c[f]
+    f, w = sample_barycentric(x, faces, n, rng)
+    a, b, c = (x[faces[f, k]] for k in range(3))
+    return w[:, 0, None] * a + w[:, 1, None] * b + w[:, 2, None] * c
+
+
+def sample_barycentric(x, faces, n, rng):
+    """(face (n,) int64, barycentric (n, 3)) of n points drawn uniformly by area on the triangle
+    mesh (x (V, 3), faces (F, 3))."""
+    from jaxplush.io.capture import sample_barycentric as draw
+    return draw(x, faces, n, rng)

@@ -67,7 +67,8 @@ def _parser():
                    help="also estimate the exact explicit limit by power iteration (compiles; a few seconds) "
                         "instead of only the closed-form safe bound")
     c = sub.add_parser("capture", help="what one depth camera would record of a trajectory: a point-cloud "
-                                       "fit target (partial, noisy, frames of different sizes)")
+                                       "fit target (partial, noisy, frames of different sizes); with --tracks, "
+                                       "also tracked surface points")
     c.add_argument("trajectory", help="trajectory .h5 from 'jaxplush simulate'")
     c.add_argument("--out", required=True, help="output target (.h5), points padded with NaN rows")
     c.add_argument("--eye", required=True, help="camera position X,Y,Z in m")
@@ -80,6 +81,10 @@ def _parser():
     c.add_argument("--dropout", type=float, default=0.0,
                    help="probability that a pixel's hit returns nothing (default 0)")
     c.add_argument("--seed", type=int, default=0, help="seed of the noise and dropout (default 0)")
+    c.add_argument("--tracks", type=int, default=0,
+                   help="also write N tracked surface points (random faces and barycentric coordinates from "
+                        "--seed, Gaussian noise --noise per coordinate, each dropped from a frame with probability "
+                        "--dropout) as 'tracks' with 'track_face' and 'track_barycentric' (default 0: none)")
     return p
 
 
@@ -293,9 +298,11 @@ def _vector(text, option):
 def _capture(args):
     from jaxplush.errors import JaxplushError
     from jaxplush.fitting.targets import Target
-    from jaxplush.io.capture import Camera, depth_capture
+    from jaxplush.io.capture import Camera, depth_capture, track_capture
     from jaxplush.io.trajectory import load_trajectory
     check_output_path(args.out, (".h5", ".hdf5"))
+    if args.tracks < 0:
+        raise JaxplushError(f"--tracks must be a number of points >= 0, got {args.tracks}")
     eye, up = _vector(args.eye, "--eye"), _vector(args.up, "--up")
     look = None if args.look_at is None else _vector(args.look_at, "--look-at")
     size = args.size.lower().split("x")
@@ -309,16 +316,26 @@ def _capture(args):
     try:
         camera = Camera(eye=eye, target=look, up=up, fov_deg=args.fov, width=int(size[0]), height=int(size[1]))
         cap = depth_capture(pos, traj["faces"], camera, noise=args.noise, dropout=args.dropout, seed=args.seed)
+        tracks = None if not args.tracks else track_capture(pos, traj["faces"], args.tracks, noise=args.noise,
+                                                            dropout=args.dropout, seed=args.seed)
     except ValueError as e:
         raise JaxplushError(f"{args.trajectory}: {e}") from None
     if cap.counts.max() == 0:
         raise JaxplushError(f"the camera at {args.eye} looking at {','.join(f'{a:g}' for a in look)} sees no "
                             f"object in any of the {len(pos)} frames: check --eye, --look-at and --fov")
+    extra = {}
+    if tracks is not None:    # the faces they index travel with them
+        extra = dict(tracks=tracks.tracks, track_face=tracks.face, track_barycentric=tracks.barycentric)
+        if scene is None:
+            extra["faces"] = np.asarray(traj["faces"], np.int32)
     Target(positions=None, points=cap.points, path=args.out, noise=float(args.noise) if args.noise > 0 else None,
-           **meta).save(args.out, scene)
+           **meta).save(args.out, scene, extra=extra)
+    seen = "" if tracks is None else (
+        f"; {args.tracks} tracked points, {np.isfinite(tracks.tracks).all(axis=2).sum(axis=1).mean():.1f} "
+        "seen a frame")
     print(f"captured {len(pos)} frames of {args.trajectory} with a {camera.width}x{camera.height} depth camera: "
           f"{cap.counts.min()}-{cap.counts.max()} points a frame (mean {cap.counts.mean():.0f}), depth noise "
-          f"{args.noise:g} m, dropout {args.dropout:g}; wrote {args.out}")
+          f"{args.noise:g} m, dropout {args.dropout:g}{seen}; wrote {args.out}")
     return 0
 
 

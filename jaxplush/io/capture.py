@@ -14,6 +14,11 @@ such data, so that fits and tests can use realistic partial targets without down
 * frames keep different numbers of points. They are stored padded: ``points`` (T, M, 3) holds each
   frame's points first and NaN rows after them, and ``counts`` (T,) says how many are real.
 
+:func:`track_capture` adds what a marker or feature tracker would record: N points on the surface
+(faces drawn by area at the first frame, uniform barycentric coordinates) followed through every
+frame, with Gaussian noise per coordinate and the same per-frame dropout (a dropped track is a
+NaN row: not seen in that frame).
+
 The ray casting is a Moeller-Trumbore test of every ray against every triangle, in blocks of rays
 under ``jax.jit`` (a few milliseconds per frame at 642 vertices and 64 x 48 pixels on two cores).
 A ray that grazes a triangle's plane (:data:`GRAZING`) misses it: its determinant would be rounding
@@ -114,6 +119,65 @@ class Capture:
     def frame(self, t):
         """(counts[t], 3) the real points of frame t."""
         return self.points[t, : self.counts[t]]
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackCapture:
+    """Tracked surface points of a trajectory (:func:`track_capture`).
+
+    Attributes:
+      tracks: (T, N, 3) float64 each track's observed position, NaN rows where it was dropped.
+      face: (N,) int64 the face each track lies on; barycentric: (N, 3) its coordinates there.
+    """
+
+    tracks: np.ndarray
+    face: np.ndarray
+    barycentric: np.ndarray
+
+
+def sample_barycentric(x, faces, n, rng):
+    """(face (n,) int64, barycentric (n, 3)) of n points drawn uniformly by area on the triangle
+    mesh (x (V, 3), faces (F, 3)) with the numpy generator ``rng``."""
+    x, faces = np.asarray(x, np.float64), np.asarray(faces)
+    a, b, c = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    f = rng.choice(len(faces), size=n, p=area / area.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    return f.astype(np.int64), np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+
+
+def track_capture(frames, faces, n, *, noise=0.0, dropout=0.0, seed=0):
+    """N tracked surface points of each frame (module docstring); a track dropped from every frame
+    is kept in the frame where its dropout draw came closest to keeping it (every track is seen).
+
+    Args:
+      frames: (T, V, 3) positions, m; faces: (F, 3) triangles over those vertices.
+      n: number of tracks (>= 1).
+      noise: Gaussian noise sigma per coordinate, m (>= 0); dropout: probability in [0, 1) that a
+        track is not seen in a frame.
+      seed: seed of the draws (the surface points, noise and dropout; independent of
+        :func:`depth_capture`'s draws with the same seed).
+    """
+    x = np.asarray(frames, np.float64)
+    faces = np.asarray(faces)
+    if x.ndim != 3 or x.shape[-1] != 3 or x.shape[0] < 1:
+        raise ValueError(f"frames must be (T, V, 3), got shape {np.shape(frames)}")
+    if int(n) != n or n < 1:
+        raise ValueError(f"the number of tracks must be an integer >= 1, got {n!r}")
+    if not (math.isfinite(noise) and noise >= 0):
+        raise ValueError(f"noise must be a number >= 0 (m), got {noise!r}")
+    if not 0 <= dropout < 1:
+        raise ValueError(f"dropout must lie in [0, 1), got {dropout!r}")
+    rng = np.random.default_rng([seed, 1])          # a stream of its own beside depth_capture's
+    face, bary = sample_barycentric(x[0], faces, int(n), rng)
+    tracks = np.einsum("nk,tnkc->tnc", bary, x[:, faces[face]])
+    tracks = tracks + noise * rng.standard_normal(tracks.shape)
+    draw = rng.random(tracks.shape[:2])
+    drop = draw < dropout
+    drop[np.argmax(draw, axis=0), np.arange(tracks.shape[1])] = False
+    tracks[drop] = np.nan
+    return TrackCapture(tracks=tracks, face=face, barycentric=bary)
 
 
 def _first_hits(origin, dirs, tri):
