@@ -28,6 +28,12 @@ floats (:func:`_folded`: at 16 points a row, XLA:CPU leaves the small in-place p
 scalar; folded, it vectorises it; see benchmarks/RESULTS.md). Points are independent, so
 chunking changes the results only by rounding (chunks of another width vectorise differently).
 
+All of that is CPU tuning (:func:`on_cpu`): on a GPU a batch runs in one call with XLA's default
+options. With several local devices (GPUs, or forced host devices) :func:`rollout` runs the
+chunks one per device instead, through ``jax.shard_map`` over a "batch" mesh axis
+(:func:`_sharded`): every device runs the one-chunk program, so results are bit-identical to
+one device (tests/test_scale_out.py).
+
 Soft-soft contact is the one term not written out on (V, B) slots: its candidate lists and
 closest-face search are per scene, so the single-scene functions of :mod:`jaxplush.model.contact`
 run ``jax.vmap``-ed over the points (:func:`_make_contact`), on each point's positions
@@ -404,9 +410,12 @@ def default_chunk(batch):
     wider and narrower chunks, and widths that are no multiple of 8, cost more CPU time per
     point-step (benchmarks/bench_sweep.py; figures in benchmarks/RESULTS.md).
 
-    On any other backend (a GPU): the whole batch in one call. There a step is bound by launch
-    latency, so the widest call is the fastest (benchmarks/RESULTS.md, "GPU")."""
-    return batch if batch <= MAX_CHUNK or not on_cpu() else MAX_CHUNK
+    On any other backend (a GPU): the whole batch in one call, split evenly over the local
+    devices when there are several (:func:`rollout`). There a step is bound by launch latency, so
+    the widest call is the fastest (benchmarks/RESULTS.md, "GPU")."""
+    if not on_cpu():
+        return -(-batch // len(local_devices()))
+    return batch if batch <= MAX_CHUNK else MAX_CHUNK
 
 
 def _n_cores():
@@ -700,6 +709,48 @@ def _join(parts, batch):
     return joined
 
 
+def _batch_spec(a, axis=-1):
+    """The PartitionSpec of a leaf whose ``axis`` is the batch: split over the mesh's "batch"."""
+    names = [None] * a.ndim
+    names[axis] = "batch"
+    return jax.sharding.PartitionSpec(*names)
+
+
+@functools.lru_cache(maxsize=None)
+def _mesh(devices):
+    """A 1-D :class:`jax.sharding.Mesh` named "batch" over ``devices`` (a tuple)."""
+    return jax.sharding.Mesh(np.asarray(devices, dtype=object), ("batch",))
+
+
+def local_devices():
+    """The devices a batched rollout spreads its lanes over: the default backend's local devices
+    (one on a plain CPU; ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` makes N)."""
+    return tuple(jax.local_devices())
+
+
+def _sharded(bsim, mesh, params, state, health, step0, aux, n_frames, save_every, observe, separation=False):
+    """:func:`_core` on ``mesh``'s devices, each running the same program on its own
+    ``bsim.chunk`` lanes (``jax.shard_map`` over the batch axis; ``aux`` is replicated). Lanes are
+    independent and every device compiles the one-chunk program, so each lane's result is that
+    of a one-device chunked run bit for bit (tests/test_scale_out.py)."""
+    last = lambda tree: jax.tree_util.tree_map(_batch_spec, tree)          # noqa: E731
+    ins = (last(params), last(state), last(health), _batch_spec(step0),
+           jax.tree_util.tree_map(lambda a: jax.sharding.PartitionSpec(), aux))
+    static = dict(n_frames=n_frames, save_every=save_every, observe=observe, separation=separation)
+    n = mesh.devices.size
+    local = jax.tree_util.tree_map(
+        lambda a: jax.ShapeDtypeStruct(a.shape[:-1] + (a.shape[-1] // n,), a.dtype), (params, state, health, step0))
+    shapes = jax.eval_shape(lambda *a: _core(bsim, *a, aux, **static), *local)
+    outs = (last(shapes[0]), jax.tree_util.tree_map(lambda a: _batch_spec(a, 1), shapes[1]), last(shapes[2]))
+    if separation:
+        outs += (_batch_spec(shapes[3]),)
+    body = lambda *a: _core(bsim, *a, **static)                             # noqa: E731
+    return jax.shard_map(body, mesh=mesh, in_specs=ins, out_specs=outs, check_vma=False)(
+        params, state, health, step0, aux)
+
+
+_sharded_jit = _LazyJit(_sharded, ("bsim", "mesh", "n_frames", "save_every", "observe", "separation"))
+
 _pool_lock = threading.Lock()
 _pool = None
 
@@ -720,7 +771,9 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     or ``aux`` reuse it. The B points (lanes) run as ceil(B / bsim.chunk) independent chunks (the
     last one padded with copies of the last point), one compiled call each, dispatched from a pool
     of threads (one per CPU core) so that they run concurrently; points are independent, so the
-    result is that of one call on the whole batch (to rounding). B is the state's lane count
+    result is that of one call on the whole batch (to rounding). With several local devices
+    (:func:`local_devices`) the chunks instead run one per device, a group of as many chunks as
+    devices per sharded call (:func:`_sharded`), bit-identical to the one-device run. B is the state's lane count
     (:func:`lanes`): ``bsim.batch``, or any other number (:func:`take_lanes` of a full batch),
     with no new compile.
 
@@ -759,6 +812,15 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     # any other number of lanes runs as chunks of the compiled width (the last one padded): one
     # compiled core serves every lane count, so a call of a few points costs what its chunks do,
     # not the whole batch
+    devices = local_devices()
+    if len(devices) > 1:
+        # several local devices: groups of one chunk per device, each group one sharded call
+        # (dispatched asynchronously, one after another; the devices run a group's chunks at once)
+        d = min(len(devices), n)
+        groups = -(-n // d)
+        mesh = _mesh(devices[:d])
+        parts = _split((params, state, health, step0), groups, d * chunk)
+        return _join([_sharded_jit(bsim, mesh, *part, aux, **static) for part in parts], batch)
     parts = _split((params, state, health, step0), n, chunk)
     out = [None] * n
     todo = iter(range(1, n))

@@ -246,13 +246,13 @@ class Evaluator:
 
     def owners(self):
         """(n,) the fitted object each residual belongs to (-1: an object not fitted), when the
-        residuals are vertex positions of more than one fitted object; else None. What a coloured
+        residuals are vertex or track positions of more than one fitted object; else None. What a coloured
         finite-difference Jacobian (:func:`jaxplush.fitting.search.jacobian`) needs."""
         if self._owners is False:
             from jaxplush.fitting import objects as _objects
             prob = self.prob
             self._owners = (_objects.residual_objects(prob) if len(prob.objects) > 1
-                            and prob.target.kind == "positions" else None)
+                            and prob.target.kind in ("positions", "tracks") else None)
         return self._owners
 
     def colourable(self):
@@ -390,9 +390,10 @@ class Evaluator:
 
     def _chunk_of(self, b):
         """The chunk of a batched simulator of width ``b``: on a CPU, two chunks at least, one per
-        core; on another backend (a GPU) the whole width in one call (batched.default_chunk)."""
+        core; on another backend (a GPU) the whole width in one call, split over the local devices
+        (batched.default_chunk)."""
         if not batched.on_cpu():
-            return b
+            return batched.default_chunk(b)
         return max(1, min(b // 2, self._chunk()))
 
     def _bsim(self, n, b):

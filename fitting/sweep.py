@@ -26,7 +26,8 @@ centroid height (y) and largest vertex displacement from the rest shape, the hea
 
 d the mean squared vertex distance for a ``positions`` target or the symmetric Chamfer distance
 (:func:`jaxplush.fitting.losses.chamfer`, over each frame's observed points: rows of NaN are a
-frame's padding) for a ``points`` target, in m² (not normalised). A point whose
+frame's padding) for a ``points`` target, in m² (not normalised); for a ``tracks`` target L is
+the mean over every observed track of its squared distance to its simulated position. A point whose
 rollout blew up keeps its last healthy state as final positions (``final_step`` says which
 step), a NaN loss and summaries, and its failure is listed in ``fail_code``/``fail_step``; it is
 never silently returned as NaN positions.
@@ -57,8 +58,12 @@ O objects, V vertices, A swept axes:
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 import os
+import re
+import sys
 import time
 import warnings
 from functools import lru_cache
@@ -214,9 +219,16 @@ def _load_target(target, scene, dt):
 
 
 def _target_frames(target, scene, steps):
-    """(kind, steps (T,), data (T, N, 3)) of a target, checked against the scene and horizon."""
+    """(kind, steps (T,), data (T, N, 3)) of a target, checked against the scene and horizon.
+
+    A tracks target's correspondence travels with its frames (through the rollout's ``aux``, so
+    :func:`_observer` stays one cached function per kind): its data is (T, M, 10), per row the
+    observed position (0 where not seen), the three vertex indices (as floats: exact below 2^24),
+    the barycentric weights, and the row's weight in the loss (T / N for a seen row, N seen rows
+    over T frames, else 0; see :func:`frame_loss`)."""
     pos = getattr(target, "positions", None)
     pts = getattr(target, "points", None)
+    trk = getattr(target, "tracks", None)
     if pos is not None:
         kind, data = "positions", np.asarray(pos, np.float64)
         if data.ndim != 3 or data.shape[1:] != (scene.n_vertices, 3):
@@ -226,8 +238,12 @@ def _target_frames(target, scene, steps):
         kind, data = "points", np.asarray(pts, np.float64)
         if data.ndim != 3 or data.shape[2] != 3 or data.shape[1] < 1:
             raise SweepError(f"target points must have shape [T, M, 3], got {list(data.shape)}")
+    elif trk is not None:
+        kind, data = "tracks", np.asarray(trk, np.float64)
+        if data.ndim != 3 or data.shape[2] != 3 or data.shape[1] < 1:
+            raise SweepError(f"target tracks must have shape [T, M, 3], got {list(data.shape)}")
     else:
-        raise SweepError("the target has neither positions nor points")
+        raise SweepError("the target has neither positions, points nor tracks")
     tsteps = np.asarray(target.steps, np.int64).reshape(-1)
     if len(tsteps) != len(data) or len(tsteps) == 0:
         raise SweepError(f"target: {len(tsteps)} frame steps for {len(data)} frames")
@@ -236,15 +252,39 @@ def _target_frames(target, scene, steps):
     if np.any(tsteps < 0) or tsteps.max() > steps:
         raise SweepError(f"target frames reach step {int(tsteps.max())} but the sweep runs {steps} steps; "
                          f"use steps >= {int(tsteps.max())}")
-    pad = np.isnan(data).all(axis=2) if kind == "points" else np.zeros(data.shape[:2], bool)
+    pad = np.isnan(data).all(axis=2) if kind != "positions" else np.zeros(data.shape[:2], bool)
     if not np.all(np.isfinite(data[~pad])):
         raise SweepError("target frames contain non-finite values" + (
-            " (a point cloud's absent points are rows of NaN in all three coordinates)" if kind == "points" else ""))
+            f" (a {'point cloud' if kind == 'points' else 'track'}'s absent points are rows of NaN in all three "
+            "coordinates)" if kind != "positions" else ""))
+    if kind == "tracks":
+        return kind, tsteps, _track_rows(target, scene, data, ~pad)
     empty = np.flatnonzero(pad.all(axis=1))
     if empty.size:
         raise SweepError(f"target frame {int(empty[0])} (step {int(tsteps[empty[0]])}) holds no points: "
                          "a Chamfer distance needs at least one; leave the frame out")
     return kind, tsteps, data
+
+
+def _track_rows(target, scene, data, seen):
+    """(T, M, 10) the rows of a tracks target as :func:`_target_frames` passes them on."""
+    tv, tw = getattr(target, "track_vertices", None), getattr(target, "track_weights", None)
+    tv = np.asarray(tv if tv is not None else [], np.int64)
+    tw = np.asarray(tw if tw is not None else [], np.float64)
+    m = data.shape[1]
+    if tv.shape != (m, 3) or tw.shape != (m, 3):
+        raise SweepError(f"target tracks need track_vertices and track_weights of shape [{m}, 3], got "
+                         f"{list(tv.shape)} and {list(tw.shape)}")
+    if tv.min() < 0 or tv.max() >= scene.n_vertices:
+        raise SweepError(f"target track_vertices index vertices outside 0..{scene.n_vertices - 1}")
+    if scene.n_vertices >= 2 ** 24:
+        raise SweepError(f"a tracks target needs fewer than 2^24 vertices (the scene has {scene.n_vertices})")
+    if not seen.any():
+        raise SweepError("the target's tracks are never seen: every row is NaN")
+    t = len(data)
+    rw = np.where(seen, t / float(seen.sum()), 0.0)[..., None]
+    rows = np.broadcast_to(np.concatenate([tv, tw], axis=1)[None], (t, m, 6))
+    return np.concatenate([np.where(seen[..., None], data, 0.0), rows, rw], axis=2)
 
 
 def _frame_period(steps, required):
@@ -282,9 +322,17 @@ def _observer(kind, keep_positions):
 
 def frame_loss(kind, x, y):
     """(B,) distance of every batch point's positions x (tuple of 3 (V, B)) to a target frame y:
-    mean squared vertex distance (y (V, 3)) or symmetric Chamfer distance (y (M, 3))."""
+    mean squared vertex distance (y (V, 3)), symmetric Chamfer distance (y (M, 3)), or for tracks
+    (y (M, 10), :func:`_target_frames`) the sum over the seen tracks of the squared distance to
+    their simulated positions, times T / N (so the sweep's mean over frames is the mean over
+    every observation)."""
     if kind == "positions":
         return sum((x[c] - y[:, c][:, None]) ** 2 for c in range(3)).mean(axis=0)
+    if kind == "tracks":
+        idx = y[:, 3:6].astype(jnp.int32)                              # (M, 3)
+        d2 = sum((sum(y[:, 6 + k, None] * x[c][idx[:, k]] for k in range(3)) - y[:, c, None]) ** 2
+                 for c in range(3))                                    # (M, B)
+        return jnp.sum(y[:, 9, None] * d2, axis=0)
     from jaxplush.fitting.losses import chamfer
     pts = jnp.stack(x, axis=-1).transpose(1, 0, 2)                    # (B, V, 3)
     return jax.lax.map(lambda xb: chamfer(xb, y), pts)
@@ -422,7 +470,7 @@ class SweepResult:
 # --------------------------------------------------------------------------- the sweep
 
 def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=None, integrator="verlet",
-          progress=True, batch=None):
+          progress=True, batch=None, checkpoint=None):
     """Simulate a scene at every point of a parameter grid, in compiled batches.
 
     Args:
@@ -443,9 +491,15 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
       batch: at most this many points simulated together (static; one compilation for any
         number of points; a larger sweep runs in equal batches, each whole rollout chunks).
         Default :func:`default_batch`: 64 on a CPU, 1024 on a GPU.
+      checkpoint: a directory that keeps every finished batch (each written atomically), so
+        that a sweep killed part-way, even by SIGKILL, resumes from its finished batches when
+        run again with the same directory and settings (:class:`_Checkpoint`); None: nothing
+        kept. Required when several processes share the sweep (``jax.distributed``): each runs
+        every P-th batch, writes it there (a filesystem every process sees), and all read the
+        others' batches after a barrier, so each returns the whole result.
 
     Returns:
-      :class:`SweepResult`.
+      :class:`SweepResult`; the same for one process or several, for a fresh or a resumed run.
 
     Raises:
       SweepError: bad parameter names, objects or values.
@@ -455,12 +509,28 @@ def sweep(scene, grid=None, *, points=None, steps, dt, save_every=None, target=N
     t_start = time.perf_counter()
     plan = _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, batch, progress)
     n_points, batch = plan.n_points, plan.batch
+    n_batches = -(-n_points // batch)
+    n_proc, rank = jax.process_count(), jax.process_index()
+    if n_proc > 1 and checkpoint is None:
+        raise SweepError(f"a sweep shared by {n_proc} processes needs a checkpoint directory on a filesystem "
+                         "every process sees (the processes exchange their batches there)")
+    store = None if checkpoint is None else _Checkpoint(checkpoint, _fingerprint(scene, plan), n_batches)
     out = _Collector(scene, n_points, plan.steps, plan.keep, plan.save_every, plan.frame_steps,
                      0 if plan.tsteps is None else len(plan.tsteps))
-    with Progress(n_points * plan.steps, "sweep", enabled=progress, unit="point-steps") as bar:
-        for c in range(-(-n_points // batch)):
-            _run_chunk(plan, c, out, bar)
-    res = out.finish(plan.tsteps)
+    parts = {} if store is None else store.finished()
+    todo = [c for c in range(rank, n_batches, n_proc) if c not in parts]
+    if store is not None and parts and progress and rank == 0:
+        print(f"sweep: resuming from {len(parts)} of {n_batches} finished batches in {store.path}", file=sys.stderr)
+    live = sum(min(batch, n_points - c * batch) for c in todo)
+    with Progress(live * plan.steps, "sweep", enabled=progress, unit="point-steps") as bar:
+        for c in todo:
+            parts[c] = _run_chunk(plan, c, out, bar)
+            if store is not None:
+                store.save(c, parts[c])
+    if n_proc > 1:
+        store.barrier("finished")
+        parts.update(store.finished(exclude=parts))
+    res = out.finish([parts[c] for c in range(n_batches)], plan.tsteps)
     wall = time.perf_counter() - t_start
     _warn_failures(res, n_points)
     return _sweep_result(scene, plan, res, wall)
@@ -559,7 +629,8 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
 
 
 def _run_chunk(plan, c, out, bar):
-    """Simulate chunk ``c`` of the points (the last padded with its last point) into ``out``."""
+    """Simulate batch ``c`` of the points (the last padded with its last point): its results,
+    a dict of numpy arrays (:meth:`_Collector.part`)."""
     bsim, batch, n_points, aux, period = plan.bsim, plan.batch, plan.n_points, plan.aux, plan.period
     idx = np.arange(c * batch, (c + 1) * batch)
     live = idx < n_points
@@ -590,7 +661,7 @@ def _run_chunk(plan, c, out, bar):
         x0 = bsim.init_fn(p).x
         for y in plan.tdata[plan.tsteps == 0]:
             loss += np.asarray(frame_loss(plan.tkind, x0, jnp.asarray(y, bsim.dtype)), np.float64)
-    out.add(bsim, p, state, health, loss, kept, live, idx)
+    return out.part(bsim, p, state, health, loss, kept, live)
 
 
 def _warn_failures(res, n_points):
@@ -667,9 +738,9 @@ class _Collector:
         self.scene, self.n, self.steps = scene, n_points, steps
         self.keep, self.save_every = keep, save_every
         self.frame_steps, self.n_target = frame_steps, n_target
-        self.parts = []
 
-    def add(self, bsim, p, state, health, loss, kept, live, idx):
+    def part(self, bsim, p, state, health, loss, kept, live):
+        """The results of one batch's live points, a dict of numpy arrays."""
         fstep, fcode = batched.locate_failures(bsim, p, health)
         failed = np.any(fstep >= 0, axis=0)
         pos = batched.positions(state)
@@ -680,21 +751,22 @@ class _Collector:
             loss = np.where(failed, np.nan, loss / self.n_target)
         frames = np.concatenate(kept, axis=0) if self.keep and kept else None
         sel = live
-        self.parts.append(dict(
+        return dict(
             positions=pos[sel], final_step=final_step[sel], fail_step=fstep.T[sel], fail_code=fcode.T[sel],
             warn_step=np.asarray(health.warn_step).T[sel], loss=None if loss is None else loss[sel],
-            frames=None if frames is None else frames[:, sel]))
+            frames=None if frames is None else frames[:, sel])
 
-    def finish(self, tsteps):
-        cat = lambda k: np.concatenate([q[k] for q in self.parts], axis=0)  # noqa: E731
+    def finish(self, parts, tsteps):
+        """Every point's results from the batches' parts, in order."""
+        cat = lambda k: np.concatenate([q[k] for q in parts], axis=0)  # noqa: E731
         out = {k: cat(k) for k in ("positions", "final_step", "fail_step", "fail_code", "warn_step")}
-        out["loss"] = cat("loss") if self.parts[0]["loss"] is not None else None
+        out["loss"] = cat("loss") if parts[0]["loss"] is not None else None
         out["failed"] = np.any(out["fail_step"] >= 0, axis=1)
         out["fail_code"] = np.where(out["fail_step"] >= 0, out["fail_code"], diagnostics.OK)
         out.update(_summaries(self.scene, out["positions"]))
         out["frames"] = out["frame_steps"] = None
         if self.keep:
-            frames = np.concatenate([q["frames"] for q in self.parts], axis=1)      # (n_full, P, V, 3)
+            frames = np.concatenate([q["frames"] for q in parts], axis=1)           # (n_full, P, V, 3)
             sel = self.frame_steps % self.save_every == 0
             frames, fsteps = frames[sel], self.frame_steps[sel]
             x0 = np.broadcast_to(self.scene.vertices, (self.n,) + self.scene.vertices.shape)[None]
@@ -710,6 +782,111 @@ class _Collector:
                 frames = np.where(after[:, :, None, None], out["positions"][None], frames)
             out["frames"], out["frame_steps"] = frames, fsteps
         return out
+
+
+CHECKPOINT_FORMAT = "jaxplush-sweep-checkpoint"
+#: The files of a checkpoint directory (a killed write leaves a ``.tmpPID`` file).
+_CHECKPOINT_FILE = re.compile(r"(plan\.json|batch_\d{6,}\.npz)(\.tmp\d+)?")
+
+
+def _fingerprint(scene, plan):
+    """A hash of everything that decides a sweep's batches: the scene, the points, the steps,
+    the target, the batching and the float width (a resumed run must be the same sweep)."""
+    h = hashlib.sha256()
+    for item in (scene.text, plan.kind, repr([a.label for a in plan.axes]), plan.steps, repr(plan.dt),
+                 plan.save_every, plan.integrator, plan.batch, str(np.dtype(plan.bsim.dtype)), plan.tkind):
+        h.update(repr(item).encode() + b"\0")
+    for a in (plan.values, plan.tsteps, plan.tdata) + tuple(plan.pparams):
+        if a is not None:
+            a = np.ascontiguousarray(a)
+            h.update(str(a.dtype).encode() + repr(a.shape).encode() + a.tobytes())
+    return h.hexdigest()
+
+
+class _Checkpoint:
+    """A sweep's finished batches on disk: ``DIR/plan.json`` (the sweep's fingerprint and batch
+    count) and one ``DIR/batch_NNNNNN.npz`` per finished batch, each written to a temporary file
+    and renamed, so a kill at any moment leaves only whole batches. With several processes,
+    process 0 writes the plan and the others wait for it (a barrier over ``jax.distributed``)."""
+
+    def __init__(self, path, fingerprint, n_batches):
+        self.path = os.fspath(path)
+        plan = dict(format=CHECKPOINT_FORMAT, fingerprint=fingerprint, n_batches=int(n_batches))
+        where = os.path.join(self.path, "plan.json")
+        if jax.process_index() == 0:
+            if os.path.exists(self.path) and not os.path.isdir(self.path):
+                raise SweepError(f"{self.path}: the checkpoint must be a directory, this is a file")
+            os.makedirs(self.path, exist_ok=True)
+            if not os.path.exists(where):
+                self._write(where, lambda f: f.write(json.dumps(plan).encode()))
+        self.barrier("plan")
+        try:
+            with open(where) as f:
+                found = json.load(f)
+        except (OSError, ValueError) as e:
+            raise SweepError(f"{where}: cannot read the checkpoint's plan: {e}") from None
+        if found != plan:
+            raise SweepError(f"{self.path}: holds the finished batches of another sweep (a different scene, "
+                             "points, steps, target or batch); delete it, or give another checkpoint directory")
+
+    @staticmethod
+    def _write(path, write):
+        tmp = f"{path}.tmp{os.getpid()}"
+        with open(tmp, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+
+    def _file(self, c):
+        return os.path.join(self.path, f"batch_{c:06d}.npz")
+
+    def save(self, c, part):
+        arrays = {k: v for k, v in part.items() if v is not None}
+        self._write(self._file(c), lambda f: np.savez(f, **arrays))
+
+    def finished(self, exclude=()):
+        """{batch: part} of every finished batch on disk (but those in ``exclude``)."""
+        out = {}
+        for name in sorted(os.listdir(self.path)):
+            if not (name.startswith("batch_") and name.endswith(".npz")):
+                continue                                  # the plan, a killed write's temporary file
+            c = int(name[6:-4])
+            if c in exclude:
+                continue
+            try:
+                with np.load(os.path.join(self.path, name)) as z:
+                    part = {k: z[k] for k in z.files}
+            except (OSError, ValueError) as e:
+                raise SweepError(f"{os.path.join(self.path, name)}: unreadable finished batch ({e}); "
+                                 "delete it to run that batch again") from None
+            part.setdefault("loss", None)
+            part.setdefault("frames", None)
+            out[c] = part
+        return out
+
+    @staticmethod
+    def barrier(name):
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+            multihost_utils.sync_global_devices(f"jaxplush-sweep-{name}")
+
+
+
+def remove_checkpoint(path):
+    """Delete a sweep's checkpoint directory once its result is written (with several processes:
+    after every process got there, by process 0)."""
+    _Checkpoint.barrier("remove")
+    if jax.process_index() != 0:
+        return
+    path = os.fspath(path)
+    for name in os.listdir(path):         # only what a checkpoint writes: never a user's other files
+        if _CHECKPOINT_FILE.fullmatch(name):
+            os.remove(os.path.join(path, name))
+    try:
+        os.rmdir(path)
+    except OSError:                       # something else lives there: leave it
+        pass
 
 
 def _summaries(scene, pos):

@@ -2,7 +2,8 @@
 
     jaxplush-fit sweep SCENE.obj --grid k_structural=100:1000:16 --grid nmol=0.001:0.01:8 [--log]
         [--target TARGET.h5] --steps N [--dt DT] [--save-every K] [--batch B] --out SWEEP.h5
-        [--plot PNG] [--x64] [--quiet]
+        [--plot PNG] [--x64] [--quiet] [--checkpoint DIR] [--distributed [--coordinator HOST:PORT
+        --num-processes P --process-id I]]
 
 A grid spec is ``NAME=a:b:n`` (n values from a to b, linearly spaced; geometrically with
 ``--log``) or ``NAME=v1,v2,...``; NAME is a parameter (``k`` = ``k_structural``), optionally
@@ -10,6 +11,15 @@ A grid spec is ``NAME=a:b:n`` (n values from a to b, linearly spaced; geometrica
 (no traceback), writes nothing and exits 2. The sweep file is written atomically (schema in
 :mod:`jaxplush.fitting.sweep`), and a summary table is printed at the end. Points that blow up are
 recorded in the file (failure code and step) and listed; they do not stop the sweep.
+
+Every finished batch is kept in a checkpoint directory (default ``SWEEP.h5.parts``, removed once
+SWEEP.h5 is written), each batch written atomically: the same command run again after a kill,
+even SIGKILL, resumes from the finished batches and writes the file an uninterrupted run would.
+
+``--distributed`` shares the batches among processes through ``jax.distributed`` (on a SLURM or
+other cluster JAX finds the processes itself; elsewhere give ``--coordinator``, ``--num-processes``
+and ``--process-id``): process i runs every P-th batch into the checkpoint directory (on a
+filesystem every process sees), and process 0 writes SWEEP.h5, the file one process would write.
 """
 
 from __future__ import annotations
@@ -40,7 +50,7 @@ def _parser():
                         "k_structural (k), damping, dashpot, drag, nmol or total_weight, optionally NAME@OBJECT. "
                         "Repeat for a cartesian product.")
     p.add_argument("--log", action="store_true", help="space a:b:n specs geometrically")
-    p.add_argument("--target", default=None, help="target HDF5 ('positions' or 'points', and 'times') to compute "
+    p.add_argument("--target", default=None, help="target HDF5 ('positions', 'points' or 'tracks', and 'times') to compute "
                                                    "the loss of every point against")
     p.add_argument("--steps", type=int, required=True, help="time steps per point")
     p.add_argument("--dt", type=float, default=None, help="time step, s (default: the target's)")
@@ -52,6 +62,15 @@ def _parser():
                                                 "--target) to this image (.png, .pdf, .svg)")
     p.add_argument("--x64", action="store_true", help="run in float64")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--checkpoint", default=None, metavar="DIR",
+                   help="keep finished batches here, to resume after a kill (default OUT.parts; removed "
+                        "once OUT is written)")
+    p.add_argument("--distributed", action="store_true",
+                   help="share the sweep among processes with jax.distributed (cluster auto-detected, or "
+                        "--coordinator/--num-processes/--process-id); process 0 writes OUT")
+    p.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="with --distributed: process 0's address")
+    p.add_argument("--num-processes", type=int, default=None, help="with --distributed: number of processes")
+    p.add_argument("--process-id", type=int, default=None, help="with --distributed: this process's index")
     return p
 
 
@@ -100,9 +119,15 @@ def main(argv=None):
         args = _parser().parse_args(attach_negative_values(argv))
     except SystemExit as e:  # argparse has printed its message
         return int(e.code) if isinstance(e.code, int) else EXIT_USAGE
+    from jaxplush.errors import JaxplushError
+    if args.distributed:             # before anything starts a JAX backend
+        try:
+            _initialize_distributed(args)
+        except JaxplushError as e:
+            print(f"jaxplush-fit sweep: error: {e}", file=sys.stderr)
+            return EXIT_USAGE
     from jaxplush.stepping.compiled import enable_persistent_cache
     enable_persistent_cache()          # a second run of the same scene reuses this one's compiles
-    from jaxplush.errors import JaxplushError
     try:
         return _run(args)
     except (JaxplushError, NotImplementedError) as e:
@@ -111,6 +136,24 @@ def main(argv=None):
     except KeyboardInterrupt:
         print("jaxplush-fit sweep: interrupted; nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def _initialize_distributed(args):
+    """``jax.distributed.initialize`` from the explicit options, else from the cluster's environment."""
+    from jaxplush.errors import JaxplushError
+    given = (args.coordinator, args.num_processes, args.process_id)
+    if any(v is not None for v in given) and not all(v is not None for v in given):
+        raise JaxplushError("--coordinator, --num-processes and --process-id go together (or give none of "
+                            "them on a cluster JAX detects)")
+    if args.num_processes is not None and not 0 <= args.process_id < args.num_processes:
+        raise JaxplushError(f"--process-id must be in 0..{args.num_processes - 1}, got {args.process_id}")
+    import jax
+    kw = {} if args.coordinator is None else dict(coordinator_address=args.coordinator,
+                                                 num_processes=args.num_processes, process_id=args.process_id)
+    try:
+        jax.distributed.initialize(**kw)
+    except (RuntimeError, ValueError) as e:
+        raise JaxplushError(f"--distributed: jax.distributed.initialize failed: {e}") from None
 
 
 def _run(args):
@@ -141,6 +184,10 @@ def _run(args):
     if args.batch is not None and args.batch < 1:
         raise JaxplushError(f"--batch must be >= 1, got {args.batch}")
     check_output_path(args.out, (".h5", ".hdf5"), "--out")
+    checkpoint = args.checkpoint if args.checkpoint is not None else args.out + ".parts"
+    for inp in (args.scene, args.target, args.out):
+        if inp is not None and os.path.abspath(checkpoint) == os.path.abspath(inp):
+            raise JaxplushError(f"--checkpoint {checkpoint}: must not be an input or the output")
     if args.plot is not None:
         check_output_path(args.plot, (".png", ".pdf", ".svg", ".jpg", ".jpeg"), "--plot")
     for out in (args.out, args.plot):
@@ -176,12 +223,18 @@ def _run(args):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = _sweep.sweep(scene, grid, steps=args.steps, dt=dt, save_every=args.save_every, target=target,
-                           progress=not args.quiet, batch=args.batch)
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
-    res.save(args.out)
-    if args.plot is not None:
-        res.plot(args.plot)
+                           progress=not args.quiet, batch=args.batch, checkpoint=checkpoint)
+    import jax
+    lead = jax.process_index() == 0              # several processes: process 0 writes and reports
+    if lead:
+        for w in caught:
+            print(f"warning: {w.message}", file=sys.stderr)
+        res.save(args.out)
+        if args.plot is not None:
+            res.plot(args.plot)
+    _sweep.remove_checkpoint(checkpoint)
+    if not lead:
+        return 0
     wall = time.perf_counter() - t0
     print(f"swept {res.n_points} points x {res.steps} steps of {res.dt:g} s in {wall:.2f} s wall "
           f"({res.n_points * res.steps / wall:,.0f} point-steps/s incl. compile); wrote {args.out}"

@@ -81,7 +81,10 @@ def shell_commands(code):
 
 
 def _strip_comment(cmd):
-    """Drop a trailing shell comment (outside quotes)."""
+    """Drop a trailing shell comment (outside quotes); a command without ``#`` runs as written
+    (loops, ``&`` and ``$VARIABLES`` intact)."""
+    if "#" not in cmd:
+        return cmd
     lexer = shlex.shlex(cmd, posix=True, punctuation_chars=False)
     lexer.commenters = "#"
     lexer.whitespace_split = True

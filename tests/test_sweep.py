@@ -275,6 +275,9 @@ def test_batching_is_chosen_by_backend(monkeypatch):
     monkeypatch.setattr(batched.jax, "default_backend", lambda: "gpu")
     ev = evaluate.Evaluator.__new__(evaluate.Evaluator)
     assert ev._chunk_of(32) == 32 and ev._chunk_of(7) == 7
+    # several GPUs: the batch split evenly over them (rollout shards the chunks, one per device)
+    monkeypatch.setattr(batched, "local_devices", lambda: ("gpu0", "gpu1", "gpu2", "gpu3"))
+    assert batched.default_chunk(1024) == 256 and batched.default_chunk(10) == 3 and ev._chunk_of(32) == 8
 
 
 def test_folded_position_update_changes_no_result(monkeypatch):
