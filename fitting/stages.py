@@ -24,7 +24,7 @@ progress, the callback and checkpoints as hooks. Every tuning knob comes from th
 (:mod:`jaxplush.fitting.options`).
 
 A stage of one's own needs no base class: ``init``, ``step`` and ``terminate`` are enough (the
-README's "Stages" section puts a user's Gauss-Newton solver after the global stage).
+docs/fitting.md's "Stages you can recombine" puts a user's Gauss-Newton solver after the global stage).
 """
 
 from __future__ import annotations

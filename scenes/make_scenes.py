@@ -608,7 +608,7 @@ PILE_DRAG = 5.0  # 1/s, air drag of every cushion (see scene_plush_pile)
 
 
 def scene_plush_pile():
-    # Why a stack of flat cushions and not a pyramid of balls (measured, see the README): two balls
+    # Why a stack of flat cushions and not a pyramid of balls (measured, see docs/contact.md): two balls
     # under a third roll apart, since rolling needs no slip at the floor and only friction between
     # the plushies could stop them, and that friction, explicit and velocity level, creeps (about
     # 1.6 cm/s per ball). A ball on a cushion, or in the groove between two, rolls off (a ball on a

@@ -352,7 +352,7 @@ def test_floor_restitution_reflects_each_impacting_vertex(restitution):
     much faster than v_rest = 2 |g| dt leaves it with E times its incoming normal speed, a slow one
     is only projected onto the floor (it lands, so resting vertices do not jitter), and a vertex
     above the floor is untouched. (A gas-filled body as a whole does not rebound measurably more with
-    it, README "Contact and floor keywords": its springs and gas take the energy of the impact.)"""
+    it, docs/contact.md "Limits": its springs and gas take the energy of the impact.)"""
     from jaxplush.stepping.constraints import make_constrain
     text = icosphere_text(subdivisions=0, radius=0.05, k=300.0, mass=0.05, floor=0.0, translate=(0, 0.2, 0))
     if restitution:

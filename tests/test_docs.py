@@ -5,7 +5,9 @@ from the code.
 * README ```python blocks run in document order, each in a fresh namespace, in one scratch
   directory that holds a link to ``scenes/`` (so paths read as from the repository root), and
   must finish without an exception. The blocks of the other documents in ``OTHER_READMES``
-  (``scenes/README.md``, ``docs/formats.md``) run after them by the same rules.
+  (``scenes/README.md`` and the pages of ``docs/``) run after them by the same rules, in that
+  list's order and in the same directory: a page's block may use a file that a README block
+  wrote (a heavy block only one that a heavy block wrote).
 * README ```bash blocks run in the same directory, one command at a time (``\\`` continues a
   line), and must exit 0. The installation steps (``python -m pip install ...``) and the test
   suite itself (``python -m pytest``) are what CI runs around this test, so they are skipped.
@@ -93,7 +95,16 @@ def _strip_comment(cmd):
 
 README_BLOCKS = [b for b in blocks() if b[1] in ("python", "bash", "sh")]
 #: Other documents whose blocks run too (the same rules; paths relative to the repository root).
-OTHER_READMES = ("scenes/README.md", "docs/formats.md")
+OTHER_READMES = ("scenes/README.md", "docs/cli.md", "docs/scenes.md", "docs/contact.md", "docs/simulation.md",
+                 "docs/api.md", "docs/fitting.md", "docs/sweeps.md", "docs/development.md", "docs/formats.md")
+#: The README is a front page: longer text belongs in docs/.
+README_MAX_LINES = 300
+#: The quick start's two commands, verbatim: CI (.ci/run) runs the second one.
+QUICK_START = (
+    "python -m pip install -e . && jaxplush simulate scenes/ball_drop.obj --steps 16000 --dt 1.25e-4 "
+    "--save-every 80 --out ball_drop.h5",
+    'python -m pip install -e ".[test]" && python -m pytest -q',
+)
 
 
 def _param(b, doc="README.md"):
@@ -119,10 +130,89 @@ def test_readme_has_runnable_blocks():
     langs = [b[1] for b in README_BLOCKS]
     assert langs.count("python") >= 3 and langs.count("bash") >= 3
     # every command-looking line is in a runnable block, not a text block
-    for line, lang, code, _ in blocks():
-        if lang == "text":
-            assert not re.search(r"^\s*(jaxplush|jaxplush-fit|python) ", code, re.M) or "SCENE" in code or "[" in code, \
-                f"README.md:{line}: a text block holds a command; make it a bash block or a syntax line"
+    for doc in ("README.md",) + OTHER_READMES:
+        for line, lang, code, _ in blocks(ROOT / doc):
+            if lang == "text":
+                assert not re.search(r"^\s*(jaxplush|jaxplush-fit|python) ", code, re.M) or "SCENE" in code \
+                    or "[" in code, f"{doc}:{line}: a text block holds a command; make it a bash block or a syntax line"
+
+
+def test_readme_is_a_front_page():
+    """The README stays short (the rest is in docs/), its quick start holds the two commands that
+    CI and newcomers run, verbatim, and it shows a simulate, a fit and a sweep example."""
+    text = README.read_text()
+    n = len(text.splitlines())
+    assert n < README_MAX_LINES, f"README.md has {n} lines; move detail to a page in docs/"
+    quick = next(code for _, lang, code, _ in blocks() if lang == "bash")
+    for cmd in QUICK_START:
+        assert cmd in quick.splitlines(), f"the quick start's first block lacks `{cmd}`"
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert "python -m pytest -q" in ci and '".[test]"' in ci
+    codes = "\n".join(code for _, _, code, _ in README_BLOCKS)
+    for needle in ("jaxplush simulate", "jaxplush.simulate(", "jaxplush-fit ", "fitting.fit(",
+                   "jaxplush-fit sweep", "sweep("):
+        assert needle in codes, f"README.md has no runnable example using {needle!r}"
+
+
+def test_every_docs_page_with_code_runs():
+    """A page of docs/ with a python or bash block is in OTHER_READMES, so its blocks run."""
+    for page in sorted((ROOT / "docs").glob("*.md")):
+        rel = page.relative_to(ROOT).as_posix()
+        if any(b[1] in ("python", "bash", "sh") for b in blocks(page)):
+            assert rel in OTHER_READMES, f"{rel} has runnable blocks: add it to OTHER_READMES"
+
+
+def _slug(heading):
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
+    text = re.sub(r"!?\[([^\]]*)\]\([^)]*\)", r"\1", heading.strip())    # a link's text only
+    text = re.sub(r"[^\w\- ]", "", text.lower())
+    return text.replace(" ", "-")
+
+
+def _anchors(path):
+    """Every anchor of a Markdown file: its headings (duplicates numbered) and HTML ids."""
+    seen, out = {}, set()
+    text = re.sub(r"^```.*?^```", "", path.read_text(), flags=re.M | re.S)
+    for m in re.finditer(r"^#{1,6}\s+(.*?)\s*#*\s*$", text, re.M):
+        slug = _slug(m.group(1))
+        out.add(slug if slug not in seen else f"{slug}-{seen[slug]}")
+        seen[slug] = seen.get(slug, 0) + 1
+    out |= set(re.findall(r"<a\s+(?:id|name)=\"([^\"]+)\"", text))
+    return out
+
+
+LINKED_DOCS = ("README.md", "ARCHITECTURE.md", "scenes/README.md") + tuple(
+    sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").glob("*.md"))) + tuple(
+    sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "notebooks").glob("*.ipynb")))
+
+
+def _markdown(path):
+    """The Markdown of a document: the file, or a notebook's Markdown cells."""
+    if path.suffix != ".ipynb":
+        return path.read_text()
+    import json
+    cells = json.loads(path.read_text())["cells"]
+    return "\n\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "markdown")
+
+
+@pytest.mark.parametrize("doc", LINKED_DOCS)
+def test_relative_links_resolve(doc):
+    """Every relative link (and image) of the README, the docs and the notebooks points at a file
+    that exists, and a ``#anchor`` at a heading of that file."""
+    path = ROOT / doc
+    text = re.sub(r"^```.*?^```", "", _markdown(path), flags=re.M | re.S)   # not in code blocks
+    text = re.sub(r"``.+?``|`[^`\n]*`", "", text)                             # nor in code spans
+    bad = []
+    for target in re.findall(r"\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)", text):
+        if re.match(r"[a-z][a-z0-9+.-]*:", target):                           # http:, mailto:, ...
+            continue
+        file, _, anchor = target.partition("#")
+        dest = (path.parent / file).resolve() if file else path
+        if not dest.exists():
+            bad.append(f"{target}: no such file")
+        elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
+            bad.append(f"{target}: no heading with that anchor in {dest.relative_to(ROOT)}")
+    assert not bad, f"{doc}: broken links:\n" + "\n".join(bad)
 
 
 @pytest.mark.parametrize("block", ALL_BLOCKS)
