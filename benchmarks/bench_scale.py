@@ -39,8 +39,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 
 #: One H200's total point-steps/s of the batched engine at 2562 vertices, 4096 points in one call
-#: (benchmarks/RESULTS.md, "scale-out"); used by --estimate unless --gpu-rate is given.
-H200_RATE_2562 = None
+#: (`bench_sweep.py --subdivisions 4 --batches 1024,4096 --steps 300`, 2026-11-28; RESULTS.md);
+#: used by --estimate unless --gpu-rate is given.
+H200_RATE_2562 = 9_253_043
 
 
 def _worker(args):
@@ -95,21 +96,28 @@ def _launch(args, devices=1, processes=1):
     return dict(rows[0], wall_s=max(r["wall_s"] for r in rows), first_s=max(r["first_s"] for r in rows))
 
 
-def estimate(rate, n_points=100_000, vertices=2562, steps=3000, gpus=8, bandwidth=1e9, objects=1):
-    """(rows of (quantity, value)) of the paper estimate: compute time from the one-GPU rate,
+def estimate(rate, n_points=100_000, vertices=2562, steps=3000, gpus=8, bandwidth=1e9, objects=1, batch=4096,
+             compile_s=2.0):
+    """(rows of (quantity, value)) of the paper estimate: compute time from the one-GPU rate (whole
+    batches of ``batch`` points, dealt round-robin to the GPUs), one compile per process, and the
     data exchanged through the shared checkpoint (final positions float32 + summaries and failure
-    record per point) at ``bandwidth`` bytes/s into process 0."""
+    record per point: every process writes its batches, process 0 reads them all) at
+    ``bandwidth`` bytes/s. No collective moves simulation data: the barriers carry nothing."""
     work = n_points * steps
-    compute = work / (gpus * rate)
+    batches = -(-n_points // batch)
+    per_gpu = -(-batches // gpus)                          # the busiest GPU's batches
+    compute = per_gpu * batch * steps / rate
     per_point = vertices * 3 * 4 + objects * (3 * 4 + 3 * 8) + 8 + 8
     volume = n_points * per_point
-    io = volume / bandwidth
+    io = 2 * volume / bandwidth                            # written once, read once by process 0
     return [("point-steps", f"{work:.3g}"), ("one-GPU rate (point-steps/s)", f"{rate:,.0f}"),
-            ("compute on one GPU", f"{work / rate / 60:,.1f} min"),
-            (f"compute on {gpus} GPUs (ideal split of whole batches)", f"{compute / 60:,.1f} min"),
-            ("data into process 0 (final positions + records)", f"{volume / 1e9:.2f} GB"),
-            (f"its transfer at {bandwidth / 1e9:g} GB/s (shared filesystem)", f"{io:.1f} s"),
-            ("estimated wall time", f"{(compute + io) / 60:,.1f} min")]
+            ("compute on one GPU", f"{work / rate:,.1f} s"),
+            (f"batches of {batch} points; on the busiest of {gpus} GPUs", f"{batches}; {per_gpu}"),
+            (f"compute on {gpus} GPUs", f"{compute:,.1f} s"),
+            ("compile, once per process (in parallel)", f"{compile_s:.1f} s"),
+            ("data through the checkpoint (final positions + records)", f"{volume / 1e9:.2f} GB"),
+            (f"written and read at {bandwidth / 1e9:g} GB/s (shared filesystem)", f"{io:.1f} s"),
+            ("estimated wall time", f"{compute + compile_s + io:,.1f} s")]
 
 
 def main(argv=None):
@@ -147,8 +155,6 @@ def main(argv=None):
               f"{rate / base:.2f}x | {r['first_s']:.2f} |", flush=True)
     if args.estimate:
         rate = args.gpu_rate or H200_RATE_2562
-        if rate is None:
-            raise SystemExit("--estimate needs --gpu-rate (one GPU's point-steps/s at 2562 vertices)")
         print("\nEstimate: 10^5 points x 3000 steps at 2562 vertices on 8 GPUs\n")
         print("| quantity | value |\n|---|---:|")
         for q, v in estimate(rate):
