@@ -1,4 +1,4 @@
-"""Command line: ``jaxplush simulate | render | info | capture``.
+"""Command line: ``jaxplush simulate | render | info | capture | view``.
 
 Every user error prints one clear message (no traceback), exits non-zero and leaves no
 partial output.
@@ -85,6 +85,23 @@ def _parser():
                    help="also write N tracked surface points (random faces and barycentric coordinates from "
                         "--seed, Gaussian noise --noise per coordinate, each dropped from a frame with probability "
                         "--dropout) as 'tracks' with 'track_face' and 'track_barycentric' (default 0: none)")
+    v = sub.add_parser("view", help="interactive 3-D view of a trajectory or a fit in the browser (viser, the "
+                                    "optional extra 'viewer'): served on 127.0.0.1, or written as one HTML file")
+    v.add_argument("file", help="trajectory .h5 from 'jaxplush simulate', or FIT.h5 from 'jaxplush-fit' (its fitted "
+                                "rollout against its target)")
+    v.add_argument("--target", default=None,
+                   help="overlay this fit target's positions, points or tracks at the frames whose times it has "
+                        "(default with a FIT.h5: the fit's target, when found)")
+    v.add_argument("--color", choices=("object", "strain"), default="object",
+                   help="object: one colour per object (default); strain: edges coloured by edge length / rest "
+                        "length (blue compressed, white 1, red stretched)")
+    v.add_argument("--max-frames", type=int, default=300,
+                   help="most frames shown (default 300); a longer trajectory is subsampled evenly, keeping the "
+                        "first and last frame, and the command says how many it shows")
+    v.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: a free one)")
+    v.add_argument("--html", default=None,
+                   help="write the view as one self-contained HTML file (plays offline in any browser) and exit "
+                        "instead of serving it")
     return p
 
 
@@ -100,6 +117,8 @@ def main(argv=None):
             return _render(args)
         if args.cmd == "capture":
             return _capture(args)
+        if args.cmd == "view":
+            return _view(args)
         return _info(args)
     except JaxplushError as e:
         print(f"jaxplush {args.cmd}: error: {e}", file=sys.stderr)
@@ -196,6 +215,31 @@ def _render(args):
     out = render(args.trajectory, args.out, frame=args.frame, fps=args.fps, max_frames=args.max_frames,
                  report=print)
     print(f"wrote {out} ({time.perf_counter() - t:.1f} s)")
+    return 0
+
+
+def _view(args):
+    """Serve the view until Ctrl-C (exit 130), or with --html write it and exit."""
+    from jaxplush.errors import JaxplushError
+    from jaxplush.io.view import require_viser, view
+    if args.max_frames < 2:
+        raise JaxplushError(f"--max-frames must be >= 2, got {args.max_frames}")
+    if not 0 <= args.port <= 65535:
+        raise JaxplushError(f"--port must be 0 (a free one) to 65535, got {args.port}")
+    require_viser()                                 # the install hint before any reading
+    t = time.perf_counter()
+    v = view(args.file, target=args.target, color=args.color, max_frames=args.max_frames, html=args.html,
+             port=args.port, report=print)
+    if args.html:
+        print(f"wrote {args.html} ({len(v.html) / 2 ** 20:.1f} MiB, {time.perf_counter() - t:.1f} s): open it in "
+              "any browser, offline")
+        return 0
+    print(f"viewing {args.file} at {v.url} (Ctrl-C stops)", flush=True)
+    try:
+        v.wait()
+    except KeyboardInterrupt:
+        print("jaxplush view: stopped", file=sys.stderr)
+        return 130
     return 0
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import doctest
 import importlib
+import importlib.util
 import os
 import pkgutil
 import re
@@ -96,7 +97,11 @@ def _strip_comment(cmd):
 README_BLOCKS = [b for b in blocks() if b[1] in ("python", "bash", "sh")]
 #: Other documents whose blocks run too (the same rules; paths relative to the repository root).
 OTHER_READMES = ("scenes/README.md", "docs/cli.md", "docs/scenes.md", "docs/contact.md", "docs/simulation.md",
-                 "docs/api.md", "docs/fitting.md", "docs/sweeps.md", "docs/development.md", "docs/formats.md")
+                 "docs/api.md", "docs/fitting.md", "docs/sweeps.md", "docs/development.md", "docs/formats.md",
+                 "docs/viewer.md")
+#: Blocks that use the viewer need its optional extra (viser; the test extra includes it).
+_VIEWER = re.compile(r"\bjaxplush view\b|\bio\.view\(")
+HAVE_VISER = importlib.util.find_spec("viser") is not None
 #: The README is a front page: longer text belongs in docs/.
 README_MAX_LINES = 300
 #: The quick start's two commands, verbatim: CI (.ci/run) runs the second one.
@@ -108,10 +113,12 @@ QUICK_START = (
 
 
 def _param(b, doc="README.md"):
-    line, lang, _, mark = b
+    line, lang, code, mark = b
     marks = [getattr(pytest.mark, mark)] if mark in ("slow", "heavy") else []
     if mark == "skip":
         marks.append(pytest.mark.skip(reason=f"marked skip in {doc}"))
+    if not HAVE_VISER and _VIEWER.search(code):
+        marks.append(pytest.mark.skip(reason='needs the viewer extra: pip install -e ".[viewer]"'))
     return pytest.param((doc,) + b, id=f"{doc}:{line}-{lang}", marks=marks)
 
 
