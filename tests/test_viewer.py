@@ -355,8 +355,11 @@ def test_static_html_in_a_browser(browser, traj, tmp_path):
 def test_ctrl_c_stops_the_server_with_130(traj):
     if not HAVE_VISER:
         pytest.skip('viser not installed (pip install -e ".[viewer]")')
+    # as from a terminal: a run started in the background of a non-interactive shell (nohup ... &, as
+    # CI may be) inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler
     p = subprocess.Popen([sys.executable, "-m", "jaxplush", "view", str(traj)], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+                         stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         line = p.stdout.readline()
         assert line.startswith(f"viewing {traj} at http://127.0.0.1:") and "(Ctrl-C stops)" in line, line
