@@ -136,6 +136,13 @@ class System:
             v = v.at[:, self.topo.fixed].set(0.0)
         return v
 
+    def constrained(self, x_old, x, v, k=None):
+        """``constrain`` (the floor/pin hook) after a (sub)step; the substep index ``k`` is passed
+        only with driven vertices (a hook without them takes (x_old, x, v))."""
+        if self.drive is None:
+            return self.constrain(x_old, x, v)
+        return self.constrain(x_old, x, v, k)
+
     def start(self, x, v):
         """(x, v) at t = 0 with pins (zero velocity) and driven vertices (at their path) applied."""
         v = self.pin_velocity(v)
@@ -282,7 +289,7 @@ def verlet(system):
             uc = verlet_kick(u[c], a, h, keep)
             us.append(uc)
             xs.append(verlet_drift(x[c], uc, h))
-        x_new, u_new = system.constrain(x, jnp.stack(xs), jnp.stack(us), k)
+        x_new, u_new = system.constrained(x, jnp.stack(xs), jnp.stack(us), k)
         return State(x_new, u_new)
 
     def velocity(params, state):
@@ -307,7 +314,7 @@ def euler(system):
         a = system.rate(params, x, v, k)
         x_new = x + h * v
         v_new = v + h * a
-        x_new, v_new = system.constrain(x, x_new, v_new, k)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return State(x_new, v_new)
 
     return Scheme(_plain_init(system), step, _velocity_field)
@@ -327,7 +334,7 @@ def symplectic_euler(system):
         a = system.rate(params, x, v, k)
         v_new = v + h * a
         x_new = x + h * v_new
-        x_new, v_new = system.constrain(x, x_new, v_new, k)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return State(x_new, v_new)
 
     return Scheme(_plain_init(system), step, _velocity_field)
@@ -352,7 +359,7 @@ def rk4(system):
         a4 = system.rate(params, x4, v4, k)
         x_new = x + (h / 6.0) * (v + 2.0 * v2 + 2.0 * v3 + v4)
         v_new = v + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-        x_new, v_new = system.constrain(x, x_new, v_new, k)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return State(x_new, v_new)
 
     return Scheme(_plain_init(system), step, _velocity_field)
@@ -402,7 +409,7 @@ def mesit(system):
         dv = (h * force + direction * (kn * h * h * prev)) / (m + kn * h * h)
         v_new = v + dv
         x_new = x + h * v_new
-        x_new, v_new = system.constrain(x, x_new, v_new, k)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return MesitState(x_new, v_new, dv)
 
     return Scheme(init, step, _velocity_field)
@@ -478,7 +485,7 @@ def implicit_euler(system, cg_tol=None, cg_maxiter=CG_MAXITER):
                                            M=lambda r: r / diag)
         v_new = v + dv
         x_new = x + h * v_new
-        x_new, v_new = system.constrain(x, x_new, v_new, k)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return State(x_new, v_new)
 
     return Scheme(_plain_init(system), step, _velocity_field)
