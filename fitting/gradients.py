@@ -111,7 +111,13 @@ def _nan_if(flag, dtype):
     return jnp.where(flag, jnp.asarray(jnp.nan, dtype), jnp.zeros((), dtype))
 
 
-def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, checkpoint, check=None):
+def _step_index(sim, n, offset=0):
+    """The step index the simulator's step reads: ``n + offset`` for a scene with driven vertices,
+    None (nothing traced) otherwise."""
+    return n + offset if sim.terms.driven else None
+
+
+def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, checkpoint, check=None, step0=0):
     """Autodiff through the rollout: one scan over segments of ``segment`` steps (padded). With
     ``check`` (:func:`_overflow_check`) the loss is NaN where a step's contact candidates overflowed."""
     n_steps = steps[-1]
@@ -137,7 +143,7 @@ def _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment, chec
         if check is not None:
             flag = flag | (jnp.any(check(s[0])) & (n <= n_steps))
         # Steps past the horizon (padding of the last segment) leave the carry unchanged.
-        s = jax.lax.cond(n <= n_steps, lambda s: step(params, s), lambda s: s, s)
+        s = jax.lax.cond(n <= n_steps, lambda s: step(params, s, _step_index(sim, n, step0 - 1)), lambda s: s, s)
         j = table_j[jnp.minimum(n, n_steps)]
         hit = (j >= 0) & (n <= n_steps)
         acc = acc + jax.lax.cond(hit, lambda: frame_loss(s[0], jnp.maximum(j, 0)).astype(acc.dtype),
@@ -295,9 +301,11 @@ def _make_step_dens_vjp(sim):
     (:class:`_Dens`, reduced by :func:`_reduce_dens`). The step (jaxplush.stepping.step, verlet):
 
         a  = F(x, u)/m - drag u + g;   u' = (1 - f) u + a dt;   x' = x + u' dt;
-        floor (y >= H): below = x'_y < H  ->  u'_y = (H - x_y)/dt, x'_y = H;  pins: x' = x0, u' = 0.
+        floor (y >= H): below = x'_y < H  ->  u'_y = (H - x_y)/dt, x'_y = H;  pins: x' = x0, u' = 0;
+        driven (in step k): x' = p(t_{k+1}), u' = (p(t_{k+1}) - p(t_k))/dt, constants.
 
-    The floor and pins are masks; ``below`` is read off ``x_next`` (projected vertices lie
+    The floor, pins and driven vertices are masks (``k``, the step index, is read only with
+    driven vertices that have a release time); ``below`` is read off ``x_next`` (projected vertices lie
     exactly on the floor), so no primal force needs recomputing.
     """
     topo, terms, dt = sim.topology, sim.terms, sim.h
@@ -305,11 +313,18 @@ def _make_step_dens_vjp(sim):
     floor = sim.scene.floor
     free = np.ones(topo.n_vertices)
     free[topo.fixed] = 0.0
+    drive = None
+    if terms.driven:
+        from jaxplush.stepping.constraints import Drive
+        drive = Drive(sim.scene, dt)
 
-    def step_vjp(params, x, u, x_next, x_bar, u_bar):
+    def step_vjp(params, x, u, x_next, x_bar, u_bar, k=None):
         dtype = x.dtype
-        if terms.fixed:
+        if terms.fixed or terms.driven:
+            # pinned and driven vertices: their new position and velocity are constants
             keep = jnp.asarray(free, dtype)
+            if drive is not None:
+                keep = keep * drive.free(k, topo.n_vertices, dtype)
             x_bar, u_bar = x_bar * keep, u_bar * keep
         x_out = x_bar
         if terms.floor:
@@ -363,8 +378,8 @@ def _make_step_vjp(sim):
     VJP (:func:`_make_step_dens_vjp`) with its parameter cotangents reduced to a Params."""
     step_vjp = _make_step_dens_vjp(sim)
 
-    def f(params, x, u, x_next, x_bar, u_bar):
-        x_bar, u_bar, dens = step_vjp(params, x, u, x_next, x_bar, u_bar)
+    def f(params, x, u, x_next, x_bar, u_bar, k=None):
+        x_bar, u_bar, dens = step_vjp(params, x, u, x_next, x_bar, u_bar, k)
         return x_bar, u_bar, _reduce_dens(sim.topology, params, dens)
 
     return f
@@ -421,7 +436,7 @@ def _split(tree):
     return [leaves[i] for i in idx], rebuild, cotangent
 
 
-def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
+def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None, step0=0):
     """The custom-VJP loss ``f(params, x0, u0, aux, consts)`` for one static configuration.
 
     Forward (:func:`_adjoint_forward`): one scan over the frames, each running the steps up to
@@ -434,7 +449,7 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
     densities, reduced once at the end. With ``check`` (:func:`_overflow_check`) the forward's
     loss is NaN where a step's contact candidates overflowed (the gradient is left as computed).
     """
-    forward = _adjoint_forward(sim, plan, steps, loss_fn, check)
+    forward = _adjoint_forward(sim, plan, steps, loss_fn, check, step0)
 
     @jax.custom_vjp
     def f(params, x0, u0, aux, consts):
@@ -444,7 +459,7 @@ def _adjoint_fn(sim, plan, steps, table, loss_fn, check=None):
         loss, s_end, bufs, (gx, ga), gc = forward(params, x0, u0, aux, consts, grads=True)
         return loss, (params, s_end, bufs, gx, ga, gc, aux, consts)
 
-    f.defvjp(fwd, _adjoint_backward(sim, plan, table))
+    f.defvjp(fwd, _adjoint_backward(sim, plan, table, step0))
     return f
 
 
@@ -474,7 +489,7 @@ def _state_buffers(plan, shape, dtype):
     return jnp.zeros((n_buf,) + shape, dtype), jnp.zeros((n_buf,) + shape, dtype) if plan.keep_u else None
 
 
-def _adjoint_forward(sim, plan, steps, loss_fn, check):
+def _adjoint_forward(sim, plan, steps, loss_fn, check, step0=0):
     """``forward(params, x0, u0, aux, consts, grads) -> (loss, final state, state buffers, per-frame
     (position, aux) loss cotangents, the constants' cotangents)`` of :func:`_adjoint_fn` (without
     ``grads``: the loss and the final state only)."""
@@ -499,7 +514,7 @@ def _adjoint_forward(sim, plan, steps, loss_fn, check):
                 bufs = record(bufs, n - 1, s)
             if check is not None:
                 flag = flag | jnp.any(check(s.x))
-            return sim.internal.step(params, s), bufs, flag
+            return sim.internal.step(params, s, _step_index(sim, n, step0 - 1)), bufs, flag
 
         def frame(carry, j):
             s, bufs, acc, c_acc, flag = carry
@@ -527,7 +542,7 @@ def _adjoint_forward(sim, plan, steps, loss_fn, check):
     return forward
 
 
-def _adjoint_backward(sim, plan, table):
+def _adjoint_backward(sim, plan, table, step0=0):
     """The backward pass ``bwd(res, g)`` of :func:`_adjoint_fn`: the steps reversed
     (:func:`_reverse_steps`) over the stored states, or segment by segment from their checkpoints
     (:func:`_reverse_segments`); the densities reduced to a Params cotangent at the end."""
@@ -547,13 +562,13 @@ def _adjoint_backward(sim, plan, table):
             hit = (j >= 0).astype(dtype)
             return x_bar + hit * jax.lax.dynamic_index_in_dim(gx, jnp.maximum(j, 0), keepdims=False)
 
-        reverse = _reverse_steps(step_vjp, params, add_frame)
+        reverse = _reverse_steps(step_vjp, params, add_frame, step0 if sim.terms.driven else None)
         zeros = jnp.zeros_like(s_end.x)
         carry = (zeros, zeros, _zero_dens(sim, params, dtype))
         if plan.store:
             carry = reverse(carry, lambda n: _read_state(plan, xs, us, n), 0, plan.n_steps)
         else:
-            carry = _reverse_segments(sim, plan, params, reverse, carry, xs, us)
+            carry = _reverse_segments(sim, plan, params, reverse, carry, xs, us, step0)
         x_bar, u_bar, dens = carry
         x_bar = add_frame(x_bar, 0)
         p_bar = _reduce_dens(sim.topology, params, dens)
@@ -580,12 +595,13 @@ def _read_state(plan, buf_x, buf_u, i):
     return x, u
 
 
-def _reverse_steps(step_vjp, params, add_frame):
+def _reverse_steps(step_vjp, params, add_frame, step0=None):
     """``reverse(carry, states, first, last)``: reverse steps last, ..., first + 1, with
     ``states(n)`` -> (x_n, u_n) for first <= n <= last; carry (x_bar, u_bar, dens). The state a
     step's VJP needs is read one iteration ahead into the carry: XLA then gathers from a loop
     buffer rather than fusing a dynamic slice of the stored trajectory into every gather (faster;
-    see benchmarks/RESULTS.md)."""
+    see benchmarks/RESULTS.md). ``step0``: the step index of state 0 (scenes with driven
+    vertices; None otherwise)."""
 
     def reverse(carry, states, first, last):
         x_bar, u_bar, dens = carry
@@ -594,7 +610,8 @@ def _reverse_steps(step_vjp, params, add_frame):
             (x_bar, u_bar, dens), x_next, x, u = inner
             n = last - i                              # reverses step n: state n - 1 -> state n
             x_bar = add_frame(x_bar, n)
-            x_bar, u_bar, d = step_vjp(params, x, u, x_next, x_bar, u_bar)
+            k = None if step0 is None else n - 1 + step0      # driven vertices only: the step index
+            x_bar, u_bar, d = step_vjp(params, x, u, x_next, x_bar, u_bar, k)
             dens = jax.tree_util.tree_map(jnp.add, dens, d)
             return ((x_bar, u_bar, dens), x) + states(jnp.maximum(n - 2, first))
 
@@ -605,7 +622,7 @@ def _reverse_steps(step_vjp, params, add_frame):
     return reverse
 
 
-def _reverse_segments(sim, plan, params, reverse, carry, xs, us):
+def _reverse_segments(sim, plan, params, reverse, carry, xs, us, step0=0):
     """The backward pass segment by segment, last first: each segment's states recomputed from
     its checkpoint (in (seg + 1) buffers), then its steps reversed."""
     seg, n_steps = plan.seg, plan.n_steps
@@ -621,7 +638,7 @@ def _reverse_segments(sim, plan, params, reverse, carry, xs, us):
 
         def body(i, c):
             s, bx, bu = c
-            s = sim.internal.step(params, s)
+            s = sim.internal.step(params, s, (first + i + (step0 - 1)) if sim.terms.driven else None)
             bx = jax.lax.dynamic_update_index_in_dim(bx, s.x, i, 0)
             if plan.keep_u:
                 bu = jax.lax.dynamic_update_index_in_dim(bu, s.v, i, 0)
@@ -637,13 +654,13 @@ def _reverse_segments(sim, plan, params, reverse, carry, xs, us):
     return carry
 
 
-def _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget, check=None):
+def _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget, check=None, step0=0):
     x0, u0 = sim.internal.to_internal(state0)
     dtype = jnp.result_type(x0)
     plan = _plan(sim, steps[-1], segment, memory_budget, np.dtype(dtype).itemsize)
     example_x = jax.ShapeDtypeStruct((sim.topology.n_vertices, 3), dtype)
     converted, consts = jax.closure_convert(loss_fn, example_x, _take(aux, 0))
-    f = _adjoint_fn(sim, plan, steps, table, converted, check)
+    f = _adjoint_fn(sim, plan, steps, table, converted, check, step0)
     return f(params, x0, u0, aux, tuple(consts))
 
 
@@ -656,7 +673,7 @@ def adjoint_supported(sim):
 
 
 def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, method="auto", segment=None,
-                 memory_budget=DEFAULT_MEMORY_BUDGET, nan_on_overflow=True):
+                 memory_budget=DEFAULT_MEMORY_BUDGET, nan_on_overflow=True, step0=0):
     """Loss summed over frames of a rollout, differentiable with bounded memory.
 
     Args:
@@ -681,6 +698,9 @@ def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, me
         capacity (the steps were then inexact: :mod:`jaxplush.model.contact`); the forces and
         the gradient stay finite, so only the value says it. ``fitting.fit`` rejects such a point
         and raises the capacity. False: the loss of the inexact run.
+      step0: static int, the step index of ``state0`` (it is at t = step0 dt): only scenes with
+        driven vertices read it (their paths depend on time); a rollout that starts at a later
+        step passes it. ``frame_steps`` still count from ``state0``.
 
     Returns:
       scalar loss.
@@ -701,9 +721,10 @@ def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, me
         if not adjoint_supported(sim):
             raise ValueError(f"method='adjoint' is not supported for integrator {sim.integrator!r} "
                              f"with terms {sim.terms.names()}; use 'checkpoint'")
-        return _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget, check)
+        return _adjoint_loss(sim, params, state0, steps, table, loss_fn, aux, segment, memory_budget, check,
+                             int(step0))
     return _generic_loss(sim, params, state0, steps, table, loss_fn, aux, segment,
-                         checkpoint=(method == "checkpoint"), check=check)
+                         checkpoint=(method == "checkpoint"), check=check, step0=int(step0))
 
 
 def value_and_grad_rollout(sim, params, state0, frame_steps, loss_fn, aux, *, method="auto", segment=None,

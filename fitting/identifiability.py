@@ -60,7 +60,7 @@ RESOLVE_FACTOR = 3.0
 UNRESOLVED_WEIGHT = 1e-3
 
 
-def frames_at_steps(sim, params, state0, steps):
+def frames_at_steps(sim, params, state0, steps, step0=0):
     """Positions at the given steps of one rollout, with each frame's health.
 
     Differentiable in forward and reverse mode (``jax.jvp``/``jax.jacfwd`` give the trajectory
@@ -72,6 +72,8 @@ def frames_at_steps(sim, params, state0, steps):
       params: :class:`jaxplush.types.Params`.
       state0: public initial state (step 0).
       steps: static increasing step indices (>= 0).
+      step0: the step index of ``state0`` (static; read only by scenes with driven vertices,
+        whose paths depend on time; ``steps`` count from ``state0``).
 
     Returns:
       (frames (T, V, 3), codes (T, O) int32 health codes, :mod:`jaxplush.stepping.diagnostics`). With
@@ -103,12 +105,15 @@ def frames_at_steps(sim, params, state0, steps):
     fbuf = jnp.zeros((len(steps) + 1, n_obj), bool)
     slot = jnp.asarray(slot)
 
-    def one(_, c):
-        s, flag = c
-        return sim.internal.step(params, s), (flag | check(s.x)) if check is not None else flag
+    driven = bool(sim.terms.driven)
 
     def block(carry, b):
         state, flag, buf, fbuf = carry
+
+        def one(i, c):                      # step (b - 1) g + i of the rollout
+            s, flag = c
+            n = step0 + (b - 1) * g + i if driven else None
+            return sim.internal.step(params, s, n), (flag | check(s.x)) if check is not None else flag
         state, flag = jax.lax.fori_loop(0, g, one, (state, flag))
         buf = buf.at[slot[b]].set(state.x)
         fbuf = fbuf.at[slot[b]].set(flag)

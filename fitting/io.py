@@ -325,8 +325,24 @@ def _attr(v):
     return v
 
 
-def fitted_scene_text(result):
-    """The scene text with the fitted values, in the extended OBJ format."""
+def _driven_entries(o, a, out_path):
+    """An object's ``driven`` lines for the writer: each path file relative to the directory of the
+    scene being written (``out_path``), or absolute (``out_path`` None, or no relative path)."""
+    out = []
+    for d in o.driven:
+        path = d.file
+        if out_path is not None:
+            try:
+                path = os.path.relpath(d.file, os.path.dirname(os.path.abspath(os.fspath(out_path))))
+            except ValueError:                  # another drive (Windows)
+                path = d.file
+        out.append(dict(path=path, vertices=[j - a for j in d.vertices], until=d.until))
+    return out or None
+
+
+def fitted_scene_text(result, path=None):
+    """The scene text with the fitted values, in the extended OBJ format. ``path``: where it will
+    be written (driven vertices' path files are named relative to its directory; None: absolute)."""
     from jaxplush.scene.write import format_scene
     scene = result.problem.scene
     objects = []
@@ -335,7 +351,7 @@ def fitted_scene_text(result):
         a, b = o.vertex_slice
         fa, fb = o.face_slice
         obj = dict(name=o.name, vertices=scene.vertices[a:b], faces=scene.faces[fa:fb] - a,
-                   fixed=[j - a for j in o.fixed] or None)
+                   fixed=[j - a for j in o.fixed] or None, driven=_driven_entries(o, a, path))
         for n in ("k_structural", "dashpot", "drag", "total_weight"):
             obj[n] = float(p[PARAM_NAMES.index(n)][i])
         d = float(p.damping[i])
@@ -366,7 +382,7 @@ def fitted_scene_text(result):
 
 def write_fitted_scene(result, path):
     """Write :func:`fitted_scene_text` to ``path`` atomically."""
-    text = fitted_scene_text(result)
+    text = fitted_scene_text(result, path)
     with atomic_path(path, ".obj") as tmp:
         with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
             fh.write(text)

@@ -644,7 +644,58 @@ def scene_plush_pile():
                  contact_capacity=PILE_CAPACITY, contact_friction=PILE_FRICTION))
 
 
-SCENES = (scene_ball_drop, scene_bear, scene_hanging, scene_two_plushies, scene_plush_pile)
+def write_path_csv(fname, times, positions):
+    """Write a driven vertices' path file (docs/formats.md §2.7): a header, then one row
+    t,x1,y1,z1,... per sample; ``positions`` (S, D, 3). Floats with repr (deterministic)."""
+    positions = np.asarray(positions, np.float64)
+    head = "t," + ",".join(f"x{j + 1},y{j + 1},z{j + 1}" for j in range(positions.shape[1]))
+    rows = [",".join(repr(float(v)) for v in [t, *p.ravel().tolist()]) for t, p in zip(times, positions)]
+    (HERE / fname).write_text("\n".join([head, *rows]) + "\n")
+
+
+def scene_lifted():
+    v, f = ball_mesh(2, 0.1)
+    lift = FLOOR - v[:, 1].min()
+    top = int(np.argmax(v[:, 1]))
+    obj, info = make_object("lifted_ball", v, f, total_weight=0.1, k=200.0, translate=(0.0, lift, 0.0))
+    start = v[top] + np.array([0.0, lift, 0.0])
+    times = [0.0, 0.5, 0.8]
+    positions = [[start], [start + [0.0, 0.3, 0.0]], [start + [0.0, 0.3, 0.0]]]
+    write_path_csv("lifted_path.csv", times, positions)
+    release = 0.8
+    obj["driven"] = [dict(path="lifted_path.csv", vertices=[top], until=release)]
+    text = ("A 162-vertex inflated ball (icosphere, radius 0.1 m, 0.1 kg, k = 200 N/m) resting on the "
+            "floor is lifted by its top vertex, driven along lifted_path.csv: up 0.3 m in 0.5 s, held "
+            f"for 0.3 s, then released ('until {release:g}'): from then on the vertex is free and the "
+            "ball drops back onto the floor. The modal numbers are for the free ball.")
+    return "lifted.obj", text, [obj], [info], dict(gravity=GRAVITY, floor=FLOOR, temperature=TEMPERATURE)
+
+
+def scene_squeezed():
+    radius = 0.1
+    v, f = ball_mesh(2, radius)
+    lift = FLOOR - v[:, 1].min()
+    obj, info = make_object("squeezed_ball", v, f, total_weight=0.1, k=200.0, translate=(0.0, lift, 0.0))
+    times = np.array([0.0, 0.5, 0.8, 1.3])
+    depth = np.array([0.0, 0.04, 0.04, 0.0])       # how far each patch has moved in, m
+    entries = []
+    for side, fname in ((1.0, "squeezed_right.csv"), (-1.0, "squeezed_left.csv")):
+        patch = np.flatnonzero(side * v[:, 0] > 0.8 * radius)
+        x = v[patch] + np.array([0.0, lift, 0.0])
+        positions = [x - side * d * np.array([1.0, 0.0, 0.0]) for d in depth]
+        write_path_csv(fname, times, positions)
+        entries.append(dict(path=fname, vertices=patch.tolist()))
+    obj["driven"] = entries
+    n = sum(len(e["vertices"]) for e in entries)
+    text = ("A 162-vertex inflated ball (icosphere, radius 0.1 m, 0.1 kg, k = 200 N/m) on the floor, "
+            f"squeezed between two driven patches ({n} vertices: the caps beyond x = +-0.08 m): each "
+            "moves 4 cm inwards in 0.5 s (squeezed_right.csv, squeezed_left.csv), holds for 0.3 s, "
+            "moves back in 0.5 s and then holds. The modal numbers are for the free ball.")
+    return "squeezed.obj", text, [obj], [info], dict(gravity=GRAVITY, floor=FLOOR, temperature=TEMPERATURE)
+
+
+SCENES = (scene_ball_drop, scene_bear, scene_hanging, scene_two_plushies, scene_plush_pile, scene_lifted,
+          scene_squeezed)
 
 
 # --------------------------------------------------------------------------- output

@@ -708,7 +708,9 @@ def scene_to_objects(scene):
         v0, v1 = o.vertex_slice
         f0, f1 = o.face_slice
         d = dict(name=o.name, vertices=scene.vertices[v0:v1], faces=scene.faces[f0:f1].astype(np.int64) - v0,
-                 fixed=[j - v0 for j in o.fixed] or None)
+                 fixed=[j - v0 for j in o.fixed] or None,
+                 driven=[dict(path=p.file, vertices=[j - v0 for j in p.vertices], until=p.until)
+                         for p in o.driven] or None)
         for k in ("k_structural", "damping", "dashpot", "drag", "total_weight"):
             d[k] = float(getattr(scene.params, k)[i])
         if o.has_gas:
@@ -730,6 +732,10 @@ def _assert_same_scene(a, b):
     assert b.floor == a.floor
     assert b.temperature == a.temperature
     np.testing.assert_array_equal(b.fixed, a.fixed)
+    assert [(d.file, d.vertices, d.until) for d in b.driven] == [(d.file, d.vertices, d.until) for d in a.driven]
+    for p, q in zip(a.driven, b.driven):
+        np.testing.assert_array_equal(q.times, p.times)
+        np.testing.assert_array_equal(q.positions, p.positions)
 
 
 def _round_trip(scene):

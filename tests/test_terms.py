@@ -51,7 +51,8 @@ def test_engines_take_their_gates_from_the_registry():
     assert G._ADJOINT_TERMS == T.supported("adjoint")
     assert batched.SUPPORTED_TERMS == T.supported("batched")
     # the one-step VJP check toggles exactly the terms the adjoint claims (spring is always on)
-    assert T.supported("adjoint") == {"spring", *TOGGLES}
+    # (driven vertices: a mask whose one-step VJP tests/test_driven.py checks against jax.vjp)
+    assert T.supported("adjoint") == {"spring", "driven", *TOGGLES}
 
 
 def test_an_unsupported_term_is_refused_by_name():

@@ -184,6 +184,8 @@ class Terms:
     floor_restitution: float = 0.0
     #: the smooth penalty floor (:class:`SmoothFloor`, ``floor_model smooth``), None: not compiled in
     floor_smooth: object = None
+    #: driven vertices (scene keyword ``driven``; :class:`jaxplush.stepping.constraints.Drive`)
+    driven: bool = False
 
     @classmethod
     def for_scene(cls, scene, params=None):
@@ -207,7 +209,8 @@ class Terms:
                    verlet_damping=on("damping"),
                    contact=_contact.config_for_scene(scene),
                    floor_friction=float(scene.floor_friction) if has_floor else 0.0,
-                   floor_restitution=float(scene.floor_restitution) if has_floor else 0.0)
+                   floor_restitution=float(scene.floor_restitution) if has_floor else 0.0,
+                   driven=len(getattr(scene, "driven", ())) > 0)
 
     def names(self):
         out = tuple(f.name for f in dataclasses.fields(self) if getattr(self, f.name))

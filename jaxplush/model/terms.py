@@ -273,6 +273,7 @@ REGISTRY = (
     TermSpec("floor_friction", "jaxplush.stepping.constraints.make_constrain", batched=True, adjoint=False),
     TermSpec("floor_restitution", "jaxplush.stepping.constraints.make_constrain", batched=True, adjoint=False),
     TermSpec("floor_smooth", "jaxplush.model.terms.smooth_floor_force", batched=True, adjoint=False),
+    TermSpec("driven", "jaxplush.stepping.constraints.Drive", batched=False, adjoint=True),
 )
 
 

@@ -15,6 +15,9 @@ single object, or with objects separated by ``o`` lines, may omit it):
   ``scale S``         uniform scale about the object's coordinate origin (> 0; default 1)
   ``translate X Y Z`` translation in m, applied after scale
   ``fixed I``         pin vertex I (an index as in ``f`` lines); may repeat
+  ``driven PATH I [I ...] [until T]``  vertices I ... follow the path in file PATH (relative to
+                      the scene file's directory; CSV or HDF5, jaxplush.scene.paths), until the
+                      release time T if given; may repeat (docs/formats.md §2.7)
 
 Scene level (anywhere, at most once each):
   ``gravity GX GY GZ`` m/s² (default 0 -9.81 0; y is up)
@@ -110,6 +113,7 @@ class SceneObject:
       fixed: global (0-based, compacted) indices of its pinned vertices.
       has_gas: whether ``nmol`` was given.
       line: line where the object starts.
+      driven: its :class:`DrivenPath` entries (one per ``driven`` line), in file order.
     """
 
     name: str
@@ -118,6 +122,7 @@ class SceneObject:
     fixed: tuple
     has_gas: bool
     line: int
+    driven: tuple = ()
 
     @property
     def n_vertices(self):
@@ -126,6 +131,34 @@ class SceneObject:
     @property
     def n_faces(self):
         return self.face_slice[1] - self.face_slice[0]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DrivenPath:
+    """One ``driven PATH I [I ...] [until T]`` line: vertices that follow a prescribed path.
+
+    Attributes:
+      source: PATH as written in the scene (relative to the scene file's directory, or absolute).
+      file: the path file it resolved to (absolute).
+      vertices: global (0-based, compacted) scene indices of the driven vertices, in line order.
+      times: (S,) float64 strictly increasing sample times, s.
+      positions: (S, D, 3) float64 world positions of the D vertices at the samples, m.
+      until: release time T, s (after it the vertices move freely), or None (driven throughout).
+      line: the scene line.
+    """
+
+    source: str
+    file: str
+    vertices: tuple
+    times: np.ndarray
+    positions: np.ndarray
+    until: float | None
+    line: int
+
+    def position(self, t):
+        """(D, 3) positions at time ``t`` (numpy; linear between samples, held outside them)."""
+        return np.stack([np.stack([np.interp(t, self.times, self.positions[:, d, c]) for c in range(3)])
+                         for d in range(len(self.vertices))])
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -197,6 +230,16 @@ class Scene:
         return np.asarray(sorted(set(idx)), np.int32)
 
     @property
+    def driven(self):
+        """Tuple of every object's :class:`DrivenPath` entries (objects in order)."""
+        return tuple(d for o in self.objects for d in o.driven)
+
+    @property
+    def driven_vertices(self):
+        """(D,) int32 global indices of all driven vertices (in the order of :attr:`driven`)."""
+        return np.asarray([i for d in self.driven for i in d.vertices], np.int32)
+
+    @property
     def has_gas(self):
         return any(o.has_gas for o in self.objects)
 
@@ -229,6 +272,10 @@ class Scene:
                     self.contact_stiffness, self.contact_thickness, self.contact_capacity,
                     self.contact_friction, self.floor_model, self.floor_stiffness)
         h.update(repr(settings).encode())
+        for d in self.driven:                    # the paths are constants of the compiled step
+            h.update(repr((d.vertices, d.until, d.times.shape, d.positions.shape)).encode())
+            h.update(np.ascontiguousarray(d.times, np.float64).tobytes())
+            h.update(np.ascontiguousarray(d.positions, np.float64).tobytes())
         return h.hexdigest()
 
 
@@ -243,6 +290,7 @@ class _Obj:
         self.blocks = False   # whether faces holds blocks read in bulk
         self.keys = {}        # keyword -> (values, line)
         self.fixed = []       # (0-based global index, line)
+        self.driven = []      # (path token, [0-based global indices], until or None, line)
 
 
 def load_scene(path):
@@ -565,10 +613,27 @@ class _Parser:
             if len(args) != 1:
                 raise self.err(lineno, f"'fixed' expects 1 vertex index, got {len(args)} value(s)")
             self.obj(lineno).fixed.append((self.resolve(args[0], "fixed", lineno), lineno))
+        elif key == "driven":
+            self.driven_line(args, lineno)
         elif key in _SCENE_KEYS or key in _SWITCH_KEYS or key in _CHOICE_KEYS:
             self.scene_keyword(key, args, lineno)
         elif key not in _IGNORED:
             raise self.err(lineno, f"unknown keyword {key!r}")
+
+    def driven_line(self, args, lineno):
+        """A ``driven PATH I [I ...] [until T]`` line: stored on the open object; the file is read
+        and the indices checked against the object in :meth:`object_driven`."""
+        until = None
+        if len(args) >= 2 and args[-2] == "until":
+            until = _number(self.path, lineno, "driven", args[-1])
+            if not until > 0:
+                raise self.err(lineno, f"'driven' release time 'until {args[-1]}' must be > 0 s")
+            args = args[:-2]
+        if len(args) < 2:
+            raise self.err(lineno, "'driven' expects a path file and at least 1 vertex index "
+                                   "(driven PATH I [I ...] [until T])")
+        idx = [self.resolve(a, "driven", lineno) for a in args[1:]]
+        self.obj(lineno).driven.append((args[0], idx, until, lineno))
 
     def start_object(self, key, args, lineno):
         """An 'o' or 'g' line: a new 'o' after faces starts the next object; the name is set."""
@@ -665,11 +730,13 @@ class _Parser:
             local = np.searchsorted(used, idx)
             x = self.object_positions(o, name, raw, used, vertex_line)
             fixed = self.object_fixed(o, name, used, vstart)
+            driven = self.object_driven(o, name, used, vstart, fixed)
             for k, d in DEFAULTS.items():
                 params[k].append(o.keys[k][0][0] if k in o.keys else d)
             objs.append(SceneObject(name=name, vertex_slice=(vstart, vstart + len(used)),
                                     face_slice=(fstart, fstart + len(local)),
-                                    fixed=tuple(sorted(set(fixed))), has_gas="nmol" in o.keys, line=o.line))
+                                    fixed=tuple(sorted(set(fixed))), has_gas="nmol" in o.keys, line=o.line,
+                                    driven=driven))
             pending.append((name, used, o.line))
             all_x.append(x)
             all_local.append(local + vstart)
@@ -743,6 +810,36 @@ class _Parser:
                 raise self.err(ln, f"'fixed' vertex {g + 1} is not a vertex of object {name!r}")
             fixed.append(vstart + int(j))
         return fixed
+
+    def object_driven(self, o, name, used, vstart, fixed):
+        """The :class:`DrivenPath` entries of an object: indices its own, no vertex both fixed and
+        driven or driven twice, every path file read and checked (:func:`jaxplush.scene.paths.read_path`)."""
+        from jaxplush.scene import paths
+        out, seen = [], {}
+        fixed = set(fixed)
+        real = not (self.path.startswith("<") and self.path.endswith(">"))
+        base = os.path.dirname(os.path.abspath(self.path)) if real else os.getcwd()
+        for source, idx, until, ln in o.driven:
+            verts = []
+            for g in idx:
+                j = np.searchsorted(used, g)
+                if j >= len(used) or used[j] != g:
+                    raise self.err(ln, f"'driven' vertex {g + 1} is not a vertex of object {name!r}")
+                i = vstart + int(j)
+                if i in fixed:
+                    raise self.err(ln, f"'driven' vertex {g + 1} is also 'fixed' (a vertex is either pinned or driven)")
+                if i in seen:
+                    raise self.err(ln, f"'driven' vertex {g + 1} is driven twice (also on line {seen[i]})")
+                seen[i] = ln
+                verts.append(i)
+            file = os.path.normpath(os.path.join(base, os.path.expanduser(source)))
+            try:
+                times, positions = paths.read_path(file, len(verts))
+            except paths.PathFileError as e:
+                raise self.err(ln, f"'driven' path file {source!r} ({file}): {e}") from None
+            out.append(DrivenPath(source=source, file=file, vertices=tuple(verts), times=times,
+                                  positions=positions, until=until, line=ln))
+        return tuple(out)
 
     def scene_settings(self, objs, vertices):
         """The Scene fields set by scene keywords (gravity, floor, temperature and the floor and

@@ -7,7 +7,7 @@ The format (read by :func:`jaxplush.load_scene`; reference: docs/formats.md §2)
 * Per-object keywords, inside the object's block (``o NAME`` ... ``END_OBJECT``):
   ``k_structural K``, ``damping D``, ``dashpot C``, ``drag G``, ``total_weight M``,
   ``nmol N``, ``scale S``, ``translate X Y Z``, ``fixed I`` (1-based global index, may
-  repeat). ``END_OBJECT`` closes the object.
+  repeat), ``driven PATH I [I ...] [until T]`` (may repeat). ``END_OBJECT`` closes the object.
 * Scene keywords, written at the top: ``gravity GX GY GZ``, ``floor H``, ``temperature T``,
   and the floor and contact keywords ``floor_model projection|smooth``, ``floor_stiffness K``,
   ``floor_friction MU``, ``floor_restitution E``, ``contact on|off``,
@@ -20,7 +20,7 @@ Objects are given in their own coordinates with 0-based *local* face and fixed i
 values, and the rest lengths a simulator derives from it are exactly those intended here.
 
 Each object block is laid out as: ``o NAME``, its parameters, its ``v`` lines, its ``f``
-lines, its ``fixed`` lines, ``END_OBJECT``; a parser that needs vertices to exist before
+lines, its ``fixed`` lines, its ``driven`` lines, ``END_OBJECT``; a parser that needs vertices to exist before
 ``fixed`` refers to them is therefore satisfied.
 
 The writer checks what it can check cheaply (shapes, finite values, index ranges, parameter
@@ -54,7 +54,7 @@ _SCALAR_PARAMS: tuple[tuple[str, object, str], ...] = (
 
 #: Every key an object dict may carry.
 OBJECT_KEYS = frozenset(
-    {"name", "vertices", "faces", "translate", "fixed"} | {k for k, _, _ in _SCALAR_PARAMS}
+    {"name", "vertices", "faces", "translate", "fixed", "driven"} | {k for k, _, _ in _SCALAR_PARAMS}
 )
 
 
@@ -137,7 +137,29 @@ def _check_object(obj: Mapping, i: int):
             raise ValueError(f"object {name!r}: {key} must be finite and {msg}, got {val!r}")
     if obj.get("translate") is not None:
         _vec3(obj["translate"], f"object {name!r}: translate")
+    _check_driven(obj.get("driven"), name, n)
     return name, vertices, faces, fixed_list
+
+
+def _check_driven(driven, name, n):
+    """Validate an object's ``driven`` entries: dicts with ``path`` (str without whitespace),
+    ``vertices`` (0-based local indices) and optionally ``until`` (> 0)."""
+    for d in driven or ():
+        if not isinstance(d, Mapping) or set(d) - {"path", "vertices", "until"} or "path" not in d:
+            raise ValueError(f"object {name!r}: each driven entry must be a dict with 'path', 'vertices' and "
+                             f"optionally 'until', got {d!r}")
+        path = os.fspath(d["path"])
+        if not path or any(c.isspace() for c in path) or "#" in path:
+            raise ValueError(f"object {name!r}: driven path {path!r} must be non-empty, without whitespace or '#'")
+        idx = np.atleast_1d(np.asarray(d.get("vertices"))).ravel().tolist()
+        if not idx:
+            raise ValueError(f"object {name!r}: a driven entry needs at least one vertex")
+        for j in idx:
+            if isinstance(j, bool) or int(j) != j or not 0 <= int(j) < n:
+                raise ValueError(f"object {name!r}: driven index {j!r} outside [0, {n}) (0-based local)")
+        until = d.get("until")
+        if until is not None and not (math.isfinite(float(until)) and float(until) > 0):
+            raise ValueError(f"object {name!r}: driven 'until' must be finite and > 0, got {until!r}")
 
 
 def format_scene(
@@ -165,7 +187,10 @@ def format_scene(
         ``vertices`` ((n, 3) floats, object coordinates), ``faces`` ((f, 3) ints, 0-based
         local). Optional keys (``None`` or absent = not written): ``k_structural``,
         ``damping``, ``dashpot``, ``drag``, ``total_weight``, ``nmol``, ``scale``,
-        ``translate`` (3 floats), ``fixed`` (0-based local vertex indices). Ranges are
+        ``translate`` (3 floats), ``fixed`` (0-based local vertex indices), ``driven`` (a list
+        of dicts ``path`` (the path file as the scene should name it: relative to the scene
+        file's directory, or absolute), ``vertices`` (0-based local indices) and optionally
+        ``until`` (release time, s)). Ranges are
         those the parser accepts: ``nmol > 0`` (omit it for no gas), ``damping`` 0 or >= 1.
       gravity: scene gravity (3 floats), or None to leave the parser's default.
       floor: height of the floor plane y = floor, or None for no floor.
@@ -287,6 +312,10 @@ def _object_lines(obj: Mapping, name: str, vertices, faces, fixed, offset: int) 
     lines.extend(f"v {_num(x)} {_num(y)} {_num(z)}" for x, y, z in vertices.tolist())
     lines.extend(f"f {a} {b} {c}" for a, b, c in (faces + (offset + 1)).tolist())
     lines.extend(f"fixed {j + offset + 1}" for j in fixed)
+    for d in obj.get("driven") or ():
+        idx = " ".join(str(int(j) + offset + 1) for j in np.atleast_1d(np.asarray(d["vertices"])).ravel().tolist())
+        until = f" until {_num(d['until'])}" if d.get("until") is not None else ""
+        lines.append(f"driven {os.fspath(d['path'])} {idx}{until}")
     lines.append("END_OBJECT")
     lines.append("")
     return lines

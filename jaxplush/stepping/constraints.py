@@ -7,7 +7,8 @@ integrator calls it once per step, so floor response and pins live in one place.
 
 Floor (y >= H): a projection that sets the vertex's vertical velocity to the one that lands it
 on the floor; it only ever removes energy (docs/model.md §6). Pinned vertices keep their rest
-position with zero velocity.
+position with zero velocity. Driven vertices (scene keyword ``driven``, :class:`Drive`) are set
+last, from their path: the path wins over the floor and every force (docs/model.md §10).
 
 Optional floor response (scene keywords; absent = the plain projection above, not traced):
 
@@ -36,16 +37,123 @@ def landing_velocity(y_old, height, h):
     return (height - y_old) / h
 
 
-def make_constrain(topo, terms, scene, dt):
-    """Build ``constrain(x_old, x_new, v_new) -> (x, v)`` for a scene (only needed parts traced)."""
+class Drive:
+    """The driven vertices of a scene (``scene.driven``) as constants of a step of length ``h``
+    (docs/model.md §10). Substep k advances t_k = k h to t_{k+1} = (k + 1) h; a path is linear
+    between its samples (``jnp.interp`` per coordinate) and holds its first and last sample
+    outside them. A vertex with a release time T (``until T``) is driven in the substeps that end
+    at or before T (k + 1 <= T / h, decided in integers) and free afterwards.
+
+    Attributes:
+      index: (D,) int32 driven vertices, in the order of ``scene.driven``.
+      release: (D,) int64 first substep in which each is free (None: none is ever released).
+    """
+
+    def __init__(self, scene, h):
+        self.h = float(h)
+        self.groups = []
+        release = []
+        for d in scene.driven:
+            pos = np.ascontiguousarray(np.transpose(d.positions, (2, 1, 0)))     # (3, Dg, S)
+            self.groups.append((np.asarray(d.times, np.float64), pos))
+            r = np.iinfo(np.int32).max if d.until is None else int(np.floor(d.until / self.h * (1 + 1e-12)))
+            release += [r] * len(d.vertices)
+        self.index = np.asarray(scene.driven_vertices, np.int32)
+        self.release = np.asarray(release, np.int64) if any(d.until is not None for d in scene.driven) else None
+        # at t = 0 (numpy): positions and the path's velocity, the slope of the interpolant from the right
+        p0, s0 = [], []
+        for times, pos in self.groups:
+            p0.append(np.stack([[np.interp(0.0, times, pos[c, j]) for j in range(pos.shape[1])] for c in range(3)]))
+            i = int(np.searchsorted(times, 0.0, side="right")) - 1
+            if 0 <= i < len(times) - 1:
+                s0.append((pos[:, :, i + 1] - pos[:, :, i]) / (times[i + 1] - times[i]))
+            else:
+                s0.append(np.zeros((3, pos.shape[1])))
+        self.x_start = np.concatenate(p0, axis=1)
+        self.v_start = np.concatenate(s0, axis=1)
+
+    def position(self, t, dtype):
+        """(3, D) positions at the (traced) time ``t``."""
+        out = []
+        for times, pos in self.groups:
+            if len(times) == 1:
+                out.append(jnp.asarray(pos[:, :, 0], dtype))
+                continue
+            tt, pp = jnp.asarray(times, dtype), jnp.asarray(pos, dtype)
+            out.append(jax.vmap(jax.vmap(lambda fp: jnp.interp(t, tt, fp)))(pp))
+        return out[0] if len(out) == 1 else jnp.concatenate(out, axis=1)
+
+    def active(self, k):
+        """(D,) bool: driven in substep ``k`` (None: all are, always)."""
+        if self.release is None:
+            return None
+        if k is None:
+            raise missing_step_error()
+        return jnp.asarray(k, jnp.int32) < jnp.asarray(np.minimum(self.release, np.iinfo(np.int32).max), jnp.int32)
+
+    def apply(self, x, v, k):
+        """(x, v) with the driven vertices at their path's position at the end of substep ``k``
+        and its velocity over the substep, (p(t_{k+1}) - p(t_k)) / h (released ones untouched)."""
+        if k is None:
+            raise missing_step_error()
+        with jax.named_scope("driven"):
+            k = jnp.asarray(k, jnp.int32)
+            t0 = k.astype(x.dtype) * self.h
+            t1 = (k + 1).astype(x.dtype) * self.h
+            p0, p1 = self.position(t0, x.dtype), self.position(t1, x.dtype)
+            vel = (p1 - p0) * (1.0 / self.h)
+            idx = self.index
+            act = self.active(k)
+            if act is not None:
+                p1 = jnp.where(act, p1, x[:, idx])
+                vel = jnp.where(act, vel, v[:, idx])
+            return x.at[:, idx].set(p1), v.at[:, idx].set(vel)
+
+    def hold(self, a, k):
+        """``a`` (3, V) with zeros at the vertices driven in substep ``k`` (their acceleration or
+        velocity change inside a scheme's stages, as for pinned vertices)."""
+        act = self.active(k)
+        idx = self.index
+        if act is None:
+            return a.at[:, idx].set(0.0)
+        return a.at[:, idx].set(jnp.where(act, 0.0, a[:, idx]))
+
+    def free(self, k, n_vertices, dtype):
+        """(V,) 1 for vertices not driven in substep ``k``, 0 for driven ones."""
+        base = np.ones(n_vertices)
+        if self.release is None:
+            base[self.index] = 0.0
+            return jnp.asarray(base, dtype)
+        act = self.active(k)
+        return jnp.asarray(base, dtype).at[self.index].set(jnp.where(act, 0.0, 1.0).astype(dtype))
+
+    def start(self, x, v):
+        """(x, v) at t = 0: the driven vertices at their path's first position with its velocity."""
+        idx = self.index
+        return (x.at[:, idx].set(jnp.asarray(self.x_start, x.dtype)),
+                v.at[:, idx].set(jnp.asarray(self.v_start, v.dtype)))
+
+
+def missing_step_error():
+    return ValueError("this scene has driven vertices (keyword 'driven'), whose positions depend on time: "
+                      "pass the index of the step being advanced, step_fn(params, state, step=n) "
+                      "(the state is at t = n dt)")
+
+
+def make_constrain(topo, terms, scene, dt, drive=None):
+    """Build ``constrain(x_old, x_new, v_new, k=None) -> (x, v)`` for a scene (only needed parts
+    traced); ``k``, the substep index, is needed (and read) only with driven vertices
+    (``drive``: a :class:`Drive` of the scene for steps of ``dt``; built here if None)."""
     fixed = topo.fixed
+    if getattr(terms, "driven", False) and drive is None:
+        drive = Drive(scene, dt)
     floor = scene.floor
     x0_soa = np.ascontiguousarray(topo.x0.T)
     mu = float(terms.floor_friction)
     restitution = float(terms.floor_restitution)
     v_rest = max(2.0 * abs(float(scene.gravity[1])) * dt, 1e-9)
 
-    def constrain(x_old, x, v):
+    def constrain(x_old, x, v, k=None):
         if terms.floor:
             with jax.named_scope("floor"):
                 below = x[1] < floor
@@ -71,6 +179,10 @@ def make_constrain(topo, terms, scene, dt):
             with jax.named_scope("fixed"):
                 x = x.at[:, fixed].set(jnp.asarray(x0_soa[:, fixed], x.dtype))
                 v = v.at[:, fixed].set(0.0)
+        if getattr(terms, "driven", False):
+            if k is None:
+                raise missing_step_error()
+            x, v = drive.apply(x, v, k)
         return x, v
 
     return constrain

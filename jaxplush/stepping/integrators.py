@@ -4,7 +4,8 @@ Every integrator is a :class:`Scheme` of three pure functions built for one scen
 :func:`build`:
 
 * ``init(params, x, v) -> state``: the integrator's carry from positions and velocities (3, V);
-* ``step(params, state) -> state``: one (sub)step of length ``h``;
+* ``step(params, state, k=None) -> state``: one (sub)step of length ``h``; ``k`` is the (int32)
+  index of the substep, t_k = k h -> t_{k+1}, needed only with driven vertices;
 * ``velocity(params, state) -> v``: the velocity (3, V) at the state's time (for energies).
 
 States are NamedTuples whose first field is the positions ``x`` (3, V) and whose every field is
@@ -34,6 +35,9 @@ its meaning per dt). The other schemes apply it as the equivalent drag rate
 gamma_D = -ln(1 - 1/D) / dt (docs/model.md §5), which decays a velocity by the same factor per
 time step: like Verlet's, its physical strength depends on dt (not on the substeps). Pinned vertices get zero acceleration
 inside the non-Verlet schemes (so RK4's stages see them fixed) and are reset by ``constrain``.
+Driven vertices (:class:`jaxplush.stepping.constraints.Drive`) likewise: zero acceleration in the
+stages (implicit Euler: filtered out of the solve), then set from their path by ``constrain``
+(docs/model.md §10).
 """
 
 from __future__ import annotations
@@ -87,6 +91,7 @@ class System:
       h: (sub)step length, s.
       temperature: gas temperature, K.
       substeps: (sub)steps per time step dt = h * substeps; the report's damping D is per dt.
+      drive: :class:`jaxplush.stepping.constraints.Drive` of the driven vertices, or None.
     """
 
     topo: model.Topology
@@ -97,6 +102,7 @@ class System:
     h: float
     temperature: float
     substeps: int = 1
+    drive: object = None
 
     @property
     def dt(self):
@@ -112,21 +118,37 @@ class System:
                 a = a + jnp.asarray(self.gravity, x.dtype)
         return a, volume
 
-    def rate(self, params, x, v):
+    def rate(self, params, x, v, k=None):
         """Acceleration for the non-Verlet schemes: :meth:`accel`, the report's damping as the
-        drag rate gamma_D, and zero at pinned vertices."""
+        drag rate gamma_D, and zero at pinned vertices (and at vertices driven in substep ``k``)."""
         a, _ = self.accel(params, x, v)
         if self.terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
                 a = a - model.per_vertex(self.topo, damping_rate(params.damping, self.dt)) * v
         if self.terms.fixed:
             a = a.at[:, self.topo.fixed].set(0.0)
+        if self.drive is not None:
+            a = self.drive.hold(a, k)
         return a
 
     def pin_velocity(self, v):
         if self.terms.fixed:
             v = v.at[:, self.topo.fixed].set(0.0)
         return v
+
+    def constrained(self, x_old, x, v, k=None):
+        """``constrain`` (the floor/pin hook) after a (sub)step; the substep index ``k`` is passed
+        only with driven vertices (a hook without them takes (x_old, x, v))."""
+        if self.drive is None:
+            return self.constrain(x_old, x, v)
+        return self.constrain(x_old, x, v, k)
+
+    def start(self, x, v):
+        """(x, v) at t = 0 with pins (zero velocity) and driven vertices (at their path) applied."""
+        v = self.pin_velocity(v)
+        if self.drive is not None:
+            x, v = self.drive.start(x, v)
+        return x, v
 
 
 def damping_factor(damping):
@@ -152,10 +174,19 @@ def damping_keep(damping, substeps=1):
     return jnp.exp(jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / substeps)
 
 
-def repeat_substeps(step, substeps):
+def repeat_substeps(step, substeps, indexed=False):
     """``substeps`` applications of ``step(params, carry) -> carry`` as one step (one
     ``lax.fori_loop``; ``step`` itself for one substep). The carry is the state, or a tuple such as
-    (state, contact cache)."""
+    (state, contact cache). ``indexed`` (driven vertices): ``step(params, carry, k)`` takes the
+    substep index and the result is ``repeated(params, carry, n)`` for time step n (substep j of
+    it is k = n substeps + j)."""
+    if indexed:
+        def repeated_at(params, carry, n):
+            n = jnp.asarray(n, jnp.int32)
+            if substeps == 1:
+                return step(params, carry, n)
+            return jax.lax.fori_loop(0, substeps, lambda j, c: step(params, c, n * substeps + j), carry)
+        return repeated_at
     if substeps == 1:
         return step
 
@@ -201,7 +232,7 @@ def build(name, system, cg_tol=None, cg_maxiter=CG_MAXITER):
 
 def _plain_init(system):
     def init(params, x, v):
-        return State(x, system.pin_velocity(v))
+        return State(*system.start(x, v))
     return init
 
 
@@ -227,15 +258,19 @@ def verlet(system):
     fixed = topo.fixed
 
     def init(params, x, v):
+        if system.drive is not None:
+            x, v = system.drive.start(x, v)
         a0, _ = system.accel(params, x, v)
         u = verlet_start(v, a0, h)
         if terms.fixed:
             u = u.at[:, fixed].set(0.0)
+        if system.drive is not None:      # the path's velocity, as it carries after every step
+            u = system.drive.start(x, u)[1]
         return State(x, u)
 
     gravity = [float(g) for g in np.asarray(system.gravity).reshape(3)]
 
-    def step(params, state):
+    def step(params, state, k=None):
         # system.accel's arithmetic, written row by row (x, y, z) and stacked at the end: XLA
         # then fuses the update into fewer loops over V (faster; benchmarks/RESULTS.md).
         x, u = state
@@ -254,7 +289,7 @@ def verlet(system):
             uc = verlet_kick(u[c], a, h, keep)
             us.append(uc)
             xs.append(verlet_drift(x[c], uc, h))
-        x_new, u_new = system.constrain(x, jnp.stack(xs), jnp.stack(us))
+        x_new, u_new = system.constrained(x, jnp.stack(xs), jnp.stack(us), k)
         return State(x_new, u_new)
 
     def velocity(params, state):
@@ -274,12 +309,12 @@ def euler(system):
     """
     h = system.h
 
-    def step(params, state):
+    def step(params, state, k=None):
         x, v = state
-        a = system.rate(params, x, v)
+        a = system.rate(params, x, v, k)
         x_new = x + h * v
         v_new = v + h * a
-        x_new, v_new = system.constrain(x, x_new, v_new)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return State(x_new, v_new)
 
     return Scheme(_plain_init(system), step, _velocity_field)
@@ -294,12 +329,12 @@ def symplectic_euler(system):
     """
     h = system.h
 
-    def step(params, state):
+    def step(params, state, k=None):
         x, v = state
-        a = system.rate(params, x, v)
+        a = system.rate(params, x, v, k)
         v_new = v + h * a
         x_new = x + h * v_new
-        x_new, v_new = system.constrain(x, x_new, v_new)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return State(x_new, v_new)
 
     return Scheme(_plain_init(system), step, _velocity_field)
@@ -313,18 +348,18 @@ def rk4(system):
     """
     h = system.h
 
-    def step(params, state):
+    def step(params, state, k=None):
         x, v = state
-        a1 = system.rate(params, x, v)
+        a1 = system.rate(params, x, v, k)
         x2, v2 = x + 0.5 * h * v, v + 0.5 * h * a1
-        a2 = system.rate(params, x2, v2)
+        a2 = system.rate(params, x2, v2, k)
         x3, v3 = x + 0.5 * h * v2, v + 0.5 * h * a2
-        a3 = system.rate(params, x3, v3)
+        a3 = system.rate(params, x3, v3, k)
         x4, v4 = x + h * v3, v + h * a3
-        a4 = system.rate(params, x4, v4)
+        a4 = system.rate(params, x4, v4, k)
         x_new = x + (h / 6.0) * (v + 2.0 * v2 + 2.0 * v3 + v4)
         v_new = v + (h / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-        x_new, v_new = system.constrain(x, x_new, v_new)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return State(x_new, v_new)
 
     return Scheme(_plain_init(system), step, _velocity_field)
@@ -361,19 +396,20 @@ def mesit(system):
     valence = topo.ring_mask.sum(axis=1).astype(np.float64)
 
     def init(params, x, v):
-        return MesitState(x, system.pin_velocity(v), jnp.zeros_like(x))
+        x, v = system.start(x, v)
+        return MesitState(x, v, jnp.zeros_like(x))
 
-    def step(params, state):
+    def step(params, state, k=None):
         x, v, dv_prev = state
         m = model.vertex_mass(topo, params)
-        force = m * system.rate(params, x, v)
+        force = m * system.rate(params, x, v, k)
         kn = model.per_vertex(topo, params.k_structural) * jnp.asarray(valence, x.dtype)
         direction, _ = _safe_unit(force)
         _, prev = _safe_unit(dv_prev)
         dv = (h * force + direction * (kn * h * h * prev)) / (m + kn * h * h)
         v_new = v + dv
         x_new = x + h * v_new
-        x_new, v_new = system.constrain(x, x_new, v_new)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return MesitState(x_new, v_new, dv)
 
     return Scheme(init, step, _velocity_field)
@@ -418,7 +454,7 @@ def implicit_euler(system, cg_tol=None, cg_maxiter=CG_MAXITER):
     def gather(a):
         return a.at[ring].get(mode="promise_in_bounds")
 
-    def step(params, state):
+    def step(params, state, k=None):
         x, v = state
         dtype = x.dtype
         m = model.vertex_mass(topo, params)
@@ -430,6 +466,11 @@ def implicit_euler(system, cg_tol=None, cg_maxiter=CG_MAXITER):
         jac = _jacobians(topo, terms, params, x, volume, system.temperature, gather, ring_rest, mask,
                          all_real, h, system.dt)
         fr = jnp.asarray(free, dtype)
+        if system.drive is not None:      # driven vertices are filtered out of the solve as pins are
+            if k is None:
+                from jaxplush.stepping.constraints import missing_step_error
+                raise missing_step_error()
+            fr = fr * system.drive.free(k, topo.n_vertices, dtype)
 
         def system_matrix(u):
             u = fr * u
@@ -444,7 +485,7 @@ def implicit_euler(system, cg_tol=None, cg_maxiter=CG_MAXITER):
                                            M=lambda r: r / diag)
         v_new = v + dv
         x_new = x + h * v_new
-        x_new, v_new = system.constrain(x, x_new, v_new)
+        x_new, v_new = system.constrained(x, x_new, v_new, k)
         return State(x_new, v_new)
 
     return Scheme(_plain_init(system), step, _velocity_field)

@@ -77,11 +77,17 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
 
     coherent = sim.internal.coherent
     check = sim.internal.overflow
+    # one(c, n) advances the carry by step n (the state at t = n dt); only scenes with driven
+    # vertices read n (and trace the step counter), the others ignore it
+    driven = bool(sim.terms.driven)
+
+    def at(n):
+        return n if driven else None
     if coherent is not None:
         # soft-soft contact: the candidate lists ride along in the carry (temporal coherence),
         # with their sticky per-object overflow flags
-        def one(c):
-            return coherent.step(params, *c)
+        def one(c, n):
+            return coherent.step(params, *c, at(n))
         carry0 = (state, coherent.init(state.x))
 
         def overflow(c):
@@ -90,27 +96,31 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
         # soft-soft contact searched afresh every step: a sticky flag of the same search's
         # overflow at the positions each step starts from rides along (where the step's force
         # is first evaluated: XLA can share the broad phase with it)
-        def one(c):
-            return step_fn(params, c[0]), c[1] | check(c[0].x)
+        def one(c, n):
+            return step_fn(params, c[0], at(n)), c[1] | check(c[0].x)
         carry0 = (state, jnp.zeros((sim.topology.n_objects,), bool))
 
         def overflow(c):
             return c[1]
     else:
-        def one(c):
-            return (step_fn(params, c[0]),)
+        def one(c, n):
+            return (step_fn(params, c[0], at(n)),)
         carry0 = (state,)
         overflow = None
 
-    def steps(s):
-        return jax.lax.scan(lambda c, _: (one(c), None), s, None, length=save_every)[0]
+    if driven:
+        def steps(s, first):
+            return jax.lax.scan(lambda c, n: (one(c, n), None), s, first + jnp.arange(save_every, dtype=jnp.int32))[0]
+    else:
+        def steps(s, first):
+            return jax.lax.scan(lambda c, _: (one(c, None), None), s, None, length=save_every)[0]
 
     if checkpoint:
         steps = jax.checkpoint(steps)
 
     def frame(carry, i):
         c, h = carry
-        c = steps(c)
+        c = steps(c, step0 + i * save_every if driven else None)
         s = c[0]
         step = step0 + (i + 1) * save_every
         if overflow is None:

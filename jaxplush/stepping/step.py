@@ -38,8 +38,10 @@ class Simulator:
 
     Attributes:
       init_fn: (params, x0=None, v0=None) -> state; defaults: rest positions, zero velocity.
-      step_fn: (params, state) -> state, pure, one time step of length ``dt`` (``substeps``
-        integrator steps of ``dt / substeps``).
+      step_fn: (params, state, step=None) -> state, pure, one time step of length ``dt``
+        (``substeps`` integrator steps of ``dt / substeps``). ``step``: the int index n of the
+        state being advanced (t = n dt -> (n + 1) dt); required for a scene with driven vertices,
+        ignored (and not traced) otherwise.
       status_fn: (params, state) -> (O,) int32 health code per object (see diagnostics); with
         soft-soft contact also ``CONTACT_OVERFLOW`` for an object whose contact candidates a fresh
         search at the state's positions would overflow.
@@ -105,7 +107,8 @@ class Simulator:
 class Internal(NamedTuple):
     """A simulator's step on the internal, component-major (3, V) layout.
 
-    step: (params, state) -> state on that layout (rollouts scan it); to_internal, to_public:
+    step: (params, state, step=None) -> state on that layout (rollouts scan it; ``step`` as in
+    ``Simulator.step_fn``); to_internal, to_public:
     the layout conversions of a state; coherent: for scenes with soft-soft contact, a
     :class:`CoherentStep` (the step with the contact candidate lists carried from step to step,
     which rollouts scan instead), None otherwise; overflow: for scenes with soft-soft contact
@@ -125,7 +128,8 @@ class CoherentStep(NamedTuple):
     """The step with soft-soft contact candidates carried between steps (temporal coherence).
 
     ``init(x) -> cache`` searches the candidate lists at internal positions x (3, V);
-    ``step(params, state, cache) -> (state, cache)`` advances one step with the cached lists and
+    ``step(params, state, cache, step=None) -> (state, cache)`` (``step`` as in
+    ``Simulator.step_fn``) advances one step with the cached lists and
     updates them after every substep (:func:`jaxplush.model.contact.make_contact`: rebuilt once a vertex
     has moved half the skin, otherwise each query's nearest vertex is walked along the mesh).
     """
@@ -165,17 +169,19 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     model.check_precision(topo, dtype, scene.path)
     terms = model.Terms.for_scene(scene) if terms is None else terms
     kernel, cache_ops = model.make_force_fn(topo, terms, scene.temperature, assembly, h=h, with_cache=True)
+    drive = constraints.Drive(scene, h) if terms.driven else None
     system = integrators.System(
         topo=topo, terms=terms, kernel=kernel, gravity=np.asarray(scene.gravity, np.float64)[:, None],
-        constrain=constraints.make_constrain(topo, terms, scene, h), h=h, temperature=scene.temperature,
-        substeps=substeps)
+        constrain=constraints.make_constrain(topo, terms, scene, h, drive=drive), h=h, temperature=scene.temperature,
+        substeps=substeps, drive=drive)
     scheme = integrators.build(integrator, system, cg_tol=cg_tol, cg_maxiter=cg_maxiter)
     coherent = None
     if cache_ops is not None and coherent_contact:
         coherent = _coherent_step(system, kernel, cache_ops, integrator, substeps, cg_tol, cg_maxiter)
 
     # Internally everything is component-major, (3, V): see model.make_force_fn.
-    internal_step = integrators.repeat_substeps(scheme.step, substeps)
+    internal_step = _indexed(integrators.repeat_substeps(scheme.step, substeps, indexed=drive is not None),
+                             drive is not None)
 
     overflow = None
     if terms.contact:
@@ -203,17 +209,38 @@ def _checked_step_args(integrator, dt, substeps):
     return dt, int(substeps)
 
 
+def _indexed(repeated, driven):
+    """The internal step ``(params, state, step=None)`` from ``repeated``: without driven vertices
+    ``repeated(params, state)`` (``step`` ignored, nothing traced for it); with them
+    ``repeated(params, state, step)``, and a missing ``step`` is an error."""
+    if not driven:
+        return lambda params, state, step=None: repeated(params, state)
+
+    def step_at(params, state, step=None):
+        if step is None:
+            raise constraints.missing_step_error()
+        return repeated(params, state, step)
+    return step_at
+
+
 def _coherent_step(system, kernel, cache_ops, integrator, substeps, cg_tol, cg_maxiter):
     """The :class:`CoherentStep` of a scheme with soft-soft contact: ``substeps`` integrator steps,
     the force kernel reading the carried candidate lists, the lists updated after each."""
-    def coherent_substep(params, state, cache):
+    def coherent_substep(params, state, cache, k=None):
         # the same scheme, its force kernel reading the carried candidate lists
         sys_c = dataclasses.replace(system, kernel=functools.partial(kernel, cache=cache))
-        state = integrators.build(integrator, sys_c, cg_tol=cg_tol, cg_maxiter=cg_maxiter).step(params, state)
+        state = integrators.build(integrator, sys_c, cg_tol=cg_tol, cg_maxiter=cg_maxiter).step(params, state, k)
         return state, cache_ops.update(cache, state.x)
 
-    repeated = integrators.repeat_substeps(lambda params, c: coherent_substep(params, *c), substeps)
-    return CoherentStep(init=cache_ops.init, step=lambda params, state, cache: repeated(params, (state, cache)))
+    driven = system.drive is not None
+    if driven:
+        repeated = integrators.repeat_substeps(lambda params, c, k: coherent_substep(params, *c, k), substeps,
+                                               indexed=True)
+    else:
+        repeated = integrators.repeat_substeps(lambda params, c: coherent_substep(params, *c), substeps)
+    step = _indexed(repeated, driven)
+    return CoherentStep(init=cache_ops.init,
+                        step=lambda params, state, cache, step_index=None: step(params, (state, cache), step_index))
 
 
 def _public_fns(topo, terms, dtype, scheme, internal_step, kernel, overflow):
@@ -227,8 +254,8 @@ def _public_fns(topo, terms, dtype, scheme, internal_step, kernel, overflow):
     def init_fn(params, x0=None, v0=None):
         return to_public(internal_init(params, x0, v0))
 
-    def step_fn(params, state):
-        return to_public(internal_step(params, to_internal(state)))
+    def step_fn(params, state, step=None):
+        return to_public(internal_step(params, to_internal(state), step))
 
     def force_fn(params, x, v):
         f, volume = kernel(params, jnp.asarray(x).T, jnp.asarray(v).T)
