@@ -166,7 +166,9 @@ def test_step_index_is_required_and_plain_scenes_ignore_it(tmp_path):
 
 
 def test_release_after_until(tmp_path):
-    """Before T the vertex is held on its path; after it, the step is exactly the free scene's step."""
+    """Before T the vertex is held on its path; after it, each step from a state is the free scene's
+    step from that state (to rounding: two compiled programs may fuse and round differently, as on
+    a GPU)."""
     until = 0.0105                                                          # released after step 10
     s = _scene(tmp_path, [0.0], [[0, 0.03, 0]], until=until, gravity=(0.0, -9.81, 0.0), nmol=5e-4)
     free = jaxplush.parse_scene(icosphere_text(gravity=(0.0, -9.81, 0.0), nmol=5e-4), "<free>")
@@ -179,10 +181,12 @@ def test_release_after_until(tmp_path):
         for n in range(10):
             state = step(p, state, n)
             np.testing.assert_allclose(np.asarray(state.x)[0], _path(s, 0.0)[0], atol=1e-7)
-        other = state
         for n in range(10, 30):
-            state, other = step(p, state, n), ref_step(p, other)
-            np.testing.assert_array_equal(np.asarray(state.x), np.asarray(other.x))
+            nxt, free_nxt = step(p, state, n), ref_step(p, state)
+            for a, b in zip(nxt, free_nxt):
+                a, b = np.asarray(a), np.asarray(b)
+                assert np.max(np.abs(a - b)) <= 1e-6 * max(np.max(np.abs(b)), 1e-3), (integrator, n)
+            state = nxt
         assert np.asarray(state.x)[0, 1] < _path(s, 0.0)[0, 1] - 1e-4, integrator   # it falls
 
 
