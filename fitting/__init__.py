@@ -32,6 +32,8 @@ import importlib
 
 _EXPORTS = {
     "Target": "jaxplush.fitting.targets",
+    "Controls": "jaxplush.fitting.targets",
+    "scene_with_controls": "jaxplush.fitting.targets",
     "load_target": "jaxplush.fitting.targets",
     "make_target": "jaxplush.fitting.targets",
     "fit": "jaxplush.fitting.fitter",

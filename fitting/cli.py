@@ -41,12 +41,16 @@ def _parser():
         description="Fit material parameters of a jaxplush scene to a target deformation (HDF5) by gradients "
                     "through the rollout. 'jaxplush-fit sweep ...' runs batched parameter sweeps.")
     p.add_argument("scene", help="extended-OBJ scene; its values of the fitted parameters are the start")
-    p.add_argument("target", help="target HDF5: 'positions' [T, V, 3], 'points' [T, M, 3] or 'tracks' [T, M, 3] "
+    p.add_argument("target", help="target HDF5: 'positions' [T, V, 3], 'points' [T, M, 3] and/or 'tracks' [T, M, 3] "
                                   "(with 'track_vertex' or 'track_face' and 'track_barycentric'), and 'times' "
-                                  "[T] (any 'jaxplush simulate' output)")
-    p.add_argument("--target-kind", default=None, choices=("positions", "points", "tracks"),
-                   help="which frames of a target that holds several to fit (default: positions, else points, "
-                        "else tracks)")
+                                  "[T] (any 'jaxplush simulate' output); optionally the group 'controls' (driven "
+                                  "vertices' measured path)")
+    p.add_argument("--target-kind", default=None, choices=("positions", "mixed", "points", "tracks"),
+                   help="which frames of a target that holds several to fit (default: positions; else, with "
+                        "both points and tracks, mixed: the two together; else whichever it holds)")
+    p.add_argument("--track-weight", type=float, default=None,
+                   help="a mixed target's weight w of its tracks against its scan: the loss is (L_points + "
+                        "w L_tracks) / (1 + w), each normalised on its own (default 1)")
     p.add_argument("--params", default=None,
                    help="comma-separated parameters to fit (k = k_structural; damping, dashpot, drag, nmol; "
                         "total_weight only with a warning). Default: the material parameters the scene switches "
@@ -169,6 +173,9 @@ def _check_args(args):
                             f"not {args.optimizer}")
     if args.noise is not None and not (args.noise == args.noise and 0 <= args.noise < float("inf")):
         raise JaxplushError(f"--noise must be a number >= 0, got {args.noise}")
+    if args.track_weight is not None and not (args.track_weight == args.track_weight
+                                              and 0 < args.track_weight < float("inf")):
+        raise JaxplushError(f"--track-weight must be a positive number, got {args.track_weight}")
     check_output_path(args.out, (".h5", ".hdf5"), "--out")
     if args.out_scene is not None:
         check_output_path(args.out_scene, (".obj",), "--out-scene")
@@ -201,7 +208,7 @@ def _options(args, names):
     start = parse_start(args.start) if args.start is not None else None
     bounds = _fit_mod.parse_bounds(args.bounds, names or _fit_mod.PARAM_NAMES) if args.bounds is not None else None
     return FitOptions(iterations=args.iterations, lr=args.lr, start=start, noise=args.noise,
-                      noise_free=args.noise_free, method=args.method, force=args.force, shooting=args.shooting,
+                      noise_free=args.noise_free, track_weight=args.track_weight, method=args.method, force=args.force, shooting=args.shooting,
                       search=SearchOptions(bounds=bounds, samples=args.samples, starts=args.starts),
                       checkpoint=CheckpointOptions(path=args.out, every=args.checkpoint_every, resume=args.resume))
 

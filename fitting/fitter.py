@@ -144,7 +144,8 @@ def _problem(scene, target, params, objects, opts):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         prob = build_problem(scene, target, params, objects, dt=opts.dt, start=opts.start, noise=opts.noise,
-                             noise_free=opts.noise_free, method=opts.method, force=opts.force)
+                             noise_free=opts.noise_free, method=opts.method, force=opts.force,
+                             track_weight=opts.track_weight)
     notes = [str(w.message) for w in caught]
     for msg in notes:
         warnings.warn(msg, stacklevel=3)
@@ -382,7 +383,9 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
     gn_step, stderr = gauss_newton(run.jac, run.residual)
     # the identifiability report (its undetermined parameters set the status), with the rounding
     # noise of a finite-difference Jacobian from the measured reproducibility drift
-    factor = math.sqrt(int(prob.target.observed.sum()) * scale2)
+    # (a mixed target's: its scan's, the tracks' residuals weighing against them as in the loss)
+    factor = (1.0 / float(np.ravel(ev.residual.norm)[0]) if kind == "mixed"
+              else math.sqrt(int(prob.target.observed.sum()) * scale2))
     # (the drift was measured at the start values, which can be far less predictable than the
     # fitted ones: a torus from x0.5 drifts 0.086 mm, 0.0003 mm at the truth. A run at the fitted
     # values reproduces the target's to the residual RMS, so two runs near them differ by rounding

@@ -73,9 +73,17 @@ def fingerprint(prob):
     scene_hash = hashlib.sha1(prob.scene.text.encode()).hexdigest()
     h = hashlib.sha1(np.ascontiguousarray(prob.target.data, np.float64).tobytes())
     h.update(np.asarray(prob.target.steps, np.int64).tobytes())
-    if prob.target.kind == "tracks":          # which points the tracks are
-        h.update(np.asarray(prob.target.track_vertices, np.int64).tobytes())
-        h.update(np.asarray(prob.target.track_weights, np.float64).tobytes())
+    t = prob.target
+    if t.tracks is not None:          # which points the tracks are
+        h.update(np.asarray(t.track_vertices, np.int64).tobytes())
+        h.update(np.asarray(t.track_weights, np.float64).tobytes())
+    if t.kind == "mixed":             # and how they weigh against the scan
+        h.update(repr(("mixed", int(t.points.shape[1]), float(t.track_weight))).encode())
+    if t.controls is not None:        # the driven vertices' path
+        c = t.controls
+        h.update(repr(("controls", c.until)).encode())
+        for a in c.datasets().values():
+            h.update(np.ascontiguousarray(a).tobytes())
     return scene_hash, h.hexdigest()
 
 
@@ -325,33 +333,56 @@ def _attr(v):
     return v
 
 
-def _driven_entries(o, a, out_path):
+def controls_files(result, path):
+    """{(object index, entry): path file} for the driven paths of a fit's scene that came from the
+    target's controls (:func:`jaxplush.fitting.targets.scene_with_controls`): the HDF5 path files
+    (``times``, ``positions``) that :func:`write_fitted_scene` writes beside the scene ``path``,
+    ``STEM.controls-I.h5`` for object I; empty without controls."""
+    from jaxplush.fitting.targets import from_controls
+    stem = os.path.splitext(os.fspath(path))[0]
+    return {(i, j): f"{stem}.controls-{i}.h5" for i, o in enumerate(result.problem.scene.objects)
+            for j, d in enumerate(o.driven) if from_controls(d)}
+
+
+def _driven_entries(o, a, out_path, controls=None):
     """An object's ``driven`` lines for the writer: each path file relative to the directory of the
-    scene being written (``out_path``), or absolute (``out_path`` None, or no relative path)."""
+    scene being written (``out_path``), or absolute (``out_path`` None, or no relative path).
+    ``controls``: {entry: path file} of the entries that came from the target's controls (the
+    others of them are left out)."""
+    from jaxplush.fitting.targets import from_controls
     out = []
-    for d in o.driven:
-        path = d.file
+    for k, d in enumerate(o.driven):
+        if from_controls(d) and k not in (controls or {}):
+            continue
+        file = controls[k] if from_controls(d) else d.file
+        path = file
         if out_path is not None:
             try:
-                path = os.path.relpath(d.file, os.path.dirname(os.path.abspath(os.fspath(out_path))))
+                path = os.path.relpath(file, os.path.dirname(os.path.abspath(os.fspath(out_path))))
             except ValueError:                  # another drive (Windows)
-                path = d.file
+                path = file
         out.append(dict(path=path, vertices=[j - a for j in d.vertices], until=d.until))
     return out or None
 
 
 def fitted_scene_text(result, path=None):
     """The scene text with the fitted values, in the extended OBJ format. ``path``: where it will
-    be written (driven vertices' path files are named relative to its directory; None: absolute)."""
+    be written (driven vertices' path files are named relative to its directory; None: absolute).
+    Vertices driven by the target's controls get ``driven`` lines naming the path files
+    :func:`write_fitted_scene` writes beside ``path`` (:func:`controls_files`); with ``path`` None,
+    none (the header says which vertices the target's controls drive)."""
+    from jaxplush.fitting.targets import from_controls
     from jaxplush.scene.write import format_scene
     scene = result.problem.scene
+    files = controls_files(result, path) if path is not None else {}
     objects = []
     p = result.params
     for i, o in enumerate(scene.objects):
         a, b = o.vertex_slice
         fa, fb = o.face_slice
+        mine = {j: f for (oi, j), f in files.items() if oi == i}
         obj = dict(name=o.name, vertices=scene.vertices[a:b], faces=scene.faces[fa:fb] - a,
-                   fixed=[j - a for j in o.fixed] or None, driven=_driven_entries(o, a, path))
+                   fixed=[j - a for j in o.fixed] or None, driven=_driven_entries(o, a, path, mine))
         for n in ("k_structural", "dashpot", "drag", "total_weight"):
             obj[n] = float(p[PARAM_NAMES.index(n)][i])
         d = float(p.damping[i])
@@ -364,6 +395,10 @@ def fitted_scene_text(result, path=None):
     for n in result.names:
         for j, o in enumerate(result.objects):
             lines.append(f"{n} of {o}: start {result.start[n][j]:.6g}, fitted {result.values[n][j]:.6g}")
+    ctrl = [i for d in scene.driven if from_controls(d) for i in d.vertices]
+    if ctrl and path is None:
+        lines.append(f"vertices {' '.join(str(i + 1) for i in ctrl)} were driven by the target's controls "
+                     "(not written here)")
     # the scene's floor and contact settings carry over; the contact capacity is the one the fit
     # ran with (raised above the scene's if its candidates overflowed: fitting.fit)
     settings = dict(floor_friction=scene.floor_friction or None, floor_restitution=scene.floor_restitution or None,
@@ -381,7 +416,15 @@ def fitted_scene_text(result, path=None):
 
 
 def write_fitted_scene(result, path):
-    """Write :func:`fitted_scene_text` to ``path`` atomically."""
+    """Write :func:`fitted_scene_text` to ``path`` atomically, and the target's controls, if any, as
+    the path files its ``driven`` lines name (:func:`controls_files`)."""
+    scene = result.problem.scene
+    for (i, j), file in controls_files(result, path).items():
+        d = scene.objects[i].driven[j]
+        with atomic_path(file, ".h5") as tmp:
+            with h5py.File(tmp, "w") as f:
+                f.create_dataset("times", data=np.asarray(d.times, np.float64))
+                f.create_dataset("positions", data=np.asarray(d.positions, np.float64))
     text = fitted_scene_text(result, path)
     with atomic_path(path, ".obj") as tmp:
         with open(tmp, "w", encoding="utf-8", newline="\n") as fh:

@@ -26,6 +26,19 @@ target, so L is the squared error relative to how far the target moves (L = 1 fo
 than standing still"). :func:`rms_metres` turns a loss back into the RMS residual per
 coordinate (positions, tracks) or per point distance (points), in metres, to compare with the noise.
 
+A mixed target (a scan with tracked points on the same frames) weighs its two terms, each
+normalised on its own as above, by the target's track weight w (:attr:`Target.track_weight`,
+default 1):
+
+    L = (L_points + w L_tracks) / (1 + w),
+
+so neither term dominates by its count of points (a scan of thousands of points beside a dozen
+markers), and L still ends near 1 at the noise level and is 1 for "no better than standing
+still". With one noise sigma for both, the maximum-likelihood weighting (every coordinate's
+residual counted alike) is w = 3 N_tracks / N_points (N the observations). Its normaliser s² (for
+:func:`rms_metres`, per coordinate or point distance) is (1 + w) / (1 / s²_points + 3 w /
+s²_tracks): sigma² at a known noise.
+
 Frames whose objects are inverted (a gas object's volume <= 0, a blown-up rollout) get a NaN
 loss, so the optimiser sees the failure instead of a finite but meaningless number.
 """
@@ -193,6 +206,8 @@ def point_surface(faces, n_vertices, weight=None):
 def point_weight(target):
     """T / N for a point cloud with NaN padding (N observed points over T frames; see
     :func:`point_surface`), None otherwise; for tracks always T / N."""
+    if target.kind == "mixed":
+        raise ValueError("a mixed target's terms are weighed each on its own (Target.parts)")
     observed = observed_rows(target.kind, target.data)
     if target.kind != "tracks" and observed.all():
         return None
@@ -219,7 +234,9 @@ class Loss(NamedTuple):
       frame_steps: (T,) tuple of step indices.
       scale2: the normaliser s² (m²).
       normalisation: "noise" or "motion" (see the module docstring).
-      kind: "positions", "points" or "tracks".
+      kind: "positions", "points", "tracks" or "mixed".
+      parts: a mixed target's terms, ((s², weight), ...) for its points and its tracks
+        (:attr:`Target.parts`; weight 1 / (1 + w) and w / (1 + w)); () otherwise.
     """
 
     loss_fn: Callable
@@ -228,6 +245,7 @@ class Loss(NamedTuple):
     scale2: float
     normalisation: str
     kind: str
+    parts: tuple = ()
 
 
 def _frame_mean_sq(target, faces=None, n_vertices=None):
@@ -244,13 +262,33 @@ def _frame_mean_sq(target, faces=None, n_vertices=None):
 
 
 #: Residual components per residual: positions and tracks give (x, y, z) per vertex or track,
-#: points one distance.
-COMPONENTS = {"positions": 3, "points": 1, "tracks": 3}
+#: points one distance; a mixed target's s² is per coordinate or point distance alike.
+COMPONENTS = {"positions": 3, "points": 1, "tracks": 3, "mixed": 1}
+
+
+def part_weights(target):
+    """(1 / (1 + w), w / (1 + w)): the weights of a mixed target's points and tracks terms
+    (w its :attr:`Target.track_weight`)."""
+    w = float(target.track_weight)
+    if not (np.isfinite(w) and w > 0):
+        raise ValueError(f"{target.path}: the track weight must be a finite number > 0, got {w!r}")
+    return 1.0 / (1.0 + w), w / (1.0 + w)
+
+
+def combined_scale2(target, scales):
+    """A mixed target's normaliser (per coordinate or point distance) from its parts' ``scales``
+    [s²_points, s²_tracks]: 1 / sum_k weight_k C_k / s²_k (module docstring); 0 where a part's is 0."""
+    parts = target.parts
+    terms = [c * COMPONENTS[p.kind] / s2 if s2 > 0 else np.inf for p, s2, c in zip(parts, scales, part_weights(target))]
+    return float(1.0 / sum(terms))
 
 
 def rest_distance(target, x_rest, faces=None):
     """Mean over the target's frames of the frame distance (m²) between the rest shape and the
-    target (float64)."""
+    target (float64); for a mixed target the parts' combined as its normaliser is
+    (:func:`combined_scale2`)."""
+    if target.kind == "mixed":
+        return combined_scale2(target, [rest_distance(p, x_rest, faces) for p in target.parts])
     with jax.enable_x64(True):
         f = jax.jit(jax.vmap(_frame_mean_sq(target, faces, len(x_rest)), in_axes=(None, 0)))
         return float(jnp.mean(f(jnp.asarray(x_rest, jnp.float64), jnp.asarray(target.data, jnp.float64))))
@@ -258,6 +296,9 @@ def rest_distance(target, x_rest, faces=None):
 
 def loss_scale(target, topology, noise=None, noise_free=False):
     """(s², "noise" or "motion", sigma or None): the normaliser of the loss (module docstring)."""
+    if target.kind == "mixed":
+        parts = [loss_scale(p, topology, noise, noise_free) for p in target.parts]
+        return combined_scale2(target, [s2 for s2, _, _ in parts]), parts[0][1], parts[0][2]
     sigma = None if noise_free else (target.noise if noise is None else float(noise))
     if sigma is not None and sigma > 0:
         return COMPONENTS[target.kind] * sigma * sigma, "noise", sigma
@@ -290,8 +331,12 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     """
     scale2, how, _ = loss_scale(target, topology, noise, noise_free)
     n = target.n_frames
-    dist = _frame_mean_sq(target, topology.faces, topology.n_vertices)
-    inv = 1.0 / (n * scale2)
+    if target.kind == "mixed":
+        dist, parts = _mixed_distance(target, topology, noise, noise_free)
+        inv = 1.0 / n
+    else:
+        dist, parts = _frame_mean_sq(target, topology.faces, topology.n_vertices), ()
+        inv = 1.0 / (n * scale2)
     volumes = None
     if check_volume:
         from jaxplush.model.forces import face_volumes
@@ -304,7 +349,24 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
         return d
 
     aux = jnp.asarray(target.data, dtype)
-    return Loss(loss_fn, aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind)
+    return Loss(loss_fn, aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind, parts)
+
+
+def _mixed_distance(target, topology, noise, noise_free):
+    """(``(x (V, 3), y (M_points + M_tracks, 3)) -> sum_k weight_k d_k / s²_k``, the parts
+    ((s²_k, weight_k), ...)) of a mixed target: its points' and its tracks' frame distances, each
+    over its own columns of the frame and normalised on its own."""
+    parts = target.parts
+    scales = [loss_scale(p, topology, noise, noise_free)[0] for p in parts]
+    weights = part_weights(target)
+    dists = [_frame_mean_sq(p, topology.faces, topology.n_vertices) for p in parts]
+    cut = parts[0].points.shape[1]
+    cols = (slice(0, cut), slice(cut, None))
+    factors = [c / s2 for c, s2 in zip(weights, scales)]
+
+    def dist(x, y):
+        return sum(d(x, y[c]) * jnp.asarray(f, x.dtype) for d, c, f in zip(dists, cols, factors))
+    return dist, tuple((float(s2), float(c)) for s2, c in zip(scales, weights))
 
 
 def coarse_vertices(x0, n):
@@ -352,16 +414,19 @@ class Residual(NamedTuple):
     Attributes:
       fn: ``frames (T, V, 3) -> (n,)`` normalised residuals with sum(r²) = the loss (jax).
       n: number of residuals; kind, scale2, normalisation: as in :class:`Loss`.
-      per_frame: residuals per frame (3 V for positions, M for points, 3 M for tracks).
+      per_frame: residuals per frame (3 V for positions, M for points, 3 M for tracks, M_points +
+        3 M_tracks for mixed: the points' first).
       frame_fn: ``(frames (C, V, 3), data (C, M, 3)) -> (C * per_frame,)`` the same residuals of any
         C frames against their target data, before the normalisation (m): frames are independent,
         so residuals of a target's frames in chunks are the residuals of the whole (one compiled
         function serves every horizon of a fit).
       norm: the normalisation, 1 / sqrt(N s²) (N observed rows: T V, less a cloud's padding or the
-        tracks not seen); data: (T, M, 3) float64 target frames.
-      near_fn: points only (else None): ``(frames (C, V, 3), data (C, M, 3)) -> (C * M,)`` int32,
-        the vertex each point's residual is measured from (its nearest vertex, as ``frame_fn``
-        finds it): the residual depends on that vertex's object alone.
+        tracks not seen); for a mixed target (n,), each residual's (its points' and its tracks'
+        terms, each with its weight); data: (T, M, 3) float64 target frames.
+      near_fn: points and mixed only (else None): ``(frames (C, V, 3), data (C, M, 3)) -> (C *
+        per_frame,)`` int32, the vertex each residual is measured from (a point's nearest vertex,
+        as ``frame_fn`` finds it; a track's first vertex): the residual depends on that vertex's
+        object alone.
     """
 
     fn: Callable
@@ -450,10 +515,49 @@ def vertex_mean_curvature(x, tables):
 
 
 def make_residual(target, topology, loss):
-    """The :class:`Residual` of a :class:`Loss` built by :func:`make_loss` for the same target."""
+    """The :class:`Residual` of a :class:`Loss` built by :func:`make_loss` for the same target.
+
+    A mixed target's residuals are, per frame, its points' and then its tracks' (per_frame =
+    M_points + 3 M_tracks), and ``norm`` is (n,): each residual's own normalisation (the points'
+    and the tracks' differ), so sum(r²) is the weighted loss; ``near_fn`` gives each residual's
+    vertex (a point's nearest, a track's first)."""
     data = np.asarray(target.data, np.float64)
-    t, m = data.shape[:2]
-    norm = 1.0 / np.sqrt(observed_rows(target.kind, data).sum() * loss.scale2)   # t m, less a cloud's padding
+    t = data.shape[0]
+    if target.kind != "mixed":
+        norm = 1.0 / np.sqrt(observed_rows(target.kind, data).sum() * loss.scale2)   # t m, less a cloud's padding
+        frame_fn, per_frame, near_fn = _part_residual(target, topology, loss.scale2, loss.normalisation)
+    else:
+        parts = target.parts
+        (f_pts, n_pts, near_pts), (f_trk, n_trk, _) = (
+            _part_residual(p, topology, s2, loss.normalisation) for p, (s2, _) in zip(parts, loss.parts))
+        norms = [np.sqrt(c / (observed_rows(p.kind, p.data).sum() * s2)) for p, (s2, c) in zip(parts, loss.parts)]
+        norm = np.tile(np.repeat(norms, [n_pts, n_trk]), t)
+        cut = parts[0].points.shape[1]
+        track_vertex = np.repeat(np.asarray(parts[1].track_vertices, np.int32)[:, 0], 3)   # (3 M_tracks,)
+
+        def frame_fn(frames, y):
+            c = frames.shape[0]
+            rp = f_pts(frames, y[:, :cut]).reshape(c, n_pts)
+            rt = f_trk(frames, y[:, cut:]).reshape(c, n_trk)
+            return jnp.concatenate([rp, rt], axis=1).reshape(-1)
+
+        def near_fn(frames, y):
+            c = frames.shape[0]
+            near = near_pts(frames, y[:, :cut]).reshape(c, n_pts)
+            own = jnp.broadcast_to(jnp.asarray(track_vertex, near.dtype), (c, n_trk))
+            return jnp.concatenate([near, own], axis=1).reshape(-1)
+        per_frame = n_pts + n_trk
+
+    def fn(frames):
+        return frame_fn(frames, jnp.asarray(data, frames.dtype)) * jnp.asarray(norm, frames.dtype)
+    return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame,
+                    frame_fn=frame_fn, norm=float(norm) if np.ndim(norm) == 0 else norm, data=data, near_fn=near_fn)
+
+
+def _part_residual(target, topology, scale2, normalisation):
+    """(frame_fn, per_frame, near_fn) of :class:`Residual` for a single-kind target whose loss has
+    the normaliser ``scale2`` and ``normalisation``."""
+    m = np.shape(target.data)[1]
     near_fn = None
     if target.kind == "positions":
         def frame_fn(frames, y):
@@ -481,7 +585,7 @@ def make_residual(target, topology, loss):
         # with H of the simulated frame at the point's nearest vertex (else a convex shape's fit
         # leans to whatever inflates it or rounds it off)
         curv = curvature_tables(faces, topology.n_vertices)
-        sigma2 = float(loss.scale2) if loss.normalisation == "noise" else 0.0
+        sigma2 = float(scale2) if normalisation == "noise" else 0.0
 
         def one(x, p, h):
             valid, p = observed_points(p)                                # padding: residual 0
@@ -499,8 +603,4 @@ def make_residual(target, topology, loss):
         def near_fn(frames, y):
             return jax.vmap(lambda x, p: nearest_vertices_walk(x, p, coarse, ring))(
                 frames, observed_points(y)[1]).reshape(-1)
-
-    def fn(frames):
-        return frame_fn(frames, jnp.asarray(data, frames.dtype)) * jnp.asarray(norm, frames.dtype)
-    return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame,
-                    frame_fn=frame_fn, norm=float(norm), data=data, near_fn=near_fn)
+    return frame_fn, per_frame, near_fn

@@ -60,6 +60,7 @@ def residual_objects(prob, frames=None):
     track, xyz), each track to the object of its vertices. Points: (frame,
     point), each point assigned to the object of its nearest vertex in ``frames`` ((T, V, 3), the
     simulated frames at the target's steps, e.g. the rollout at the start values; required).
+    Mixed (a scan and tracks): per frame, its points' then its tracks' (frames required).
     """
     vobj = np.asarray(prob.sim.topology.vertex_object, np.int64)
     fitted = fitted_index(prob)
@@ -72,14 +73,21 @@ def residual_objects(prob, frames=None):
         return np.tile(np.repeat(per_track, 3), target.n_frames)
     if frames is None:
         raise ValueError("a point-cloud target needs simulated frames to assign its points to objects")
+    per_track = None
+    data = np.asarray(target.data, np.float64)
+    if target.kind == "mixed":
+        per_track = np.repeat(fitted[vobj[np.asarray(target.track_vertices, np.int64)[:, 0]]], 3)
+        data = np.asarray(target.points, np.float64)
     out = []
-    for x, p in zip(np.asarray(frames, np.float64), np.asarray(target.data, np.float64)):
+    for x, p in zip(np.asarray(frames, np.float64), data):
         p = np.where(np.isfinite(p), p, 0.0)        # a cloud's NaN padding (its residuals are 0)
         near = np.empty(len(p), np.int64)
         for a in range(0, len(p), 512):
             d2 = np.sum((p[a:a + 512, None, :] - x[None, :, :]) ** 2, axis=-1)
             near[a:a + 512] = np.argmin(d2, axis=1)
         out.append(fitted[vobj[near]])
+        if per_track is not None:
+            out.append(per_track)
     return np.concatenate(out)
 
 

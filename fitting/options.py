@@ -221,6 +221,8 @@ class FitOptions:
       noise: measurement noise sigma per coordinate (m) for the normalisation and the report
         (default: the target's ``noise`` attribute, if any).
       noise_free: the target is exact (normalise by its motion; ignore any noise value).
+      track_weight: a mixed target's (a scan with tracked points) weight w of its tracks against
+        its scan, L = (L_points + w L_tracks) / (1 + w) (default None: the target's, 1; docs/fitting.md).
       gtol, rtol, xtol, ftol, patience: when a gradient optimiser stops (max-norm of the
         gradient; relative loss change for ``patience`` accepted iterations; max-norm of the
         log-space step; the loss itself).
@@ -248,6 +250,7 @@ class FitOptions:
     start: dict | None = None
     noise: float | None = None
     noise_free: bool = False
+    track_weight: float | None = None
     gtol: float = 1e-9
     rtol: float = 1e-7
     xtol: float = 1e-7
@@ -361,6 +364,8 @@ def validate(opts, optimizer):
         val = getattr(opts, name)
         if not (isinstance(val, numbers.Real) and val >= 0):
             raise JaxplushError(f"{name} must be a number >= 0, got {val!r}")
+    if opts.track_weight is not None and not _is_positive(opts.track_weight):
+        raise JaxplushError(f"track_weight must be a number > 0, got {opts.track_weight!r}")
     if opts.predictability not in (True, False):
         raise JaxplushError(f"predictability must be True or False, got {opts.predictability!r}")
     if opts.shooting not in ("auto", "off") and not (_is_whole(opts.shooting) and int(opts.shooting) >= 2):

@@ -25,7 +25,7 @@ from jaxplush.types import PARAM_NAMES, Params
 
 from jaxplush.fitting import identifiability as _ident
 from jaxplush.fitting import losses as _losses
-from jaxplush.fitting.targets import Target, load_target
+from jaxplush.fitting.targets import Target, load_target, scene_with_controls
 
 
 #: Accepted spellings of parameter names.
@@ -188,10 +188,13 @@ def default_params(scene, objects=None):
 
 
 def build_problem(scene, target, params=None, objects=None, *, dt=None,
-                  start=None, noise=None, noise_free=False, method="auto", force=False):
+                  start=None, noise=None, noise_free=False, method="auto", force=False, track_weight=None):
     """Validate a fit's inputs and build its :class:`Problem` (see :func:`fit` for the arguments).
 
-    ``params`` None fits :func:`default_params` (the note saying which is warned)."""
+    ``params`` None fits :func:`default_params` (the note saying which is warned). A target with
+    controls (:class:`jaxplush.fitting.targets.Controls`) drives its vertices in the fitted scene
+    (:func:`jaxplush.fitting.targets.scene_with_controls`). ``track_weight``: a mixed target's
+    weight of its tracks against its scan (default: the target's, 1)."""
     if params is None:
         params, note = default_params(scene, _default_param_objects(scene, objects))
         warnings.warn(note, stacklevel=3)
@@ -202,8 +205,9 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
     _check_start_values(scene, names, objs, base)
     if "damping" in names and "drag" in names:
         warnings.warn(DAMPING_DRAG_NOTE, stacklevel=3)
+    target = _fit_target(scene, target, dt, track_weight)
+    scene = scene_with_controls(scene, target)
     fit_scene = scene.replace(params=Params(**base))
-    target = _fit_target(scene, target, dt)
     if noise is not None and not (np.isfinite(noise) and noise >= 0):
         raise JaxplushError(f"noise must be a number >= 0, got {noise!r}")
     sim = _fit_simulator(scene, fit_scene, target, method)
@@ -292,24 +296,36 @@ def _check_start_values(scene, names, objs, base):
                                     "(the per-step factor 1/D must be <= 1)")
 
 
-def _fit_target(scene, target, dt):
-    """The target (loaded from a path, or put on the ``dt`` grid) checked against the scene, without
-    its initial frames (t = 0 does not depend on the parameters)."""
+def _fit_target(scene, target, dt, track_weight=None):
+    """The target (loaded from a path, or put on the ``dt`` grid; a mixed target with its
+    ``track_weight`` when given) checked against the scene, without its initial frames (t = 0 does
+    not depend on the parameters)."""
     if not isinstance(target, Target):
         target = load_target(target, scene, dt)
     elif dt is not None:
         target = target.on_grid(dt)
+    if track_weight is not None:
+        if target.kind != "mixed":
+            raise JaxplushError(f"{target.path}: a track weight weighs a mixed target's tracks against its scan; "
+                                f"this target is {target.kind} alone")
+        w = track_weight
+        if isinstance(w, bool) or not isinstance(w, (int, float, np.floating, np.integer)) or not (
+                np.isfinite(w) and w > 0):
+            raise JaxplushError(f"the track weight must be a finite number > 0, got {track_weight!r}")
+        target = dataclasses.replace(target, track_weight=float(w))
     if target.kind == "positions" and target.positions.shape[1] != scene.n_vertices:
         raise JaxplushError(f"{target.path}: target has {target.positions.shape[1]} vertices, the scene "
                             f"{scene.n_vertices}")
-    if target.kind == "tracks":
+    if target.tracks is not None:
         _check_tracks(scene, target)
     keep = target.steps > 0
     if not keep.any():
         raise JaxplushError(f"{target.path}: the target holds only the initial frame (t = 0), which does not "
                             "depend on the parameters")
-    if not target.observed[keep].any():
-        raise JaxplushError(f"{target.path}: the target observes nothing after the initial frame (t = 0)")
+    for part in target.parts:
+        if not part.observed[keep].any():
+            what = f"'{part.kind}' observe" if target.kind == "mixed" else "the target observes"
+            raise JaxplushError(f"{target.path}: {what} nothing after the initial frame (t = 0)")
     return target.select(keep)
 
 

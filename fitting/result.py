@@ -9,6 +9,7 @@ target's motion (:func:`_motion`), and the identifiability report at a point
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 
 import jax.numpy as jnp
@@ -258,9 +259,25 @@ def _report(prob, frames, jac):
         residual = frames - prob.target.positions
     elif prob.target.kind == "tracks":
         residual, jac = _track_residual(prob.target, frames, jac)
+    elif prob.target.kind == "mixed":
+        residual, jac = _mixed_residual(prob, frames, jac)
     else:
         residual = np.concatenate([_nearest_residual(x, p) for x, p in zip(frames, prob.target.points)])
     return _ident.analyse(jac, residual, prob.labels, noise=prob.noise)
+
+
+def _mixed_residual(prob, frames, jac):
+    """(residual, jac) of a mixed target: its scan's rows (each vertex to its nearest point, m, with
+    the frames' Jacobian) and its tracks' (:func:`_track_residual`), the tracks' rows scaled to
+    weigh against the scan's as in the loss: per squared metre, w / (N_tracks s²_tracks) against
+    1 / (T V s²_points) (``prob.loss.parts``), so the report's residual RMS is in the scan's metres."""
+    points, tracks = prob.target.parts
+    (s2_p, c_p), (s2_t, c_t) = prob.loss.parts
+    r_p = np.concatenate([_nearest_residual(x, p) for x, p in zip(frames, points.points)]).reshape(-1)
+    r_t, j_t = _track_residual(tracks, frames, jac)
+    scale = math.sqrt((c_t / (int(tracks.observed.sum()) * s2_t)) / (c_p / (r_p.size / 3 * s2_p)))
+    return (np.concatenate([r_p, r_t * scale]),
+            np.concatenate([np.asarray(jac, np.float64).reshape(r_p.size, -1), j_t * scale]))
 
 
 def _track_residual(target, frames, jac):

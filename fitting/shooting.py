@@ -118,6 +118,9 @@ def why_not(prob):
         return "the target is point clouds (no vertex is observed, so there are no node states)"
     if prob.target.kind == "tracks":
         return "the target is tracked points (not every vertex is observed, so there are no node states)"
+    if prob.target.kind == "mixed":
+        return ("the target is a scan with tracked points (not every vertex is observed, so there are no node "
+                "states)")
     if even_gap(prob.target) is None:
         return "the target's frames are not on an even grid"
     if prob.sim.integrator != "verlet":
@@ -355,7 +358,7 @@ def plan(prob, setting="auto", refine=REFINE):
         why = "not measured" if pred is None else "the positions stay predictable over the whole target"
         return Shooting(None, single_floor=single, reason=f"single shooting ({why})"), prob
     reason = why_not(prob)
-    if reason is not None and prob.target.kind in ("points", "tracks"):
+    if reason is not None and prob.target.kind in ("points", "tracks", "mixed"):
         return _points_within_horizon(prob, single)
     if reason is not None:
         return Shooting(None, single_floor=single, reason=f"single shooting ({reason})"), prob
@@ -426,10 +429,12 @@ def _points_within_horizon(prob, single):
     frames)."""
     t, pred = prob.target, prob.predictability
     keep = int(np.searchsorted(np.asarray(t.times, np.float64), pred.horizon_time, side="right"))
-    keep = max(min(MIN_HORIZON_FRAMES, t.n_frames), keep, int(np.argmax(t.observed.any(axis=1))) + 1)
+    seen = max(int(np.argmax(part.observed.any(axis=1))) + 1 for part in t.parts)     # each part observes
+    keep = max(min(MIN_HORIZON_FRAMES, t.n_frames), keep, seen)
     if keep >= t.n_frames:
         return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
     reason = (f"single shooting within the predictable horizon: the first {keep} of {t.n_frames} frames "
-              f"(up to {float(t.times[keep - 1]):.3g} s; a {'point-cloud' if t.kind == 'points' else 'tracks'} "
+              f"(up to {float(t.times[keep - 1]):.3g} s; a "
+              f"{ {'points': 'point-cloud', 'tracks': 'tracks', 'mixed': 'scan-and-tracks'}[t.kind]} "
               "target has no node states to shoot from)")
     return Shooting(None, single_floor=single, reason=reason), prob.truncated(keep)

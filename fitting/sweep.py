@@ -229,6 +229,13 @@ def _target_frames(target, scene, steps):
     pos = getattr(target, "positions", None)
     pts = getattr(target, "points", None)
     trk = getattr(target, "tracks", None)
+    if pos is None and pts is not None and trk is not None:      # a scan with tracks: both, side by side
+        _, tsteps, cloud = _target_frames(dataclasses.replace(target, tracks=None), scene, steps)
+        _, _, rows = _target_frames(dataclasses.replace(target, points=None), scene, steps)
+        if len(cloud) != len(rows):
+            raise SweepError(f"target points have {len(cloud)} frames but its tracks {len(rows)}")
+        pad = np.zeros(cloud.shape[:2] + (rows.shape[2] - 3,))
+        return "mixed", tsteps, np.concatenate([np.concatenate([cloud, pad], axis=2), rows], axis=1)
     if pos is not None:
         kind, data = "positions", np.asarray(pos, np.float64)
         if data.ndim != 3 or data.shape[1:] != (scene.n_vertices, 3):
@@ -325,7 +332,12 @@ def frame_loss(kind, x, y):
     mean squared vertex distance (y (V, 3)), symmetric Chamfer distance (y (M, 3)), or for tracks
     (y (M, 10), :func:`_target_frames`) the sum over the seen tracks of the squared distance to
     their simulated positions, times T / N (so the sweep's mean over frames is the mean over
-    every observation)."""
+    every observation). A mixed target's kind is ("mixed", M_points, w) and y its points' rows
+    (x, y, z and zeros) then its tracks' (M_points + M_tracks, 10): (Chamfer + w tracks) / (1 + w),
+    the two kinds' own sweep losses weighed as a fit weighs them."""
+    if isinstance(kind, tuple):
+        _, cut, w = kind
+        return (frame_loss("points", x, y[:cut, :3]) + w * frame_loss("tracks", x, y[cut:])) / (1.0 + w)
     if kind == "positions":
         return sum((x[c] - y[:, c][:, None]) ** 2 for c in range(3)).mean(axis=0)
     if kind == "tracks":
@@ -361,7 +373,8 @@ class SweepResult:
         0 / -1 where none). ``failed`` (P,) is True where any object failed.
       warn_step: (P, O) first checked step with the volume clamp active (-1: none).
       loss: (P,) loss against the target (m²; NaN where failed), or None without a target.
-      target_kind, target_path: "positions"/"points" and the target's path (None without).
+      target_kind, target_path: "positions", "points", "tracks" or "mixed" and the target's path
+        (None without).
       frames, frame_steps: (T, P, V, 3) saved positions and their (T,) steps (with save_every);
         a failed point's frames after its ``final_step`` repeat its final (last healthy) positions.
       steps, dt, integrator, save_every, scene_text, scene_path, faces, object_id,
@@ -551,6 +564,7 @@ class _SweepPlan:
     batch: int
     tgt: object
     tkind: str | None
+    lkind: object
     tsteps: np.ndarray | None
     tdata: np.ndarray | None
     bsim: object
@@ -600,6 +614,10 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
     tgt = tkind = tsteps = tdata = None
     if target is not None:
         tgt = _load_target(target, scene, dt)
+        if getattr(tgt, "controls", None) is not None:
+            raise SweepError(f"the target {getattr(tgt, 'path', '')} has controls (driven vertices): the batched "
+                             "engine of a sweep does not implement driven vertices; fit it instead "
+                             "(jaxplush-fit), or leave the controls out")
         tkind, tsteps, tdata = _target_frames(tgt, scene, steps)
     n_points = len(values)
     batch = _outer_batch(n_points, batch)
@@ -612,7 +630,10 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
     n_full, rem = divmod(steps, period)
     frame_steps = np.arange(1, n_full + 1) * period
     aux = None
-    scan_kind = tkind if tkind is not None and np.any(tsteps > 0) else None   # step-0 frames: on the host
+    # the frame loss's static kind: a mixed target's with where its tracks start and their weight
+    lkind = (("mixed", int(np.shape(tgt.points)[1]), float(getattr(tgt, "track_weight", 1.0)))
+             if tkind == "mixed" else tkind)
+    scan_kind = lkind if tkind is not None and np.any(tsteps > 0) else None   # step-0 frames: on the host
     if scan_kind is not None:
         later = tsteps > 0
         table = np.full(n_full + 1, -1, np.int32)       # frame index -> target frame, -1: none
@@ -623,7 +644,8 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
     observe = _observer(scan_kind, keep) if (scan_kind is not None or keep) else None
     per_call = _frames_per_call(n_full, n_points, batch, progress)
     return _SweepPlan(kind=kind, axes=axes, values=values, pparams=pparams, steps=steps, dt=dt,
-                      save_every=save_every, batch=batch, tgt=tgt, tkind=tkind, tsteps=tsteps, tdata=tdata,
+                      save_every=save_every, batch=batch, tgt=tgt, tkind=tkind, lkind=lkind, tsteps=tsteps,
+                      tdata=tdata,
                       bsim=bsim, period=period, n_full=n_full, rem=rem, frame_steps=frame_steps, aux=aux,
                       keep=keep, observe=observe, per_call=per_call, integrator=integrator)
 
@@ -660,7 +682,7 @@ def _run_chunk(plan, c, out, bar):
     if plan.tkind is not None and np.any(plan.tsteps == 0):
         x0 = bsim.init_fn(p).x
         for y in plan.tdata[plan.tsteps == 0]:
-            loss += np.asarray(frame_loss(plan.tkind, x0, jnp.asarray(y, bsim.dtype)), np.float64)
+            loss += np.asarray(frame_loss(plan.lkind, x0, jnp.asarray(y, bsim.dtype)), np.float64)
     return out.part(bsim, p, state, health, loss, kept, live)
 
 
@@ -794,7 +816,7 @@ def _fingerprint(scene, plan):
     the target, the batching and the float width (a resumed run must be the same sweep)."""
     h = hashlib.sha256()
     for item in (scene.text, plan.kind, repr([a.label for a in plan.axes]), plan.steps, repr(plan.dt),
-                 plan.save_every, plan.integrator, plan.batch, str(np.dtype(plan.bsim.dtype)), plan.tkind):
+                 plan.save_every, plan.integrator, plan.batch, str(np.dtype(plan.bsim.dtype)), plan.lkind):
         h.update(repr(item).encode() + b"\0")
     for a in (plan.values, plan.tsteps, plan.tdata) + tuple(plan.pparams):
         if a is not None:

@@ -17,13 +17,19 @@ A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io.trajector
   :data:`BARYCENTRIC_TOLERANCE`), or ``track_vertices`` int [M, 3] with ``track_weights``
   float [M, 3] (any three vertices and weights; what :meth:`Target.save` writes for surface
   points). A row of three NaNs is a track not seen in that frame (occluded); a frame may see
-  none, but every track must be seen in some frame,
+  none, but every track must be seen in some frame; or
+* ``points`` and ``tracks`` together (kind "mixed"): a scan with tracked points on the same
+  frames, fitted by the two losses together (:func:`jaxplush.fitting.losses.make_loss`; the
+  tracks' share set by :attr:`Target.track_weight`),
 
 and ``times`` float [T] (s, increasing). The frames may be any subset of the rollout (only the
 final shape, say) and may be noisy. Optional: attribute ``dt`` (the target's time step, used
 when no dt is given), attribute ``noise`` (the standard deviation of the measurement noise per
 coordinate, m; used to normalise the loss), and ``faces``/``object_id``/``object_names`` (checked
-against the scene when present).
+against the scene when present), and the group ``controls`` (:class:`Controls`: the measured
+path of driven vertices, ``controls/vertices`` int [D], ``controls/times`` float [S],
+``controls/positions`` float [S, D, 3], attribute ``controls/until``), which
+:func:`scene_with_controls` makes driven paths of the scene, as the scene keyword ``driven`` does.
 
 :func:`load_target` validates everything against the scene *before* anything is traced: the file
 is readable HDF5, the datasets exist and have the right shapes, vertex and object counts match
@@ -51,16 +57,47 @@ GRID_TOLERANCE = 1e-3
 TARGET_FAR = 1e3
 #: Barycentric coordinates of a track may be this far below 0, and their sum this far from 1.
 BARYCENTRIC_TOLERANCE = 1e-6
-#: The target kinds, in the order :func:`load_target` prefers them when a file holds several.
-KINDS = ("positions", "points", "tracks")
+#: The target kinds, in the order :func:`load_target` prefers them when a file holds several
+#: ("mixed": a file's ``points`` and ``tracks`` together).
+KINDS = ("positions", "mixed", "points", "tracks")
+#: The datasets of each kind's frames.
+KIND_DATASETS = {"positions": ("positions",), "points": ("points",), "tracks": ("tracks",),
+                 "mixed": ("points", "tracks")}
+#: The ``source`` of the driven paths :func:`scene_with_controls` adds (whitespace: no scene line
+#: can name such a path file).
+CONTROLS_SOURCE = "<target controls>"
 
 
 def observed_rows(kind, data):
     """(T, N) bool: the rows of a target's ``data`` (T, N, 3) that hold an observation: every
-    vertex of ``positions``, the finite rows of ``points`` (NaN rows are padding) and ``tracks``
-    (NaN rows: not seen)."""
+    vertex of ``positions``, the finite rows of ``points`` (NaN rows are padding), ``tracks``
+    (NaN rows: not seen) and ``mixed`` (both)."""
     data = np.asarray(data)
     return np.ones(data.shape[:2], bool) if kind == "positions" else np.isfinite(data).all(axis=2)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Controls:
+    """Measured positions of driven vertices (a gripper's or a hand's contact points), given with
+    a target instead of a ``driven`` line of the scene; :func:`scene_with_controls` drives them.
+
+    Attributes:
+      vertices: (D,) int64 the driven vertices (0-based scene indices, as ``track_vertex``).
+      times: (S,) float64 strictly increasing sample times, s.
+      positions: (S, D, 3) float64 their world positions at the samples, m (linear between
+        samples, held outside them, as a ``driven`` path).
+      until: release time, s (after it the vertices move freely), or None (driven throughout).
+    """
+
+    vertices: np.ndarray
+    times: np.ndarray
+    positions: np.ndarray
+    until: float | None = None
+
+    def datasets(self):
+        """dict name -> array of the ``controls`` group (as :meth:`Target.save` writes it)."""
+        return {"vertices": np.asarray(self.vertices, np.int64), "times": np.asarray(self.times, np.float64),
+                "positions": np.asarray(self.positions, np.float64)}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -80,6 +117,10 @@ class Target:
       tracks: (T, M, 3) tracked points (m; NaN rows: not seen in that frame), or None.
       track_vertices: (M, 3) int64 the vertices each track interpolates (a vertex track: [v, v, v]).
       track_weights: (M, 3) float64 their weights (barycentric; a vertex track: [1, 0, 0]).
+      track_weight: a mixed target's weight w of its tracks against its scan: the loss is
+        (L_points + w L_tracks) / (1 + w), each term normalised on its own (default 1: the two
+        count alike, however many points each holds; :func:`jaxplush.fitting.losses.make_loss`).
+      controls: :class:`Controls` of driven vertices, or None.
     """
 
     positions: np.ndarray | None
@@ -93,18 +134,34 @@ class Target:
     tracks: np.ndarray | None = None
     track_vertices: np.ndarray | None = None
     track_weights: np.ndarray | None = None
+    track_weight: float = 1.0
+    controls: Controls | None = None
 
     @property
     def kind(self):
-        """"positions", "points" or "tracks"."""
+        """"positions", "points", "tracks" or "mixed" (points and tracks)."""
         if self.positions is not None:
             return "positions"
-        return "tracks" if self.tracks is not None else "points"
+        if self.tracks is not None:
+            return "mixed" if self.points is not None else "tracks"
+        return "points"
 
     @property
     def data(self):
-        """(T, V or M, 3) the target's frames, whichever kind."""
+        """(T, V or M, 3) the target's frames, whichever kind (mixed: the points, then the tracks,
+        (T, M_points + M_tracks, 3))."""
+        if self.kind == "mixed":
+            return np.concatenate([np.asarray(self.points), np.asarray(self.tracks)], axis=1)
         return {"positions": self.positions, "points": self.points, "tracks": self.tracks}[self.kind]
+
+    @property
+    def parts(self):
+        """The single-kind targets this one is made of: (points, tracks) for a mixed target (same
+        frames), else (self,)."""
+        if self.kind != "mixed":
+            return (self,)
+        return (dataclasses.replace(self, tracks=None, track_vertices=None, track_weights=None),
+                dataclasses.replace(self, points=None))
 
     @property
     def n_frames(self):
@@ -141,16 +198,25 @@ class Target:
         """Write the target to ``path`` atomically in the trajectory schema.
 
         With ``scene``, its faces, object ids and names and its scene text are stored too. A
-        tracks target writes ``track_vertex`` when every track is a vertex, else
-        ``track_vertices`` and ``track_weights`` (exactly as held). ``extra``: more datasets to
-        write alongside (dict name -> array).
+        tracks (or mixed) target writes ``track_vertex`` when every track is a vertex, else
+        ``track_vertices`` and ``track_weights`` (exactly as held); a mixed target writes
+        ``points`` and ``tracks``; controls go to the group ``controls``. ``extra``: more
+        datasets to write alongside (dict name -> array).
         """
         with atomic_path(path, ".h5") as tmp:
             with h5py.File(tmp, "w") as f:
-                f.create_dataset(self.kind, data=np.asarray(self.data), compression="gzip", compression_opts=1)
-                if self.kind == "tracks":
+                for name in KIND_DATASETS[self.kind]:
+                    f.create_dataset(name, data=np.asarray(getattr(self, name)), compression="gzip",
+                                     compression_opts=1)
+                if self.tracks is not None:
                     for name, val in _track_datasets(self.track_vertices, self.track_weights).items():
                         f.create_dataset(name, data=val)
+                if self.controls is not None:
+                    g = f.create_group("controls")
+                    for name, val in self.controls.datasets().items():
+                        g.create_dataset(name, data=val)
+                    if self.controls.until is not None:
+                        g.attrs["until"] = float(self.controls.until)
                 for name, val in (extra or {}).items():
                     f.create_dataset(name, data=np.asarray(val))
                 f.create_dataset("times", data=np.asarray(self.times, np.float64))
@@ -173,13 +239,13 @@ def load_target(path, scene, dt=None, kind=None):
     """Read a target file and validate it against a scene.
 
     Args:
-      path: HDF5 file with ``positions`` [T, V, 3], ``points`` [T, M, 3] or ``tracks`` [T, M, 3]
-        (with its correspondence), and ``times`` [T].
+      path: HDF5 file with ``positions`` [T, V, 3], ``points`` [T, M, 3] and/or ``tracks`` [T, M, 3]
+        (with its correspondence), and ``times`` [T]; optionally the group ``controls``.
       scene: the :class:`jaxplush.scene.parse.Scene` that will be fitted.
       dt: the fit's time step (s); default: the file's ``dt`` attribute. Every frame time must
         be a multiple of it.
-      kind: "positions", "points" or "tracks", to choose when a file holds several (default:
-        the first of them in that order).
+      kind: "positions", "mixed", "points" or "tracks", to choose when a file holds several
+        (default: positions; else, with both points and tracks, mixed; else whichever it holds).
 
     Returns:
       :class:`Target`.
@@ -212,17 +278,21 @@ def _dataset(path, fh, name, required=True):
 
 def _read(path, fh, kind):
     if kind not in (None,) + KINDS:
-        raise ValueError(f"kind must be 'positions', 'points' or 'tracks', got {kind!r}")
-    have = [k for k in KINDS if k in fh]
+        raise ValueError(f"kind must be 'positions', 'mixed', 'points' or 'tracks', got {kind!r}")
+    have = [k for k in ("positions", "points", "tracks") if k in fh]
     if not have:
         raise TrajectoryError(path, "missing dataset 'positions' (or 'points' for a point-cloud target, "
                                     "'tracks' for tracked points)")
-    kind = kind or have[0]
-    if kind not in have:
-        raise TrajectoryError(path, f"missing dataset '{kind}'")
+    if kind is None:
+        kind = "mixed" if "positions" not in have and {"points", "tracks"} <= set(have) else have[0]
+    for name in KIND_DATASETS[kind]:
+        if name not in have:
+            raise TrajectoryError(path, f"missing dataset '{name}'" + (
+                " (a mixed target holds both 'points' and 'tracks')" if kind == "mixed" else ""))
     out = {"kind": kind}
-    names = [(kind, True), ("times", True), ("faces", False), ("object_id", False), ("object_names", False)]
-    if kind == "tracks":
+    names = [(n, True) for n in KIND_DATASETS[kind]]
+    names += [("times", True), ("faces", False), ("object_id", False), ("object_names", False)]
+    if "tracks" in KIND_DATASETS[kind]:
         names += [(n, False) for n in TRACK_DATASETS]
     for name, required in names:
         ds = _dataset(path, fh, name, required)
@@ -230,6 +300,7 @@ def _read(path, fh, kind):
             if ds.dtype.kind not in "fiu" and name != "object_names":
                 raise TrajectoryError(path, f"'{name}' must be numeric, got dtype {ds.dtype}")
             out[name] = ds[()]
+    out["controls"] = _read_controls(path, fh)
     attrs = fh.attrs
     out["dt_attr"] = attrs["dt"] if "dt" in attrs else None
     out["noise"] = attrs["noise"] if "noise" in attrs else None
@@ -240,27 +311,189 @@ def _read(path, fh, kind):
 
 def _validate(path, raw, scene, dt):
     kind = raw["kind"]
-    data = np.asarray(raw[kind])
-    _check_data_shape(path, kind, data, scene)
-    n_frames, n = data.shape[:2]
+    names = KIND_DATASETS[kind]
+    frames = {}
+    for name in names:
+        frames[name] = np.asarray(raw[name])
+        _check_data_shape(path, name, frames[name], scene)
+    if kind == "mixed" and len(frames["points"]) != len(frames["tracks"]):
+        raise TrajectoryError(path, f"'tracks' has {len(frames['tracks'])} frames but 'points' has "
+                                    f"{len(frames['points'])}: a mixed target's scan and tracks share the frames "
+                                    "of 'times'")
+    n_frames = len(frames[names[0]])
     _check_object_names(path, raw.get("object_names"), scene)
-    if kind in ("positions", "tracks"):
+    if kind != "points":
         _check_object_id(path, raw.get("object_id"), scene, scene.n_vertices)
         faces = raw.get("faces")
         if faces is not None and not _same_faces(np.asarray(faces), scene.faces):
             raise TrajectoryError(path, f"'faces' differ from the scene {scene.path}'s: the target was "
                                         "made from a different mesh")
-    corr = _track_correspondence(path, raw, scene, n) if kind == "tracks" else (None, None)
-    times = _check_times(path, raw["times"], n_frames, kind)
+    corr = (_track_correspondence(path, raw, scene, frames["tracks"].shape[1]) if "tracks" in frames
+            else (None, None))
+    times = _check_times(path, raw["times"], n_frames, "' and '".join(names))
     dt = _target_dt(path, raw["dt_attr"], dt)
     steps = _grid_steps(path, times, dt, raw["times"].dtype)
-    data = data.astype(np.float64)
-    _check_data_values(path, kind, data, scene)
+    for name in names:
+        frames[name] = frames[name].astype(np.float64)
+        _check_data_values(path, name, frames[name], scene)
     noise = _noise_attr(path, raw["noise"])
     params = {k: v for k, v in raw["params"].items() if v.shape == (scene.n_objects,)}
-    return Target(positions=data if kind == "positions" else None, points=data if kind == "points" else None,
+    controls = None
+    if raw.get("controls") is not None:
+        controls = _check_controls(path, raw["controls"], scene)
+        _check_control_conflicts(path, controls, scene)
+    return Target(positions=frames.get("positions"), points=frames.get("points"),
                   steps=steps, times=times, dt=dt, path=path, noise=noise, params=params,
-                  tracks=data if kind == "tracks" else None, track_vertices=corr[0], track_weights=corr[1])
+                  tracks=frames.get("tracks"), track_vertices=corr[0], track_weights=corr[1], controls=controls)
+
+
+#: The datasets of the ``controls`` group (docs/formats.md §4).
+CONTROL_DATASETS = ("vertices", "times", "positions")
+
+
+def _read_controls(path, fh):
+    """The raw ``controls`` group (dict of arrays and ``until``), or None without one."""
+    if "controls" not in fh:
+        return None
+    g = fh["controls"]
+    if not isinstance(g, h5py.Group):
+        raise TrajectoryError(path, "'controls' must be a group holding the datasets 'controls/vertices', "
+                                    "'controls/times' and 'controls/positions'")
+    out = {}
+    for name in CONTROL_DATASETS:
+        if name not in g:
+            raise TrajectoryError(path, f"missing dataset 'controls/{name}'")
+        ds = g[name]
+        if not isinstance(ds, h5py.Dataset):
+            raise TrajectoryError(path, f"'controls/{name}' is a group, expected a dataset")
+        if ds.dtype.kind not in "fiu":
+            raise TrajectoryError(path, f"'controls/{name}' must be numeric, got dtype {ds.dtype}")
+        out[name] = ds[()]
+    out["until"] = g.attrs["until"] if "until" in g.attrs else None
+    return out
+
+
+def _check_controls(path, raw, scene):
+    """:class:`Controls` from the raw ``controls`` group, checked (indices of the scene's vertices,
+    each once; times finite and strictly increasing; positions [S, D, 3] finite and near the scene;
+    ``until`` a number > 0)."""
+    v = np.asarray(raw["vertices"])
+    n = scene.n_vertices
+    if v.ndim != 1 or v.size == 0:
+        raise TrajectoryError(path, f"'controls/vertices' must have shape [D] (D >= 1 driven vertices), "
+                                    f"got {list(v.shape)}")
+    bad = ~(np.isfinite(v) & (v == np.rint(v)) & (v >= 0) & (v < n))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise TrajectoryError(path, f"'controls/vertices' has {v[i]:g} at entry {i}: not an index of the scene's "
+                                    f"{n} vertices (0..{n - 1}, 0-based as 'track_vertex')")
+    v = v.astype(np.int64)
+    uniq, first, counts = np.unique(v, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        j = int(uniq[np.argmax(counts > 1)])
+        at = np.flatnonzero(v == j)
+        raise TrajectoryError(path, f"'controls/vertices' lists vertex {j} twice (entries {at[0]} and {at[1]})")
+    times = np.asarray(raw["times"], np.float64)
+    if times.ndim != 1 or times.size == 0:
+        raise TrajectoryError(path, f"'controls/times' must have shape [S] (S >= 1 samples), got {list(times.shape)}")
+    if not np.isfinite(times).all():
+        raise TrajectoryError(path, f"'controls/times' has a non-finite value at sample "
+                                    f"{int(np.argmin(np.isfinite(times)))}")
+    if len(times) > 1 and not (np.diff(times) > 0).all():
+        i = int(np.argmin(np.diff(times) > 0)) + 1
+        raise TrajectoryError(path, f"'controls/times' must be strictly increasing; sample {i} (t = {times[i]:g} s) "
+                                    f"follows t = {times[i - 1]:g} s")
+    pos = np.asarray(raw["positions"], np.float64)
+    if pos.shape != (len(times), len(v), 3):
+        raise TrajectoryError(path, f"'controls/positions' must have shape [S, D, 3] = [{len(times)}, {len(v)}, 3] "
+                                    f"('controls/times' and 'controls/vertices'), got {list(pos.shape)}")
+    if not np.isfinite(pos).all():
+        s, d = (int(a[0]) for a in np.nonzero(~np.isfinite(pos).all(axis=2)))
+        raise TrajectoryError(path, f"'controls/positions' has non-finite values (first at sample {s}, "
+                                    f"driven vertex {d})")
+    extent = float(max(np.max(np.ptp(scene.vertices, axis=0)), 1e-6))
+    far = float(np.max(np.abs(pos - scene.vertices.mean(axis=0))))
+    if far > TARGET_FAR * extent:
+        raise TrajectoryError(path, f"'controls/positions' reaches {far:.3g} m from the scene's centre, "
+                                    f"{far / extent:.3g} times the scene's size ({extent:.3g} m): wrong units?")
+    until = raw.get("until")
+    if until is not None:
+        try:
+            until = float(np.asarray(until, np.float64).reshape(()))
+        except (TypeError, ValueError):
+            raise TrajectoryError(path, f"attribute 'controls/until' must be a number (s), got {until!r}") from None
+        if not (np.isfinite(until) and until > 0):
+            raise TrajectoryError(path, f"attribute 'controls/until' (the release time) must be a finite "
+                                        f"number > 0 s, got {until!r}")
+    return Controls(vertices=v, times=times, positions=pos, until=until)
+
+
+def _check_control_conflicts(path, controls, scene):
+    """No controlled vertex is pinned or driven by the scene already."""
+    fixed = set(np.asarray(scene.fixed).tolist())
+    lines = {i: d.line for d in scene.driven for i in d.vertices}
+    for j, i in enumerate(np.asarray(controls.vertices).tolist()):
+        if i in lines:
+            raise TrajectoryError(path, f"'controls/vertices' entry {j} drives vertex {i}, which the scene "
+                                        f"{scene.path} already drives ('driven' on line {lines[i]}): drive it "
+                                        "in one place only (remove the line, or leave it out of the controls)")
+        if i in fixed:
+            raise TrajectoryError(path, f"'controls/vertices' entry {j} drives vertex {i}, which the scene "
+                                        f"{scene.path} pins ('fixed'): a vertex is either pinned or driven")
+
+
+def scene_with_controls(scene, target):
+    """The scene with a target's :class:`Controls` as driven paths (the semantics of the scene
+    keyword ``driven``: kinematic, linear between samples, released at ``until``), one
+    :class:`jaxplush.scene.parse.DrivenPath` per object that holds controlled vertices (source
+    :data:`CONTROLS_SOURCE`, file the target's path, line 0); the scene itself when the target
+    has none. A controlled vertex the scene pins or drives already is a
+    :class:`jaxplush.errors.TrajectoryError` naming the target file."""
+    from jaxplush.scene.parse import DrivenPath
+    c = getattr(target, "controls", None)
+    if c is None:
+        return scene
+    path = os.fspath(target.path)
+    v = np.asarray(c.vertices, np.int64)
+    if v.ndim != 1 or v.size == 0 or v.min() < 0 or v.max() >= scene.n_vertices:
+        raise TrajectoryError(path, f"'controls/vertices' must index the scene's {scene.n_vertices} vertices")
+    _check_control_conflicts(path, c, scene)
+    oid = np.asarray(scene.object_id)[v]
+    file = path if path.startswith("<") else os.path.abspath(path)
+    objects = list(scene.objects)
+    for o in np.unique(oid):
+        cols = np.flatnonzero(oid == o)
+        d = DrivenPath(source=CONTROLS_SOURCE, file=file, vertices=tuple(int(i) for i in v[cols]),
+                       times=np.asarray(c.times, np.float64), positions=np.asarray(c.positions, np.float64)[:, cols],
+                       until=None if c.until is None else float(c.until), line=0)
+        objects[o] = dataclasses.replace(objects[o], driven=tuple(objects[o].driven) + (d,))
+    return scene.replace(objects=tuple(objects))
+
+
+def from_controls(driven_path):
+    """Whether a :class:`jaxplush.scene.parse.DrivenPath` came from a target's controls
+    (:func:`scene_with_controls`), not from a ``driven`` line."""
+    return driven_path.line == 0 and driven_path.source == CONTROLS_SOURCE
+
+
+def controls_of_scene(scene):
+    """:class:`Controls` of every driven vertex of a scene (its ``driven`` paths merged: sampled at
+    the union of their sample times, where each is linear between its own samples, so the merged
+    path is the same path), or None when the scene drives none. Raises ValueError when the paths
+    have different release times (one ``until`` per controls group)."""
+    paths = scene.driven
+    if not paths:
+        return None
+    until = {d.until for d in paths}
+    if len(until) > 1:
+        raise ValueError(f"the scene's driven paths have different release times "
+                         f"({', '.join('none' if u is None else f'{u:g} s' for u in until)}); a target's controls "
+                         "hold one")
+    times = np.unique(np.concatenate([np.asarray(d.times, np.float64) for d in paths]))
+    pos = np.concatenate([np.stack([d.position(t) for t in times]) if not np.array_equal(d.times, times)
+                          else np.asarray(d.positions, np.float64) for d in paths], axis=1)
+    return Controls(vertices=np.asarray(scene.driven_vertices, np.int64), times=times, positions=pos,
+                    until=until.pop())
 
 
 #: The correspondence datasets of a tracks target (docs/formats.md §4).
@@ -481,7 +714,7 @@ def _same_faces(a, b):
 
 
 def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise=0.0, point_cloud=False,
-                n_points=None, tracks=None, seed=0, sim=None):
+                n_points=None, tracks=None, seed=0, sim=None, controls=False):
     """Simulate a synthetic target with known parameters (for tests, notebooks and benchmarks).
 
     Args:
@@ -497,9 +730,11 @@ def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise
       n_points: points per frame (default: the vertex count).
       tracks: an int M: store ``tracks`` instead of ``positions``: M points drawn once uniformly
         (by area) on the rest surface, as (face, barycentric coordinates), followed through
-        every frame, then noised.
+        every frame, then noised. With ``point_cloud`` too: a mixed target (both, same frames).
       seed: random seed of the noise and the samples.
       sim: a prebuilt simulator for ``scene`` and ``dt``.
+      controls: store the scene's driven paths as the target's :class:`Controls`
+        (:func:`controls_of_scene`; fit it with the scene without its ``driven`` lines).
 
     Returns:
       :class:`Target` with ``path`` "<memory>" (``.save(path, scene)`` writes it).
@@ -510,6 +745,8 @@ def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise
     from jaxplush.errors import SimulationError
     from jaxplush.fitting.identifiability import frames_at_steps
     steps, save_every = int(steps), int(save_every)
+    if controls and not scene.driven:
+        raise ValueError(f"controls=True: the scene {scene.path} drives no vertices (no 'driven' line)")
     if steps < 1 or save_every < 1:
         raise ValueError(f"steps and save_every must be >= 1, got {steps} and {save_every}")
     saved = list(range(0, steps + 1, save_every))
@@ -526,23 +763,28 @@ def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise
     idx = np.arange(1, len(pos)) if frames is None else np.arange(len(pos))[frames]
     pos, steps_kept = pos[idx], np.asarray(saved, np.int64)[idx]
     rng = np.random.default_rng(seed)
-    tv = tw = None
+    tv = tw = trk = cloud = None
     if tracks is not None:
-        if point_cloud or int(tracks) < 1:
-            raise ValueError(f"tracks must be an int >= 1 and exclusive of point_cloud, got {tracks!r}")
+        if isinstance(tracks, bool) or int(tracks) != tracks or int(tracks) < 1:
+            raise ValueError(f"tracks must be an int >= 1, got {tracks!r}")
         face, tw = sample_barycentric(np.asarray(scene.vertices, np.float64), scene.faces, int(tracks), rng)
         tv = np.asarray(scene.faces, np.int64)[face]
-        pos = np.einsum("mk,tmkc->tmc", tw, pos[:, tv])
-    elif point_cloud:
-        pos = np.stack([sample_surface(x, scene.faces, n_points or scene.n_vertices, rng) for x in pos])
-    if noise:
-        pos = pos + rng.normal(0.0, noise, pos.shape)
+        trk = np.einsum("mk,tmkc->tmc", tw, pos[:, tv])
+    if point_cloud:
+        cloud = np.stack([sample_surface(x, scene.faces, n_points or scene.n_vertices, rng) for x in pos])
+    if noise:          # the cloud's noise first, then the tracks' (a single kind draws as before)
+        if cloud is not None:
+            cloud = cloud + rng.normal(0.0, noise, cloud.shape)
+        if trk is not None:
+            trk = trk + rng.normal(0.0, noise, trk.shape)
+        if cloud is None and trk is None:
+            pos = pos + rng.normal(0.0, noise, pos.shape)
     truth = {n: np.asarray(v, np.float64) for n, v in zip(p._fields, p.as_numpy())}
-    kind = "tracks" if tracks is not None else "points" if point_cloud else "positions"
-    return Target(positions=pos if kind == "positions" else None, points=pos if kind == "points" else None,
+    return Target(positions=pos if cloud is None and trk is None else None, points=cloud,
                   steps=steps_kept, times=steps_kept * float(dt), dt=float(dt), path="<memory>",
                   noise=float(noise) if noise else 0.0, params=truth,
-                  tracks=pos if kind == "tracks" else None, track_vertices=tv, track_weights=tw)
+                  tracks=trk, track_vertices=tv, track_weights=tw,
+                  controls=controls_of_scene(scene) if controls else None)
 
 
 def sample_surface(x, faces, n, rng):

@@ -84,7 +84,11 @@ def _parser():
     c.add_argument("--tracks", type=int, default=0,
                    help="also write N tracked surface points (random faces and barycentric coordinates from "
                         "--seed, Gaussian noise --noise per coordinate, each dropped from a frame with probability "
-                        "--dropout) as 'tracks' with 'track_face' and 'track_barycentric' (default 0: none)")
+                        "--dropout) as 'tracks' with 'track_face' and 'track_barycentric' (default 0: none); "
+                        "with the scan, a mixed target (jaxplush-fit fits both)")
+    c.add_argument("--controls", action="store_true",
+                   help="also write the scene's driven vertices' paths (its 'driven' lines) as the target's "
+                        "'controls', as if measured alongside the object: fit it with the scene without those lines")
     v = sub.add_parser("view", help="interactive 3-D view of a trajectory or a fit in the browser (viser, the "
                                     "optional extra 'viewer'): served on 127.0.0.1, or written as one HTML file")
     v.add_argument("file", help="trajectory .h5 from 'jaxplush simulate', or FIT.h5 from 'jaxplush-fit' (its fitted "
@@ -354,6 +358,15 @@ def _capture(args):
         raise JaxplushError(f"--size must be WIDTHxHEIGHT in whole pixels, e.g. 64x48, got {args.size!r}")
     traj = load_trajectory(args.trajectory)
     meta, scene = _capture_metadata(args.trajectory, traj)      # checked before the casting
+    controls = None
+    if args.controls:
+        from jaxplush.fitting.targets import controls_of_scene
+        if scene is None or not scene.driven:
+            raise JaxplushError(f"--controls: the scene of {args.trajectory} drives no vertices (no 'driven' line)")
+        try:
+            controls = controls_of_scene(scene)
+        except ValueError as e:
+            raise JaxplushError(f"--controls: {e}") from None
     pos = np.asarray(traj["positions"], np.float64)
     if look is None:
         look = tuple(float(a) for a in pos[0].mean(axis=0))
@@ -373,10 +386,12 @@ def _capture(args):
         if scene is None:
             extra["faces"] = np.asarray(traj["faces"], np.int32)
     Target(positions=None, points=cap.points, path=args.out, noise=float(args.noise) if args.noise > 0 else None,
-           **meta).save(args.out, scene, extra=extra)
+           controls=controls, **meta).save(args.out, scene, extra=extra)
     seen = "" if tracks is None else (
         f"; {args.tracks} tracked points, {np.isfinite(tracks.tracks).all(axis=2).sum(axis=1).mean():.1f} "
         "seen a frame")
+    if controls is not None:
+        seen += f"; the paths of {len(controls.vertices)} driven vertices as 'controls'"
     print(f"captured {len(pos)} frames of {args.trajectory} with a {camera.width}x{camera.height} depth camera: "
           f"{cap.counts.min()}-{cap.counts.max()} points a frame (mean {cap.counts.mean():.0f}), depth noise "
           f"{args.noise:g} m, dropout {args.dropout:g}{seen}; wrote {args.out}")

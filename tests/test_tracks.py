@@ -101,12 +101,15 @@ def test_vertex_tracks_round_trip_as_track_vertex(tmp_path):
     np.testing.assert_array_equal(back.tracks, t.tracks)
 
 
-def test_a_file_with_several_kinds_prefers_positions_then_points_then_tracks(ball, tmp_path):
+def test_a_file_with_several_kinds_prefers_positions_then_mixed(ball, tmp_path):
     scene, target = ball
     path = tmp_path / "both.h5"
     target.save(path, scene, extra={"points": target.tracks})
-    assert load_target(path, scene).kind == "points"
+    assert load_target(path, scene).kind == "mixed"                 # points and tracks: fitted together
+    assert load_target(path, scene, kind="points").kind == "points"
     assert load_target(path, scene, kind="tracks").kind == "tracks"
+    target.save(path, scene, extra={"points": target.tracks, "positions": make_target(scene, STEPS, DT, EVERY).positions})
+    assert load_target(path, scene).kind == "positions"
     with pytest.raises(TrajectoryError, match="'tracks'"):
         load_target(path, scene, kind="markers")
 
@@ -279,7 +282,8 @@ def test_capture_writes_a_loadable_tracks_target(tmp_path):
     assert rc == 0, err
     assert "25 tracked points" in stdout
     scene = jaxplush.load_scene(scene_path)
-    assert load_target(out, scene).kind == "points"                # the default kind stays the scan
+    assert load_target(out, scene).kind == "mixed"                 # the scan and the tracks, together
+    assert load_target(out, scene, kind="points").kind == "points"
     t = load_target(out, scene, kind="tracks")
     assert t.kind == "tracks" and t.tracks.shape == (5, 25, 3) and t.noise == 0.001
     seen = t.observed

@@ -43,7 +43,7 @@ MAX_FRAMES = 300
 # Seaborn "deep", as jaxplush.io.render draws objects.
 _PALETTE = ("#4C72B0", "#DD8452", "#55A868", "#C44E52", "#8172B3",
             "#937860", "#DA8BC3", "#8C8C8C", "#CCB974", "#64B5CD")
-_TARGET_RGB = {"positions": (20, 20, 20), "points": (20, 20, 20), "tracks": (220, 0, 180)}
+_TARGET_RGB = {"positions": (20, 20, 20), "points": (20, 20, 20), "tracks": (220, 0, 180), "mixed": (20, 20, 20)}
 _STRAIN_MESH_RGB = (215, 215, 215)
 
 
