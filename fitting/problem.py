@@ -147,7 +147,10 @@ class Problem:
 
     def truncated(self, n_frames):
         """This problem on the target's first ``n_frames`` frames only (its own loss normalisation;
-        the same noise setting), for the default fit's continuation in time."""
+        the same noise setting), for the default fit's continuation in time; on more of them where
+        a part of the target (tracks, or a mixed target's scan or tracks) observes nothing in those
+        (its loss would have no normalisation): up to the first frame where each observes something."""
+        n_frames = max([int(n_frames)] + [int(np.argmax(p.observed.any(axis=1))) + 1 for p in self.target.parts])
         if n_frames >= self.target.n_frames:
             return self
         target = self.target.select(np.arange(int(n_frames)))

@@ -134,9 +134,10 @@ def test_the_loss_is_the_weighted_sum_of_its_parts_and_the_residuals_sum_to_it(b
     topo = sim.topology
     vf = losses.vertex_faces(topo.faces, topo.n_vertices)
 
+    per_frame = jax.jit(jax.vmap(lambda x, p: jnp.mean(losses.point_surface_distance2(x, p, topo.faces, vf))))
+
     def points_term(x_frames):
-        return np.mean([float(jnp.mean(losses.point_surface_distance2(jnp.asarray(x), jnp.asarray(p), topo.faces, vf)))
-                        for x, p in zip(x_frames, target.points)])
+        return float(np.mean(per_frame(jnp.asarray(x_frames), jnp.asarray(target.points))))
 
     seen = target.observed[:, N_POINTS:]
 
@@ -202,6 +203,18 @@ def test_gradient_matches_finite_differences(ball, x64):
     g = np.asarray(jax.grad(f)(jnp.asarray(theta)), np.float64)
     assert np.all(np.isfinite(g)) and np.linalg.norm(g) > 0
     assert_gradient_matches_fd(lambda th: float(f(jnp.asarray(th))), theta, g, h=1e-4, rtol=1e-6)
+
+
+def test_a_shorter_horizon_holds_an_observation_of_each_part(ball):
+    """The default fit's continuation fits the first frames first: a horizon reaches at least the
+    first frame in which the tracks (here unseen in the first three) are seen."""
+    scene, target = ball
+    t = _hide(target, [(f, i) for f in range(3) for i in range(N_TRACKS)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prob = F.build_problem(scene, t, ("k_structural",), noise_free=True)
+    assert prob.truncated(2).target.n_frames == 4 and prob.truncated(5).target.n_frames == 5
+    assert prob.truncated(2).loss.kind == "mixed" and prob.truncated(2).target.parts[1].observed.sum() == N_TRACKS
 
 
 def test_track_weight_applies_to_mixed_targets_only(ball):
