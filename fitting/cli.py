@@ -208,7 +208,8 @@ def _options(args, names):
     start = parse_start(args.start) if args.start is not None else None
     bounds = _fit_mod.parse_bounds(args.bounds, names or _fit_mod.PARAM_NAMES) if args.bounds is not None else None
     return FitOptions(iterations=args.iterations, lr=args.lr, start=start, noise=args.noise,
-                      noise_free=args.noise_free, track_weight=args.track_weight, method=args.method, force=args.force, shooting=args.shooting,
+                      noise_free=args.noise_free, track_weight=args.track_weight, method=args.method, force=args.force,
+                      shooting=args.shooting,
                       search=SearchOptions(bounds=bounds, samples=args.samples, starts=args.starts),
                       checkpoint=CheckpointOptions(path=args.out, every=args.checkpoint_every, resume=args.resume))
 

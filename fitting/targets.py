@@ -388,7 +388,7 @@ def _check_controls(path, raw, scene):
         raise TrajectoryError(path, f"'controls/vertices' has {v[i]:g} at entry {i}: not an index of the scene's "
                                     f"{n} vertices (0..{n - 1}, 0-based as 'track_vertex')")
     v = v.astype(np.int64)
-    uniq, first, counts = np.unique(v, return_index=True, return_counts=True)
+    uniq, counts = np.unique(v, return_counts=True)
     if (counts > 1).any():
         j = int(uniq[np.argmax(counts > 1)])
         at = np.flatnonzero(v == j)
