@@ -278,8 +278,8 @@ def part_weights(target):
 def combined_scale2(target, scales):
     """A mixed target's normaliser (per coordinate or point distance) from its parts' ``scales``
     [s²_points, s²_tracks]: 1 / sum_k weight_k C_k / s²_k (module docstring); 0 where a part's is 0."""
-    parts = target.parts
-    terms = [c * COMPONENTS[p.kind] / s2 if s2 > 0 else np.inf for p, s2, c in zip(parts, scales, part_weights(target))]
+    terms = [c * COMPONENTS[p.kind] / s2 if s2 > 0 else np.inf
+             for p, s2, c in zip(target.parts, scales, part_weights(target))]
     return float(1.0 / sum(terms))
 
 
@@ -329,12 +329,14 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     Returns:
       :class:`Loss`.
     """
-    scale2, how, _ = loss_scale(target, topology, noise, noise_free)
     n = target.n_frames
     if target.kind == "mixed":
-        dist, parts = _mixed_distance(target, topology, noise, noise_free)
+        scales = [loss_scale(p, topology, noise, noise_free) for p in target.parts]
+        scale2, how = combined_scale2(target, [s2 for s2, _, _ in scales]), scales[0][1]
+        dist, parts = _mixed_distance(target, topology, [s2 for s2, _, _ in scales])
         inv = 1.0 / n
     else:
+        scale2, how, _ = loss_scale(target, topology, noise, noise_free)
         dist, parts = _frame_mean_sq(target, topology.faces, topology.n_vertices), ()
         inv = 1.0 / (n * scale2)
     volumes = None
@@ -352,12 +354,11 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
     return Loss(loss_fn, aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind, parts)
 
 
-def _mixed_distance(target, topology, noise, noise_free):
+def _mixed_distance(target, topology, scales):
     """(``(x (V, 3), y (M_points + M_tracks, 3)) -> sum_k weight_k d_k / s²_k``, the parts
     ((s²_k, weight_k), ...)) of a mixed target: its points' and its tracks' frame distances, each
-    over its own columns of the frame and normalised on its own."""
+    over its own columns of the frame and normalised by its own ``scales`` s²_k."""
     parts = target.parts
-    scales = [loss_scale(p, topology, noise, noise_free)[0] for p in parts]
     weights = part_weights(target)
     dists = [_frame_mean_sq(p, topology.faces, topology.n_vertices) for p in parts]
     cut = parts[0].points.shape[1]
