@@ -90,7 +90,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.model.layout import sum_rows as _sum_rows, vertex_mass
+from jaxplush.model.layout import object_stiffness, sum_rows as _sum_rows, vertex_mass
 
 #: kappa of the default stiffness k_c = kappa * 2 * n_max * min(k_A, k_B).
 STIFFNESS_FACTOR = 0.1
@@ -399,6 +399,7 @@ def make_contact_energy(topo, cfg):
 
     def energy(params, x):
         dtype = x.dtype
+        params = _per_object_k(topo, params)
         tiny = jnp.asarray(tiny_len ** 2, dtype)
         total = jnp.zeros((), dtype)
         overflow = jnp.zeros((), bool)
@@ -418,6 +419,14 @@ def make_contact_energy(topo, cfg):
         return total, overflow
 
     return energy
+
+
+def _per_object_k(topo, params):
+    """``params`` with one spring stiffness per object: the default contact stiffness follows each
+    object's mean k (:func:`jaxplush.model.layout.object_stiffness`) when k is a per-edge field
+    (``params`` itself otherwise)."""
+    k = object_stiffness(topo, params.k_structural)
+    return params if k is params.k_structural else params._replace(k_structural=k)
 
 
 def _energy_stiffness(params, cfg, tab, a, b, dtype):
@@ -583,7 +592,7 @@ def make_contact(topo, cfg, h=None):
         tiny = jnp.asarray(tiny_len ** 2, dtype)
         take = lambda a: jax.lax.dynamic_slice_in_dim(a, i * QUERY_BLOCK, QUERY_BLOCK)   # noqa: E731
         pair = take(cache.pair)
-        kc = _take(_pair_stiffnesses(params, cfg, tab, dtype), pair)
+        kc = _take(_pair_stiffnesses(_per_object_k(topo, params), cfg, tab, dtype), pair)
         delta = _take(jnp.asarray(cfg.thickness, dtype), pair)
         idx, rows = _narrow(x, v, mass, take(cache.q_idx), take(cache.valid), take(cache.target),
                             delta, kc, tiny, ring_t, valence, friction, h)
