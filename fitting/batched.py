@@ -129,6 +129,8 @@ class BatchedSimulator:
         out = []
         for name, a in zip(Params._fields, values):
             a = np.asarray(a, np.float64)
+            if name == "k_structural" and a.ndim == 1 and model.is_field(self.topology, a):
+                raise NotImplementedError(FIELD_REFUSAL + f" (k_structural of shape {a.shape})")
             if a.ndim == 1:
                 a = a[:, None]
             try:
@@ -156,9 +158,17 @@ def _to_soa(a, batch, dtype):
     return tuple(a[:, :, c].T for c in range(3))
 
 
+#: Why a per-edge stiffness field is refused (its (O, B) parameter layout has one k per object).
+FIELD_REFUSAL = ("the batched simulator takes one spring stiffness per object and point ((O, B) parameters), not "
+                 "a per-edge stiffness field (k_region/k_edge); simulate such scenes one at a time with "
+                 "jaxplush.simulate")
+
+
 def check_terms(terms):
     """Raise NotImplementedError if ``terms`` selects anything this module does not implement."""
     extra = T.unsupported(terms, "batched")
+    if extra == ["k_field"]:
+        raise NotImplementedError(FIELD_REFUSAL)
     if extra:
         raise NotImplementedError(
             f"the batched simulator does not implement the term(s) {', '.join(extra)} that this scene "

@@ -195,7 +195,8 @@ def _around(term, *vectors):
 class _Dens(NamedTuple):
     """One backward step's parameter cotangents, kept per vertex where they are sums over vertices of
     per-vertex terms (reduced once, at the end of the backward pass): ``k`` (V,) with
-    k_bar = per_object_sum(k); ``c`` (V,) the dashpot's; ``damp`` (V,) sum of u.u_bar (the damping
+    k_bar = per_object_sum(k), or (K, V) per ring slot for a per-edge stiffness field (reduced per
+    edge: each edge's two slots summed); ``c`` (V,) the dashpot's; ``damp`` (V,) sum of u.u_bar (the damping
     factor's cotangent is minus its per-object sum); ``drag`` (V,) the drag's density -u.a_bar
     (:func:`jaxplush.model.terms.drag_vjp`); ``nmol`` (O,) the
     gas's nmol cotangent; ``f_gas`` (O,) the gas's and contact's share of sum F.lam (for the mass
@@ -248,8 +249,10 @@ def _make_force_vjp(topo, terms, temperature):
         dl = [gather(lam[c]) - lam[c] for c in range(3)]
         inv_l = T.inv_length(d, topo.length_eps ** 2)
         t = masked(T.dot(d, dl))
-        w, coef, dens = T.spring_vjp(model.per_vertex(topo, params.k_structural), rest, inv_l, t)
-        dens_k = _ring_sum(dens)                                         # (V,)
+        w, coef, dens = T.spring_vjp(model.ring_stiffness(topo, params.k_structural), rest, inv_l, t)
+        # k's density: per vertex (V,), reduced per object at the end; for a per-edge field kept per
+        # ring slot (K, V) (masked slots are zero: t is) and reduced per edge at the end
+        dens_k = dens if model.is_field(topo, params.k_structural) else _ring_sum(dens)
         zero = jnp.zeros((topo.n_objects,), dtype)
         dens_c = extra = None
         n_bar = f_gas = zero
@@ -356,16 +359,29 @@ def _make_step_dens_vjp(sim):
 
 def _reduce_dens(topo, params, dens):
     """Params cotangent from (sums over steps of) :class:`_Dens` densities."""
-    zero = jnp.zeros_like(params.k_structural)
+    zero = jnp.zeros_like(params.total_weight)
 
     def obj(a):
         return zero if a is None else model.per_object_sum(topo, a)
 
-    k_bar, c_bar = obj(dens.k), obj(dens.c)
+    k = params.k_structural
+    field = model.is_field(topo, k)
+    if field:
+        # each edge is two ring slots, one from each end: the sum of their densities
+        slot_edge = np.ascontiguousarray(topo.ring_edge.T).reshape(-1)
+        k_bar = jax.ops.segment_sum(dens.k.reshape(-1), slot_edge, num_segments=topo.n_edges)
+    else:
+        k_bar = obj(dens.k)
+    c_bar = obj(dens.c)
     d_bar = zero
     if dens.damp is not None:
         d_bar = jax.vjp(_damping_factor, params.damping)[1](-obj(dens.damp))[0]
-    f_dot = params.k_structural * k_bar + params.dashpot * c_bar + dens.f_gas
+    if field:                                   # sum F.lam of the springs, per object
+        kk = k * k_bar
+        f_dot_k = jnp.stack([jnp.sum(kk[a:b]) for a, b in topo.edge_slices])
+    else:
+        f_dot_k = k * k_bar
+    f_dot = f_dot_k + params.dashpot * c_bar + dens.f_gas
     p_bar = Params(k_structural=k_bar, damping=d_bar, dashpot=c_bar, drag=obj(dens.drag), nmol=dens.nmol,
                    total_weight=-f_dot / params.total_weight)
     if dens.extra is not None:
@@ -392,7 +408,8 @@ class _Plan(NamedTuple):
     """Static layout of an adjoint rollout: ``n_seg`` segments of ``seg`` steps (the last one
     possibly shorter); ``store``: every state is kept from the forward pass (one segment), else
     each segment is recomputed from its checkpoint in the backward pass; ``keep_u``: the
-    backward pass needs the velocities (dashpot, drag or Verlet damping)."""
+    velocities are kept: the backward pass needs them (dashpot, drag or Verlet damping), or a
+    recomputed segment restarts from its checkpoint's velocity (always, unless ``store``)."""
 
     n_steps: int
     seg: int
@@ -411,7 +428,8 @@ def _plan(sim, n_steps, segment, memory_budget, itemsize):
         # Fewest recomputed-segment states plus checkpoints: seg ~ sqrt(n_steps).
         segment = max(1, math.isqrt(n_steps))
     seg = min(_segment_length(segment, n_steps), max(n_steps, 1))
-    return _Plan(n_steps, seg, -(-n_steps // seg), False, keep_u)
+    # recomputing a segment steps on from its checkpoint's state, velocity included
+    return _Plan(n_steps, seg, -(-n_steps // seg), False, True)
 
 
 def _split(tree):
@@ -583,7 +601,8 @@ def _zero_dens(sim, params, dtype):
     topo, terms = sim.topology, sim.terms
     per_v = jnp.zeros((topo.n_vertices,), dtype)
     per_o = jnp.zeros((topo.n_objects,), dtype)
-    return _Dens(per_v, per_v if terms.dashpot else None, per_v if terms.verlet_damping else None,
+    per_k = jnp.zeros(topo.ring.T.shape, dtype) if model.is_field(topo, params.k_structural) else per_v
+    return _Dens(per_k, per_v if terms.dashpot else None, per_v if terms.verlet_damping else None,
                  per_v if terms.drag else None, per_o, per_o,
                  jax.tree_util.tree_map(jnp.zeros_like, params) if terms.contact else None)
 
@@ -678,7 +697,8 @@ def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, me
 
     Args:
       sim: :class:`jaxplush.Simulator` (static: closed over by the compiled code).
-      params: :class:`jaxplush.Params` of (O,) arrays, the differentiable input.
+      params: :class:`jaxplush.Params` of (O,) arrays (k_structural: or an (E,) per-edge field,
+        whose gradient is then (E,)), the differentiable input.
       state0: public :class:`jaxplush.State` ((V, 3) arrays), e.g. ``sim.init_fn(params)``;
         gradients flow into it as well.
       frame_steps: static, strictly increasing step indices (0 = ``state0``) at which the loss is
@@ -706,10 +726,12 @@ def rollout_loss(sim, params, state0, frame_steps, loss_fn: Callable, aux, *, me
       scalar loss.
 
     Raises:
-      ValueError: bad ``frame_steps``, ``aux`` shapes, ``method`` or ``segment`` (before tracing).
+      ValueError: bad ``frame_steps``, ``aux`` or parameter shapes, ``method`` or ``segment`` (before
+        tracing).
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    model.check_param_shapes(sim.topology, params)
     steps, table = _frame_table(frame_steps)
     _check_aux(aux, len(steps))
     if method == "auto":

@@ -372,7 +372,7 @@ def fitted_scene_text(result, path=None):
     :func:`write_fitted_scene` writes beside ``path`` (:func:`controls_files`); with ``path`` None,
     none (the header says which vertices the target's controls drive)."""
     from jaxplush.fitting.targets import from_controls
-    from jaxplush.scene.write import format_scene
+    from jaxplush.scene.write import format_scene, stiffness_keys
     scene = result.problem.scene
     files = controls_files(result, path) if path is not None else {}
     objects = []
@@ -383,7 +383,9 @@ def fitted_scene_text(result, path=None):
         mine = {j: f for (oi, j), f in files.items() if oi == i}
         obj = dict(name=o.name, vertices=scene.vertices[a:b], faces=scene.faces[fa:fb] - a,
                    fixed=[j - a for j in o.fixed] or None, driven=_driven_entries(o, a, path, mine))
-        for n in ("k_structural", "dashpot", "drag", "total_weight"):
+        # k: per object, or a per-edge field (k_region / k_edge lines that read back bit for bit)
+        obj.update(stiffness_keys(scene, i, p.k_structural))
+        for n in ("dashpot", "drag", "total_weight"):
             obj[n] = float(p[PARAM_NAMES.index(n)][i])
         d = float(p.damping[i])
         obj["damping"] = d if d > 0 else None

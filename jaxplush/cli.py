@@ -270,7 +270,8 @@ def _info(args):
         e = int((topo.edge_object == i).sum())
         print(f"  object {i} {o.name!r}: {o.n_vertices} vertices, {e} edges, {o.n_faces} faces, "
               f"{len(o.fixed)} fixed")
-        print(f"    k_structural {p.k_structural[i]:g} N/m, damping {p.damping[i]:g}, dashpot {p.dashpot[i]:g} N s/m, "
+        print(f"    k_structural {_k_text(topo, p.k_structural, i)}, damping {p.damping[i]:g}, "
+              f"dashpot {p.dashpot[i]:g} N s/m, "
               f"drag {p.drag[i]:g} 1/s, total_weight {p.total_weight[i]:g} kg, "
               f"nmol {p.nmol[i]:g}{'' if o.has_gas else ' (no gas)'}")
         print(f"    volume {vols[i] * 1e6:.6g} cm³, rest pressure {press[i]:.6g} Pa, "
@@ -296,6 +297,16 @@ def _info(args):
     if args.steps is not None:
         _info_predictability(scene, args)
     return 0
+
+
+def _k_text(topo, k, i):
+    """Object ``i``'s spring stiffness for ``jaxplush info``: its value, or a field's mean and range."""
+    from jaxplush.model.layout import is_field, object_stiffness
+    k = np.asarray(k, np.float64)
+    if not is_field(topo, k):
+        return f"{k[i]:g} N/m"
+    a, b = topo.edge_slices[i]
+    return f"{object_stiffness(topo, k)[i]:g} N/m (mean of a per-edge field, {k[a:b].min():g}–{k[a:b].max():g})"
 
 
 def _check_predictability_args(args):

@@ -10,7 +10,7 @@ Shape letters used in every docstring:
 
 Three kinds of data, kept apart on purpose:
   * ``Params``: per-object physical parameters, a pytree of (O,) arrays that gradients and
-    ``vmap`` flow into.
+    ``vmap`` flow into (``k_structural`` may instead be an (E,) per-edge field).
   * ``State``: the integrator's carry (positions and a velocity).
   * topology (:class:`jaxplush.model.forces.Topology`): numpy index tables closed over by the
     compiled step, never traced.
@@ -33,10 +33,13 @@ PARAM_NAMES = ("k_structural", "damping", "dashpot", "drag", "nmol", "total_weig
 
 
 class Params(NamedTuple):
-    """Per-object physical parameters, each an (O,) array.
+    """Per-object physical parameters, each an (O,) array (k_structural: or (E,)).
 
     Attributes:
-      k_structural: (O,) spring stiffness of every edge, N/m.
+      k_structural: (O,) spring stiffness of every edge of each object, N/m; or (E,) a per-edge
+        stiffness field, in the order of the topology's ``edges`` (the scene's sorted unique edges;
+        scene keywords ``k_region``/``k_edge``). The shape decides, statically
+        (:mod:`jaxplush.model.layout`).
       damping: (O,) the report's Verlet damping D; the per-step factor is f = 1/D, and
         D = 0 means no damping. Depends on dt (docs/model.md §5); prefer ``dashpot``/``drag``.
       dashpot: (O,) edge dashpot coefficient c, N s/m: f_i = -c ((v_i - v_j).d) d.

@@ -51,8 +51,9 @@ def test_engines_take_their_gates_from_the_registry():
     assert G._ADJOINT_TERMS == T.supported("adjoint")
     assert batched.SUPPORTED_TERMS == T.supported("batched")
     # the one-step VJP check toggles exactly the terms the adjoint claims (spring is always on)
-    # (driven vertices: a mask whose one-step VJP tests/test_driven.py checks against jax.vjp)
-    assert T.supported("adjoint") == {"spring", "driven", *TOGGLES}
+    # (driven vertices: a mask whose one-step VJP tests/test_driven.py checks against jax.vjp;
+    # k_field, the spring's stiffness per edge: tests/test_kfield.py checks its gradient)
+    assert T.supported("adjoint") == {"spring", "driven", "k_field", *TOGGLES}
 
 
 def test_an_unsupported_term_is_refused_by_name():

@@ -78,7 +78,8 @@ finer object; stiffness k_c = kappa m omega_G² with omega_G² = 2 k n_max / m t
 of the springs (docs/model.md §4), i.e. k_c = kappa 2 n_max min(k_A, k_B), kappa = 0.1: contact raises
 omega_max² by at most about 10% (the stable dt drops by about 5%), and k_c scales with k, hence
 with mass under the symmetry (k, c, nRT, M) -> lambda (k, c, nRT, M), unlike a fixed absolute
-stiffness. ``contact_stiffness K`` (N/m) in a scene fixes it instead.
+stiffness. ``contact_stiffness K`` (N/m) in a scene fixes it instead. With a per-edge stiffness
+field, k_A is object A's mean over its edges (:func:`jaxplush.model.layout.object_stiffness`).
 """
 
 from __future__ import annotations
@@ -90,7 +91,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.model.layout import sum_rows as _sum_rows, vertex_mass
+from jaxplush.model.layout import object_stiffness, sum_rows as _sum_rows, vertex_mass
 
 #: kappa of the default stiffness k_c = kappa * 2 * n_max * min(k_A, k_B).
 STIFFNESS_FACTOR = 0.1
@@ -399,6 +400,7 @@ def make_contact_energy(topo, cfg):
 
     def energy(params, x):
         dtype = x.dtype
+        params = _per_object_k(topo, params)
         tiny = jnp.asarray(tiny_len ** 2, dtype)
         total = jnp.zeros((), dtype)
         overflow = jnp.zeros((), bool)
@@ -418,6 +420,14 @@ def make_contact_energy(topo, cfg):
         return total, overflow
 
     return energy
+
+
+def _per_object_k(topo, params):
+    """``params`` with one spring stiffness per object: the default contact stiffness follows each
+    object's mean k (:func:`jaxplush.model.layout.object_stiffness`) when k is a per-edge field
+    (``params`` itself otherwise)."""
+    k = object_stiffness(topo, params.k_structural)
+    return params if k is params.k_structural else params._replace(k_structural=k)
 
 
 def _energy_stiffness(params, cfg, tab, a, b, dtype):
@@ -583,7 +593,7 @@ def make_contact(topo, cfg, h=None):
         tiny = jnp.asarray(tiny_len ** 2, dtype)
         take = lambda a: jax.lax.dynamic_slice_in_dim(a, i * QUERY_BLOCK, QUERY_BLOCK)   # noqa: E731
         pair = take(cache.pair)
-        kc = _take(_pair_stiffnesses(params, cfg, tab, dtype), pair)
+        kc = _take(_pair_stiffnesses(_per_object_k(topo, params), cfg, tab, dtype), pair)
         delta = _take(jnp.asarray(cfg.thickness, dtype), pair)
         idx, rows = _narrow(x, v, mass, take(cache.q_idx), take(cache.valid), take(cache.target),
                             delta, kc, tiny, ring_t, valence, friction, h)

@@ -29,7 +29,9 @@ import numpy as np
 from jaxplush.model import contact as _contact
 from jaxplush.model import mesh as _mesh
 from jaxplush.model import terms as T
-from jaxplush.model.layout import per_object_sum, per_vertex, sum_rows as _sum_rows, vertex_mass  # noqa: F401
+from jaxplush.model.layout import (  # noqa: F401
+    edge_stiffness, is_field, object_stiffness, per_object_sum, per_vertex, ring_stiffness, sum_rows as _sum_rows,
+    vertex_mass)
 from jaxplush.model.terms import (  # noqa: F401  (the terms' public names, also reachable from here)
     FLOOR_KAPPA, pressure, smooth_floor_energy, smooth_floor_force, smooth_floor_push, smooth_floor_stiffness)
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
@@ -49,6 +51,11 @@ class Topology:
       edges: (E, 2) int32 unique edges i < j; edge_object (E,) their object; rest_length (E,).
       ring: (V, K) int32 ordered one-ring neighbours, padded by repeating the last one.
       ring_mask: (V, K) bool, True for real neighbours; ring_rest: (V, K) rest lengths.
+      ring_edge: (V, K) int32 the index into ``edges`` of each ring slot's edge (padded slots
+        name their repeated neighbour's edge): a per-edge stiffness field reaches the ring
+        kernels through it (:func:`jaxplush.model.layout.ring_stiffness`).
+      edge_slices: per-object (start, stop) of its edges (edges are sorted, so each object's are
+        contiguous).
       vertex_object: (V,) int32; vertex_slices / face_slices: per-object (start, stop).
       count: (O,) vertices per object; rest_volume: (O,) signed volume at the rest geometry.
       fixed: (P,) int32 pinned vertices; x0: (V, 3) rest positions.
@@ -72,6 +79,12 @@ class Topology:
     fixed: np.ndarray
     x0: np.ndarray
     length_eps: float
+    ring_edge: np.ndarray
+    edge_slices: tuple
+
+    @property
+    def n_edges(self):
+        return len(self.edges)
 
 
 def build_topology(scene):
@@ -84,15 +97,18 @@ def build_topology(scene):
     ring_rest = np.linalg.norm(x0[nbr] - x0[:, None, :], axis=2)
     ring_rest = np.where(mask, ring_rest, 1.0)
     vobj = scene.object_id
+    eobj = vobj[edges[:, 0]]
+    bounds = np.searchsorted(eobj, np.arange(scene.n_objects + 1))
     return Topology(
         n_vertices=len(x0), n_objects=scene.n_objects, faces=faces, edges=edges,
-        edge_object=vobj[edges[:, 0]], rest_length=rest, ring=nbr, ring_mask=mask,
+        edge_object=eobj, rest_length=rest, ring=nbr, ring_mask=mask,
         ring_rest=ring_rest, vertex_object=vobj,
         vertex_slices=tuple(o.vertex_slice for o in scene.objects),
         face_slices=tuple(o.face_slice for o in scene.objects),
         count=np.array([o.n_vertices for o in scene.objects], np.float64),
         rest_volume=scene.volumes(), fixed=scene.fixed, x0=x0,
-        length_eps=float(LENGTH_EPS * rest.min()))
+        length_eps=float(LENGTH_EPS * rest.min()), ring_edge=_mesh.ring_edges(edges, nbr),
+        edge_slices=tuple((int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])))
 
 
 #: The smooth floor's softplus sharpness: beta = FLOOR_SHARPNESS / delta, delta half the object's mean
@@ -186,12 +202,17 @@ class Terms:
     floor_smooth: object = None
     #: driven vertices (scene keyword ``driven``; :class:`jaxplush.stepping.constraints.Drive`)
     driven: bool = False
+    #: the spring stiffness is an (E,) per-edge field (scene keywords ``k_region``/``k_edge``), not
+    #: one value per object. The kernels follow the parameter's shape; this flag only gates the
+    #: engines that take (O, B) parameters (:mod:`jaxplush.fitting.batched` refuses a field).
+    k_field: bool = False
 
     @classmethod
     def for_scene(cls, scene, params=None):
         """The terms ``scene`` needs; with ``params`` (a Params of arrays, e.g. a run's override or
         a sweep's (O, B) batch) also the dashpot, drag and Verlet damping wherever any of its
-        values switches them on (a term compiled in with a zero coefficient changes nothing)."""
+        values switches them on (a term compiled in with a zero coefficient changes nothing), and
+        ``k_field`` where its k_structural is a per-edge field."""
 
         def on(key):
             return bool(np.any(np.asarray(getattr(scene.params, key)) > 0)) or (
@@ -210,13 +231,34 @@ class Terms:
                    contact=_contact.config_for_scene(scene),
                    floor_friction=float(scene.floor_friction) if has_floor else 0.0,
                    floor_restitution=float(scene.floor_restitution) if has_floor else 0.0,
-                   driven=len(getattr(scene, "driven", ())) > 0)
+                   driven=len(getattr(scene, "driven", ())) > 0,
+                   k_field=_field_shape(scene, scene.params.k_structural) or (
+                       params is not None and _field_shape(scene, params.k_structural)))
 
     def names(self):
         out = tuple(f.name for f in dataclasses.fields(self) if getattr(self, f.name))
         if self.contact and self.contact.friction > 0:
             out += ("contact_friction",)
         return out
+
+
+def _field_shape(scene, k):
+    """Whether ``k`` has the shape of a per-edge stiffness field of ``scene`` (1-D, not (O,))."""
+    shape = np.shape(k)
+    return len(shape) == 1 and shape[0] != scene.n_objects
+
+
+def check_param_shapes(topo, params):
+    """Raise ValueError unless every parameter is (O,) (``k_structural`` may also be the (E,)
+    per-edge field, :mod:`jaxplush.model.layout`). Shapes only (traced values pass too); called
+    before tracing by the entry points (``Simulator.params``, ``rollout``, ``rollout_loss``)."""
+    o, e = topo.n_objects, topo.n_edges
+    for name, value in zip(type(params)._fields, params):
+        shape = np.shape(value)
+        if shape == (o,) or (name == "k_structural" and shape == (e,)):
+            continue
+        allowed = f"({o},) per object" + (f" or ({e},) per edge (a stiffness field)" if name == "k_structural" else "")
+        raise ValueError(f"parameter {name} has shape {shape}; expected {allowed}")
 
 
 #: Parameters whose values only act through a term that a scene may leave out: (field, term).
@@ -316,7 +358,7 @@ def _ring_force_fn(topo, terms, temperature):
             de = [t[c] - x[c] for c in range(3)]                        # 3 x (K(+1), V)
             d = [dc[:n_slots] for dc in de]                             # 3 x (K, V)
             inv_l = T.inv_length(d, eps2)
-            w = T.spring_weight(per_vertex(topo, params.k_structural), rest, inv_l)
+            w = T.spring_weight(ring_stiffness(topo, params.k_structural), rest, inv_l)
             if terms.dashpot:
                 with jax.named_scope("dashpot"):
                     dv = [t[3 + c, :n_slots] - v[c] for c in range(3)]
@@ -374,6 +416,8 @@ def _segment_force_fn(topo, terms, temperature):
         return jax.ops.segment_sum(vals, idx, num_segments=n)
 
     def per_edge(values):
+        if is_field(topo, values):          # a per-edge stiffness field: already per edge
+            return values
         return values[topo.edge_object] if topo.n_objects > 1 else values[0]
 
     def force_fn(params, x, v):
@@ -411,7 +455,7 @@ def potential_energy(topo, params, x, temperature, gravity=None, gas=True, floor
     """
     d = x[topo.edges[:, 0]] - x[topo.edges[:, 1]]
     l = jnp.sqrt(_dot(d, d) + topo.length_eps ** 2)
-    k = params.k_structural[topo.edge_object]
+    k = edge_stiffness(topo, params.k_structural)
     u = jnp.sum(0.5 * k * (l - topo.rest_length) ** 2)
     if gas:
         u = u + jnp.sum(gas_energy(topo, params, x, temperature))

@@ -1,12 +1,23 @@
 """Layout helpers shared by the model's terms: per-object values spread to vertices, per-object
-sums, vertex masses, and sums over a ring table's rows. Shapes follow :mod:`jaxplush.types`;
-per-object arrays are (O,), or (O, B) for a batch of B parameter points (the batched engine's
-layout, batch last), and the per-vertex results are then (V,) or (V, B)."""
+sums, vertex masses, sums over a ring table's rows, and the spring stiffness as a per-object value
+or a per-edge field. Shapes follow :mod:`jaxplush.types`; per-object arrays are (O,), or (O, B)
+for a batch of B parameter points (the batched engine's layout, batch last), and the per-vertex
+results are then (V,) or (V, B).
+
+Spring stiffness: ``Params.k_structural`` is either (O,) per object or an (E,) field per edge, in
+the order of ``topo.edges`` (:func:`jaxplush.model.mesh.unique_edges` of the scene's faces). Its
+shape decides which, statically (E > O: a closed object has at least 6 edges):
+:func:`is_field`. The force kernels read it through :func:`ring_stiffness` (ring slots) or
+:func:`edge_stiffness` (edges); terms that need one value per object (the default contact and
+smooth-floor stiffnesses) through :func:`object_stiffness`, the mean over the object's edges; the
+stability bounds through :func:`vertex_stiffness_max`, the stiffest edge at each vertex. A scene
+without a field never reaches the field's code (the same program as before fields existed)."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def per_vertex(topo, values):
@@ -45,3 +56,62 @@ def sum_rows(ops):
     zero = jnp.zeros((), ops[0].dtype)
     return jax.lax.reduce(tuple(ops), (zero,) * len(ops),
                           lambda a, b: tuple(ai + bi for ai, bi in zip(a, b)), (0,))
+
+
+# --------------------------------------------------------------------------- spring stiffness
+
+def is_field(topo, k):
+    """Whether the spring stiffness ``k`` (``Params.k_structural``) is an (E,) per-edge field
+    rather than (O,) per object (or (O, B) batched). Static: decided from the shape alone."""
+    shape = np.shape(k)
+    return len(shape) == 1 and shape[0] == topo.n_edges and topo.n_edges != topo.n_objects
+
+
+def _xp(a):
+    return np if isinstance(a, (np.ndarray, np.generic)) else jnp
+
+
+def edge_stiffness(topo, k):
+    """(E,) stiffness of every edge, N/m: the field itself, or each edge's object's value
+    (``k[edge_object]``; numpy in, numpy out)."""
+    if is_field(topo, k):
+        return k
+    return k[topo.edge_object]
+
+
+def object_stiffness(topo, k):
+    """(O,) one stiffness per object, N/m: ``k`` itself when it is per object (the same array,
+    (O,) or (O, B)), else the mean of the field over each object's edges (numpy in, numpy out)."""
+    if not is_field(topo, k):
+        return k
+    xp = _xp(k)
+    return xp.stack([xp.mean(k[a:b]) for a, b in topo.edge_slices])
+
+
+def object_stiffness_max(topo, k):
+    """(O,) the stiffest edge of each object, N/m (``k`` itself when it is per object)."""
+    if not is_field(topo, k):
+        return k
+    xp = _xp(k)
+    return xp.stack([xp.max(k[a:b]) for a, b in topo.edge_slices])
+
+
+def ring_stiffness(topo, k):
+    """The spring stiffness seen from each ring slot, for the one-ring kernels on (K, V) tables:
+    :func:`per_vertex` (V,) or (V, B) of a per-object ``k`` (it broadcasts against (K, V)), or the
+    (K, V) table ``k[ring_edge]`` of a field (padded slots name a real edge; kernels mask them)."""
+    if not is_field(topo, k):
+        return per_vertex(topo, k)
+    table = np.ascontiguousarray(topo.ring_edge.T)
+    if isinstance(k, (np.ndarray, np.generic)):
+        return k[table]
+    return jnp.asarray(k).at[table].get(mode="promise_in_bounds")
+
+
+def vertex_stiffness_max(topo, k):
+    """(V,) numpy: the stiffest spring at each vertex, N/m (its object's value for a per-object
+    ``k``); the stability bounds scale with it."""
+    k = np.asarray(k, np.float64)
+    if not is_field(topo, k):
+        return k[topo.vertex_object]
+    return np.max(np.where(topo.ring_mask, k[topo.ring_edge], -np.inf), axis=1, initial=0.0)

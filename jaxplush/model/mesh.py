@@ -192,6 +192,45 @@ def unique_edges(faces):
     return np.stack([keys // n, keys % n], axis=1).astype(faces.dtype)
 
 
+def edge_index(edges, a, b):
+    """Index into ``edges`` ((E, 2) sorted unique edges, :func:`unique_edges`) of the edges (a, b)
+    (arrays of vertex indices, either order), or -1 where (a, b) is not an edge."""
+    edges = np.asarray(edges, np.int64)
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    n = max(int(edges.max()) + 1 if edges.size else 1, int(hi.max()) + 1 if hi.size else 1)
+    keys = edges[:, 0] * n + edges[:, 1]
+    q = lo * n + hi
+    if not len(keys):
+        return np.full(q.shape, -1, np.int64)
+    i = np.clip(np.searchsorted(keys, q), 0, len(keys) - 1)
+    return np.where(keys[i] == q, i, -1)
+
+
+def edge_face_mean(faces, face_values, edges=None):
+    """(E,) the mean over each edge's adjacent faces of a per-face value (F,): on a closed mesh
+    (each edge in two faces) half the sum of its two faces' values, in the order of
+    :func:`unique_edges` (or of ``edges``). The scene's stiffness field is built with it
+    (``k_region``: docs/formats.md §2.4)."""
+    faces = np.asarray(faces, np.int64)
+    edges = unique_edges(faces) if edges is None else np.asarray(edges, np.int64)
+    half = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    idx = edge_index(edges, half[:, 0], half[:, 1])
+    vals = np.tile(np.asarray(face_values, np.float64), 3)
+    total = np.bincount(idx, weights=vals, minlength=len(edges))
+    count = np.bincount(idx, minlength=len(edges))
+    return total / np.maximum(count, 1)
+
+
+def ring_edges(edges, nbr):
+    """(V, K) int32: the index into ``edges`` ((E, 2), :func:`unique_edges`) of the edge from each
+    vertex to each of its ring neighbours ``nbr`` ((V, K), :func:`ring_tables`; padded slots repeat
+    a real neighbour, so they name a real edge too, and empty rows name edge 0)."""
+    v = np.broadcast_to(np.arange(len(nbr))[:, None], nbr.shape)
+    idx = edge_index(edges, v, nbr)
+    return np.where(idx >= 0, idx, 0).astype(np.int32)
+
+
 def one_rings(faces, n_vertices, labels=None):
     """Ordered one-rings: for each vertex, its neighbours counter-clockwise seen from outside.
 

@@ -13,7 +13,8 @@ and every argument broadcasts, so the same functions serve
 
 An assembly gathers neighbour values, calls these functions and sums over the ring; none of
 them restates a formula. Per-object values reach vertices through
-:func:`jaxplush.model.layout.per_vertex`, which takes (O,) or batched (O, B) arrays.
+:func:`jaxplush.model.layout.per_vertex`, which takes (O,) or batched (O, B) arrays; the spring
+stiffness, which may be an (E,) per-edge field, through :func:`jaxplush.model.layout.ring_stiffness`.
 
 Notation, per ring entry (i, j) of vertex i: d = x_j - x_i, l = sqrt(|d|² + eps²), L the rest
 length, dv = v_j - v_i; for a force cotangent lam: delta = lam_j - lam_i and t = d.delta. Every
@@ -50,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.model.layout import per_object_sum, per_vertex
+from jaxplush.model.layout import object_stiffness, per_object_sum, per_vertex
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 
@@ -201,7 +202,8 @@ FLOOR_KAPPA = 0.1
 def smooth_floor_stiffness(cfg, k_structural):
     """k_f of every object (N/m per vertex): the fixed ``floor_stiffness`` or FLOOR_KAPPA 2 n_max k.
 
-    ``k_structural`` is (O,) or (O, B) (a batch of parameter points); the result has its shape."""
+    ``k_structural`` is (O,) or (O, B) (a batch of parameter points), one value per object (of a
+    stiffness field, :func:`jaxplush.model.layout.object_stiffness`); the result has its shape."""
     k = jnp.asarray(k_structural)
     if cfg.stiffness is not None:
         return jnp.full_like(k, cfg.stiffness)
@@ -217,7 +219,7 @@ def smooth_floor_push(y, height, k_f, beta):
 
 
 def _smooth_floor_fields(topo, cfg, params, y):
-    k = params.k_structural
+    k = object_stiffness(topo, params.k_structural)
     beta = per_vertex(topo, _per_object(cfg.beta, k).astype(y.dtype))
     k_f = per_vertex(topo, smooth_floor_stiffness(cfg, k))
     return beta, k_f, jnp.asarray(cfg.height, y.dtype)
@@ -274,6 +276,7 @@ REGISTRY = (
     TermSpec("floor_restitution", "jaxplush.stepping.constraints.make_constrain", batched=True, adjoint=False),
     TermSpec("floor_smooth", "jaxplush.model.terms.smooth_floor_force", batched=True, adjoint=False),
     TermSpec("driven", "jaxplush.stepping.constraints.Drive", batched=False, adjoint=True),
+    TermSpec("k_field", "jaxplush.model.layout.edge_stiffness", batched=False, adjoint=True),
 )
 
 

@@ -1,11 +1,19 @@
 """Parse the report's extended Wavefront OBJ scene format (numpy only; never traced).
 
 A scene file holds one or more objects. Standard OBJ geometry (``v``, ``f``, ``o``, ``g``;
-``vt``, ``vn``, ``vp``, ``s``, ``usemtl``, ``mtllib`` are accepted and ignored) plus keywords:
+``vt``, ``vn``, ``vp``, ``s``, ``usemtl``, ``mtllib`` are accepted and ignored) plus keywords.
+``o NAME`` starts an object. ``g NAME`` inside an object opened by ``o`` starts a face group (the
+faces after it, up to the next ``g``, belong to group NAME; a bare ``g`` ends the group); before
+an object's ``o`` (or in a file without ``o``) it only names the object, as it always has.
 
 Per object (they apply to the object they stand in; ``END_OBJECT`` closes it; a file with a
 single object, or with objects separated by ``o`` lines, may omit it):
   ``k_structural K``  spring stiffness of every unique edge, N/m (>= 0; default 100)
+  ``k_region NAME K`` stiffness of the faces of group NAME (a ``g NAME`` of this object), N/m
+                      (>= 0); an edge's stiffness is the mean of its two faces' (the object's
+                      k_structural outside any region); may repeat, once per group
+  ``k_edge I J K``    stiffness of the edge between vertices I and J (indices as in ``f`` lines),
+                      N/m (>= 0), overriding the regions; may repeat, once per edge
   ``damping D``       the report's Verlet damping, factor f = 1/D per step (D >= 1; 0 or
                       absent: none). Its physical meaning changes with dt (docs/model.md §5).
   ``dashpot C``       edge dashpot, N s/m (>= 0; default 0), dt-independent
@@ -42,6 +50,10 @@ Scene level (anywhere, at most once each):
 An object's vertices are the vertices its faces use; indices in ``f`` and ``fixed`` are
 1-based and global to the file, or negative (relative to the vertices defined so far).
 Every problem raises :class:`jaxplush.errors.SceneError` naming file, line and problem.
+
+With any ``k_region`` or ``k_edge`` line, ``Scene.params.k_structural`` is an (E,) per-edge field
+in the order of ``Scene.edges`` (:meth:`Scene.stiffness_field`; objects without either have their
+k_structural on every edge); without, it is (O,), one value per object.
 
 Format: docs/formats.md §2 (every keyword, unit, default, valid range and rule).
 """
@@ -181,6 +193,18 @@ class Scene:
         of :mod:`jaxplush.model.contact`; contact_friction: Coulomb coefficient between objects (0: none).
       floor_model: "projection" (default) or "smooth" (a penalty force, :mod:`jaxplush.model.forces`);
       floor_stiffness: the smooth floor's stiffness per vertex (N/m), None for the default.
+      face_groups: (F,) int32 the face group of every face (an index into ``group_names``; -1:
+        none), from the ``g`` lines inside objects opened by ``o``.
+      group_names: (G,) the face groups' names, object by object in order of first appearance
+        (two objects may each have a group of one name: two groups); group_object: (G,) their
+        objects.
+      k_object: (O,) float64 the objects' ``k_structural`` values (the stiffness of their faces
+        outside any ``k_region``).
+      k_region: (G,) float64 each group's ``k_region`` stiffness, NaN where it has none.
+      k_edge: ((edge index, stiffness), ...) the ``k_edge`` lines, edges indexed as :attr:`edges`.
+
+    With any ``k_region`` or ``k_edge`` line, ``params.k_structural`` is the (E,) per-edge field
+    :meth:`stiffness_field` (in the order of :attr:`edges`); otherwise it is (O,) = ``k_object``.
     """
 
     path: str
@@ -202,6 +226,12 @@ class Scene:
     contact_friction: float = 0.0
     floor_model: str = "projection"
     floor_stiffness: float | None = None
+    face_groups: np.ndarray | None = None
+    group_names: tuple = ()
+    group_object: tuple = ()
+    k_object: np.ndarray | None = None
+    k_region: np.ndarray | None = None
+    k_edge: tuple = ()
 
     @property
     def n_objects(self):
@@ -256,6 +286,84 @@ class Scene:
     def replace(self, **kw):
         return dataclasses.replace(self, **kw)
 
+    # ----------------------------------------------------------------- spring stiffness field
+
+    @functools.cached_property
+    def edges(self):
+        """(E, 2) int64 the springs: sorted unique edges i < j (:func:`jaxplush.model.mesh.unique_edges`),
+        the order of a per-edge stiffness field (and of the simulator topology's ``edges``)."""
+        return _mesh.unique_edges(self.faces)
+
+    @property
+    def edge_object(self):
+        """(E,) int32 the object of every edge."""
+        return self.object_id[self.edges[:, 0]]
+
+    @property
+    def has_k_field(self):
+        """Whether ``params.k_structural`` is an (E,) per-edge field (not one value per object)."""
+        k = np.shape(self.params.k_structural)
+        return len(k) == 1 and k[0] != self.n_objects
+
+    def _face_groups(self):
+        return np.full(len(self.faces), -1, np.int32) if self.face_groups is None else self.face_groups
+
+    def region_edges(self):
+        """(E, G) float64 averaging matrix from per-group values to per-edge values: entry (e, g)
+        is the share of edge e's adjacent faces (two on a closed mesh) that lie in group g, so
+        0, 1/2 or 1. An edge's stiffness is the mean of its faces' (docs/formats.md §2.4): with
+        r (G,) the groups' stiffnesses and k_o each object's, the field is
+        ``A @ r + (1 - A.sum(1)) * k_o[edge_object]``, then the ``k_edge`` overrides
+        (:meth:`stiffness_field`)."""
+        faces = np.asarray(self.faces, np.int64)
+        edges = self.edges
+        half = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        e = _mesh.edge_index(edges, half[:, 0], half[:, 1])
+        g = np.tile(self._face_groups(), 3)
+        count = np.bincount(e, minlength=len(edges)).astype(np.float64)
+        a = np.zeros((len(edges), len(self.group_names)))
+        on = g >= 0
+        np.add.at(a, (e[on], g[on]), 1.0 / count[e[on]])
+        return a
+
+    def stiffness_field(self, k_structural=None, k_region=None, xp=np):
+        """(E,) the per-edge stiffness field, N/m, in the order of :attr:`edges`: every face has its
+        group's ``k_region`` value, or its object's ``k_structural`` outside any region; an
+        edge has the mean of its faces' values, unless a ``k_edge`` line sets it.
+
+        Args:
+          k_structural: (O,) the objects' values (default :attr:`k_object`).
+          k_region: (G,) the groups' values (default :attr:`k_region`); NaN: the object's value.
+          xp: the array module: ``numpy`` (default, the parser's exact rule), or ``jax.numpy`` to
+            build the field from traced, differentiable values (a fit per region), through
+            :meth:`region_edges`.
+        """
+        k_obj = self.k_object if k_structural is None else k_structural
+        if k_obj is None:
+            k_obj = self.params.k_structural
+        r = self.k_region if k_region is None else k_region
+        if r is None:
+            r = np.full(len(self.group_names), np.nan)
+        go = np.asarray(self.group_object, np.int64)
+        eo = self.edge_object
+        if xp is np:
+            k_obj, r = np.asarray(k_obj, np.float64), np.asarray(r, np.float64)
+            r = np.where(np.isnan(r), k_obj[go], r)
+            fg = self._face_groups()
+            kf = np.where(fg >= 0, r[np.maximum(fg, 0)] if len(r) else 0.0, k_obj[self.object_id[self.faces[:, 0]]])
+            field = _mesh.edge_face_mean(self.faces, kf, self.edges)
+            for e, v in self.k_edge:
+                field[e] = v
+            return field
+        k_obj, r = xp.asarray(k_obj), xp.asarray(r)
+        r = xp.where(xp.isnan(r), k_obj[go], r)
+        a = self.region_edges()
+        field = xp.asarray(a, r.dtype) @ r + xp.asarray(1.0 - a.sum(axis=1), r.dtype) * k_obj[eo]
+        if self.k_edge:
+            idx = np.asarray([e for e, _ in self.k_edge])
+            field = field.at[idx].set(xp.asarray([v for _, v in self.k_edge], field.dtype))
+        return field
+
     @functools.cached_property
     def fingerprint(self):
         """Hex digest of everything a compiled step takes from the scene: geometry, topology,
@@ -279,6 +387,15 @@ class Scene:
         return h.hexdigest()
 
 
+class _Groups:
+    """Face groups of the objects read so far (:meth:`_Parser.object_groups`): per object its faces'
+    group numbers (scene-wide, -1: none); every group's name, object and ``k_region`` (NaN: none);
+    the ``k_edge`` lines (scene vertices)."""
+
+    def __init__(self):
+        self.faces, self.names, self.object, self.k, self.k_edge = [], [], [], [], []
+
+
 class _Obj:
     """Parser state of one object while its block is read."""
 
@@ -291,6 +408,9 @@ class _Obj:
         self.keys = {}        # keyword -> (values, line)
         self.fixed = []       # (0-based global index, line)
         self.driven = []      # (path token, [0-based global indices], until or None, line)
+        self.groups = []      # face groups: ('g' line, name or None), in file order (after its 'o')
+        self.k_region = {}    # group name -> (stiffness, line)
+        self.k_edge = []      # (0-based global i, j, stiffness, line)
 
 
 def load_scene(path):
@@ -595,8 +715,15 @@ class _Parser:
 
     def keyword(self, key, args, lineno):
         """Apply one line other than 'v' and 'f': its keyword ``key`` and values ``args``."""
-        if key in ("o", "g"):
+        if key == "g" and self.cur is not None and self.cur.o_line is not None:
+            # inside an object opened by 'o': a face group (before any 'o': names the object)
+            self.cur.groups.append((lineno, " ".join(args) if args else None))
+        elif key in ("o", "g"):
             self.start_object(key, args, lineno)
+        elif key == "k_region":
+            self.k_region_line(args, lineno)
+        elif key == "k_edge":
+            self.k_edge_line(args, lineno)
         elif key == "END_OBJECT":
             if args:
                 raise self.err(lineno, "'END_OBJECT' takes no values")
@@ -619,6 +746,34 @@ class _Parser:
             self.scene_keyword(key, args, lineno)
         elif key not in _IGNORED:
             raise self.err(lineno, f"unknown keyword {key!r}")
+
+    def k_region_line(self, args, lineno):
+        """A ``k_region NAME K`` line: stored on the open object; the group is checked in
+        :meth:`object_groups`."""
+        if len(args) < 2:
+            raise self.err(lineno, f"'k_region' expects a face group name and a stiffness (k_region NAME K), "
+                                   f"got {len(args)} value(s)")
+        value = _number(self.path, lineno, "k_region", args[-1])
+        if not value >= 0:
+            raise self.err(lineno, f"'k_region' {args[-1]} must be >= 0")
+        name = " ".join(args[:-1])
+        o = self.obj(lineno)
+        if name in o.k_region:
+            raise self.err(lineno, f"'k_region' of group {name!r} given twice for one object "
+                                   f"(first on line {o.k_region[name][1]})")
+        o.k_region[name] = (value, lineno)
+
+    def k_edge_line(self, args, lineno):
+        """A ``k_edge I J K`` line: stored on the open object; checked to be one of its edges in
+        :meth:`stiffness_field`."""
+        if len(args) != 3:
+            raise self.err(lineno, f"'k_edge' expects 2 vertex indices and a stiffness (k_edge I J K), "
+                                   f"got {len(args)} value(s)")
+        i, j = (self.resolve(a, "k_edge", lineno) for a in args[:2])
+        value = _number(self.path, lineno, "k_edge", args[2])
+        if not value >= 0:
+            raise self.err(lineno, f"'k_edge' {args[2]} must be >= 0")
+        self.obj(lineno).k_edge.append((i, j, value, lineno))
 
     def driven_line(self, args, lineno):
         """A ``driven PATH I [I ...] [until T]`` line: stored on the open object; the file is read
@@ -724,6 +879,7 @@ class _Parser:
         all_x, all_local, all_lines, pending, objs = [], [], [], [], []
         params = {k: [] for k in DEFAULTS}
         vstart = fstart = 0
+        groups = _Groups()
         for oi, o in enumerate(self.objects):
             name = o.name or f"object{oi}"
             idx, flines, used = self.object_faces(o, oi, name, owner, objs)
@@ -731,6 +887,10 @@ class _Parser:
             x = self.object_positions(o, name, raw, used, vertex_line)
             fixed = self.object_fixed(o, name, used, vstart)
             driven = self.object_driven(o, name, used, vstart, fixed)
+            self.object_groups(o, oi, name, flines, groups)
+            groups.k_edge += [(vstart + self.object_vertex(o, name, used, g, ln, "k_edge"),
+                               vstart + self.object_vertex(o, name, used, h, ln, "k_edge"), v, ln, name, g + 1, h + 1)
+                              for g, h, v, ln in o.k_edge]
             for k, d in DEFAULTS.items():
                 params[k].append(o.keys[k][0][0] if k in o.keys else d)
             objs.append(SceneObject(name=name, vertex_slice=(vstart, vstart + len(used)),
@@ -757,9 +917,69 @@ class _Parser:
             first_use[o.name] = i
         vertices = np.concatenate(all_x)
         settings = self.scene_settings(objs, vertices)
-        return Scene(path=self.path, text=self.text, objects=tuple(objs), vertices=vertices,
-                     faces=all_f.astype(np.int32),
-                     params=Params(**{k: np.asarray(v, np.float64) for k, v in params.items()}), **settings)
+        params = {k: np.asarray(v, np.float64) for k, v in params.items()}
+        k_object = params["k_structural"]
+        face_groups = np.concatenate(groups.faces).astype(np.int32)
+        k_edge = self.edge_overrides(all_f, groups.k_edge)
+        scene = Scene(path=self.path, text=self.text, objects=tuple(objs), vertices=vertices,
+                      faces=all_f.astype(np.int32), params=Params(**params), face_groups=face_groups,
+                      group_names=tuple(groups.names), group_object=tuple(groups.object),
+                      k_object=k_object, k_region=np.asarray(groups.k, np.float64), k_edge=k_edge, **settings)
+        if len(k_edge) or not np.all(np.isnan(scene.k_region)):
+            # k_region or k_edge lines: the stiffness is a field over the edges
+            scene = scene.replace(params=scene.params._replace(k_structural=scene.stiffness_field()))
+        return scene
+
+    def object_vertex(self, o, name, used, g, ln, key):
+        """The index among an object's vertices ``used`` of the file's vertex ``g`` (0-based), or
+        an error on line ``ln`` naming ``key``."""
+        j = np.searchsorted(used, g)
+        if j >= len(used) or used[j] != g:
+            raise self.err(ln, f"'{key}' vertex {g + 1} is not a vertex of object {name!r}")
+        return int(j)
+
+    def object_groups(self, o, oi, name, flines, groups):
+        """Append object ``oi``'s face groups to ``groups`` (:class:`_Groups`): its faces' group
+        numbers (their lines ``flines`` after which 'g' line), the groups' names and its
+        ``k_region`` values, each checked to name one of its groups."""
+        names = []
+        for _, g in o.groups:
+            if g is not None and g not in names:
+                names.append(g)
+        base = len(groups.names)
+        if o.groups:
+            starts = np.asarray([ln for ln, _ in o.groups], np.int64)
+            ids = np.asarray([base + names.index(g) if g is not None else -1 for _, g in o.groups], np.int64)
+            at = np.searchsorted(starts, np.asarray(flines, np.int64), side="right") - 1
+            groups.faces.append(np.where(at >= 0, ids[np.maximum(at, 0)], -1))
+        else:
+            groups.faces.append(np.full(len(flines), -1, np.int64))
+        for g, (_, ln) in o.k_region.items():
+            if g not in names:
+                have = (f"its groups: {', '.join(repr(n) for n in names)}" if names
+                        else "it has no 'g' lines after its 'o' line")
+                raise self.err(ln, f"'k_region': object {name!r} has no face group {g!r} ({have})")
+        groups.names += names
+        groups.object += [oi] * len(names)
+        groups.k += [o.k_region[g][0] if g in o.k_region else np.nan for g in names]
+
+    def edge_overrides(self, faces, entries):
+        """((edge index, stiffness), ...) of the ``k_edge`` lines ``entries`` (scene vertex i, j,
+        stiffness, line, object name, the file's 1-based i, j), each checked to be an edge of the
+        scene's ``faces``, once."""
+        if not entries:
+            return ()
+        edges = _mesh.unique_edges(faces)
+        idx = _mesh.edge_index(edges, [e[0] for e in entries], [e[1] for e in entries])
+        first = {}
+        for e, (_, _, _, ln, name, a, b) in zip(idx.tolist(), entries):
+            if e < 0:
+                raise self.err(ln, f"'k_edge': vertices {a} and {b} are not joined by an edge of object {name!r}")
+            if e in first:
+                raise self.err(ln, f"'k_edge' of the edge between vertices {a} and {b} given twice "
+                                   f"(first on line {first[e]})")
+            first[e] = ln
+        return tuple((int(e), float(entry[2])) for e, entry in zip(idx.tolist(), entries))
 
     def object_faces(self, o, oi, name, owner, objs):
         """(idx (F, 3) 0-based global indices of object ``oi``'s faces, their (F,) lines, used: the

@@ -77,7 +77,7 @@ def energy_terms(sim, params, state):
     kin = model.kinetic_energy(topo, params, v)
     d = x[topo.edges[:, 0]] - x[topo.edges[:, 1]]
     l = jnp.sqrt(jnp.sum(d * d, axis=-1) + topo.length_eps ** 2)
-    spring = jnp.sum(0.5 * params.k_structural[topo.edge_object] * (l - topo.rest_length) ** 2)
+    spring = jnp.sum(0.5 * model.edge_stiffness(topo, params.k_structural) * (l - topo.rest_length) ** 2)
     zero = jnp.zeros((), x.dtype)
     gas = jnp.sum(model.gas_energy(topo, params, x, sim.scene.temperature)) if sim.terms.gas else zero
     height = jnp.matmul(x, jnp.asarray(sim.scene.gravity, x.dtype), precision=jax.lax.Precision.HIGHEST)

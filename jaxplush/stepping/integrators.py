@@ -403,7 +403,7 @@ def mesit(system):
         x, v, dv_prev = state
         m = model.vertex_mass(topo, params)
         force = m * system.rate(params, x, v, k)
-        kn = model.per_vertex(topo, params.k_structural) * jnp.asarray(valence, x.dtype)
+        kn = _stiffness_sum(topo, params.k_structural, valence, x.dtype)
         direction, _ = _safe_unit(force)
         _, prev = _safe_unit(dv_prev)
         dv = (h * force + direction * (kn * h * h * prev)) / (m + kn * h * h)
@@ -413,6 +413,15 @@ def mesit(system):
         return MesitState(x_new, v_new, dv)
 
     return Scheme(init, step, _velocity_field)
+
+
+def _stiffness_sum(topo, k, valence, dtype):
+    """(V,) sum of the spring constants at each vertex: k n_i for a per-object k, the sum over the
+    vertex's edges for a per-edge field."""
+    if not model.is_field(topo, k):
+        return model.per_vertex(topo, k) * jnp.asarray(valence, dtype)
+    table = model.ring_stiffness(topo, k)                                   # (K, V)
+    return jnp.sum(jnp.where(np.ascontiguousarray(topo.ring_mask.T), table, 0.0), axis=0)
 
 
 # --------------------------------------------------------------------------- implicit Euler
@@ -505,7 +514,7 @@ def _jacobians(topo, terms, params, x, volume, temperature, gather, ring_rest, m
     d = [gather(x[c]) - x[c] for c in range(3)]                             # 3 x (K, V)
     inv_l = T.inv_length(d, jnp.asarray(topo.length_eps ** 2, dtype))
     dh = [dc * inv_l for dc in d]
-    transverse, axial = T.spring_jacobian(model.per_vertex(topo, params.k_structural), rest, inv_l)
+    transverse, axial = T.spring_jacobian(model.ring_stiffness(topo, params.k_structural), rest, inv_l)
     if not all_real:
         transverse = jnp.where(mask, transverse, 0.0)
         axial = jnp.where(mask, axial, 0.0)

@@ -163,10 +163,12 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
 
     Raises:
       ValueError: ``params`` (concrete, outside jit) gives a value above 0 to a term the
-        simulator leaves out (:func:`jaxplush.model.forces.check_params`).
+        simulator leaves out (:func:`jaxplush.model.forces.check_params`), or a parameter's shape
+        is not (O,) (k_structural: or (E,), :func:`jaxplush.model.forces.check_param_shapes`).
     """
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    model.check_param_shapes(sim.topology, params)
     model.check_params(sim.terms, params)
     if health is None:
         health = initial_health(sim, state, step0)

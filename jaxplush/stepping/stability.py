@@ -27,6 +27,7 @@ import numpy as np
 
 from jaxplush.stepping import compiled
 from jaxplush.model import forces as model
+from jaxplush.model.layout import vertex_stiffness_max
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
 
 
@@ -60,7 +61,7 @@ def inflated(sim, params, x):
     topo = sim.topology
     x = np.array(x, np.float64)
     nrt = np.asarray(params.nmol, np.float64) * GAS_CONSTANT * sim.scene.temperature
-    k = np.asarray(params.k_structural, np.float64)
+    k = model.object_stiffness(topo, np.asarray(params.k_structural, np.float64))
     for o, (a, b) in enumerate(topo.vertex_slices):
         l2 = float(np.sum(topo.rest_length[topo.edge_object == o] ** 2))
         if nrt[o] > 0 and k[o] > 0:
@@ -224,6 +225,8 @@ def _rates(topo, terms, params, temperature, geo, scale=None):
     object's centroid (then every factor follows by its power of the scale)."""
     obj = topo.vertex_object
     k = np.asarray(params.k_structural, np.float64)
+    k_v = vertex_stiffness_max(topo, k)          # the stiffest spring at each vertex (a field's too)
+    k = model.object_stiffness(topo, k)          # one per object: the defaults of the floor and contact
     m = (np.asarray(params.total_weight, np.float64) / topo.count)[obj]
     val = topo.ring_mask.sum(axis=1)
     s = np.ones(topo.n_objects) if scale is None else np.asarray(scale, np.float64)
@@ -232,7 +235,7 @@ def _rates(topo, terms, params, temperature, geo, scale=None):
     else:                                  # tau = 1 - 1/s on every edge: K_ii = (1 - tau) S + tau n I
         tau = (1.0 - 1.0 / s)[obj]
         spring = (1.0 - tau) * geo.lam_s + tau * val + np.maximum(1.0, np.abs(tau)) * val
-    w2 = k[obj] * spring / m
+    w2 = k_v * spring / m
     if terms.gas:
         nrt = np.asarray(params.nmol, np.float64) * GAS_CONSTANT * temperature
         vol = geo.volume * s ** 3
@@ -264,7 +267,7 @@ def _rates(topo, terms, params, temperature, geo, scale=None):
 def _inflation(topo, params, temperature):
     """(O,) the uniform inflation s* = (1 + sqrt(1 + 12 nRT/(k sum L²))) / 2 of each object (1 without gas)."""
     nrt = np.asarray(params.nmol, np.float64) * GAS_CONSTANT * temperature
-    k = np.asarray(params.k_structural, np.float64)
+    k = model.object_stiffness(topo, np.asarray(params.k_structural, np.float64))
     l2 = np.array([np.sum(topo.rest_length[topo.edge_object == o] ** 2) for o in range(topo.n_objects)])
     with np.errstate(divide="ignore", invalid="ignore"):
         s = 0.5 * (1 + np.sqrt(1 + 12 * nrt / (k * l2)))
@@ -327,7 +330,7 @@ def _verlet_damping_factor(params):
 
 def _gershgorin(topo, params):
     """The springs-only bound sqrt(2 m / (k n_max)) of the lightest, stiffest vertex."""
-    k = np.asarray(params.k_structural, np.float64)[topo.vertex_object]
+    k = vertex_stiffness_max(topo, params.k_structural)
     m = np.asarray(params.total_weight, np.float64)[topo.vertex_object] / topo.count[topo.vertex_object]
     kn = k * topo.ring_mask.sum(axis=1)
     with np.errstate(divide="ignore"):

@@ -97,9 +97,11 @@ class Simulator:
         """The scene's parameters (or ``scene_params``) as a pytree of jnp arrays of this dtype.
 
         Raises ValueError when a value above 0 goes to a term this simulator leaves out (say
-        ``drag`` for a scene without drag), which would otherwise be ignored."""
+        ``drag`` for a scene without drag), which would otherwise be ignored, or when a parameter
+        is not (O,) (``k_structural`` may also be an (E,) per-edge field)."""
         p = self.scene.params if scene_params is None else scene_params
         out = Params(*(jnp.asarray(np.asarray(a), self.dtype) for a in p))
+        model.check_param_shapes(self.topology, out)
         model.check_params(self.terms, out)
         return out
 
