@@ -433,6 +433,64 @@ def backward(sim, plan, params, bufs, add_frame, x_bar, u_bar, step0=0):
     return _reduce_dens(sim.topology, params, dens), add_frame(x_bar, 0), u_bar
 
 
+def _batch_linear_call(axis_data, args, dims, *, callee, transpose_thunk, num_callee_consts, num_res):
+    """A batching rule for ``jax.custom_derivatives.linear_call``, which jax 0.10.2 lacks (so that
+    ``jax.vmap`` of :func:`jaxplush.rollout`'s gradient works): the same linear call of the
+    vmapped function and the vmapped transpose, every linear input and output batched on axis 0."""
+    from jax.custom_derivatives import linear_call
+    from jax.extend import core as jex_core
+    from jax._src.interpreters import batching
+
+    n_res = num_callee_consts + num_res
+    moved = [a if d is None else batching.moveaxis(a, d, 0) for a, d in zip(args, dims)]
+    res, lin = moved[:n_res], moved[n_res:]
+    res_axes = [None if d is None else 0 for d in dims[:n_res]]
+    lin = [a if d is not None else batching.broadcast(a, axis_data.size, 0, None) for a, d in zip(lin, dims[n_res:])]
+
+    def fun(r, x):
+        return jax.vmap(lambda r, x: jex_core.jaxpr_as_fun(callee)(*r, *x), in_axes=(res_axes, 0))(r, x)
+
+    def fun_transpose(r, ct):
+        # the transpose takes its own constants, then the residuals without the callee's constants
+        jaxpr, consts = transpose_thunk()
+        k = num_callee_consts
+        return jax.vmap(lambda r, c: jex_core.jaxpr_as_fun(jaxpr)(*consts, *r, *c),
+                        in_axes=(res_axes[k:], 0))(r[k:], ct)
+
+    out = linear_call(fun, fun_transpose, res, lin)
+    return out, [0] * len(out)
+
+
+def _register_linear_call_rules():
+    """Install :func:`_batch_linear_call` unless this jax has a rule of its own, and make the
+    derivative of a linear call with respect to its residuals (a second derivative of
+    :func:`jaxplush.rollout`: ``jax.hessian``, forward over reverse) a clear error rather than
+    jax's bare ``AssertionError``. Nothing is installed where jax's internals differ."""
+    try:
+        from jax._src.custom_derivatives import linear_call_p
+        from jax._src.interpreters import ad, batching
+    except ImportError:                                # pragma: no cover - another jax's layout
+        return
+    if linear_call_p not in batching.fancy_primitive_batchers:
+        batching.fancy_primitive_batchers[linear_call_p] = _batch_linear_call
+    rule = ad.primitive_jvps.get(linear_call_p)
+    if rule is None or getattr(rule, "_jaxplush", False):
+        return
+
+    def jvp(primals, tangents, **params):
+        n_res = params["num_callee_consts"] + params["num_res"]
+        if not all(type(t) is ad.Zero for t in tangents[:n_res]):
+            raise NotImplementedError(
+                "a second derivative of jaxplush.rollout (jax.hessian, or any derivative of a derivative) does not "
+                "go through its fused adjoint; pass gradient='autodiff' to rollout for one")
+        return rule(primals, tangents, **params)
+    jvp._jaxplush = True
+    ad.primitive_jvps[linear_call_p] = jvp
+
+
+_register_linear_call_rules()
+
+
 def adjoint_supported(sim):
     """Whether the fused adjoint supports this simulator (its integrator and compiled terms)."""
     return (sim.integrator == "verlet" and sim.substeps == 1

@@ -14,12 +14,15 @@ object's ``CONTACT_OVERFLOW`` code at the next saved frame; the positions stay f
 from __future__ import annotations
 
 import functools
+import math
+import warnings
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxplush.stepping import adjoint
 from jaxplush.stepping import compiled
 from jaxplush.stepping import diagnostics
 from jaxplush.model import forces as model
@@ -70,7 +73,12 @@ def initial_health(sim, state, step=0):
     return Health(jnp.zeros((o,), jnp.int32), neg, neg, state, jnp.asarray(step, jnp.int32))
 
 
-def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
+def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint, record=None):
+    """The rollout on the internal layout (:func:`rollout`). ``checkpoint``: False, True (each
+    frame's steps in ``jax.checkpoint``) or "segments" (the checkpointed autodiff of ``gradient=
+    "checkpoint"``: each frame's steps also in segments of about sqrt(save_every) steps, and
+    each step, recomputed in the backward pass). ``record``: a :class:`jaxplush.stepping.adjoint._Plan`
+    to also return the state buffers the fused adjoint reverses (:func:`_core_recorded`)."""
     step_fn = sim.internal.step
     state = sim.internal.to_internal(state)
     health = health._replace(good_state=sim.internal.to_internal(health.good_state))
@@ -108,19 +116,34 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
         carry0 = (state,)
         overflow = None
 
-    if driven:
-        def steps(s, first):
-            return jax.lax.scan(lambda c, n: (one(c, n), None), s, first + jnp.arange(save_every, dtype=jnp.int32))[0]
-    else:
-        def steps(s, first):
-            return jax.lax.scan(lambda c, _: (one(c, None), None), s, None, length=save_every)[0]
+    if record is not None:
+        # the fused adjoint's forward: also keep each state (or each segment's first) before its step
+        keep = adjoint._recorder(record)
 
-    if checkpoint:
-        steps = jax.checkpoint(steps)
+        def steps(cb, first):
+            def body(cb, m):                       # m: the local index of the state c holds
+                c, bufs = cb
+                return (one(c, step0 + m if driven else None), keep(bufs, m, c[0])), None
+            return jax.lax.scan(body, cb, first + jnp.arange(save_every, dtype=jnp.int32))[0]
+        carry0 = (carry0, adjoint._state_buffers(record, state.x.shape, state.x.dtype))
+        inner, outer = (lambda cb: cb[0]), (lambda i: i * save_every)
+    else:
+        inner, outer = (lambda c: c), (lambda i: step0 + i * save_every if driven else None)
+        if driven:
+            def steps(s, first):
+                return jax.lax.scan(lambda c, n: (one(c, n), None), s, first + jnp.arange(save_every, dtype=jnp.int32))[0]
+        else:
+            def steps(s, first):
+                return jax.lax.scan(lambda c, _: (one(c, None), None), s, None, length=save_every)[0]
+        if checkpoint == "segments":
+            steps = _segmented(one, save_every, driven)
+        if checkpoint:
+            steps = jax.checkpoint(steps)
 
     def frame(carry, i):
-        c, h = carry
-        c = steps(c, step0 + i * save_every if driven else None)
+        cb, h = carry
+        cb = steps(cb, outer(i))
+        c = inner(cb)
         s = c[0]
         step = step0 + (i + 1) * save_every
         if overflow is None:
@@ -128,12 +151,38 @@ def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint):
         else:
             # a contact overflow since the start of this rollout is the object's code
             code = diagnostics.with_overflow(diagnostics.object_status(sim.topology, sim.terms, s.x.T), overflow(c))
-        return (c, h.advance(code, step, s)), s.x
+        return (cb, h.advance(code, step, s)), s.x
 
     (carry, health), frames = jax.lax.scan(frame, (carry0, health), jnp.arange(n_frames, dtype=jnp.int32))
-    state = carry[0]
+    state = inner(carry)[0]
     health = health._replace(good_state=sim.internal.to_public(health.good_state))
-    return sim.internal.to_public(state), jnp.swapaxes(frames, 1, 2), health
+    out = sim.internal.to_public(state), jnp.swapaxes(frames, 1, 2), health
+    if record is None:
+        return out
+    bufs = carry[1]
+    if record.store:
+        bufs = keep(bufs, record.n_steps, state)
+    return out, bufs
+
+
+def _segmented(one, save_every, driven):
+    """A frame's steps for checkpointed autodiff: segments of ``seg`` steps (the divisor of
+    ``save_every`` nearest sqrt(save_every) from below), each recomputed from its first state in
+    the backward pass, and each step in it from its input (``one`` in ``jax.checkpoint``): the
+    backward pass of a frame holds save_every / seg + seg states and one step's residuals."""
+    seg = max(d for d in range(1, math.isqrt(save_every) + 1) if save_every % d == 0)
+    step = jax.checkpoint(one)
+
+    def segment(c, first):
+        if driven:
+            return jax.lax.scan(lambda c, n: (step(c, n), None), c, first + jnp.arange(seg, dtype=jnp.int32))[0]
+        return jax.lax.scan(lambda c, _: (step(c, None), None), c, None, length=seg)[0]
+    segment = jax.checkpoint(segment)
+
+    def steps(s, first):
+        starts = (first + seg * jnp.arange(save_every // seg, dtype=jnp.int32)) if driven else None
+        return jax.lax.scan(lambda c, f: (segment(c, f), None), s, starts, length=save_every // seg)[0]
+    return steps
 
 
 def _core_jit(sim, params, state, health, step0, *, n_frames, save_every, checkpoint):
@@ -142,10 +191,31 @@ def _core_jit(sim, params, state, health, step0, *, n_frames, save_every, checkp
     return fn(params, state, health, step0, n_frames=n_frames, save_every=save_every, checkpoint=checkpoint)
 
 
-def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health=None, step0=0):
+#: How :func:`rollout` is differentiated (``gradient=``).
+GRADIENTS = ("auto", "adjoint", "checkpoint", "autodiff")
+
+#: The reasons :func:`rollout`'s gradient fell back to checkpointed autodiff, each warned of once.
+_WARNED = set()
+
+
+def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health=None, step0=0, *,
+            gradient="auto", memory_budget=None):
     """Run ``n_frames * save_every`` steps, saving positions every ``save_every`` steps.
 
-    Differentiable with respect to ``params`` and ``state`` (reverse and forward mode).
+    Differentiable with respect to ``params`` and ``state``, in reverse mode (``jax.grad``,
+    ``jax.value_and_grad``, ``jax.vjp``, ``jax.jacrev``) and forward mode (``jax.jvp``,
+    ``jax.jacfwd``), under ``jax.jit`` and ``jax.vmap``. By default (``gradient="auto"``) reverse
+    mode takes the fused adjoint (:mod:`jaxplush.stepping.adjoint`): the forward run also keeps
+    every step's state within ``memory_budget`` (else a checkpoint every about sqrt(steps)
+    steps, recomputed segment by segment), and the backward pass is one fused kernel per step:
+    the value and gradient cost about 4-8 forward runs, where JAX's own reverse mode through the
+    scan (``gradient="autodiff"``) costs 20-30 and keeps every step's residuals
+    (benchmarks/bench_fit.py; benchmarks/RESULTS.md). A simulator the adjoint does not cover
+    (contact or floor friction, restitution, the smooth floor, another integrator than Verlet,
+    substeps) is differentiated by checkpointed autodiff instead, with a warning the first time.
+    Forward mode is JAX's own (a tangent run beside a forward run). Not differentiated, the
+    program is the plain rollout's. ``health`` carries no derivative (its ``good_state``'s is
+    zero). Second derivatives (``jax.hessian``, reverse over reverse) need ``gradient="autodiff"``.
 
     Args:
       sim: :class:`jaxplush.stepping.step.Simulator`.
@@ -153,10 +223,21 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
       state: initial :class:`jaxplush.types.State` (from ``sim.init_fn``).
       n_frames: number of saved frames (static).
       save_every: steps between saved frames (static).
-      checkpoint: wrap each frame's steps in ``jax.checkpoint`` so reverse-mode memory grows
-        with frames, not steps.
+      checkpoint: the gradient of JAX's autodiff through the scan (``gradient="autodiff"``; True
+        selects it) with each frame's steps in ``jax.checkpoint``, so that its memory grows with
+        frames, not steps.
       health: a :class:`Health` to continue (for chunked runs); default fresh.
       step0: step number of ``state`` (for chunked runs).
+      gradient: how reverse mode differentiates the rollout (static): "auto" (the fused adjoint
+        where it applies, :func:`jaxplush.stepping.adjoint.adjoint_supported`, else
+        "checkpoint" with a warning once per reason), "adjoint" (an error where it does not
+        apply), "checkpoint" (JAX's autodiff, each frame's steps recomputed in segments of
+        about sqrt(save_every), each step from its input) or "autodiff" (JAX's autodiff through
+        the scan, every step's residuals kept: the reference).
+      memory_budget: bytes the fused adjoint may spend keeping every step's state (default
+        :data:`jaxplush.stepping.adjoint.DEFAULT_MEMORY_BUDGET`, 512 MiB); beyond it, one
+        checkpoint every about sqrt(steps) steps, the segments recomputed in the backward pass.
+        Per rollout: under ``jax.vmap`` each batch member keeps its own.
 
     Returns:
       (final_state, frames (n_frames, V, 3) positions after each block, health).
@@ -164,16 +245,174 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
     Raises:
       ValueError: ``params`` (concrete, outside jit) gives a value above 0 to a term the
         simulator leaves out (:func:`jaxplush.model.forces.check_params`), or a parameter's shape
-        is not (O,) (k_structural: or (E,), :func:`jaxplush.model.forces.check_param_shapes`).
+        is not (O,) (k_structural: or (E,), :func:`jaxplush.model.forces.check_param_shapes`);
+        an unknown ``gradient``, "adjoint" for a simulator it does not cover, or ``checkpoint``
+        with a ``gradient`` other than "auto" or "autodiff".
     """
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    if gradient not in GRADIENTS:
+        raise ValueError(f"unknown gradient {gradient!r}; expected one of {', '.join(GRADIENTS)}")
+    if checkpoint:
+        if gradient not in ("auto", "autodiff"):
+            raise ValueError(f"checkpoint=True is JAX's autodiff with each frame checkpointed (gradient='autodiff'); "
+                             f"it does not go with gradient={gradient!r}")
+        gradient = "autodiff"
+    if gradient == "adjoint" and not adjoint.adjoint_supported(sim):
+        raise ValueError(f"gradient='adjoint': the fused adjoint does not cover {_not_covered(sim)}; "
+                         "use gradient='checkpoint' or 'auto'")
     model.check_param_shapes(sim.topology, params)
     model.check_params(sim.terms, params)
     if health is None:
         health = initial_health(sim, state, step0)
-    return _core_jit(sim, params, state, health, jnp.asarray(step0, jnp.int32),
-                     n_frames=int(n_frames), save_every=int(save_every), checkpoint=bool(checkpoint))
+    step0 = jnp.asarray(step0, jnp.int32)
+    static = dict(n_frames=int(n_frames), save_every=int(save_every), checkpoint=bool(checkpoint))
+    if gradient == "autodiff":
+        return _core_jit(sim, params, state, health, step0, **static)
+    warn = gradient == "auto" and not adjoint.adjoint_supported(sim)
+    if gradient == "auto":
+        gradient = "checkpoint" if warn else "adjoint"
+    budget = adjoint.DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
+    fn = compiled.get(sim, ("rollout_gradient", static["n_frames"], static["save_every"], gradient, budget, warn),
+                      lambda: _differentiable(sim, static["n_frames"], static["save_every"], gradient, budget, warn))
+    return fn(params, state, health, step0)
+
+
+def _not_covered(sim):
+    """What of ``sim`` the fused adjoint does not cover, in words."""
+    out = [n for n in sim.terms.names() if n not in adjoint._ADJOINT_TERMS]
+    if sim.integrator != "verlet":
+        out.append(f"the {sim.integrator} integrator")
+    if sim.substeps != 1:
+        out.append(f"substeps={sim.substeps}")
+    return ", ".join(out)
+
+
+def _differentiable(sim, n_frames, save_every, gradient, memory_budget, warn=False):
+    """``f(params, state, health, step0)``: the rollout, whose derivative is the fused adjoint's
+    (``gradient="adjoint"``) or checkpointed autodiff's ("checkpoint").
+
+    A ``jax.custom_jvp`` whose primal is the plain rollout (:func:`_core_jit`: not
+    differentiated, nothing changes). Its JVP, for "adjoint", runs the forward pass that also
+    records the states (:func:`_core_recorded`) and returns the tangents as a
+    ``jax.custom_derivatives.linear_call``: a linear map of the input tangents whose forward is
+    JAX's own JVP of the rollout (forward mode) and whose transpose, which reverse mode calls, is
+    :func:`jaxplush.stepping.adjoint.backward` on the recorded states. So ``jax.grad`` and
+    ``jax.jvp`` both work, and they are transposes of each other (up to rounding, and near-ties
+    of soft-soft contact faces: the rollout carries its contact candidates, the adjoint's step
+    searches afresh). Only the tangents that are not symbolic zeros enter the linear map (a
+    known zero would not transpose). For "checkpoint" the JVP is JAX's own of the rollout with
+    its steps checkpointed (:func:`_segmented`), so reverse mode is checkpointed autodiff;
+    ``warn``: say so once (:func:`_warn_fallback`) when first differentiated.
+    """
+    static = dict(n_frames=n_frames, save_every=save_every)
+    primal = functools.partial(_core_jit, sim, checkpoint=False, **static)
+
+    @jax.custom_jvp
+    def f(params, state, health, step0):
+        return primal(params, state, health, step0)
+
+    if gradient == "checkpoint":
+        segmented = functools.partial(_core_jit, sim, checkpoint="segments", **static)
+
+        def jvp(primals, tangents):
+            params, state, health, step0 = primals
+            if warn:
+                _warn_fallback(sim)
+            t_params, t_state = (jax.tree_util.tree_map(_instantiate, t) for t in tangents[:2])
+            (final, frames, health_out), (t_final, t_frames) = _jvp_outputs(
+                lambda p, s: segmented(p, s, health, step0), (params, state), (t_params, t_state))
+            return (final, frames, health_out), (t_final, t_frames, _zero_like(health_out))
+
+        f.defjvp(jvp, symbolic_zeros=True)
+        return f
+
+    forward = jax.jit(functools.partial(_core_recorded, sim, **static), static_argnames=("plan",))
+    tangent_run = jax.jit(lambda params, state, health, step0, t_params, t_state: _jvp_outputs(
+        lambda p, s: primal(p, s, health, step0), (params, state), (t_params, t_state))[1])
+    transpose_run = jax.jit(functools.partial(_transpose, sim, save_every), static_argnames=("plan",))
+
+    def jvp(primals, tangents):
+        params, state, health, step0 = primals
+        dtype = jnp.result_type(state.x)
+        plan = adjoint._plan(sim, n_frames * save_every, None, memory_budget, np.dtype(dtype).itemsize)
+        (final, frames, health_out), bufs = forward(params, state, health, step0, plan=plan)
+        leaves, tree = jax.tree_util.tree_flatten(tuple(tangents[:2]))
+        live = [not isinstance(t, jax.custom_derivatives.SymbolicZero) for t in leaves]
+        zero_out = _zero_like(health_out)
+        if not any(live):
+            return (final, frames, health_out), (_zero_like(final), _zero_like(frames), zero_out)
+
+        def full(lin):
+            """The input tangents, the live ones from ``lin``, zeros for the others."""
+            it = iter(lin)
+            return jax.tree_util.tree_unflatten(tree, [next(it) if a else jnp.zeros(t.shape, t.dtype)
+                                                       for a, t in zip(live, leaves)])
+
+        def tangent_map(res, lin):                                     # forward mode
+            params, state, health, step0, _ = res
+            return tuple(tangent_run(params, state, health, step0, *full(lin)))
+
+        def transpose_map(res, ct):                                    # reverse mode
+            params, state, health, step0, bufs = res
+            cot = transpose_run(params, bufs, step0, *ct, plan=plan)
+            return [c for a, c in zip(live, jax.tree_util.tree_leaves(cot)) if a]
+
+        res = (params, state, health, step0, bufs)
+        t_final, t_frames = jax.custom_derivatives.linear_call(
+            tangent_map, transpose_map, res, [t for a, t in zip(live, leaves) if a])
+        return (final, frames, health_out), (t_final, t_frames, zero_out)
+
+    f.defjvp(jvp, symbolic_zeros=True)
+    return f
+
+
+def _core_recorded(sim, params, state, health, step0, *, n_frames, save_every, plan):
+    """The rollout (:func:`_core`) that also returns the state buffers of ``plan``."""
+    return _core(sim, params, state, health, step0, n_frames, save_every, False, record=plan)
+
+
+def _transpose(sim, save_every, params, bufs, step0, ct_final, ct_frames, *, plan):
+    """(params cotangent, state cotangent) of a rollout for the cotangents of its final state and
+    frames: the fused adjoint's reverse sweep (:func:`jaxplush.stepping.adjoint.backward`) from
+    the final state's cotangent, each frame's added at its step."""
+    dtype = bufs[0].dtype
+    gx = jnp.swapaxes(ct_frames, 1, 2).astype(dtype)                  # (n_frames, 3, V)
+    ct = sim.internal.to_internal(ct_final)                            # the transpose of to_public
+
+    def add_frame(x_bar, n):
+        j = n // save_every - 1                                        # frame j is at step (j + 1) save_every
+        hit = jnp.asarray((n % save_every == 0) & (j >= 0), dtype)
+        return x_bar + hit * jax.lax.dynamic_index_in_dim(gx, jnp.maximum(j, 0), keepdims=False)
+
+    p_bar, x_bar, u_bar = adjoint.backward(sim, plan, params, bufs, add_frame, ct.x.astype(dtype),
+                                           ct.v.astype(dtype), step0)
+    return p_bar, sim.internal.to_public(type(ct_final)(x_bar, u_bar))
+
+
+def _jvp_outputs(fn, primals, tangents):
+    """((final, frames, health), (final's tangent, frames' tangent)) of ``jax.jvp(fn, ...)``."""
+    out, t_out = jax.jvp(fn, primals, tangents)
+    return out, (t_out[0], t_out[1])
+
+
+def _instantiate(t):
+    return jnp.zeros(t.shape, t.dtype) if isinstance(t, jax.custom_derivatives.SymbolicZero) else t
+
+
+def _zero_like(tree):
+    """Symbolic zero tangents for ``tree`` (float0 for its integer leaves)."""
+    return jax.tree_util.tree_map(jax.custom_derivatives.SymbolicZero.from_primal_value, tree)
+
+
+def _warn_fallback(sim):
+    """Say once per process per reason that the gradient is checkpointed autodiff."""
+    reason = _not_covered(sim)
+    if reason not in _WARNED:
+        _WARNED.add(reason)
+        warnings.warn(f"jaxplush.rollout: the fused adjoint does not cover {reason}; this rollout's gradient is "
+                      "checkpointed autodiff instead (several times slower; gradient='checkpoint' says so "
+                      "without this warning)", stacklevel=4)
 
 
 def rerun_from_good(sim, params, health):
