@@ -2,10 +2,15 @@
 section) time to fit and sweep throughput.
 
 Gradient section. The ball-drop plush (springs, gas, gravity, floor; ``--dashpot`` adds the
-edge dashpot) of 642 / 2562 vertices, float32, a squared-distance loss against 10 target
-frames spread over the horizon. ``forward`` is the jitted loss alone
+edge dashpot) of 642 / 2562 vertices (or ``--scene FILE``), float32, a squared-distance loss
+against 10 target frames spread over the horizon. ``forward`` is the jitted loss alone
 (``rollout_loss(..., method="plain")`` outside any grad); each method's figure is the jitted
-``jax.value_and_grad`` of the same loss; ``ratio`` = value_and_grad time / forward time. Compile
+``jax.value_and_grad`` of the same loss; ``ratio`` = value_and_grad time / forward time. Methods
+``adjoint``, ``checkpoint`` and ``plain`` are ``rollout_loss``'s; ``rollout`` is the same loss
+written by hand on the frames of ``jaxplush.rollout(sim, p, s, 10, steps // 10)`` (what a user
+writes; its gradient is the fused adjoint by default), ``rollout-autodiff`` that loss with
+``gradient="autodiff"`` (JAX's reverse mode through the scan, the default before issue 29), and
+``forward (rollout)`` that loss's forward alone. Compile
 time is reported apart; times are the minimum of repeats, wall clock and process CPU time (the
 CPU ratio is steadier on a shared machine; XLA's CPU backend runs these loops on one thread).
 
@@ -39,15 +44,16 @@ import jaxplush  # noqa: E402
 from bench_step import ball_scene  # noqa: E402
 from jaxplush.fitting import gradients  # noqa: E402
 
-METHODS = ("adjoint", "checkpoint", "plain")
+METHODS = ("adjoint", "checkpoint", "plain", "rollout", "rollout-autodiff")
 
 
 def _sq_loss(x, target):
     return jnp.sum((x - target) ** 2)
 
 
-def _problem(subdivisions, steps, dashpot, dt=1e-4):
-    sim = jaxplush.make_simulator(ball_scene(subdivisions, dashpot), dt)
+def _problem(subdivisions, steps, dashpot, dt=1e-4, scene=None):
+    scene = ball_scene(subdivisions, dashpot) if scene is None else jaxplush.load_scene(scene)
+    sim = jaxplush.make_simulator(scene, dt)
     p = sim.params()
     frames = tuple(int(s) for s in np.linspace(0, steps, 11)[1:])
     target = jnp.broadcast_to(jnp.asarray(sim.topology.x0, sim.dtype) - jnp.asarray([0.0, 0.01, 0.0], sim.dtype),
@@ -56,6 +62,16 @@ def _problem(subdivisions, steps, dashpot, dt=1e-4):
 
 
 def _loss_fn(sim, frames, target, method, segment=None):
+    if method.startswith("rollout"):
+        every = frames[0]
+        assert frames == tuple(every * (j + 1) for j in range(len(frames)))
+        gradient = "autodiff" if method == "rollout-autodiff" else "auto"
+
+        def g(p):
+            _, xs, _ = jaxplush.rollout(sim, p, sim.init_fn(p), len(frames), every, gradient=gradient)
+            return jnp.sum((xs - target) ** 2)
+        return g
+
     def f(p):
         return gradients.rollout_loss(sim, p, sim.init_fn(p), frames, _sq_loss, target, method=method,
                                       segment=segment)
@@ -75,17 +91,21 @@ def _time(fn, arg, repeats):
     return compile_s, wall, cpu
 
 
-def gradient_ratio(sizes, steps, repeats, dashpot, methods=METHODS):
+def gradient_ratio(sizes, steps, repeats, dashpot, methods=METHODS, scene=None):
     """Table rows: per mesh size, forward time and each method's value_and_grad time and ratio."""
     rows = []
     for sub in sizes:
-        sim, p, frames, target = _problem(sub, steps, dashpot)
+        sim, p, frames, target = _problem(sub, steps, dashpot, scene=scene)
         fwd = jax.jit(_loss_fn(sim, frames, target, "plain"))
         c_f, t_f, u_f = _time(fwd, p, repeats)
         rows.append(dict(vertices=sim.topology.n_vertices, method="forward (loss only)", compile_s=c_f, ms=1e3 * t_f,
                          ratio=1.0, cpu_ms=1e3 * u_f, cpu_ratio=1.0))
+        if any(m.startswith("rollout") for m in methods):
+            c, t, u = _time(jax.jit(_loss_fn(sim, frames, target, "rollout")), p, repeats)
+            rows.append(dict(vertices=sim.topology.n_vertices, method="forward (rollout)", compile_s=c, ms=1e3 * t,
+                             ratio=t / t_f, cpu_ms=1e3 * u, cpu_ratio=u / u_f))
         for m in methods:
-            if m == "plain" and sim.topology.n_vertices > 1000 and steps > 1000:
+            if m in ("plain", "rollout-autodiff") and sim.topology.n_vertices > 1000 and steps > 1000:
                 continue                          # residuals of every step: several GB
             vg = jax.jit(jax.value_and_grad(_loss_fn(sim, frames, target, m)))
             c, t, u = _time(vg, p, repeats)
@@ -124,6 +144,7 @@ def memory(steps, dashpot, sub=4):
     state_mib = 2 * 3 * sim.topology.n_vertices * 4 / 2 ** 20
     rows = []
     cases = [("adjoint", None, "stores every step's positions (fits the default 512 MiB budget)"),
+             ("rollout", None, "jax.value_and_grad of a loss on jaxplush.rollout: the same fused adjoint"),
              ("adjoint", 100, "checkpoints every 100 steps, recomputes one segment at a time"),
              ("checkpoint", None, "jax.checkpoint: segments of 100 steps, per-step inside"),
              ("plain", None, "autodiff through one scan (static analysis only, not run)")]
@@ -144,6 +165,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=1000, help="horizon of the cost-ratio runs")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--dashpot", action="store_true", help="also compile the edge dashpot")
+    ap.add_argument("--scene", default=None, help="a scene file instead of the generated ball (one size)")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--skip-memory", action="store_true")
     ap.add_argument("--memory-steps", type=int, default=10_000)
@@ -158,13 +180,14 @@ def main(argv=None):
 
     print(f"# jaxplush {jaxplush.__version__}, jax {jax.__version__}, {jax.devices()[0].device_kind}, "
           f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}; float32; "
-          f"{'springs+gas+gravity+floor' + (' +dashpot' if args.dashpot else '')}")
+          f"{args.scene or 'springs+gas+gravity+floor' + (' +dashpot' if args.dashpot else '')}")
     print(f"\n## Gradient cost: value_and_grad / forward, {args.steps}-step horizon, 10 target frames, "
           f"min of {args.repeats}\n")
     print("| vertices | method | compile (s) | wall (ms) | ratio to forward | CPU (ms) | CPU ratio |")
     print("|---:|---|---:|---:|---:|---:|---:|")
     rows = [] if args.skip_gradients else gradient_ratio(
-        [int(s) for s in args.sizes.split(",")], args.steps, args.repeats, args.dashpot, tuple(args.methods.split(",")))
+        [int(s) for s in args.sizes.split(",")][:1 if args.scene else None], args.steps, args.repeats, args.dashpot,
+        tuple(args.methods.split(",")), args.scene)
     for r in rows:
         print(f"| {r['vertices']} | {r['method']} | {r['compile_s']:.1f} | {r['ms']:.1f} | {r['ratio']:.2f} | "
               f"{r['cpu_ms']:.1f} | {r['cpu_ratio']:.2f} |", flush=True)

@@ -15,7 +15,9 @@ Methods (all give the same value and gradient up to rounding; tests/test_gradien
   steps are recomputed from their first state, and inside a segment only each step's input is
   kept. Memory: (steps/segment + segment) states. Any integrator (``sim.internal.step``).
 * ``"adjoint"``: a hand-written adjoint of the damped Verlet step (``jax.custom_vjp``), one
-  fused backward kernel per step (:func:`_make_force_vjp`). The forward pass keeps every step's
+  fused backward kernel per step (:mod:`jaxplush.stepping.adjoint`, which is also the gradient of
+  :func:`jaxplush.rollout`; its reverse sweep :func:`jaxplush.stepping.adjoint.backward` is shared).
+  The forward pass keeps every step's
   positions (and velocities when dashpot, drag or Verlet damping need them) if that fits in
   ``memory_budget`` bytes, else it keeps a checkpoint every ``segment`` steps and recomputes one
   segment at a time; it also evaluates each frame loss's own gradient as it passes the frame

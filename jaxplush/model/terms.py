@@ -8,7 +8,7 @@ and every argument broadcasts, so the same functions serve
 * the single-scene ring kernel, on (K, V) ring tables (:func:`jaxplush.model.forces.make_force_fn`);
 * its segment assembly, on (E,) edges and (F,) faces;
 * the batched sweep, on (V, B) arrays per ring slot (:mod:`jaxplush.fitting.batched`);
-* the fused adjoint's hand VJP (:mod:`jaxplush.fitting.gradients`), from the ``*_vjp`` functions;
+* the fused adjoint's hand VJP (:mod:`jaxplush.stepping.adjoint`), from the ``*_vjp`` functions;
 * the implicit integrator's Jacobian products (:mod:`jaxplush.stepping.integrators`).
 
 An assembly gathers neighbour values, calls these functions and sums over the ring; none of
@@ -32,9 +32,9 @@ gas                    :func:`fan`, :func:`object_volumes`,        :func:`fan_ta
 drag                   :func:`drag_force`                          :func:`drag_vjp`
 floor (smooth)         :func:`smooth_floor_force`                  none (autodiff paths)
 gravity                ``stepping.integrators.System.accel``       constant: no cotangent
-floor (projection)     ``stepping.constraints``                    ``fitting.gradients`` (mask)
-pins                   ``stepping.constraints``                    ``fitting.gradients`` (mask)
-Verlet damping         ``stepping.integrators.damping_keep``,      ``fitting.gradients``
+floor (projection)     ``stepping.constraints``                    ``stepping.adjoint`` (mask)
+pins                   ``stepping.constraints``                    ``stepping.adjoint`` (mask)
+Verlet damping         ``stepping.integrators.damping_keep``,      ``stepping.adjoint``
                        ``verlet_kick``
 soft-soft contact      ``model.contact``                           ``jax.vjp`` of its forward
 =====================  ==========================================  ============================
@@ -250,7 +250,7 @@ class TermSpec:
       name: the Terms field (as in ``Terms.names()``).
       forward: where its forward is written (module.function).
       batched: :mod:`jaxplush.fitting.batched` implements it.
-      adjoint: the fused adjoint of :mod:`jaxplush.fitting.gradients` implements its transpose.
+      adjoint: the fused adjoint of :mod:`jaxplush.stepping.adjoint` implements its transpose.
     """
 
     name: str

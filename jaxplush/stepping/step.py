@@ -88,10 +88,11 @@ class Simulator:
         """The integrator's (sub)step length dt / substeps, s."""
         return self.dt / self.substeps
 
-    def rollout(self, params, state, n_frames, save_every=1, checkpoint=False):
-        """``jaxplush.rollout(self, ...)``: (final state, frames (n_frames, V, 3), health)."""
+    def rollout(self, params, state, n_frames, save_every=1, checkpoint=False, **kwargs):
+        """``jaxplush.rollout(self, ...)``: (final state, frames (n_frames, V, 3), health);
+        keywords (``gradient``, ``memory_budget``, ``health``, ``step0``) as there."""
         from jaxplush.stepping.rollouts import rollout
-        return rollout(self, params, state, n_frames, save_every, checkpoint=checkpoint)
+        return rollout(self, params, state, n_frames, save_every, checkpoint=checkpoint, **kwargs)
 
     def params(self, scene_params=None):
         """The scene's parameters (or ``scene_params``) as a pytree of jnp arrays of this dtype.
