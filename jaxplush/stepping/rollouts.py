@@ -267,7 +267,9 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
         health = initial_health(sim, state, step0)
     step0 = jnp.asarray(step0, jnp.int32)
     static = dict(n_frames=int(n_frames), save_every=int(save_every), checkpoint=bool(checkpoint))
-    if gradient == "autodiff":
+    if gradient == "autodiff" or not _traced((params, state, health)):
+        # concrete inputs (an eager run) cannot be differentiated: the plain call, without
+        # custom_jvp's dispatch (a few hundred microseconds a call)
         return _core_jit(sim, params, state, health, step0, **static)
     warn = gradient == "auto" and not adjoint.adjoint_supported(sim)
     if gradient == "auto":
@@ -276,6 +278,11 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
     fn = compiled.get(sim, ("rollout_gradient", static["n_frames"], static["save_every"], gradient, budget, warn),
                       lambda: _differentiable(sim, static["n_frames"], static["save_every"], gradient, budget, warn))
     return fn(params, state, health, step0)
+
+
+def _traced(tree):
+    """Whether any leaf of ``tree`` is a tracer (under jit, grad, vmap, ...)."""
+    return any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(tree))
 
 
 def _not_covered(sim):
