@@ -83,8 +83,9 @@ def _settings(prob, settings):
     s = dict(settings)
     s["scene_hash"], s["target_hash"] = fingerprint(prob)
     # the start values and the values held fixed (a `start` override is not in the scene text)
-    s["params_hash"] = hashlib.sha1(np.ascontiguousarray(np.stack([np.asarray(getattr(prob.base, n), np.float64)
-                                                                   for n in PARAM_NAMES])).tobytes()).hexdigest()
+    # (the bytes of the (P, O) stack of old; k_structural may be an (E,) stiffness field)
+    s["params_hash"] = hashlib.sha1(np.ascontiguousarray(np.concatenate([np.asarray(getattr(prob.base, n), np.float64)
+                                                                         .ravel() for n in PARAM_NAMES])).tobytes()).hexdigest()
     s["dtype"] = np.dtype(prob.sim.dtype).name
     return s
 
