@@ -408,7 +408,8 @@ class _Plan(NamedTuple):
     """Static layout of an adjoint rollout: ``n_seg`` segments of ``seg`` steps (the last one
     possibly shorter); ``store``: every state is kept from the forward pass (one segment), else
     each segment is recomputed from its checkpoint in the backward pass; ``keep_u``: the
-    backward pass needs the velocities (dashpot, drag or Verlet damping)."""
+    velocities are kept: the backward pass needs them (dashpot, drag or Verlet damping), or a
+    recomputed segment restarts from its checkpoint's velocity (always, unless ``store``)."""
 
     n_steps: int
     seg: int
@@ -427,7 +428,8 @@ def _plan(sim, n_steps, segment, memory_budget, itemsize):
         # Fewest recomputed-segment states plus checkpoints: seg ~ sqrt(n_steps).
         segment = max(1, math.isqrt(n_steps))
     seg = min(_segment_length(segment, n_steps), max(n_steps, 1))
-    return _Plan(n_steps, seg, -(-n_steps // seg), False, keep_u)
+    # recomputing a segment steps on from its checkpoint's state, velocity included
+    return _Plan(n_steps, seg, -(-n_steps // seg), False, True)
 
 
 def _split(tree):
