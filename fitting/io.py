@@ -344,7 +344,7 @@ def _driven_entries(o, a, out_path):
 def fitted_scene_text(result, path=None):
     """The scene text with the fitted values, in the extended OBJ format. ``path``: where it will
     be written (driven vertices' path files are named relative to its directory; None: absolute)."""
-    from jaxplush.scene.write import format_scene
+    from jaxplush.scene.write import format_scene, stiffness_keys
     scene = result.problem.scene
     objects = []
     p = result.params
@@ -353,7 +353,9 @@ def fitted_scene_text(result, path=None):
         fa, fb = o.face_slice
         obj = dict(name=o.name, vertices=scene.vertices[a:b], faces=scene.faces[fa:fb] - a,
                    fixed=[j - a for j in o.fixed] or None, driven=_driven_entries(o, a, path))
-        for n in ("k_structural", "dashpot", "drag", "total_weight"):
+        # k: per object, or a per-edge field (k_region / k_edge lines that read back bit for bit)
+        obj.update(stiffness_keys(scene, i, p.k_structural))
+        for n in ("dashpot", "drag", "total_weight"):
             obj[n] = float(p[PARAM_NAMES.index(n)][i])
         d = float(p.damping[i])
         obj["damping"] = d if d > 0 else None

@@ -5,7 +5,9 @@ Datasets: ``positions`` float [T, V, 3] (m), ``times`` float [T] (s), ``faces`` 
 Attributes: ``dt``, ``integrator``, ``steps``, ``save_every``, ``substeps``, ``floor`` (NaN: none),
 ``gravity`` [3], ``temperature``, one (O,) array per parameter (``k_structural``, ``damping``,
 ``dashpot``, ``drag``, ``nmol``, ``total_weight``), ``jaxplush_version``, ``scene`` (the full
-scene text), ``scene_path`` and ``wall_time``. Files are written atomically (temp file, then rename).
+scene text), ``scene_path`` and ``wall_time``. A run with a per-edge stiffness field also has the
+dataset ``k_structural_field`` [E] (its ``k_structural`` attribute: each object's mean). Files are
+written atomically (temp file, then rename).
 
 Format: docs/formats.md §3 (dtypes, attributes, what readers require); atomic writes: §1.
 """
@@ -105,12 +107,26 @@ def save_trajectory(traj, path):
             a["gravity"] = np.asarray(traj.gravity, np.float64)
             a["temperature"] = float(traj.temperature)
             for name in PARAM_NAMES:
-                a[name] = np.asarray(getattr(traj.params, name), np.float64)
+                value = np.asarray(getattr(traj.params, name), np.float64)
+                if name == "k_structural" and value.ndim == 1 and value.shape[0] != len(traj.object_names):
+                    # a per-edge stiffness field: a dataset (an attribute holds at most 64 KiB), and
+                    # the attribute each object's mean
+                    f.create_dataset("k_structural_field", data=value)
+                    value = _object_means(traj, value)
+                a[name] = value
             a["jaxplush_version"] = __version__
             a["scene"] = traj.scene_text
             a["scene_path"] = traj.scene_path
             a["wall_time"] = float(traj.wall_time)
     return os.fspath(path)
+
+
+def _object_means(traj, field):
+    """(O,) each object's mean of an (E,) per-edge field (edges: the sorted unique edges of the faces)."""
+    from jaxplush.model.mesh import unique_edges
+    eo = np.asarray(traj.object_id)[unique_edges(np.asarray(traj.faces))[:, 0]]
+    n_o = len(traj.object_names)
+    return np.bincount(eo, weights=field, minlength=n_o) / np.maximum(np.bincount(eo, minlength=n_o), 1)
 
 
 def load_trajectory(path):

@@ -78,7 +78,8 @@ finer object; stiffness k_c = kappa m omega_G² with omega_G² = 2 k n_max / m t
 of the springs (docs/model.md §4), i.e. k_c = kappa 2 n_max min(k_A, k_B), kappa = 0.1: contact raises
 omega_max² by at most about 10% (the stable dt drops by about 5%), and k_c scales with k, hence
 with mass under the symmetry (k, c, nRT, M) -> lambda (k, c, nRT, M), unlike a fixed absolute
-stiffness. ``contact_stiffness K`` (N/m) in a scene fixes it instead.
+stiffness. ``contact_stiffness K`` (N/m) in a scene fixes it instead. With a per-edge stiffness
+field, k_A is object A's mean over its edges (:func:`jaxplush.model.layout.object_stiffness`).
 """
 
 from __future__ import annotations

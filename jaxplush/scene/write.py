@@ -7,7 +7,9 @@ The format (read by :func:`jaxplush.load_scene`; reference: docs/formats.md §2)
 * Per-object keywords, inside the object's block (``o NAME`` ... ``END_OBJECT``):
   ``k_structural K``, ``damping D``, ``dashpot C``, ``drag G``, ``total_weight M``,
   ``nmol N``, ``scale S``, ``translate X Y Z``, ``fixed I`` (1-based global index, may
-  repeat), ``driven PATH I [I ...] [until T]`` (may repeat). ``END_OBJECT`` closes the object.
+  repeat), ``driven PATH I [I ...] [until T]`` (may repeat), ``k_region NAME K`` (one per face
+  group), ``k_edge I J K`` (one per edge). ``g NAME`` lines between the ``f`` lines group the faces
+  that follow (a bare ``g`` ends a group). ``END_OBJECT`` closes the object.
 * Scene keywords, written at the top: ``gravity GX GY GZ``, ``floor H``, ``temperature T``,
   and the floor and contact keywords ``floor_model projection|smooth``, ``floor_stiffness K``,
   ``floor_friction MU``, ``floor_restitution E``, ``contact on|off``,
@@ -19,9 +21,10 @@ Objects are given in their own coordinates with 0-based *local* face and fixed i
 ``repr`` (shortest round-trip form), so reading a file back gives bit-identical float64
 values, and the rest lengths a simulator derives from it are exactly those intended here.
 
-Each object block is laid out as: ``o NAME``, its parameters, its ``v`` lines, its ``f``
-lines, its ``fixed`` lines, its ``driven`` lines, ``END_OBJECT``; a parser that needs vertices to exist before
-``fixed`` refers to them is therefore satisfied.
+Each object block is laid out as: ``o NAME``, its parameters (``k_region`` lines last), its
+``v`` lines, its ``f`` lines (with ``g`` lines where the face group changes), its ``k_edge`` lines,
+its ``fixed`` lines, its ``driven`` lines, ``END_OBJECT``; a parser that needs vertices to exist
+before ``fixed`` refers to them is therefore satisfied.
 
 The writer checks what it can check cheaply (shapes, finite values, index ranges, parameter
 signs, unknown keys) and raises ``ValueError``. It does **not** check that meshes are closed
@@ -37,7 +40,7 @@ from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["format_scene", "write_scene", "OBJECT_KEYS"]
+__all__ = ["format_scene", "write_scene", "stiffness_keys", "OBJECT_KEYS"]
 
 # Scalar per-object parameters in the order they are written, with the admissible range the
 # parser (jaxplush.scene.parse) enforces: (key, check, message).
@@ -54,7 +57,8 @@ _SCALAR_PARAMS: tuple[tuple[str, object, str], ...] = (
 
 #: Every key an object dict may carry.
 OBJECT_KEYS = frozenset(
-    {"name", "vertices", "faces", "translate", "fixed", "driven"} | {k for k, _, _ in _SCALAR_PARAMS}
+    {"name", "vertices", "faces", "translate", "fixed", "driven", "groups", "k_region", "k_edge"}
+    | {k for k, _, _ in _SCALAR_PARAMS}
 )
 
 
@@ -138,7 +142,41 @@ def _check_object(obj: Mapping, i: int):
     if obj.get("translate") is not None:
         _vec3(obj["translate"], f"object {name!r}: translate")
     _check_driven(obj.get("driven"), name, n)
+    _check_stiffness(obj, name, faces)
     return name, vertices, faces, fixed_list
+
+
+def _check_stiffness(obj, name, faces):
+    """Validate an object's face ``groups`` (one name or None per face), ``k_region`` (group name
+    -> stiffness) and ``k_edge`` (one stiffness per edge of :func:`jaxplush.model.mesh.unique_edges`
+    of its faces)."""
+    groups = obj.get("groups")
+    names = set()
+    if groups is not None:
+        groups = list(groups)
+        if len(groups) != len(faces):
+            raise ValueError(f"object {name!r}: groups must name a group (or None) for each of its {len(faces)} "
+                             f"faces, got {len(groups)}")
+        for g in groups:
+            if g is None:
+                continue
+            if not isinstance(g, str) or not g or any(c.isspace() for c in g) or "#" in g:
+                raise ValueError(f"object {name!r}: face group name {g!r} must be a non-empty string without "
+                                 "whitespace or '#'")
+            names.add(g)
+    for g, v in (obj.get("k_region") or {}).items():
+        if g not in names:
+            raise ValueError(f"object {name!r}: k_region names {g!r}, which is not one of its face groups")
+        if not (math.isfinite(float(v)) and float(v) >= 0):
+            raise ValueError(f"object {name!r}: k_region {g!r} must be finite and >= 0, got {v!r}")
+    if obj.get("k_edge") is not None:
+        from jaxplush.model.mesh import unique_edges
+        k = np.asarray(obj["k_edge"], np.float64)
+        n_e = len(unique_edges(faces))
+        if k.shape != (n_e,):
+            raise ValueError(f"object {name!r}: k_edge must hold one stiffness per edge ({n_e},), got {k.shape}")
+        if not (np.all(np.isfinite(k)) and np.all(k >= 0)):
+            raise ValueError(f"object {name!r}: k_edge values must be finite and >= 0")
 
 
 def _check_driven(driven, name, n):
@@ -190,7 +228,12 @@ def format_scene(
         ``translate`` (3 floats), ``fixed`` (0-based local vertex indices), ``driven`` (a list
         of dicts ``path`` (the path file as the scene should name it: relative to the scene
         file's directory, or absolute), ``vertices`` (0-based local indices) and optionally
-        ``until`` (release time, s)). Ranges are
+        ``until`` (release time, s)), ``groups`` (one face group name, or None, per face),
+        ``k_region`` (a dict group name -> stiffness), ``k_edge`` ((E_o,) the stiffness of every
+        edge of the object, in the order of :func:`jaxplush.model.mesh.unique_edges` of its
+        faces; a ``k_edge`` line is written for each edge whose value differs from what
+        k_structural and k_region give it). :func:`stiffness_keys` makes the last four from a
+        scene and a (per-object or per-edge) k. Ranges are
         those the parser accepts: ``nmol > 0`` (omit it for no gas), ``damping`` 0 or >= 1.
       gravity: scene gravity (3 floats), or None to leave the parser's default.
       floor: height of the floor plane y = floor, or None for no floor.
@@ -309,8 +352,20 @@ def _object_lines(obj: Mapping, name: str, vertices, faces, fixed, offset: int) 
     if obj.get("translate") is not None:
         t = _vec3(obj["translate"], "translate")
         lines.append("translate " + " ".join(_num(c) for c in t))
+    for g, v in (obj.get("k_region") or {}).items():
+        lines.append(f"k_region {g} {_num(v)}")
     lines.extend(f"v {_num(x)} {_num(y)} {_num(z)}" for x, y, z in vertices.tolist())
-    lines.extend(f"f {a} {b} {c}" for a, b, c in (faces + (offset + 1)).tolist())
+    groups = obj.get("groups")
+    if groups is None:
+        lines.extend(f"f {a} {b} {c}" for a, b, c in (faces + (offset + 1)).tolist())
+    else:
+        current = None
+        for g, (a, b, c) in zip(groups, (faces + (offset + 1)).tolist()):
+            if g != current:
+                lines.append("g" if g is None else f"g {g}")
+                current = g
+            lines.append(f"f {a} {b} {c}")
+    lines.extend(_k_edge_lines(obj, faces, offset))
     lines.extend(f"fixed {j + offset + 1}" for j in fixed)
     for d in obj.get("driven") or ():
         idx = " ".join(str(int(j) + offset + 1) for j in np.atleast_1d(np.asarray(d["vertices"])).ravel().tolist())
@@ -319,6 +374,77 @@ def _object_lines(obj: Mapping, name: str, vertices, faces, fixed, offset: int) 
     lines.append("END_OBJECT")
     lines.append("")
     return lines
+
+
+def _implied_field(obj, faces):
+    """(E,) the stiffness an object's ``k_structural``, ``groups`` and ``k_region`` give its edges
+    (the parser's rule: each edge the mean of its two faces')."""
+    from jaxplush.model.mesh import edge_face_mean
+    from jaxplush.scene.parse import DEFAULTS
+    base = float(obj["k_structural"]) if obj.get("k_structural") is not None else DEFAULTS["k_structural"]
+    region = {g: float(v) for g, v in (obj.get("k_region") or {}).items()}
+    groups = obj.get("groups")
+    groups = [None] * len(faces) if groups is None else list(groups)
+    kf = np.asarray([region.get(g, base) if g is not None else base for g in groups], np.float64)
+    return edge_face_mean(faces, kf)
+
+
+def _k_edge_lines(obj, faces, offset):
+    """``k_edge I J K`` lines for the edges whose ``k_edge`` value differs from what the object's
+    k_structural and regions give it (written with repr: read back bit for bit)."""
+    if obj.get("k_edge") is None:
+        return []
+    from jaxplush.model.mesh import unique_edges
+    k = np.asarray(obj["k_edge"], np.float64)
+    edges = unique_edges(faces)
+    differ = np.nonzero(k != _implied_field(obj, faces))[0]
+    return [f"k_edge {edges[e, 0] + offset + 1} {edges[e, 1] + offset + 1} {_num(k[e])}" for e in differ.tolist()]
+
+
+def stiffness_keys(scene, i, k=None):
+    """The object dict keys (``k_structural``, ``groups``, ``k_region``, ``k_edge``) that write
+    object ``i`` of a :class:`jaxplush.scene.parse.Scene` with the spring stiffness ``k`` (default
+    the scene's ``params.k_structural``): (O,) per object, or an (E,) field over ``scene.edges``.
+
+    Face groups carry over. For a field, the object's k_structural and each group's k_region are
+    the values most of the edges inside them have (the scene's own where no edge lies wholly
+    inside), and ``k_edge`` holds the field, so :func:`format_scene` writes a ``k_edge`` line for
+    each edge that differs from them: reading the file back gives the field bit for bit.
+    """
+    k = np.asarray(scene.params.k_structural if k is None else k, np.float64)
+    fa, fb = scene.objects[i].face_slice
+    fg = (np.full(fb - fa, -1) if scene.face_groups is None else np.asarray(scene.face_groups[fa:fb]))
+    names = scene.group_names
+    out = dict(groups=[names[g] if g >= 0 else None for g in fg.tolist()] if (fg >= 0).any() else None)
+    if k.shape == (scene.n_objects,):
+        out["k_structural"] = float(k[i])
+        return out
+    if k.shape != (len(scene.edges),):
+        raise ValueError(f"k_structural of shape {k.shape}: expected ({scene.n_objects},) per object or "
+                         f"({len(scene.edges)},) per edge")
+    eo = scene.edge_object
+    a, b = int(np.searchsorted(eo, i)), int(np.searchsorted(eo, i, side="right"))
+    field = k[a:b]
+    share = scene.region_edges()[a:b]                       # (E_i, G)
+    own = scene.k_object[i] if scene.k_object is not None else float(np.mean(field))
+    out["k_structural"] = _mode(field[share.sum(axis=1) == 0], own)
+    region = {}
+    for g in sorted(set(fg[fg >= 0].tolist())):
+        scene_k = scene.k_region[g] if scene.k_region is not None else np.nan
+        v = _mode(field[share[:, g] == 1.0], None if np.isnan(scene_k) else float(scene_k))
+        if v is not None and (v != out["k_structural"] or not np.isnan(scene_k)):
+            region[names[g]] = v
+    out["k_region"] = region or None
+    out["k_edge"] = field
+    return out
+
+
+def _mode(values, default):
+    """The most common of ``values`` (the smallest on a tie), or ``default`` when there are none."""
+    if not len(values):
+        return default
+    u, n = np.unique(values, return_counts=True)
+    return float(u[np.argmax(n)])
 
 
 def write_scene(path, objects: Sequence[Mapping], **kw) -> None:
