@@ -66,7 +66,7 @@ CAMERA = dict(eye="0,0.3,0.7", look_at="0,0.18,0", fov=50, size="96x72")
 NOISE, DROPOUT = 0.002, 0.1
 N_TRACKS = 20
 #: (subdivisions, steps per frame at 30 fps, iterations of (a), (b)) at full and small size
-SIZES = {"full": (3, 120, 150, 250), "small": (2, 60, 40, 40)}
+SIZES = {"full": (3, 120, 150, 250), "small": (2, 60, 40, 80)}
 TARGETS = dict(iou=0.8, median=0.10, globals=0.03, tracks=0.02, total_s=600.0)
 
 

@@ -23,11 +23,14 @@ with the material parameters that stay global (the damping model the scene uses 
   its zoom line search (default) or Adam, in the loop of :mod:`jaxplush.fitting.gradfit` (a step whose
   rollout blows up is rejected and halved; the same stopping rules), float32 unless x64 is on.
 
-The default weight (:func:`default_weight`) reads the regulariser as a prior: the loss is
-L = chi² / N (N residuals; L ~ 1 at the noise level, :mod:`jaxplush.fitting.losses`), so a Gaussian
-prior of standard deviation tau on each neighbour difference of log k adds
-sum (Δ log k)² / (N tau²): weight = 1 / (N tau²), with tau = :data:`DEFAULT_TAU`.
-benchmarks/bench_real_capture.py measured the choice (docs/fitting.md, "A stiffness field").
+The default weight (:func:`default_weight`) reads the regulariser as a prior: with a known noise
+the loss is L = chi² / N (N residuals; L ~ 1 at the noise level, :mod:`jaxplush.fitting.losses`), so a
+Gaussian prior of standard deviation tau on each neighbour difference of log k adds
+sum (Δ log k)² / (N tau²): weight = 1 / (N tau²), with tau = :data:`DEFAULT_TAU`. A noise-free
+target's loss is normalised by the target's motion instead (L = 1: no better than standing
+still); the weight then takes the noise to be :data:`MOTION_NOISE` of the motion, a factor
+MOTION_NOISE² smaller, so that the prior only fills in what exact data leave open.
+benchmarks/bench_real_capture.py measured the choice of tau (docs/fitting.md, "A stiffness field").
 
 :func:`fit_field` returns a :class:`FieldResult` (the field, the globals, the loss history and
 the wall time); it writes FIT.h5 (:meth:`FieldResult.save`: the common layout plus
@@ -73,6 +76,10 @@ LBFGS_MEMORY = 30
 #: The prior standard deviation of log k between neighbours that sets the default weight
 #: (:func:`default_weight`).
 DEFAULT_TAU = 0.5
+
+#: The noise a noise-free (motion-normalised) target's default weight assumes, as a fraction of
+#: the target's motion (:func:`default_weight`).
+MOTION_NOISE = 1e-3
 
 
 # --------------------------------------------------------------------------- the field's graph (numpy)
@@ -297,9 +304,13 @@ def _regions(scene):
     return matrix, tuple(names), regions, np.asarray(owner, np.int64)
 
 
-def default_weight(n_residuals, tau=DEFAULT_TAU):
-    """The default smoothness weight 1 / (N tau²) for a loss of N residuals (module docstring)."""
-    return 1.0 / (float(n_residuals) * tau * tau)
+def default_weight(n_residuals, tau=DEFAULT_TAU, normalisation="noise"):
+    """The default smoothness weight for a loss of N residuals (module docstring): 1 / (N tau²)
+    for a noise-normalised loss, MOTION_NOISE² / (N tau²) for a motion-normalised one."""
+    if not tau > 0:
+        raise JaxplushError(f"tau must be > 0, got {tau!r}")
+    scale = 1.0 if normalisation == "noise" else MOTION_NOISE ** 2
+    return scale / (float(n_residuals) * tau * tau)
 
 
 def n_residuals(target):
@@ -372,7 +383,7 @@ def build_field_problem(scene, target, field="regions", params=None, *, weight=N
     if prob.sim.topology.n_edges != n_e:
         raise JaxplushError("the simulator's edges differ from the scene's")
     if weight is None:
-        weight = default_weight(n_residuals(prob.target), tau)
+        weight = default_weight(n_residuals(prob.target), tau, prob.loss.normalisation)
     beta = DEFAULT_PRECONDITION[field] if precondition is None else float(precondition)
     if not (np.isfinite(beta) and beta >= 0):
         raise JaxplushError(f"precondition must be a number >= 0, got {precondition!r}")
@@ -527,6 +538,10 @@ class FieldResult:
     problem: FieldProblem
     optimizer: str
     settings: dict
+
+    #: No identifiability report (its Jacobian would need a JVP per edge); the smoothness term
+    #: decides what the data leave open.
+    identifiability = None
 
     @property
     def normalisation(self):

@@ -35,7 +35,7 @@ NUMERIC_FILES = frozenset({
     "test_terms.py", "test_integrators.py", "test_hard_cases.py", "test_physics.py", "test_step.py",
     "test_smooth_floor.py", "test_sweep.py", "test_targets.py", "test_batched_contact.py",
     "test_recovery_random.py", "test_predictability.py", "test_objects_stage.py", "test_tracks.py",
-    "test_driven.py", "test_partial_targets.py", "test_kfield.py",
+    "test_driven.py", "test_partial_targets.py", "test_kfield.py", "test_kfield_fit.py",
 })
 
 

@@ -599,8 +599,9 @@ def _write_gif(scene, tmp, durations):
 # a stiffness field on the mesh
 # ----------------------------------------------------------------------------
 
-#: The views of :func:`render_field`: (elevation, azimuth) in degrees, front and back.
-FIELD_VIEWS = ((20.0, -60.0), (20.0, 120.0))
+#: The views of :func:`render_field`: (elevation, azimuth) in degrees, from the front (+z, as
+#: :func:`render`'s plot axes put it) and from the back.
+FIELD_VIEWS = ((20.0, -90.0), (20.0, 90.0))
 
 
 def face_log_stiffness(faces, edges, k_edge):
@@ -684,10 +685,10 @@ def render_field(vertices, faces, edges, fields, out, views=FIELD_VIEWS, dpi=100
             ax.view_init(elev=elev, azim=azim)
             ax.set_axis_off()
             ax.set_title(f"{label} ({'front' if r == 0 else 'back' if r == 1 else f'view {r + 1}'})", fontsize=9)
-    fig.subplots_adjust(left=0.0, right=0.86, bottom=0.02, top=0.92 if title else 0.96, wspace=0.0, hspace=0.08)
-    cax = fig.add_axes([0.88, 0.15, 0.025, 0.7])
+    fig.subplots_adjust(left=0.0, right=0.80, bottom=0.02, top=0.92 if title else 0.96, wspace=0.0, hspace=0.08)
+    cax = fig.add_axes([0.82, 0.15, 0.025, 0.7])
     bar = fig.colorbar(ScalarMappable(norm=LogNorm(10 ** lo, 10 ** hi), cmap=cmap), cax=cax)
-    bar.set_label("k (N/m), mean over each face's edges", fontsize=8)
+    bar.set_label("k (N/m), mean log over each face's edges", fontsize=7)
     bar.ax.tick_params(labelsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
