@@ -144,7 +144,9 @@ def fit_tracks_case(data, progress):
         warnings.simplefilter("ignore")
         res = fitting.fit(uniform, target, ("k_structural", "dashpot", "nmol"), start=start, progress=progress)
     v = {n: float(res.values[n][0]) for n in true}
-    row = dict(case="(c) tracks", iou=math.nan, err_in=math.nan, err_out=math.nan,
+    rep = res.identifiability
+    se = {} if rep is None else {lab.split("[")[0]: float(e) for lab, e in zip(rep.labels, rep.stderr)}
+    row = dict(case="(c) tracks", stderr=se, iou=math.nan, err_in=math.nan, err_out=math.nan,
                dashpot=v["dashpot"] / true["dashpot"] - 1, nmol=v["nmol"] / true["nmol"] - 1,
                k=v["k_structural"] / true["k_structural"] - 1, iterations=res.iterations, wall=res.wall_time,
                loss=res.loss, rms=math.nan, status=res.status)
@@ -188,6 +190,10 @@ def table(rows):
         out.append(f"{r['case']:<12} {iou:>5} {_abs_pct(r['err_in']):>7} {_abs_pct(r['err_out']):>7} "
                    f"{_pct(r['k']):>8} {_pct(r['dashpot']):>8} {_pct(r['nmol']):>8} {r['iterations']:>5} "
                    f"{r['wall']:>7.1f}  {'meets the targets' if not miss else 'misses: ' + ', '.join(miss)}")
+    for r in rows:
+        if r.get("stderr"):
+            out.append(f"{r['case']}: standard errors of the fit (its identifiability report): "
+                       + ", ".join(f"{'k' if n == 'k_structural' else n} {100 * e:.2g}%" for n, e in r["stderr"].items()))
     total = sum(r["wall"] for r in rows)
     out.append(f"total fit time {total:.1f} s (target <= {TARGETS['total_s']:.0f} s)")
     return "\n".join(out)

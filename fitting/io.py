@@ -306,12 +306,12 @@ def _norm(v):
 
 def load_fit(path):
     """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, fitted,
-    predictability (each group present: its datasets, and its attributes under "<group>_attrs")."""
+    predictability, fields (each group present: its datasets, and its attributes under "<group>_attrs")."""
     path = os.fspath(path)
     out = {}
     with open_hdf5(path) as f:
         out["attrs"] = {k: _attr(f.attrs[k]) for k in f.attrs}
-        for grp in ("params", "start", "history", "identifiability", "fitted", "predictability"):
+        for grp in ("params", "start", "history", "identifiability", "fitted", "predictability", "fields"):
             if grp in f:
                 out[grp] = {k: f[grp][k][()] for k in f[grp].keys()}
                 out[grp + "_attrs"] = {k: _attr(f[grp].attrs[k]) for k in f[grp].attrs}
