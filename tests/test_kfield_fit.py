@@ -156,7 +156,9 @@ def test_field_problem_checks_and_start(two_regions):
     assert fp.names == ("dashpot", "nmol") and fp.n_field == len(start.edges)
     field, glob = fp.split(fp.theta0)
     assert np.allclose(np.exp(field), 80.0) and np.allclose(np.exp(glob[:, 0]), [0.02, 3e-4])
-    assert fp.weight == pytest.approx(F.default_weight(3 * target.positions.shape[0] * start.n_vertices))
+    n = 3 * target.positions.shape[0] * start.n_vertices            # exact positions: motion-normalised
+    assert fp.weight == pytest.approx(F.MOTION_NOISE ** 2 / (n * F.DEFAULT_TAU ** 2))
+    assert F.default_weight(n) == pytest.approx(1 / (n * 0.25)) and fp.prob.loss.normalisation == "motion"
     fr = F.build_field_problem(truth, target, "regions")
     assert np.allclose(fr.k_edges(fr.split(fr.theta0)[0]), truth.params.k_structural)
 
@@ -237,6 +239,6 @@ def test_bench_real_capture_small(tmp_path):
     r = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "bench_real_capture.py"), "--small",
                         "--quiet", "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
-    line = next(x for x in r.stdout.splitlines() if x.startswith("(a) regions"))
+    line = next(x for x in r.stdout.splitlines() if x.startswith("(a) regions") and "targets" in x)
     assert "meets the targets" in line, r.stdout
     assert (tmp_path / "field_regions.png").exists() and (tmp_path / "fit_edges.h5").exists()
