@@ -4,7 +4,7 @@ The plush (``jaxplush.fitting.scenarios.panel_scene_text``): a 642-vertex icosph
 0.1 kg, sewn from the 20 panels of its icosahedron (``g panel00`` .. ``g panel19``); the 4 panels
 facing the camera (a contiguous patch, 20% of the surface) have k = 300 N/m, the rest k = 60 N/m
 (edges on the patch's border the mean, 180 N/m); an edge dashpot with damping ratio 0.25 per soft
-spring (c = 0.0239 N s/m) and gas inflating it freely to 1.05x (nmol 2.45e-4 mol). It rests on a
+spring (c = 0.0342 N s/m) and gas inflating it freely to 1.05x (nmol 1.89e-4 mol). It rests on a
 floor (y = 0); its top vertex is driven (``driven``, a path file) up 0.15 m in 0.3 s, held until
 t = 0.5 s and released: it hangs from that vertex, stretched, swings back, falls and bounces.
 dt = 1/3600 s (0.57 of the stability limit of the stiff patch, ``jaxplush.estimate_stable_dt``),
