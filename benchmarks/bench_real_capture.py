@@ -192,8 +192,8 @@ def table(rows):
                    f"{r['wall']:>7.1f}  {'meets the targets' if not miss else 'misses: ' + ', '.join(miss)}")
     for r in rows:
         if r.get("stderr"):
-            out.append(f"{r['case']}: standard errors of the fit (its identifiability report): "
-                       + ", ".join(f"{'k' if n == 'k_structural' else n} {100 * e:.2g}%" for n, e in r["stderr"].items()))
+            se = ", ".join(f"{'k' if n == 'k_structural' else n} {100 * e:.2g}%" for n, e in r["stderr"].items())
+            out.append(f"{r['case']}: standard errors of the fit (its identifiability report): {se}")
     total = sum(r["wall"] for r in rows)
     out.append(f"total fit time {total:.1f} s (target <= {TARGETS['total_s']:.0f} s)")
     return "\n".join(out)

@@ -685,7 +685,8 @@ def save_field_fit(result, path):
             a["field"], a["field_weight"] = result.kind, float(result.weight)
             a["fitted_scene"] = result.scene_text()
             names = prob.scene.object_names
-            for grp, vals, k in (("params", result.values, result.k_structural), ("start", result.start, result.k_start)):
+            for grp, vals, k in (("params", result.values, result.k_structural),
+                                 ("start", result.start, result.k_start)):
                 g = f.create_group(grp)
                 g.create_dataset("k_structural", data=np.asarray(object_stiffness(topo, np.asarray(k)), np.float64))
                 for n in prob.names:
