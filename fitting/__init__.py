@@ -49,6 +49,8 @@ _EXPORTS = {
     "identifiability": "jaxplush.fitting.identifiability",
     "load_fit": "jaxplush.fitting.io",
     "SweepResult": "jaxplush.fitting.sweep",
+    "fit_field": "jaxplush.fitting.field",
+    "FieldResult": "jaxplush.fitting.field",
     "load_sweep": "jaxplush.fitting.sweep",
 }
 

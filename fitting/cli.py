@@ -4,6 +4,14 @@
         [--optimizer lm|adam|lbfgs] [--bounds NAME=LO:HI,...] [--iterations N] [--lr LR] [--dt DT]
         [--noise SIGMA | --noise-free] [--shooting auto|off|FRAMES] --out FIT.h5
         [--out-scene FITTED.obj] [--resume]
+    jaxplush-fit SCENE.obj TARGET.h5 --field edges|regions [--field-weight W] [--field-png PNG]
+        [--field-true TRUE.obj] [--params dashpot,nmol] [--optimizer lbfgs|adam] ... --out FIT.h5
+
+With ``--field`` the spring stiffness is fitted as a field (one value per edge, or per face group
+of the scene's ``g`` lines) with the global parameters, by gradients through the rollout
+(:mod:`jaxplush.fitting.field`); FIT.h5 gains ``fields/k_structural`` [E], ``--out-scene`` writes the
+field (``k_region`` or ``k_edge`` lines), and a picture of the field on the mesh is written next
+to FIT.h5 (``FIT.field.png``, or ``--field-png``), beside the true field of ``--field-true``.
 
 Before fitting it prints the predictability of the start values over the target (stderr): how
 long the positions stay predictable and the model's own reproducibility floor (the result table
@@ -60,9 +68,10 @@ def _parser():
     p.add_argument("--start", default=None, metavar="NAME=VALUE,...",
                    help="start values overriding the scene's, e.g. k=800,nmol=0.002 (applied to every fitted "
                         "object)")
-    p.add_argument("--optimizer", default="lm",
+    p.add_argument("--optimizer", default=None,
                    help="lm (default: a global stage over the search box, then Levenberg-Marquardt from the best "
-                        "candidates), adam or lbfgs (gradient descent from the start values)")
+                        "candidates), adam or lbfgs (gradient descent from the start values; lbfgs is the default "
+                        "with --field)")
     p.add_argument("--bounds", default=None, metavar="NAME=LO:HI,...",
                    help="search box of the default fit, e.g. k=100:2000,nmol=1e-3:1e-2 (every fitted object); "
                         "default: each fitted parameter from start/4 to start*4")
@@ -81,6 +90,16 @@ def _parser():
                    help="position targets: 'auto' (default) runs segments restarted from the observed positions "
                         "where the motion is not predictable over the whole target and that measures better; "
                         "'off' one rollout; or FRAMES per segment")
+    p.add_argument("--field", default=None, choices=("edges", "regions"),
+                   help="fit k_structural as a field: one value per edge, or per face group ('g' lines); --params "
+                        "then names the global parameters fitted with it (default: the scene's damping and nmol)")
+    p.add_argument("--field-weight", type=float, default=None, metavar="W",
+                   help="with --field: weight of the smoothness term W * sum over neighbours (log k_a - log k_b)^2 "
+                        "(default 1/(N tau^2), N the target's residuals, tau = 0.5; docs/fitting.md)")
+    p.add_argument("--field-png", default=None,
+                   help="with --field: where to draw the fitted field (default: next to --out, FIT.field.png)")
+    p.add_argument("--field-true", default=None, metavar="SCENE",
+                   help="with --field: a scene holding the true field, drawn beside the fitted one")
     p.add_argument("--out", required=True, help="output FIT.h5 (also the checkpoint file)")
     p.add_argument("--out-scene", default=None, help="also write the scene with the fitted values (.obj)")
     p.add_argument("--resume", action="store_true", help="continue the interrupted fit saved in --out")
@@ -134,12 +153,55 @@ def _fit(args):
     names = _fit_mod.canonical_names(args.params) if args.params is not None else None
     options = _options(args, names)
     scene = jaxplush.load_scene(args.scene)
+    if args.field:
+        return _fit_field(args, scene, names, options)
     target = load_target(args.target, scene, args.dt, kind=args.target_kind)
     result = _run(args, lambda: _fit_mod.fit(scene, target, names, args.objects, optimizer=args.optimizer,
                                              options=options, progress=not args.quiet, report=_note))
     if result is None:
         return EXIT_INTERRUPTED
     return _report(args, result)
+
+
+def _fit_field(args, scene, names, options):
+    """``--field``: the stiffness field's fit, FIT.h5, --out-scene and the picture of the field."""
+    import jaxplush
+    from jaxplush.errors import JaxplushError
+    from jaxplush.fitting import field as _field
+    from jaxplush.fitting.targets import load_target
+    truth = None
+    if args.field_true is not None:
+        true_scene = jaxplush.load_scene(args.field_true)
+        if not (true_scene.faces.shape == scene.faces.shape and (true_scene.faces == scene.faces).all()):
+            raise JaxplushError(f"--field-true {args.field_true}: its faces differ from the scene's {args.scene}")
+        truth = _field_of(true_scene)
+    target = load_target(args.target, scene, args.dt, kind=args.target_kind)
+    # every input checked before the fit: the problem builds (and raises) before anything is traced
+    result = _run(args, lambda: _field.fit_field(scene, target, args.field, names, optimizer=args.optimizer,
+                                                 weight=args.field_weight, options=options,
+                                                 progress=not args.quiet))
+    if result is None:
+        return EXIT_INTERRUPTED
+    result.save(args.out)
+    if args.out_scene:
+        result.write_scene(args.out_scene)
+    png = args.field_png or os.path.splitext(args.out)[0] + ".field.png"
+    result.render(png, truth=truth, title=f"k_structural per {args.field[:-1]}: fitted"
+                  + (" and true" if truth is not None else " and start"))
+    print(result.table())
+    print(f"wrote {args.out}, {png}" + (f" and {args.out_scene}" if args.out_scene else ""))
+    status = _field._outcome(result)
+    if not status.converged:
+        print(f"jaxplush-fit: {status.text} (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
+    return 0
+
+
+def _field_of(scene):
+    """(E,) a scene's per-edge stiffness (its field, or each object's value on every edge)."""
+    import numpy as np
+    k = np.asarray(scene.params.k_structural, np.float64)
+    return k if k.shape == (len(scene.edges),) and scene.has_k_field else k[scene.edge_object]
 
 
 def _note(line):
@@ -150,6 +212,12 @@ def _note(line):
 def _check_args(args):
     """Everything checked before anything is traced or written (JaxplushError with the first problem)."""
     from jaxplush.errors import JaxplushError
+    if args.optimizer is None:
+        args.optimizer = "lbfgs" if args.field else "lm"
+    if args.field:
+        _check_field_args(args)
+    elif args.field_weight is not None or args.field_png is not None or args.field_true is not None:
+        raise JaxplushError("--field-weight, --field-png and --field-true go with --field")
     if args.iterations is not None and args.iterations < 1:
         raise JaxplushError(f"--iterations must be >= 1, got {args.iterations}")
     if args.checkpoint_every < 1:
@@ -185,6 +253,24 @@ def _check_args(args):
             raise JaxplushError(f"{a}: an output must not overwrite an input")
     if args.resume and not os.path.exists(args.out):
         raise JaxplushError(f"{args.out}: no checkpoint to resume (the file does not exist); run without --resume")
+
+
+def _check_field_args(args):
+    """The options that go with --field (and those that do not)."""
+    from jaxplush.errors import JaxplushError
+    if args.optimizer not in ("lbfgs", "adam"):
+        raise JaxplushError(f"--field fits by gradients: --optimizer lbfgs (default) or adam, not {args.optimizer}")
+    for name, val in (("--objects", args.objects), ("--resume", args.resume or None)):
+        if val is not None:
+            raise JaxplushError(f"{name} does not go with --field (the field spans every object; the fit is not "
+                                "checkpointed)")
+    if args.shooting not in ("auto", "off"):
+        raise JaxplushError("--shooting does not go with --field (one rollout over the target)")
+    w = args.field_weight
+    if w is not None and not (w == w and 0 <= w < float("inf")):
+        raise JaxplushError(f"--field-weight must be a number >= 0, got {w}")
+    if args.field_png is not None:
+        check_output_path(args.field_png, (".png", ".pdf", ".svg", ".jpg", ".jpeg"), "--field-png")
 
 
 def _shooting_arg(text):

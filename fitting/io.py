@@ -91,8 +91,9 @@ def _settings(prob, settings):
     s = dict(settings)
     s["scene_hash"], s["target_hash"] = fingerprint(prob)
     # the start values and the values held fixed (a `start` override is not in the scene text)
-    s["params_hash"] = hashlib.sha1(np.ascontiguousarray(np.stack([np.asarray(getattr(prob.base, n), np.float64)
-                                                                   for n in PARAM_NAMES])).tobytes()).hexdigest()
+    # (the bytes of the (P, O) stack of old; k_structural may be an (E,) stiffness field)
+    s["params_hash"] = hashlib.sha1(np.ascontiguousarray(np.concatenate([np.asarray(getattr(prob.base, n), np.float64)
+                                                                         .ravel() for n in PARAM_NAMES])).tobytes()).hexdigest()
     s["dtype"] = np.dtype(prob.sim.dtype).name
     return s
 
@@ -313,12 +314,12 @@ def _norm(v):
 
 def load_fit(path):
     """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, fitted,
-    predictability (each group present: its datasets, and its attributes under "<group>_attrs")."""
+    predictability, fields (each group present: its datasets, and its attributes under "<group>_attrs")."""
     path = os.fspath(path)
     out = {}
     with open_hdf5(path) as f:
         out["attrs"] = {k: _attr(f.attrs[k]) for k in f.attrs}
-        for grp in ("params", "start", "history", "identifiability", "fitted", "predictability"):
+        for grp in ("params", "start", "history", "identifiability", "fitted", "predictability", "fields"):
             if grp in f:
                 out[grp] = {k: f[grp][k][()] for k in f[grp].keys()}
                 out[grp + "_attrs"] = {k: _attr(f[grp].attrs[k]) for k in f[grp].attrs}

@@ -282,3 +282,75 @@ def case_scene_text(case, factors=None):
 def case_start_text(case):
     """The scene text of ``case`` at its start values (every fitted parameter times its factor)."""
     return case_scene_text(case, case["start"])
+
+
+# --------------------------------------------------------------------------------------------
+# A plush sewn from panels, one patch of them stiff (benchmarks/bench_real_capture.py,
+# tests/test_kfield_fit.py, docs/fitting.md "A stiffness field")
+
+#: Panels of :func:`panel_ball`: the faces of the icosahedron the icosphere is subdivided from.
+N_PANELS = 20
+
+
+def panel_ball(subdivisions=3, radius=0.1):
+    """(vertices (V, 3), faces (F, 3), panel (F,)) of an icosphere whose faces are grouped into the
+    20 panels of the icosahedron it subdivides (each face on the base face its centroid lies over:
+    4**subdivisions faces a panel), the faces sorted by panel, so that each panel is one block of
+    ``f`` lines under its ``g`` line."""
+    import trimesh
+    m = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=float(radius))
+    v, f = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+    c = v[f].mean(axis=1)
+    panel = np.argmax(c @ _icosahedron_normals().T, axis=1)
+    order = np.argsort(panel, kind="stable")
+    return v, f[order], panel[order]
+
+
+def _icosahedron_normals():
+    import trimesh
+    return np.asarray(trimesh.creation.icosahedron().face_normals, np.float64)
+
+
+def patch_panels(direction=(0.0, 0.0, 1.0)):
+    """The 4 panels of a contiguous patch covering 20% of the surface: the panel that faces
+    ``direction`` and its three neighbours (sorted)."""
+    import trimesh
+    n = _icosahedron_normals()
+    d = np.asarray(direction, np.float64)
+    first = int(np.argmax(n @ (d / np.linalg.norm(d))))
+    adj = trimesh.creation.icosahedron().face_adjacency
+    return sorted([first] + [int(b if a == first else a) for a, b in adj if first in (a, b)])
+
+
+def panel_scene_text(subdivisions=3, radius=0.1, *, k_soft=60.0, stiff=5.0, patch=(0.0, 0.0, 1.0),
+                     total_weight=0.1, zeta=0.25, inflation=1.05, height=0.0, driven=None, name="plush",
+                     header=None):
+    """Scene text of a plush ball sewn from :func:`panel_ball`'s 20 panels (``g panelNN``), resting
+    with its lowest point ``height`` above a floor at y = 0, with gas and an edge dashpot.
+
+    Args:
+      k_soft: the stiffness of the soft panels, N/m; ``stiff``: the patch's factor (the panels of
+        :func:`patch_panels` of ``patch`` get ``k_region`` k_soft x stiff; 1 or None: no
+        ``k_region`` lines, every panel at k_soft).
+      total_weight: kg; zeta: the dashpot's damping ratio per soft spring, c = zeta sqrt(2 k_soft m);
+      inflation: the free inflated size s* that sets nmol from k_soft (docs/model.md §8.5).
+      driven: None, or a dict (path, until) that drives the top vertex along the path file.
+    """
+    from jaxplush.model.mesh import unique_edges
+    from jaxplush.scene.write import format_scene
+    v, f, panel = panel_ball(subdivisions, radius)
+    edges = unique_edges(f)
+    rest = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
+    s = float(inflation)
+    nmol = float(k_soft) * float(np.sum(rest ** 2)) * s * (s - 1.0) / (3.0 * GAS_CONSTANT * TEMPERATURE)
+    dashpot = float(zeta) * float(np.sqrt(2.0 * k_soft * total_weight / len(v)))
+    obj = dict(name=name, vertices=v, faces=f, total_weight=float(total_weight), k_structural=float(k_soft),
+               dashpot=dashpot, nmol=nmol, translate=[0.0, float(height - v[:, 1].min()), 0.0],
+               groups=[f"panel{p:02d}" for p in panel])
+    if stiff is not None and stiff != 1:
+        obj["k_region"] = {f"panel{p:02d}": float(k_soft * stiff) for p in patch_panels(patch)}
+    if driven is not None:
+        obj["driven"] = [dict(path=driven["path"], vertices=[int(np.argmax(v[:, 1]))], until=driven.get("until"))]
+    text = header or (f"a plush ball of {len(v)} vertices sewn from {N_PANELS} panels"
+                      + (f", the 4 facing {tuple(patch)} {stiff:g}x stiffer" if obj.get("k_region") else ""))
+    return format_scene([obj], gravity=(0.0, -9.81, 0.0), floor=0.0, temperature=TEMPERATURE, header=text)

@@ -593,3 +593,107 @@ def _write_gif(scene, tmp, durations):
     ms = [10 * int(max(2, c)) for c in np.diff(np.concatenate([[0], ends]))]
     images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=ms, loop=0,
                    disposal=1)
+
+
+# ----------------------------------------------------------------------------
+# a stiffness field on the mesh
+# ----------------------------------------------------------------------------
+
+#: The views of :func:`render_field`: (elevation, azimuth) in degrees, from the front (+z, as
+#: :func:`render`'s plot axes put it) and from the back.
+FIELD_VIEWS = ((20.0, -90.0), (20.0, 90.0))
+
+
+def face_log_stiffness(faces, edges, k_edge):
+    """(F,) each face's mean log10 stiffness over its three edges (``edges`` (E, 2) in the order of
+    :func:`jaxplush.model.mesh.unique_edges`, ``k_edge`` (E,) N/m, > 0)."""
+    from jaxplush.model.mesh import edge_index
+    faces = np.asarray(faces, np.int64)
+    fe = np.stack([edge_index(edges, faces[:, a], faces[:, b]) for a, b in ((0, 1), (1, 2), (2, 0))], axis=1)
+    if (fe < 0).any():
+        raise JaxplushError("render_field: a face's edge is not among the edges given")
+    return np.log10(np.asarray(k_edge, np.float64))[fe].mean(axis=1)
+
+
+def render_field(vertices, faces, edges, fields, out, views=FIELD_VIEWS, dpi=100, title=None) -> str:
+    """Draw stiffness fields on a mesh, side by side, as a still image (PNG, PDF, SVG, JPEG).
+
+    Each face is coloured by the mean log10 stiffness of its three edges, on one logarithmic colour
+    scale shared by every field (a colour bar in N/m), and shaded by its orientation to a light;
+    each field is drawn from every view in ``views`` (front and back by default: a closed surface
+    hides half of itself), one column per field, one row per view.
+
+    Args:
+      vertices: (V, 3) positions, m (world y up; drawn as :func:`render` draws).
+      faces: (F, 3) int; edges: (E, 2) sorted unique edges (``Scene.edges``).
+      fields: sequence of (label, (E,) stiffness) pairs, e.g. [("fitted", k_fit), ("true", k_true)].
+      out: the image path; written atomically.
+      views: (elevation, azimuth) pairs in degrees; dpi; title: above the figure.
+
+    Returns:
+      ``out``.
+    """
+    ext = os.path.splitext(os.fspath(out))[1].lower()
+    if ext not in STILL_EXTENSIONS:
+        raise JaxplushError(f"render_field: unknown image extension {ext!r}; expected one of "
+                            f"{', '.join(STILL_EXTENSIONS)}")
+    x = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    fields = [(str(label), np.asarray(k, np.float64)) for label, k in fields]
+    if not fields:
+        raise JaxplushError("render_field: no field to draw")
+    for label, k in fields:
+        if k.shape != (len(edges),) or not np.all(np.isfinite(k) & (k > 0)):
+            raise JaxplushError(f"render_field: field {label!r} must hold {len(edges)} finite values > 0, got "
+                                f"shape {k.shape}")
+    values = [face_log_stiffness(faces, edges, k) for _, k in fields]
+    lo = min(float(v.min()) for v in values)
+    hi = max(float(v.max()) for v in values)
+    if hi - lo < 1e-6:
+        lo, hi = lo - 0.05, hi + 0.05
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import LogNorm, Normalize
+    cmap = colormaps["viridis"]
+    norm = Normalize(lo, hi)
+    tri = x[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
+    centre = 0.5 * (x.min(axis=0) + x.max(axis=0))
+    half = 0.5 * float(np.max(x.max(axis=0) - x.min(axis=0))) * 1.05
+    cols, rows = len(fields), len(views)
+    fig = Figure(figsize=(3.2 * cols + 0.9, 3.1 * rows + 0.4), dpi=dpi)
+    FigureCanvasAgg(fig)
+    for r, (elev, azim) in enumerate(views):
+        e, a = math.radians(elev), math.radians(azim)
+        vp = np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+        view = np.array([vp[0], vp[2], -vp[1]])                          # plot -> world
+        light = view + np.array([0.0, 1.2, 0.0]) + 0.4 * np.cross(np.array([0.0, 1.0, 0.0]), view)
+        light /= np.linalg.norm(light)
+        shade = _AMBIENT + (1 - _AMBIENT) * np.clip(normal @ light, 0.0, 1.0)
+        for c, ((label, _), val) in enumerate(zip(fields, values)):
+            ax = fig.add_subplot(rows, cols, r * cols + c + 1, projection="3d")
+            rgb = np.asarray(cmap(norm(val)))[:, :3] * shade[:, None]
+            mesh = Poly3DCollection(_to_plot(tri), facecolors=np.clip(rgb, 0, 1), edgecolors=[_EDGE_RGBA],
+                                    linewidths=0.2)
+            ax.add_collection3d(mesh)
+            pc = _to_plot(centre)
+            ax.set_xlim(pc[0] - half, pc[0] + half)
+            ax.set_ylim(pc[1] - half, pc[1] + half)
+            ax.set_zlim(pc[2] - half, pc[2] + half)
+            ax.set_box_aspect((1, 1, 1))
+            ax.view_init(elev=elev, azim=azim)
+            ax.set_axis_off()
+            ax.set_title(f"{label} ({'front' if r == 0 else 'back' if r == 1 else f'view {r + 1}'})", fontsize=9)
+    fig.subplots_adjust(left=0.0, right=0.80, bottom=0.02, top=0.92 if title else 0.96, wspace=0.0, hspace=0.08)
+    cax = fig.add_axes([0.82, 0.15, 0.025, 0.7])
+    bar = fig.colorbar(ScalarMappable(norm=LogNorm(10 ** lo, 10 ** hi), cmap=cmap), cax=cax)
+    bar.set_label("k (N/m), mean log over each face's edges", fontsize=7)
+    bar.ax.tick_params(labelsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+
+    def write(tmp):
+        fig.savefig(tmp, format="jpeg" if ext in (".jpg", ".jpeg") else ext[1:], dpi=dpi)
+    _atomic_write(out, ext, write)
+    return os.fspath(out)
