@@ -11,7 +11,7 @@ import pathlib
 import pytest
 
 #: notebooks that run only in the CI tier (`-m heavy`): each compiles many programs
-HEAVY = ("speed_vs_error", "fit_material_parameters", "parameter_sweeps", "plush_pile")
+HEAVY = ("speed_vs_error", "fit_material_parameters", "parameter_sweeps", "plush_pile", "fit_from_a_depth_camera")
 NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 
 
