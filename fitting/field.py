@@ -684,17 +684,11 @@ def save_field_fit(result, path):
             a["warnings"] = json.dumps([] if out.converged else [out.text])
             a["field"], a["field_weight"] = result.kind, float(result.weight)
             a["fitted_scene"] = result.scene_text()
-            names = prob.scene.object_names
             for grp, vals, k in (("params", result.values, result.k_structural),
                                  ("start", result.start, result.k_start)):
                 g = f.create_group(grp)
                 g.create_dataset("k_structural", data=np.asarray(object_stiffness(topo, np.asarray(k)), np.float64))
-                for n in prob.names:
-                    full = np.array(getattr(prob.base, n), np.float64)
-                    full[list(prob.objects)] = vals[n]
-                    g.create_dataset(n, data=full)
-                g.attrs["objects"] = np.asarray([names[o] for o in prob.objects], dtype=object)
-                g.attrs["object_names"] = np.asarray(names, dtype=object)
+                _io._write_values(g, prob, vals)          # the globals, as every FIT.h5 writes them
             hg = f.create_group("history")
             for k, v in result.history.items():
                 hg.create_dataset(k, data=np.asarray(v))
