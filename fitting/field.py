@@ -509,7 +509,8 @@ class FieldResult:
       history: dict of arrays over accepted iterations: "iteration", "loss", "grad_norm", "time" (s),
         each global's values (n, O_f), and "rejected".
       iterations, rejected: evaluations done and rejected (blow-ups).
-      reason: why the optimiser stopped, in words; wall_time: s.
+      reason: why the optimiser stopped, in words; stopped: the same as a
+        :class:`jaxplush.fitting.outcome.Stop`; wall_time: s.
       frames: (T, V, 3) the fitted rollout at the target's frames; steps, dt.
       problem: the :class:`FieldProblem`; optimizer: its name.
     """
@@ -531,6 +532,7 @@ class FieldResult:
     iterations: int
     rejected: int
     reason: str
+    stopped: Stop
     wall_time: float
     frames: np.ndarray
     steps: np.ndarray
@@ -633,6 +635,7 @@ def _field_result(fp, loop, kind, opts, iterations, wall):
                        loss=float(parts[0] + parts[1]), data_loss=float(parts[0]), smoothness=float(parts[1]),
                        loss_start=float(loop.h_loss[0]) if loop.h_loss else math.nan, weight=fp.weight,
                        history=hist, iterations=int(loop.iteration), rejected=int(loop.rejected), reason=loop.reason,
+                       stopped=loop.stopped,
                        wall_time=float(wall), frames=np.asarray(frames, np.float64),
                        steps=np.asarray(prob.loss.frame_steps, np.int64), dt=float(prob.target.dt), problem=fp,
                        optimizer=kind, settings=settings)
@@ -651,9 +654,8 @@ def _outcome(result):
         return _out.judge(rms=np.inf, noise=prob.noise, motion=_motion(prob), grad=np.inf, grad0=1.0,
                           stopped=Stop.ITERATIONS)
     best = int(np.argmin(h["loss"]))
-    stopped = Stop.ITERATIONS if result.reason.startswith("reached the iteration limit") else Stop.NONE
     return _out.judge(rms=result.rms, noise=prob.noise, motion=_motion(prob), grad=h["grad_norm"][best],
-                      grad0=h["grad_norm"][0], stopped=stopped)
+                      grad0=h["grad_norm"][0], stopped=result.stopped)
 
 
 def save_field_fit(result, path):
