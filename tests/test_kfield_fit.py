@@ -237,8 +237,19 @@ def test_patch_iou():
 def test_bench_real_capture_small(tmp_path):
     """The acceptance bench at its small size runs and its per-region fit meets the targets."""
     r = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "bench_real_capture.py"), "--small",
-                        "--quiet", "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=900)
+                        "--quiet", "--out-dir", str(tmp_path), "--bound"], capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
-    line = next(x for x in r.stdout.splitlines() if x.startswith("(a) regions") and "targets" in x)
+    lines = r.stdout.splitlines()
+    line = next(x for x in lines if x.startswith("(a) regions") and "targets" in x)
     assert "meets the targets" in line, r.stdout
     assert (tmp_path / "field_regions.png").exists() and (tmp_path / "fit_edges.h5").exists()
+    # the Cramer-Rao bound: tracking every vertex can only lower each standard error; the
+    # vertices chosen for the dashpot bound it no worse than a typical random choice; and the
+    # fit of case (c) reports a dashpot standard error no better than the bound allows
+    bound = {key: [float(v.rstrip("%")) for v in next(x for x in lines if x.startswith(start)).split()[-3:]]
+             for key, start in (("random", "20 random"), ("chosen", "20 vertices chosen"), ("every", "every vertex"))}
+    assert all(0 < e <= c and e <= rnd for e, c, rnd in zip(bound["every"], bound["chosen"], bound["random"]))
+    assert bound["chosen"][1] <= bound["random"][1]
+    fit_se = next(x for x in lines if x.startswith("(c) tracks: standard errors"))
+    dashpot_se = float(fit_se.split("dashpot ")[1].split("%")[0])
+    assert dashpot_se >= 0.5 * bound["random"][1], (fit_se, bound)
