@@ -127,7 +127,8 @@ def start_scene(d, name, truth, factors):
     return path
 
 
-def run_case(d, name, kind, truth, target, factors):
+def run_case(d, name, kind, truth, target, factors, extra=()):
+    """Fit one case by ``jaxplush-fit`` (``extra``: more of its arguments) in a cold process."""
     start = start_scene(d, name, truth, factors)
     out = os.path.join(d, "FIT.h5")
     if os.path.exists(out):
@@ -135,7 +136,7 @@ def run_case(d, name, kind, truth, target, factors):
     t = time.perf_counter()
     # cold: no persistent compilation cache, so every case compiles as a user's first fit does
     env = dict(os.environ, JAXPLUSH_CACHE_DIR="off")
-    proc = subprocess.run([sys.executable, "-m", "jaxplush.fitting.cli", start, target, "--out", out, "--quiet"],
+    proc = subprocess.run([sys.executable, "-m", "jaxplush.fitting.cli", start, target, "--out", out, "--quiet", *extra],
                           capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t
     spec = SCENES[name]
@@ -535,6 +536,8 @@ def main(argv=None):
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--kinds", default="positions,points")
     ap.add_argument("--corners", default="all", help="all, the first N corners, or indices I,J,... (0-7)")
+    ap.add_argument("--jacobian", default=None, choices=("difference", "forward"),
+                    help="the fits' Jacobians (jaxplush-fit --jacobian; default: the fit's default)")
     ap.add_argument("--json", default=None, help="append each case as a JSON line to this file")
     ap.add_argument("--random", type=int, default=None, metavar="N", help="fit N random scenes instead")
     ap.add_argument("--seed", type=int, default=0, help="--random: the seed of the draws (default 0)")
@@ -571,7 +574,8 @@ def main(argv=None):
                     warnings.simplefilter("ignore")
                     truth, target = make_case_files(d, name, kind)
                 for factors in corners:
-                    row = run_case(d, name, kind, truth, target, factors)
+                    row = run_case(d, name, kind, truth, target, factors,
+                                   extra=() if args.jacobian is None else ("--jacobian", args.jacobian))
                     rows.append(row)
                     errs = " ".join(f"{n.replace('k_structural', 'k')} {100 * e:+.3f}%" for n, e in row["errors"].items())
                     flag = "" if row.get("passed") else " **FAILED**"

@@ -90,6 +90,9 @@ def _parser():
                    help="position targets: 'auto' (default) runs segments restarted from the observed positions "
                         "where the motion is not predictable over the whole target and that measures better; "
                         "'off' one rollout; or FRAMES per segment")
+    p.add_argument("--jacobian", default=None, choices=("difference", "forward"),
+                   help="how the default fit's Levenberg-Marquardt takes its Jacobians: difference (default: "
+                        "central differences on the batched engine) or forward (exact, by forward mode)")
     p.add_argument("--field", default=None, choices=("edges", "regions"),
                    help="fit k_structural as a field: one value per edge, or per face group ('g' lines); --params "
                         "then names the global parameters fitted with it (default: the scene's damping and nmol)")
@@ -290,13 +293,14 @@ def _shooting_arg(text):
 def _options(args, names):
     """The :class:`fitting.FitOptions` of the command line (--start and --bounds parsed and checked)."""
     from jaxplush.fitting import fitter as _fit_mod
-    from jaxplush.fitting.options import CheckpointOptions, FitOptions, SearchOptions
+    from jaxplush.fitting.options import CheckpointOptions, FitOptions, LocalOptions, SearchOptions
     start = parse_start(args.start) if args.start is not None else None
     bounds = _fit_mod.parse_bounds(args.bounds, names or _fit_mod.PARAM_NAMES) if args.bounds is not None else None
     return FitOptions(iterations=args.iterations, lr=args.lr, start=start, noise=args.noise,
                       noise_free=args.noise_free, track_weight=args.track_weight, method=args.method, force=args.force,
                       shooting=args.shooting,
                       search=SearchOptions(bounds=bounds, samples=args.samples, starts=args.starts),
+                      local=LocalOptions() if args.jacobian is None else LocalOptions(jacobian=args.jacobian),
                       checkpoint=CheckpointOptions(path=args.out, every=args.checkpoint_every, resume=args.resume))
 
 

@@ -183,6 +183,34 @@ class Evaluator:
             out.append(int(min(max(n, 1), MAX_SUBSTEPS)))
         return np.asarray(out, np.int64)
 
+    def forward_jacobian(self, theta, substeps=1):
+        """(n, P) exact Jacobian of the residuals at one point theta (P_n, O_f) in log space, by
+        forward mode: one rollout of ``prob.frames`` with P tangents beside it (vmapped JVPs; one
+        compile per evaluator). None where it does not apply or did not run: a point that needs
+        substeps (``substeps`` > 1, or its predicted count), a rollout whose health codes flag
+        a blow-up, or non-finite entries; the caller then takes differences."""
+        th = np.asarray(theta, np.float64)
+        if substeps > 1 or int(self.substeps_for(th[None])[0]) > 1:
+            return None
+        fwd = getattr(self, "_forward", None)
+        if fwd is None or fwd[0] is not self.prob:       # a grown contact capacity makes a new problem
+            prob, res, shape = self.prob, self.residual, th.shape
+
+            def run(flat):
+                def f(t):
+                    frames, codes = prob.frames(t.reshape(shape))
+                    return res.fn(frames), codes
+                basis = jnp.eye(flat.size, dtype=flat.dtype)
+                _, tangents, codes = jax.vmap(lambda t: jax.jvp(f, (flat,), (t,), has_aux=True),
+                                              out_axes=(None, 0, None))(basis)
+                return tangents, codes
+            fwd = self._forward = (prob, jax.jit(run))
+        tangents, codes = fwd[1](jnp.asarray(th.ravel(), self.prob.sim.dtype))
+        jac = np.asarray(tangents, np.float64).T
+        if np.any(np.asarray(codes) >= diagnostics.NON_FINITE) or not np.isfinite(jac).all():
+            return None
+        return jac
+
     # ------------------------------------------------------------------ running
 
     def __call__(self, thetas, substeps=None, keep_frames=False, retries=None):

@@ -110,6 +110,12 @@ class LocalOptions:
         the model's reproducibility floor over the fitted frames (two runs that differ only by
         rounding differ by as much) and its Gauss-Newton step is at most this (max-norm): no
         further step can be told from rounding (None: never; flat name ``local_floor_step``).
+      jacobian: how a search's Jacobian is taken: "difference" (the default: central differences
+        at a step that follows the trust radius, 2 P rollouts on the batched engine) or
+        "forward" (exact, by forward-mode JVPs: one rollout with P tangents, at each new point
+        only). Forward mode serves where the residuals are smooth; multiple shooting, points that
+        need substeps and runs that blow up take differences instead. Measured in
+        benchmarks/RESULTS.md ("Exact Jacobians").
       secant_updates: iterations a search may take on a Jacobian updated from its own steps (a
         Broyden secant update, r(x + s) - r(x) = J s, after each accepted step) before it is
         differenced again (2 P rollouts); a stop judged on the Jacobian, or a step that fails, on
@@ -135,6 +141,7 @@ class LocalOptions:
     resolve_h: float = 0.01
     floor_step: float | None = dataclasses.field(default=1e-3, metadata={"flat": "local_floor_step"})
     secant_updates: int = 0
+    jacobian: str = "difference"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -377,6 +384,10 @@ def validate(opts, optimizer):
         raise JaxplushError(f"patience must be an integer >= 1, got {opts.patience!r}")
 
 
+#: How a search may take its Jacobian (:attr:`LocalOptions.jacobian`).
+JACOBIANS = ("difference", "forward")
+
+
 def _validate_tuning(opts, optimizer):
     """The tuning groups: of their classes, every number valid, and left alone unless ``optimizer`` is "lm"."""
     for group, cls in TUNING.items():
@@ -387,7 +398,10 @@ def _validate_tuning(opts, optimizer):
             raise JaxplushError(f"{group} options apply to the default fit (optimizer 'lm'), not to {optimizer}")
         for f in dataclasses.fields(cls):
             name, v = f.metadata.get("flat", f.name), getattr(val, f.name)
-            if isinstance(f.default, tuple):
+            if isinstance(f.default, str):
+                if v not in JACOBIANS:
+                    raise JaxplushError(f"{name} must be one of {', '.join(JACOBIANS)}, got {v!r}")
+            elif isinstance(f.default, tuple):
                 ok = (isinstance(v, (tuple, list)) and len(v) > 0 and all(_is_positive(x) for x in v)
                       and all(a < b for a, b in zip(v, v[1:])))
                 if ok and group == "continuation":

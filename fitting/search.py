@@ -240,6 +240,22 @@ def _jacobians(evaluator, box, states, options=None):
         k += 2 * p
 
 
+def _forward_jacobians(evaluator, states, options):
+    """Set the exact Jacobian (:meth:`jaxplush.fitting.evaluate.Evaluator.forward_jacobian`) of
+    every state it serves, with ``jac_h`` the smallest difference step (the stopping rules read
+    it as a local Jacobian); return the states left for differences. A forward pass costs about
+    P rollouts, counted as P evaluations."""
+    rest = []
+    for st in states:
+        jac = evaluator.forward_jacobian(st.theta, st.substeps)
+        if jac is None:
+            rest.append(st)
+            continue
+        st.jac, st.jac_h = jac, options.h_min
+        st.evaluations += st.theta.size
+    return rest
+
+
 def _run_stencils(evaluator, box, states, stencil, options=None, keep_frames=False):
     """Run every state's ``stencil(box, theta, h)`` points at its own step h (recorded as
     ``jac_h``) in one evaluation, each stencil at the substeps its points need (at least its
@@ -470,11 +486,14 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
             return True
         if st.updates:
             return st.updates >= limit
+        if forward and st.jac_h == o.h_min:        # exact, or as local as differences get: no new step
+            return False
         return st.jac_h != fd_step(st.radius, o)
 
+    forward = o.jacobian == "forward" and getattr(evaluator, "forward_jacobian", None) is not None
     need = [st for st in active if differenced(st)]
     if need:
-        _jacobians(evaluator, box, need, o)
+        _jacobians(evaluator, box, _forward_jacobians(evaluator, need, o) if forward else need, o)
         for st in need:
             st.updates = 0
     trials, owner = [], []

@@ -143,6 +143,11 @@ class ShootingEvaluator(Evaluator):
       **kw: as :class:`Evaluator`.
     """
 
+    def forward_jacobian(self, theta, substeps=1):
+        """None: forward-mode Jacobians do not cover the segments' restarts (the fit takes
+        differences)."""
+        return None
+
     def __init__(self, prob, segment_frames, refine=REFINE, **kw):
         kw.pop("chunk_frames", None)          # a segment runs in one piece
         super().__init__(prob, **kw)

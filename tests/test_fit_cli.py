@@ -109,6 +109,8 @@ def _bad_cli_cases(files, d):
         "bounds unfitted": (good + ["--params", "k", "--bounds", "nmol=1e-4:1e-2"], "bounds given for nmol"),
         "bounds adam": (good + ["--optimizer", "adam", "--bounds", "k=1:2"], "--bounds belongs to the default fit"),
         "samples": (good + ["--samples", "-1"], "--samples must be >= 0"),
+        "jacobian adam": (good + ["--optimizer", "adam", "--jacobian", "forward"],
+                          "local options apply to the default fit (optimizer 'lm'), not to adam"),
         "out extension": (good + ["--out", str(d / "fit.txt")], "--out must end in .h5"),
         "out directory": (good + ["--out", str(d / "nodir" / "FIT.h5")], "does not exist"),
         "resume without file": (good + ["--resume"], "no checkpoint to resume"),
@@ -132,7 +134,7 @@ def _bad_cli_cases(files, d):
                                   "target missing", "dt off grid", "out overwrites input", "unknown method",
                                   "no parameters", "negative dt", "negative lr", "bad start", "negative start",
                                   "start name", "bounds syntax", "bounds order", "bounds start", "bounds unfitted",
-                                  "bounds adam", "samples"])
+                                  "bounds adam", "samples", "jacobian adam"])
 def test_bad_input_exits_2_and_writes_nothing(files, tmp_path, capsys, case):
     argv, message = _bad_cli_cases(files, tmp_path)[case]
     if "--out" not in argv:
