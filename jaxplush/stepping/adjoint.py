@@ -170,8 +170,17 @@ def _gas_vjp(topo, params, x, lam, d, dl, temperature):
 _Y_ROW = np.arange(3)[:, None] == 1                # (3, 1): the vertical component
 
 
-def _make_step_dens_vjp(sim):
-    """``step_vjp(params, x, u, x_next, x_bar, u_bar) -> (x_bar, u_bar, dens)``: the VJP of
+def _make_step_dens_vjp_parts(sim):
+    """``(head, tail)``: the two halves of :func:`_make_step_dens_vjp`. ``head(params, x_next,
+    x_bar, u_bar, k) -> (x_out, ut, lam)`` takes the cotangents of the new state through the pins,
+    the driven vertices and the floor to the cotangent ``lam`` of the internal force;
+    ``tail(params, x, u, x_out, ut, lam) -> (x_bar, u_bar, dens)`` transposes the force and the
+    integrator's damping. The reverse sweep computes each step's head at the end of the step
+    before it, so ``lam`` enters the force's gathers as a loop buffer: fused into them, the
+    head's masks were recomputed for every gathered neighbour (2x the backward's time with a
+    floor and a dashpot; benchmarks/RESULTS.md).
+
+    The VJP itself, ``step_vjp(params, x, u, x_next, x_bar, u_bar) -> (x_bar, u_bar, dens)``, of
     ``sim.internal.step`` at the state (x, u) (internal (3, V) layout), given the positions
     ``x_next`` it produced, with the parameter cotangents as per-vertex densities
     (:class:`_Dens`, reduced by :func:`_reduce_dens`). The step (jaxplush.stepping.step, verlet):
@@ -194,8 +203,8 @@ def _make_step_dens_vjp(sim):
         from jaxplush.stepping.constraints import Drive
         drive = Drive(sim.scene, dt)
 
-    def step_vjp(params, x, u, x_next, x_bar, u_bar, k=None):
-        dtype = x.dtype
+    def head(params, x_next, x_bar, u_bar, k=None):
+        dtype = x_next.dtype
         if terms.fixed or terms.driven:
             # pinned and driven vertices: their new position and velocity are constants
             keep = jnp.asarray(free, dtype)
@@ -211,9 +220,10 @@ def _make_step_dens_vjp(sim):
             u_bar = jnp.where(below, 0.0, u_bar)
             x_out = x_bar + jnp.where(below, -uy / dt, 0.0)
         ut = u_bar + dt * x_bar                                  # cotangent of u' (before x' = x + u' dt)
-        a_bar = dt * ut
-        mass = model.vertex_mass(topo, params)
-        lam = a_bar / mass                                       # cotangent of the internal force
+        lam = dt * ut / model.vertex_mass(topo, params)          # cotangent of the internal force
+        return x_out, ut, lam
+
+    def tail(params, x, u, x_out, ut, lam):
         jx, ju, dens = force_vjp(params, x, u, lam)
         if terms.verlet_damping:
             fd = model.per_vertex(topo, _damping_factor(params.damping))
@@ -222,10 +232,21 @@ def _make_step_dens_vjp(sim):
         else:
             u_out = ut + ju
         if terms.drag:
-            u_drag, drag_density = T.drag_vjp(model.per_vertex(topo, params.drag), u, a_bar)
+            u_drag, drag_density = T.drag_vjp(model.per_vertex(topo, params.drag), u, dt * ut)
             u_out = u_out + u_drag
             dens = dens._replace(drag=drag_density)
         return x_out + jx, u_out, dens
+
+    return head, tail
+
+
+def _make_step_dens_vjp(sim):
+    """``step_vjp(params, x, u, x_next, x_bar, u_bar, k=None) -> (x_bar, u_bar, dens)``: one
+    step's VJP (:func:`_make_step_dens_vjp_parts`), its two halves in one call."""
+    head, tail = _make_step_dens_vjp_parts(sim)
+
+    def step_vjp(params, x, u, x_next, x_bar, u_bar, k=None):
+        return tail(params, x, u, *head(params, x_next, x_bar, u_bar, k))
 
     return step_vjp
 
@@ -349,29 +370,48 @@ def _read_state(plan, buf_x, buf_u, i):
     return x, u
 
 
-def _reverse_steps(step_vjp, params, add_frame, step0=None):
+def _reverse_steps(parts, params, add_frame, step0=None, ahead=True):
     """``reverse(carry, states, first, last)``: reverse steps last, ..., first + 1, with
-    ``states(n)`` -> (x_n, u_n) for first <= n <= last; carry (x_bar, u_bar, dens). The state a
-    step's VJP needs is read one iteration ahead into the carry: XLA then gathers from a loop
-    buffer rather than fusing a dynamic slice of the stored trajectory into every gather (faster;
-    see benchmarks/RESULTS.md). ``step0``: the step index of state 0 (scenes with driven
-    vertices; None otherwise)."""
+    ``states(n)`` -> (x_n, u_n) for first <= n <= last; carry (x_bar, u_bar, dens). ``parts``:
+    the step VJP's (head, tail) (:func:`_make_step_dens_vjp_parts`). Two things are read one
+    iteration ahead into the loop's carry, so that XLA gathers from loop buffers rather than
+    fusing their producers into every gather (faster; see benchmarks/RESULTS.md): the state a
+    step's VJP needs (not a dynamic slice of the stored trajectory), and the step's head (the
+    force's cotangent, not the floor's masks recomputed per neighbour). ``ahead`` False computes
+    each head in its own step: cheaper where the head is a few multiplications (no floor, pins or
+    driven vertices). ``step0``: the step index of state 0 (scenes with driven vertices; None
+    otherwise)."""
+    head, tail = parts
+
+    def prepare(x_bar, u_bar, x_next, n):
+        # the head of step n (state n - 1 -> n): the frame's cotangent added first
+        k = None if step0 is None else n - 1 + step0      # driven vertices only: the step index
+        return head(params, x_next, add_frame(x_bar, n), u_bar, k)
 
     def reverse(carry, states, first, last):
         x_bar, u_bar, dens = carry
+        if not ahead:
+            def body_here(i, inner):
+                (x_bar, u_bar, dens), x_next, x, u = inner
+                n = last - i                          # reverses step n: state n - 1 -> state n
+                x_bar, u_bar, d = tail(params, x, u, *prepare(x_bar, u_bar, x_next, n))
+                dens = jax.tree_util.tree_map(jnp.add, dens, d)
+                return ((x_bar, u_bar, dens), x) + states(jnp.maximum(n - 2, first))
+
+            init = ((x_bar, u_bar, dens), states(last)[0]) + states(last - 1)
+            return jax.lax.fori_loop(0, last - first, body_here, init)[0]
 
         def body(i, inner):
-            (x_bar, u_bar, dens), x_next, x, u = inner
+            (x_bar, u_bar, dens, h), x, u = inner
             n = last - i                              # reverses step n: state n - 1 -> state n
-            x_bar = add_frame(x_bar, n)
-            k = None if step0 is None else n - 1 + step0      # driven vertices only: the step index
-            x_bar, u_bar, d = step_vjp(params, x, u, x_next, x_bar, u_bar, k)
+            x_bar, u_bar, d = tail(params, x, u, *h)
             dens = jax.tree_util.tree_map(jnp.add, dens, d)
-            return ((x_bar, u_bar, dens), x) + states(jnp.maximum(n - 2, first))
+            h = prepare(x_bar, u_bar, x, n - 1)       # step n - 1's head (unused after the last)
+            return ((x_bar, u_bar, dens, h),) + states(jnp.maximum(n - 2, first))
 
-        init = ((x_bar, u_bar, dens), states(last)[0]) + states(last - 1)
+        init = ((x_bar, u_bar, dens, prepare(x_bar, u_bar, states(last)[0], last)),) + states(last - 1)
         out = jax.lax.fori_loop(0, last - first, body, init)
-        return out[0]
+        return out[0][:3]
 
     return reverse
 
@@ -420,10 +460,12 @@ def backward(sim, plan, params, bufs, add_frame, x_bar, u_bar, step0=0):
     checkpoints (:func:`_reverse_segments`); the densities are reduced to a Params cotangent at
     the end. ``step0``: the step index of state 0 (read by scenes with driven vertices only; may
     be traced)."""
-    step_vjp = _make_step_dens_vjp(sim)
     xs, us = bufs
     dtype = x_bar.dtype
-    reverse = _reverse_steps(step_vjp, params, add_frame, step0 if sim.terms.driven else None)
+    t = sim.terms
+    ahead = bool(t.floor or t.fixed or t.driven)        # a head with masks: computed a step ahead
+    reverse = _reverse_steps(_make_step_dens_vjp_parts(sim), params, add_frame, step0 if t.driven else None,
+                             ahead=ahead)
     carry = (x_bar, u_bar, _zero_dens(sim, params, dtype))
     if plan.store:
         carry = reverse(carry, lambda n: _read_state(plan, xs, us, n), 0, plan.n_steps)

@@ -208,7 +208,7 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
     mode takes the fused adjoint (:mod:`jaxplush.stepping.adjoint`): the forward run also keeps
     every step's state within ``memory_budget`` (else a checkpoint every about sqrt(steps)
     steps, recomputed segment by segment), and the backward pass is one fused kernel per step:
-    the value and gradient cost about 4-8 forward runs, where JAX's own reverse mode through the
+    the value and gradient cost about 3.5-5 forward runs, where JAX's own reverse mode through the
     scan (``gradient="autodiff"``) costs 20-30 and keeps every step's residuals
     (benchmarks/bench_fit.py; benchmarks/RESULTS.md). A simulator the adjoint does not cover
     (contact or floor friction, restitution, the smooth floor, another integrator than Verlet,
