@@ -132,7 +132,14 @@ def fit_field_case(data, kind, iterations, progress):
     else:
         err = np.abs(res.k_structural / k_true - 1)
         inside, outside = k_true == K_SOFT * STIFF, k_true == K_SOFT
-    row = dict(case=f"({'a' if kind == 'regions' else 'b'}) {kind}", iou=iou, err_in=float(np.median(err[inside])),
+    se = {}
+    if res.identifiability is not None:     # per region: the report's standard errors, inside and outside
+        rse = np.asarray(res.identifiability.stderr[: len(err)])
+        se = {"k inside (median)": float(np.median(rse[inside])), "k outside (median)": float(np.median(rse[outside]))}
+        se.update({lab.split("[")[0]: float(e) for lab, e in
+                   zip(res.identifiability.labels[len(err):], res.identifiability.stderr[len(err):])})
+    row = dict(case=f"({'a' if kind == 'regions' else 'b'}) {kind}", stderr=se, iou=iou,
+               err_in=float(np.median(err[inside])),
                err_out=float(np.median(err[outside])),
                dashpot=res.values["dashpot"][0] / true["dashpot"] - 1, nmol=res.values["nmol"][0] / true["nmol"] - 1,
                k=math.nan, iterations=res.iterations, wall=res.wall_time, loss=res.data_loss, rms=res.rms)

@@ -192,6 +192,8 @@ def _fit_field(args, scene, names, options):
     result.render(png, truth=truth, title=f"k_structural per {args.field[:-1]}: fitted"
                   + (" and true" if truth is not None else " and start"))
     print(result.table())
+    if result.identifiability is not None:
+        print(result.identifiability.summary())
     print(f"wrote {args.out}, {png}" + (f" and {args.out_scene}" if args.out_scene else ""))
     status = _field._outcome(result)
     if not status.converged:

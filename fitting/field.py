@@ -440,8 +440,9 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
       optimizer: "lbfgs" (default: optax's L-BFGS with its zoom line search) or "adam" (cosine-decayed
         learning rate ``lr``, default 0.05 in log space), or an optax transformation.
       options: :class:`jaxplush.fitting.FitOptions`; the fields used: iterations (default 200), lr,
-        dt, start, noise, noise_free, gtol, rtol, xtol, ftol, patience, method. Keywords override
-        single fields, as for :func:`jaxplush.fitting.fit`.
+        dt, start, noise, noise_free, gtol, rtol, xtol, ftol, patience, method, identifiability
+        (the report of a fit per region, :func:`field_identifiability`). Keywords override single
+        fields, as for :func:`jaxplush.fitting.fit`.
       progress: a progress bar with the loss and the globals on stderr.
       callback: called after every accepted iteration with a dict (iteration, loss, values,
         grad_norm); returning True stops the fit.
@@ -489,7 +490,8 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
         bar.finish(loop.reason if loop.done else "iteration limit")
     if not loop.done:
         loop.reason, loop.stopped = f"reached the iteration limit ({iterations})", Stop.ITERATIONS
-    return _field_result(fp, loop, kind, opts, iterations, time.perf_counter() - t_start)
+    return _field_result(fp, loop, kind, opts, iterations, time.perf_counter() - t_start,
+                         report=opts.identifiability)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -513,6 +515,11 @@ class FieldResult:
         :class:`jaxplush.fitting.outcome.Stop`; wall_time: s.
       frames: (T, V, 3) the fitted rollout at the target's frames; steps, dt.
       problem: the :class:`FieldProblem`; optimizer: its name.
+      identifiability: for a fit per region, the
+        :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` at the fit
+        (:func:`field_identifiability`: each region's and global's standard error, the data and
+        the smoothness prior together); None per edge (a tangent per edge costs too much) or
+        when switched off (``identifiability=False``).
     """
 
     kind: str
@@ -540,10 +547,7 @@ class FieldResult:
     problem: FieldProblem
     optimizer: str
     settings: dict
-
-    #: No identifiability report (its Jacobian would need a JVP per edge); the smoothness term
-    #: decides what the data leave open.
-    identifiability = None
+    identifiability: object = None
 
     @property
     def normalisation(self):
@@ -604,8 +608,9 @@ class FieldResult:
         return render_field(scene.vertices, scene.faces, scene.edges, fields, path, **kw)
 
 
-def _field_result(fp, loop, kind, opts, iterations, wall):
-    """The :class:`FieldResult` at the best accepted point of ``loop``."""
+def _field_result(fp, loop, kind, opts, iterations, wall, report=False):
+    """The :class:`FieldResult` at the best accepted point of ``loop``; with ``report`` (and
+    regions) its identifiability report."""
     best = loop.best_theta if loop.h_loss else np.asarray(fp.theta0)
     th = jnp.asarray(best, fp.sim.dtype)
     parts = jax.jit(lambda t: (fp.data_loss(t), fp.regulariser(t)))(th)
@@ -638,7 +643,68 @@ def _field_result(fp, loop, kind, opts, iterations, wall):
                        stopped=loop.stopped,
                        wall_time=float(wall), frames=np.asarray(frames, np.float64),
                        steps=np.asarray(prob.loss.frame_steps, np.int64), dt=float(prob.target.dt), problem=fp,
-                       optimizer=kind, settings=settings)
+                       optimizer=kind, settings=settings,
+                       identifiability=field_identifiability(fp, best) if report and fp.kind == "regions" else None)
+
+
+# --------------------------------------------------------------------------- identifiability (regions)
+
+def field_jacobian(fp, theta):
+    """(jac (n, P) m per unit log, residual (n,) m, labels (P,)) of a fit per region at the
+    optimiser's variables ``theta``, in the coordinates log k per region, then the log globals.
+
+    The rows are the data's residuals (:func:`jaxplush.fitting.losses.make_residual`, in metres),
+    by forward mode (one rollout with a tangent per unknown), then the smoothness prior as
+    pseudo-residuals: sqrt(weight) (log k_a - log k_b) per adjacent pair, in the data's metres,
+    so that the sum of squares of all rows, scaled back, is the fit's objective."""
+    from jaxplush.fitting import identifiability as _ident
+    from jaxplush.fitting import losses as _losses
+    if fp.kind != "regions":
+        raise ValueError("field_jacobian serves a fit per region (a tangent per unknown)")
+    prob = fp.prob
+    res = _losses.make_residual(prob.target, fp.sim.topology, prob.loss)
+    field, glob = fp.split(np.asarray(theta, np.float64))
+    coords = np.concatenate([field, glob.ravel()])
+    n_f, shape = fp.n_field, glob.shape
+
+    def f(c):
+        p = prob.to_params(c[n_f:].reshape(shape))
+        p = p._replace(k_structural=fp.k_edges(c[:n_f]).astype(fp.sim.dtype))
+        frames, codes = _ident.frames_at_steps(fp.sim, p, fp.sim.init_fn(p), prob.loss.frame_steps)
+        return res.fn(frames), codes
+
+    def run(c):
+        basis = jnp.eye(c.size, dtype=c.dtype)
+        return jax.vmap(lambda t: jax.jvp(f, (c,), (t,), has_aux=True), out_axes=(None, 0, None))(basis)
+
+    r, tangents, _ = jax.jit(run)(jnp.asarray(coords, fp.sim.dtype))
+    norm = np.asarray(res.norm, np.float64)                   # normalised residual = metres x norm
+    scale = norm if norm.ndim == 0 else norm[:, None]
+    jac = np.asarray(tangents, np.float64).T / scale
+    resid = np.asarray(r, np.float64) / norm
+    # the prior's rows, in the data's metres: weight (d)^2 = (sqrt(weight) d / norm)^2 norm^2
+    unit = float(np.sqrt(fp.weight) / (norm if norm.ndim == 0 else np.sqrt(np.mean(norm ** 2))))
+    pairs = np.asarray(fp.pairs, np.int64)
+    prior = np.zeros((len(pairs), coords.size))
+    prior[np.arange(len(pairs)), pairs[:, 0]] = unit
+    prior[np.arange(len(pairs)), pairs[:, 1]] = -unit
+    prior_r = unit * (field[pairs[:, 0]] - field[pairs[:, 1]])
+    objs = [prob.scene.object_names[o] for o in prob.objects]
+    labels = [f"k_structural[{r_}]" for r_ in fp.region_names] + [f"{n}[{o}]" for n in prob.names for o in objs]
+    if fp.weight > 0 and len(pairs):
+        jac, resid = np.concatenate([jac, prior]), np.concatenate([resid, prior_r])
+    return jac, resid, tuple(labels)
+
+
+def field_identifiability(fp, theta):
+    """The :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` of a fit per region at
+    ``theta`` (:func:`field_jacobian`): each region's and global's approximate standard error
+    (relative), the condition of JᵀJ and its weakest combination. The smoothness prior counts as
+    data: a region the target barely sees is held by its neighbours, and its standard error says
+    how much."""
+    from jaxplush.fitting import identifiability as _ident
+    jac, resid, labels = field_jacobian(fp, theta)
+    return _ident.analyse(jac, resid, labels, noise=fp.prob.noise)
 
 
 # --------------------------------------------------------------------------- FIT.h5 and the fitted scene
@@ -703,6 +769,8 @@ def save_field_fit(result, path):
                 fg.attrs["region_names"] = np.asarray(result.region_names, dtype=object)
             fg.attrs["kind"] = result.kind
             fg.attrs["weight"] = float(result.weight)
+            if result.identifiability is not None:
+                _io.write_identifiability(f, result.identifiability)
             gg = f.create_group("fitted")
             gg.create_dataset("positions", data=np.asarray(result.frames), compression="gzip", compression_opts=1)
             gg.create_dataset("steps", data=np.asarray(result.steps, np.int64))

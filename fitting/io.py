@@ -145,6 +145,24 @@ def save_checkpoint(path, prob, state, settings, status="running", *, theta=None
     return os.fspath(path)
 
 
+def write_identifiability(f, rep):
+    """The ``identifiability`` group of FIT.h5 (module docstring) from an
+    :class:`jaxplush.fitting.identifiability.IdentifiabilityReport`, in the open file ``f``."""
+    ig = f.create_group("identifiability")
+    for k in ("jtj", "eigenvalues", "eigenvectors", "sensitivity", "stderr"):
+        ig.create_dataset(k, data=np.asarray(getattr(rep, k), np.float64))
+    ig.create_dataset("determined", data=np.asarray(rep.determined, bool))
+    ig.attrs["labels"] = np.asarray(rep.labels, dtype=object)
+    ig.attrs["condition"] = float(rep.condition)
+    ig.attrs["sigma"] = float(rep.sigma)
+    ig.attrs["n_data"] = int(rep.n_data)
+    ig.attrs["warnings"] = json.dumps(list(rep.warnings))
+    ig.attrs["weakest"] = rep.weakest
+    ig.attrs["jac_noise"] = float(rep.jac_noise)
+    ig.attrs["undetermined"] = json.dumps(list(rep.undetermined))
+    ig.attrs["summary"] = rep.summary()
+
+
 def save_fit(result, path):
     """Write a :class:`jaxplush.fitting.result.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
     fit's outcome (jaxplush.fitting.outcome: "converged", "poor_fit", "stalled", ...)."""
@@ -169,21 +187,8 @@ def save_fit(result, path):
             hg = f.create_group("history")
             for k, v in result.history.items():
                 hg.create_dataset(k, data=np.asarray(v))
-            rep = result.identifiability
-            if rep is not None:
-                ig = f.create_group("identifiability")
-                for k in ("jtj", "eigenvalues", "eigenvectors", "sensitivity", "stderr"):
-                    ig.create_dataset(k, data=np.asarray(getattr(rep, k), np.float64))
-                ig.create_dataset("determined", data=np.asarray(rep.determined, bool))
-                ig.attrs["labels"] = np.asarray(rep.labels, dtype=object)
-                ig.attrs["condition"] = float(rep.condition)
-                ig.attrs["sigma"] = float(rep.sigma)
-                ig.attrs["n_data"] = int(rep.n_data)
-                ig.attrs["warnings"] = json.dumps(list(rep.warnings))
-                ig.attrs["weakest"] = rep.weakest
-                ig.attrs["jac_noise"] = float(rep.jac_noise)
-                ig.attrs["undetermined"] = json.dumps(list(rep.undetermined))
-                ig.attrs["summary"] = rep.summary()
+            if result.identifiability is not None:
+                write_identifiability(f, result.identifiability)
             fg = f.create_group("fitted")
             fg.create_dataset("positions", data=np.asarray(result.frames), compression="gzip", compression_opts=1)
             fg.create_dataset("steps", data=np.asarray(result.steps, np.int64))

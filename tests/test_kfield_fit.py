@@ -163,6 +163,55 @@ def test_field_problem_checks_and_start(two_regions):
     assert np.allclose(fr.k_edges(fr.split(fr.theta0)[0]), truth.params.k_structural)
 
 
+def test_field_identifiability_jacobian_matches_differences_and_the_report_is_saved(two_regions, tmp_path):
+    """The identifiability report of a fit per region: in float64 its Jacobian's data rows (forward
+    mode, metres per unit log) agree with central differences of the residuals, the smoothness
+    prior adds one row per adjacent pair, and a short fit's report (finite standard errors for
+    both regions and the globals) reaches FIT.h5."""
+    from jaxplush.fitting import losses as L
+    truth, start = two_regions
+    target = fitting_target(truth)
+    with jax.enable_x64(True):
+        fp = F.build_field_problem(start, target, "regions", start=_start(truth))
+        theta = np.asarray(fp.theta0, np.float64)
+        jac, resid, labels = F.field_jacobian(fp, theta)
+        res = L.make_residual(fp.prob.target, fp.sim.topology, fp.prob.loss)
+        n = res.n
+        assert set(labels[:2]) == {"k_structural[back]", "k_structural[front]"}
+        assert labels[2:] == ("dashpot[plush]", "nmol[plush]")
+        assert jac.shape == (n + len(fp.pairs), 4) and resid.shape == (n + len(fp.pairs),)
+        field, glob = fp.split(theta)
+        coords = np.concatenate([field, glob.ravel()])
+
+        def residual_m(c):
+            p = fp.prob.to_params(c[2:].reshape(glob.shape))._replace(k_structural=fp.k_edges(jnp.asarray(c[:2])))
+            from jaxplush.fitting import identifiability as I
+            frames, _ = I.frames_at_steps(fp.sim, p, fp.sim.init_fn(p), fp.prob.loss.frame_steps)
+            return np.asarray(res.fn(frames), np.float64) / res.norm
+        assert np.allclose(resid[:n], residual_m(coords), rtol=1e-9, atol=1e-12)
+        for j in range(4):
+            errs = []
+            for h in (1e-3, 2.5e-4):
+                e = np.zeros(4)
+                e[j] = h
+                fd = (residual_m(coords + e) - residual_m(coords - e)) / (2 * h)
+                errs.append(np.linalg.norm(fd - jac[:n, j]) / np.linalg.norm(jac[:n, j]))
+            assert errs[1] < 1e-4, (j, errs)
+        # the prior's rows: sqrt(weight) / norm per pair, on the two regions' columns only
+        unit = np.sqrt(fp.weight) / res.norm
+        assert np.allclose(np.abs(jac[n:, :2]), unit) and np.all(jac[n:, 2:] == 0)
+    out = F.fit_field(start, target, "regions", start=_start(truth), iterations=5, noise_free=True)
+    rep = out.identifiability
+    assert rep is not None and len(rep.labels) == 4
+    assert np.all(np.isfinite(rep.stderr)) and np.all(rep.stderr > 0)
+    out.save(tmp_path / "F.h5")
+    with h5py.File(tmp_path / "F.h5", "r") as f:
+        assert list(f["identifiability"].attrs["labels"]) == list(rep.labels)
+        assert np.allclose(f["identifiability/stderr"][()], rep.stderr)
+    edges = F.fit_field(start, target, "edges", start=_start(truth), iterations=2, noise_free=True)
+    assert edges.identifiability is None
+
+
 # --------------------------------------------------------------------------- the command line and the picture
 
 @pytest.mark.heavy
