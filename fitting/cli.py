@@ -192,10 +192,10 @@ def _fit_field(args, scene, names, options):
     result.render(png, truth=truth, title=f"k_structural per {args.field[:-1]}: fitted"
                   + (" and true" if truth is not None else " and start"))
     print(result.table())
-    if result.identifiability is not None:
-        print(result.identifiability.summary())
-    print(f"wrote {args.out}, {png}" + (f" and {args.out_scene}" if args.out_scene else ""))
     status = _field._outcome(result)
+    if result.identifiability is not None:     # standard errors only for a fit that reached the data
+        print(result.identifiability.summary(standard_errors=status.converged))
+    print(f"wrote {args.out}, {png}" + (f" and {args.out_scene}" if args.out_scene else ""))
     if not status.converged:
         print(f"jaxplush-fit: {status.text} (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
         return EXIT_NOT_CONVERGED

@@ -131,6 +131,7 @@ class Evaluator:
         self._bsims = share._bsims if share is not None else {}
         self.chunk_frames = int(chunk_frames) if chunk_frames else None
         self._single = {}
+        self._forward = None            # (problem, compiled forward-mode Jacobian): forward_jacobian
         # residuals in chunks of frames, by one compiled function per chunk length and width that
         # the evaluators of a fit's horizons share (the target data is an argument, not a constant)
         self._res_fns = share._res_fns if share is not None else {}
@@ -192,7 +193,7 @@ class Evaluator:
         th = np.asarray(theta, np.float64)
         if substeps > 1 or int(self.substeps_for(th[None])[0]) > 1:
             return None
-        fwd = getattr(self, "_forward", None)
+        fwd = self._forward
         if fwd is None or fwd[0] is not self.prob:       # a grown contact capacity makes a new problem
             prob, res, shape = self.prob, self.residual, th.shape
 

@@ -56,15 +56,22 @@ def test_forward_jacobian_is_the_limit_of_central_differences(x64, kind):
     assert np.all(errs[1][big] < errs[0][big] / 6), errs
 
 
-def test_forward_jacobian_declines_what_it_does_not_cover():
-    """Multiple shooting and points that need substeps take differences (forward_jacobian: None)."""
-    from jaxplush.fitting import shooting
+def test_a_search_takes_forward_jacobians_where_they_apply_and_differences_elsewhere():
+    """``search._forward_jacobians`` sets the exact Jacobian (at step h_min, counted as P
+    evaluations) of a state that needs no substeps, and hands a state that needs them back for
+    differences, untouched."""
     prob = _problem()
-    theta = np.asarray(prob.theta0, np.float64)
     ev = Evaluator(prob, calibrate=False)
+    o = LocalOptions(jacobian="forward")
+    theta = np.asarray(prob.theta0, np.float64)
+    plain = search.LMState(theta=theta, loss=np.nan, radius=0.2)
+    sub = search.LMState(theta=theta, loss=np.nan, radius=0.2, substeps=2)
     assert ev.forward_jacobian(theta, substeps=2) is None
-    sh = shooting.ShootingEvaluator.forward_jacobian(ev, theta)
-    assert sh is None
+    rest = search._forward_jacobians(ev, [plain, sub], o)
+    assert rest == [sub] and sub.jac is None and sub.evaluations == 0
+    assert plain.jac.shape == (ev.residual.n, theta.size) and plain.jac_h == o.h_min
+    assert plain.evaluations == theta.size
+    assert np.array_equal(plain.jac, ev.forward_jacobian(theta))
 
 
 def test_the_jacobian_option_is_checked():
@@ -100,4 +107,3 @@ def test_a_fit_on_exact_jacobians_recovers_the_truth_and_differences_once_per_po
         assert float(res.values[n][0]) == pytest.approx(float(getattr(p, n)[0]), rel=1e-2), (n, res.values)
     # never twice in a row at the same point of the same horizon (its own evaluator)
     assert all(a[0] != b[0] or not np.array_equal(a[1], b[1]) for a, b in zip(calls, calls[1:]))
-    assert search.fd_step(1.0, LocalOptions()) > LocalOptions().h_min

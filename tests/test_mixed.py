@@ -323,17 +323,8 @@ def test_a_sweep_against_a_mixed_target_weighs_the_two_sweeps(ball):
 def test_capture_with_tracks_is_a_mixed_target_and_the_cli_weighs_it(tmp_path):
     from jaxplush.fitting import cli as fit_cli
     from jaxplush.fitting.io import load_fit
-    from test_cli import run_cli
-    scene_path = tmp_path / "ball.obj"
-    scene_path.write_text(icosphere_text(subdivisions=1, k=K, nmol=NMOL, damping=2.0, fixed=(0,)))
-    traj = tmp_path / "ball.h5"
-    rc, _, err = run_cli("simulate", scene_path, "--steps", 40, "--dt", DT, "--save-every", 10, "--out", traj,
-                         "--quiet")
-    assert rc == 0, err
-    out = tmp_path / "scan.h5"
-    rc, _, err = run_cli("capture", traj, "--eye", "0,0,0.8", "--size", "32x24", "--noise", "0.001",
-                         "--seed", "2", "--tracks", "12", "--out", out)
-    assert rc == 0, err
+    from test_tracks import simulated_capture
+    scene_path, out, _ = simulated_capture(tmp_path, "--tracks", "12")
     t = load_target(out, jaxplush.load_scene(scene_path))
     assert t.kind == "mixed" and t.tracks.shape == (5, 12, 3) and t.noise == 0.001
     start = tmp_path / "start.obj"

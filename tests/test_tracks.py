@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import jaxplush
-from conftest import assert_gradient_matches_fd, icosphere_scene
+from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 from jaxplush.errors import TrajectoryError
 from jaxplush.fitting import fitter as F
 from jaxplush.fitting import losses
@@ -266,11 +266,12 @@ def test_a_default_fit_to_20_tracked_points_recovers_k_and_nmol(ball):
 
 # --------------------------------------------------------------------------- capture CLI
 
-def test_capture_writes_a_loadable_tracks_target(tmp_path):
-    from jaxplush import cli
+def simulated_capture(tmp_path, *capture_args):
+    """A pinned 42-vertex ball (``ball.obj``) simulated for 40 steps (``ball.h5``) and captured by
+    ``jaxplush capture`` (camera at (0, 0, 0.8), 32 x 24 rays, 1 mm noise, seed 2, and
+    ``capture_args``) into ``scan.h5``: (scene path, capture path, the capture's stdout)."""
     from test_cli import run_cli
     scene_path = tmp_path / "ball.obj"
-    from conftest import icosphere_text
     scene_path.write_text(icosphere_text(subdivisions=1, k=K, nmol=NMOL, damping=2.0, fixed=(0,)))
     traj = tmp_path / "ball.h5"
     rc, _, err = run_cli("simulate", scene_path, "--steps", 40, "--dt", DT, "--save-every", 10, "--out", traj,
@@ -278,8 +279,16 @@ def test_capture_writes_a_loadable_tracks_target(tmp_path):
     assert rc == 0, err
     out = tmp_path / "scan.h5"
     rc, stdout, err = run_cli("capture", traj, "--eye", "0,0,0.8", "--size", "32x24", "--noise", "0.001",
-                              "--dropout", "0.3", "--seed", "2", "--tracks", "25", "--out", out)
+                              "--seed", "2", *capture_args, "--out", out)
     assert rc == 0, err
+    return scene_path, out, stdout
+
+
+def test_capture_writes_a_loadable_tracks_target(tmp_path):
+    from jaxplush import cli
+    from test_cli import run_cli
+    scene_path, out, stdout = simulated_capture(tmp_path, "--dropout", "0.3", "--tracks", "25")
+    traj = tmp_path / "ball.h5"
     assert "25 tracked points" in stdout
     scene = jaxplush.load_scene(scene_path)
     assert load_target(out, scene).kind == "mixed"                 # the scan and the tracks, together
