@@ -92,6 +92,53 @@ def test_batched_contact_matches_separate_simulate_runs_float64(x64):
     _check_against_simulate(scene, n, v0, 1e-10)
 
 
+@pytest.mark.parametrize("dt", [5e-4, 2e-4])
+def test_carried_lists_of_a_fast_impact_equal_a_fresh_search_every_step(x64, dt):
+    """Two 42-vertex balls 30 cm apart (beyond the broad phase's reach: the lists start empty)
+    thrown at each other at 1.5 m/s each (0.75-1.5 mm closing a step) meet and bounce. The
+    single-scene rollout and both points of a batch (the scene's k and a softer one), all carrying
+    their candidate lists, give the frames of a fresh search every step (``jax.jit(sim.step_fn)``)
+    to float64 rounding; a stale test that missed vertices coming near the other object would
+    let the balls pass through each other.
+
+    Ball b is offset by 1 mm/0.7 mm off the line of flight. Head-on, the setup is
+    mirror-symmetric and the contact dents ball b's front, so a query vertex on the mirror plane
+    lies at exactly the same distance from two mirror faces whose closest points are interior and
+    whose normals differ: which face wins is decided by rounding, which differs between
+    separately compiled programs (a per-step jit, a rollout's scan, the batched engine, with or
+    without carried lists alike), and the runs part by about 1e-5 m within 15-30 steps."""
+    scene, n = two_balls(sub=1, gap=0.3, k=100.0, nmol=1e-3, b_offset=(0.0, 1e-3, 7e-4))
+    v0 = np.zeros((2 * n, 3))
+    v0[:n, 0], v0[n:, 0] = 1.5, -1.5
+    steps = int(round(0.135 / dt))
+    sim = jaxplush.make_simulator(scene, dt)
+    assert sim.internal.coherent is not None
+    points = [scene.params, scene.params._replace(k_structural=0.6 * np.asarray(scene.params.k_structural))]
+    step = jax.jit(sim.step_fn)
+    fresh = []
+    for p in map(sim.params, points):
+        state = sim.init_fn(p, None, v0)
+        frames = []
+        for _ in range(steps):
+            state = step(p, state)
+            frames.append(np.asarray(state.x))
+        fresh.append(np.asarray(frames))
+    # they meet and bounce: ball a ends moving back (-x)
+    assert fresh[0][-1, :n, 0].mean() < fresh[0][-2, :n, 0].mean()
+    single = jaxplush.simulate(scene, steps, dt, 1, v0=v0, check_dt=False, sim=sim).positions[1:]
+    bsim = batched.make_batched_simulator(scene, dt, len(points))
+    assert bsim.coherent is not None
+    pb = bsim.params(jaxplush.Params(*(np.stack(a, axis=1) for a in zip(*[np.asarray(x, np.float64) for x in points]))))
+    _, frames, health = batched.rollout(bsim, pb, bsim.init_fn(pb, None, v0), steps, 1,
+                                        observe=batched.positions_observer)
+    assert not health.failed.any()
+    frames = np.asarray(frames)
+    for name, run, ref in (("simulate", single, fresh[0]), ("batched point 0", frames[:, 0], fresh[0]),
+                           ("batched point 1", frames[:, 1], fresh[1])):
+        err = np.linalg.norm(run - ref, axis=(1, 2)) / np.linalg.norm(ref, axis=(1, 2))
+        assert err.max() < 1e-10, (name, int(np.argmax(err > 1e-10)) + 1, err.max())
+
+
 @pytest.mark.heavy
 def test_batched_contact_friction_and_self_collision_match_simulate():
     scene, n, v0 = _thrown(extra_scene="contact_friction 0.5\nself_collision on\n")
