@@ -2,8 +2,8 @@
 
 ``make_batched_simulator(scene, dt, batch)`` builds the same physics as
 :func:`jaxplush.make_simulator` (springs, edge dashpot, air drag, gas, gravity, the floor and its
-optional friction/restitution, pinned vertices, the report's Verlet damping, several objects,
-soft-soft contact with its friction and self-collision; only the terms the scene or the
+optional friction/restitution, pinned and driven vertices, the report's Verlet damping, several
+objects, soft-soft contact with its friction and self-collision; only the terms the scene or the
 parameter batch needs are traced) for a static batch of B
 parameter points. It exists for throughput: a plain ``jax.vmap`` of the single-scene step puts
 the batch on the leading axis, so every one-ring gather moves single floats B times over, and
@@ -94,9 +94,14 @@ class BatchedSimulator:
     """A simulator for B parameter points of one scene (see the module docstring for layouts).
 
     Attributes:
-      init_fn: (params, x0=None, v0=None) -> internal State; params leaves (O, B); x0, v0 (V, 3)
-        shared or (B, V, 3) per point; defaults: rest positions, zero velocity.
-      step_fn: (params, state) -> state, one time step of every point (internal layout).
+      init_fn: (params, x0=None, v0=None, step0=0) -> internal State; params leaves (O, B); x0, v0
+        (V, 3) shared or (B, V, 3) per point; defaults: rest positions, zero velocity. ``step0``
+        (scalar or (B,)): the step index of the start, read only by driven vertices, which are put
+        where their path has them then (at step 0 as ``jaxplush.make_simulator``'s init).
+      step_fn: (params, state, step=None) -> state, one time step of every point (internal
+        layout); ``step``: the (B,) (or scalar) index of the step each point advances, required
+        with driven vertices (their paths depend on time, and each lane may be at its own step:
+        the segments of multiple shooting), ignored otherwise.
       status_fn: (params, x) -> (O, B) int32 health codes (:mod:`jaxplush.stepping.diagnostics`).
       force_fn: (params, x, v) -> (f, volume): internal forces (tuple of 3 (V, B)), volumes
         (O, B) or None without gas.
@@ -104,6 +109,9 @@ class BatchedSimulator:
       chunk: points per compiled rollout call (see :func:`rollout`).
       coherent: with soft-soft contact between objects, a :class:`BatchedCoherent` (the step with
         every point's contact candidate lists carried, which :func:`rollout` scans), else None.
+      drive, step_rows: with driven vertices, their :class:`_Drive` and ``step_rows(params, state,
+        rows)``, the step reading the path from ``drive.rows_of_steps`` (which :func:`rollout`
+        computes once per saved frame); else None.
     """
 
     init_fn: Callable
@@ -120,6 +128,8 @@ class BatchedSimulator:
     chunk: int = None
     integrator: str = "verlet"
     coherent: object = None
+    drive: object = None
+    step_rows: Callable = None
 
     def params(self, values=None):
         """Broadcast parameters to a batch: ``values`` is a Params of scalars, (O,) or (O, B)
@@ -212,7 +222,9 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     model.check_precision(topo, dtype, scene.path)
     kernel = _make_force_fn(topo, terms, scene.temperature)
     touch = _make_contact(topo, terms, h)
-    init_fn, step_fn, coherent = _make_verlet(topo, terms, scene, kernel, touch, h, substeps, batch, dtype)
+    drive = _make_drive(scene, terms, h, substeps)
+    init_fn, step_fn, step_rows, coherent = _make_verlet(topo, terms, scene, kernel, touch, drive, h, substeps,
+                                                          batch, dtype)
 
     def status_fn(params, x):
         code = diagnostics.status_codes(topo, terms, x)
@@ -226,7 +238,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
 
     return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
                             topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
-                            dtype=dtype, chunk=chunk, coherent=coherent)
+                            dtype=dtype, chunk=chunk, coherent=coherent, drive=drive, step_rows=step_rows)
 
 
 def _checked_batch_args(integrator, dt, batch, substeps, chunk):
@@ -246,10 +258,11 @@ def _checked_batch_args(integrator, dt, batch, substeps, chunk):
     return dt, batch, substeps, chunk
 
 
-def _make_verlet(topo, terms, scene, kernel, touch, h, substeps, batch, dtype):
+def _make_verlet(topo, terms, scene, kernel, touch, drive, h, substeps, batch, dtype):
     """The batched damped Verlet scheme on the internal layout: (init_fn, step_fn, coherent) of
     :class:`BatchedSimulator`, ``substeps`` steps of h per ``step_fn`` call; ``touch``: the
-    :class:`_Contact` of :func:`_make_contact` (None without soft-soft contact)."""
+    :class:`_Contact` of :func:`_make_contact` (None without soft-soft contact); ``drive``: the
+    :class:`_Drive` of :func:`_make_drive` (None without driven vertices)."""
     gravity = tuple(float(g) for g in scene.gravity)
     fixed = topo.fixed
     x0_fixed = np.ascontiguousarray(topo.x0[fixed].T)                 # (3, P)
@@ -273,27 +286,55 @@ def _make_verlet(topo, terms, scene, kernel, touch, h, substeps, batch, dtype):
             return tuple(c.at[fixed].set(0.0 if values is None else jnp.asarray(values[i], c.dtype)[:, None])
                          for i, c in enumerate(comps))
 
-    def init_fn(params, x0=None, v0=None):
+    def init_fn(params, x0=None, v0=None, step0=0):
         x = _to_soa(topo.x0 if x0 is None else x0, batch, dtype)
         v = tuple(jnp.zeros_like(c) for c in x) if v0 is None else _to_soa(v0, batch, dtype)
+        if drive is not None:              # the driven vertices where their path has them at step0
+            x, v = drive.start(x, v, step0)
         a0, _ = accel(params, x, v)
-        u = tuple(integrators.verlet_start(vc, ac, h) for vc, ac in zip(v, a0))
-        return State(x, pin(u))
+        u = pin(tuple(integrators.verlet_start(vc, ac, h) for vc, ac in zip(v, a0)))
+        if drive is not None:              # and the path's velocity, as the single-scene init carries
+            u = drive.start(x, u, step0)[1]
+        return State(x, u)
 
-    def substep(params, state, cache=None):
+    def substep(params, state, cache=None, rows=None):
         x, u = state
         a, _ = accel(params, x, u, cache)
         keep = None
         if terms.verlet_damping:
             with jax.named_scope("verlet_damping"):
                 keep = per_vertex(topo, integrators.damping_keep(params.damping, substeps))
-        u_new = tuple(integrators.verlet_kick(uc, ac, h, keep) for uc, ac in zip(u, a))
-        x_new = tuple(_folded(lambda xc, uc: integrators.verlet_drift(xc, uc, h), xc, uc) for xc, uc in zip(x, u_new))
+        if drive is None:
+            u_new = tuple(integrators.verlet_kick(uc, ac, h, keep) for uc, ac in zip(u, a))
+            x_new = tuple(_folded(lambda xc, uc: integrators.verlet_drift(xc, uc, h), xc, uc)
+                          for xc, uc in zip(x, u_new))
+            if terms.floor:
+                x_new, u_new = floor(x, x_new, u_new)
+            return State(pin(x_new, x0_fixed), pin(u_new))
+        # driven vertices: the path's position and velocity blended into the update itself
+        # (_Drive.blend), the floor leaving them alone; the path wins over the floor and every force
+        free, px, pu = drive.blend(rows, x[0].shape[0])
+        u_new = tuple(integrators.verlet_kick(uc, ac, h, keep) * free + pc for uc, ac, pc in zip(u, a, pu))
+        x_new = tuple(_folded(lambda xc, uc, fc, pc: integrators.verlet_drift(xc, uc, h) * fc + pc, xc, uc, free, pc)
+                      for xc, uc, pc in zip(x, u_new, px))
         if terms.floor:
-            x_new, u_new = floor(x, x_new, u_new)
+            x_new, u_new = floor(x, x_new, u_new, (free, px[1]))
         return State(pin(x_new, x0_fixed), pin(u_new))
 
-    return init_fn, integrators.repeat_substeps(substep, substeps), _coherent_step(touch, substep, substeps)
+    if drive is None:
+        return init_fn, integrators.repeat_substeps(substep, substeps), None, _coherent_step(touch, substep, substeps)
+
+    def step_rows(params, state, rows):
+        # one time step, substep j reading rows[j] (_Drive.rows)
+        if substeps == 1:
+            return substep(params, state, None, rows[0])
+        return jax.lax.fori_loop(0, substeps, lambda j, s: substep(params, s, None, rows[j]), state)
+
+    def step_fn(params, state, step=None):
+        if step is None:
+            raise constraints.missing_step_error()
+        return step_rows(params, state, drive.rows_of_steps(_lane_steps(step, state), 1)[0])
+    return init_fn, step_fn, step_rows, _coherent_step(touch, substep, substeps, drive)
 
 
 class BatchedCoherent(NamedTuple):
@@ -302,27 +343,126 @@ class BatchedCoherent(NamedTuple):
 
     ``init(x) -> cache``: a fresh search of every point at internal positions x (three (V, B)): a
     :class:`jaxplush.model.contact.ContactCache` whose leaves carry the batch on their *leading*
-    axis (those of ``jax.vmap``; its ``overflow`` is (B, O)); ``step(params, state, cache) ->
-    (state, cache)``: one time step with the carried lists, updated after every substep.
+    axis (those of ``jax.vmap``; its ``overflow`` is (B, O)); ``step(params, state, cache,
+    step=None) -> (state, cache)``: one time step with the carried lists, updated after every
+    substep (``step``: the (B,) step indices, needed with driven vertices as for ``step_fn``).
     """
 
     init: Callable
     step: Callable
+    step_rows: Callable = None
 
 
-def _coherent_step(touch, substep, substeps):
+def _coherent_step(touch, substep, substeps, drive=None):
     """The :class:`BatchedCoherent` of the Verlet ``substep`` (None without object pairs): as
     :func:`jaxplush.stepping.step._coherent_step`, the force reading the carried lists and the
-    lists updated after each substep."""
+    lists updated after each substep (``drive``: driven vertices, the path's rows passed on)."""
     if touch is None or touch.init is None:
         return None
 
-    def coherent_substep(params, state, cache):
-        state = substep(params, state, cache)
+    def coherent_substep(params, state, cache, rows=None):
+        state = substep(params, state, cache, rows)
         return state, touch.update(cache, state.x)
 
+    if drive is not None:
+        def step_rows(params, state, cache, rows):
+            if substeps == 1:
+                return coherent_substep(params, state, cache, rows[0])
+            return jax.lax.fori_loop(0, substeps, lambda j, c: coherent_substep(params, *c, rows[j]), (state, cache))
+
+        def step(params, state, cache, step=None):
+            if step is None:
+                raise constraints.missing_step_error()
+            return step_rows(params, state, cache, drive.rows_of_steps(_lane_steps(step, state), 1)[0])
+        return BatchedCoherent(init=touch.init, step=step, step_rows=step_rows)
     repeated = integrators.repeat_substeps(lambda params, c: coherent_substep(params, *c), substeps)
-    return BatchedCoherent(init=touch.init, step=lambda params, state, cache: repeated(params, (state, cache)))
+    return BatchedCoherent(init=touch.init, step=lambda params, state, cache, step=None: repeated(params, (state, cache)))
+
+
+def _lane_steps(step, state):
+    """``step`` (scalar or (B,)) as (B,) int32 step indices for the lanes of ``state``."""
+    return jnp.broadcast_to(jnp.asarray(step, jnp.int32), state.x[0].shape[1:])
+
+
+class _Drive(NamedTuple):
+    """Driven vertices on the batched layout, on the path of
+    :class:`jaxplush.stepping.constraints.Drive` (one interpolation for every engine), each lane at
+    its own step index.
+
+    rows_of_steps: (first, n) -> (n, substeps, 7, D, B): for the n time steps from ``first`` ((B,)
+      or scalar step indices), per substep the rows (on, on p (3), on w (3)): ``on`` 1 where a
+      vertex is driven in the substep (0 once released), p its path position at the substep's
+      end, w the path's velocity over it. :func:`rollout` computes them once per saved frame,
+      so the step itself does no search along the path.
+    blend: (rows (7, D, B), V) -> (free, px, pu): (V, B) arrays, free 0 at the vertices driven
+      in the substep and 1 elsewhere, px and pu (three components each) the path's position and
+      velocity there and 0 elsewhere; u' free + pu and x' free + px are then the step's update
+      with the path applied, exactly (as ``Drive.apply``: the path wins).
+    start: (x, v, step0) -> (x, v) for lanes at step ``step0`` (scalar or (B,) time steps): at
+      step 0 ``Drive.start`` (the path's first position and velocity), at step n > 0 the state
+      that the step leaves after step n - 1 (so a lane started from a state at step n continues
+      the single-scene run).
+    """
+
+    rows_of_steps: Callable
+    blend: Callable
+    start: Callable
+
+
+def _make_drive(scene, terms, h, substeps):
+    """The :class:`_Drive` of a scene with driven vertices (None without)."""
+    if not terms.driven:
+        return None
+    drive = constraints.Drive(scene, h)
+    idx = drive.index
+
+    def at(k, dtype):
+        """(position at t_{k+1} (3, D) + k.shape, velocity over substep k (same), on (D,) + k.shape)."""
+        k = jnp.asarray(k, jnp.int32)
+        p0 = drive.position(k.astype(dtype) * drive.h, dtype)
+        p1 = drive.position((k + 1).astype(dtype) * drive.h, dtype)
+        act = drive.active(k)
+        on = jnp.ones((len(idx),) + k.shape, dtype) if act is None else act.astype(dtype)
+        return p1, (p1 - p0) * (1.0 / drive.h), on
+
+    def rows_of_steps(first, n):
+        with jax.named_scope("driven"):
+            first = jnp.asarray(first, jnp.int32)
+            k = (first[None] * substeps + jnp.arange(n * substeps, dtype=jnp.int32).reshape(
+                (-1,) + (1,) * first.ndim))                                       # (n substeps,) + first.shape
+            p, w, on = at(k, jnp.result_type(float))
+            rows = jnp.concatenate([on[None], p * on[None], w * on[None]])       # (7, D, n substeps, ...)
+            rows = jnp.moveaxis(rows, 2, 0)                                      # (n substeps, 7, D, ...)
+            return rows.reshape((n, substeps) + rows.shape[1:])
+
+    def blend(rows, n_vertices):
+        # one scatter of every row into (V, 7, B) (slices of it fuse into the update): not a
+        # scatter into x and u after the update, into whose operand XLA:CPU fused the whole
+        # Verlet kick (the step ran 2.5x slower; benchmarks/RESULTS.md, "Driven vertices in the
+        # batched engine")
+        with jax.named_scope("driven"):
+            z = jnp.zeros((n_vertices,) + rows.shape[::2], rows.dtype).at[idx].set(jnp.swapaxes(rows, 0, 1))
+            return 1.0 - z[:, 0], tuple(z[:, 1 + c] for c in range(3)), tuple(z[:, 4 + c] for c in range(3))
+
+    def put(x, v, p, w, on):
+        out_x, out_v = [], []
+        for c in range(3):
+            keep = on > 0
+            out_x.append(x[c].at[idx].set(jnp.where(keep, p[c], x[c][idx])))
+            out_v.append(v[c].at[idx].set(jnp.where(keep, w[c], v[c][idx])))
+        return tuple(out_x), tuple(out_v)
+
+    def start(x, v, step0=0):
+        with jax.named_scope("driven"):
+            dtype = x[0].dtype
+            n = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), x[0].shape[1:])
+            p, w, on = at(jnp.maximum(n * substeps - 1, 0), dtype)
+            first = n == 0
+            p = jnp.where(first, jnp.asarray(drive.x_start, dtype)[..., None], p)
+            w = jnp.where(first, jnp.asarray(drive.v_start, dtype)[..., None], w)
+            return put(x, v, p, w, jnp.where(first, 1.0, on))
+
+    return _Drive(rows_of_steps, blend, start)
 
 
 class _Contact(NamedTuple):
@@ -447,18 +587,31 @@ def _make_floor(topo, terms, scene, h):
         return None
     height = float(scene.floor)
     if terms.floor_friction or terms.floor_restitution:
-        shared = constraints.make_constrain(topo, dataclasses.replace(terms, fixed=False), scene, h)
+        shared = constraints.make_constrain(topo, dataclasses.replace(terms, fixed=False, driven=False), scene, h)
 
-        def floor(x_old, x, v):
+        def floor(x_old, x, v, driven=None):
             xs, vs = shared(jnp.stack(x_old), jnp.stack(x), jnp.stack(v))
-            return tuple(xs), tuple(vs)
+            xs, vs = tuple(xs), tuple(vs)
+            if driven is not None:         # the driven vertices where the update put them
+                keep = driven[0] == 0
+                xs = tuple(jnp.where(keep, a, b) for a, b in zip(x, xs))
+                vs = tuple(jnp.where(keep, a, b) for a, b in zip(v, vs))
+            return xs, vs
         return floor
 
-    def floor(x_old, x, v):
+    def floor(x_old, x, v, driven=None):
         with jax.named_scope("floor"):
             # below = x[1] < height, written out: x[1] is computed on the folded view (_folded),
             # and reading it here made XLA copy the projected velocity every step.
             below = x_old[1] + v[1] * h < height
+            if driven is not None:         # (free, path y) of _Drive.blend: a driven vertex is not moved
+                free, py = driven
+                below = below & (free > 0)
+                y = _folded(lambda yc, vc, fc, pc: jnp.maximum(yc + vc * h, height) * fc + pc,
+                            x_old[1], jnp.where(below, constraints.landing_velocity(x_old[1], height, h), v[1]),
+                            free, py)
+                vy = jnp.where(below, constraints.landing_velocity(x_old[1], height, h), v[1])
+                return (x[0], y, x[2]), (v[0], vy, v[2])
             vy = jnp.where(below, constraints.landing_velocity(x_old[1], height, h), v[1])
             # y from the projected velocity, not from x[1]: then the (expensive) unprojected
             # velocity has one consumer and XLA does not compute the forces twice. Identical
@@ -597,39 +750,42 @@ def _pair_separation(bsim, x):
 def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe, separation=False):
     coherent = bsim.coherent
     track = bool(separation) and bool(contact_pairs(bsim))
+    driven = bsim.drive is not None        # then every step reads the path's rows at its lanes' steps
     if coherent is None:
-        def one(s, cache):
-            return bsim.step_fn(params, s), cache
+        def one(s, cache, rows):
+            return (bsim.step_rows(params, s, rows) if driven else bsim.step_fn(params, s)), cache
         cache0 = None
     else:
         # soft-soft contact: every point's candidate lists ride along in the carry, as in
         # jaxplush.stepping.rollouts (searched afresh at the start of each call), with their
         # sticky per-object overflow flags
-        def one(s, cache):
-            return coherent.step(params, s, cache)
+        def one(s, cache, rows):
+            return coherent.step_rows(params, s, cache, rows) if driven else coherent.step(params, s, cache)
         cache0 = coherent.init(state.x)
 
-    def steps(s, cache):
+    def steps(s, cache, first):
         # The positions are carried folded (see _folded): the in-place position update then runs
-        # on rows of >= _FOLD_WIDTH floats, which XLA:CPU vectorises.
+        # on rows of >= _FOLD_WIDTH floats, which XLA:CPU vectorises. ``first``: the (B,) step
+        # index of s (read with driven vertices only: the path's rows of the frame's steps).
         v, b = s.x[0].shape
         r = _fold_factor(v, b)
         fold = lambda st: State(tuple(a.reshape(v // r, r * b) for a in st.x), st.v)       # noqa: E731
         unfold = lambda st: State(tuple(a.reshape(v, b) for a in st.x), st.v)              # noqa: E731
 
-        def body(c, _):
+        def body(c, n):
             if track:                  # the closest the pairs' boxes came, after every step
                 (cache, sep) = c[1]
-                s, cache = one(unfold(c[0]), cache)
+                s, cache = one(unfold(c[0]), cache, n)
                 return (fold(s), (cache, jnp.minimum(sep, _pair_separation(bsim, s.x)))), None
-            s, cache = one(unfold(c[0]), c[1])
+            s, cache = one(unfold(c[0]), c[1], n)
             return (fold(s), cache), None
-        s, cache = jax.lax.scan(body, (fold(s), cache), None, length=save_every)[0]
+        rows = bsim.drive.rows_of_steps(first, save_every) if driven else None     # once per frame
+        s, cache = jax.lax.scan(body, (fold(s), cache), rows, length=save_every)[0]
         return unfold(s), cache
 
     def frame(carry, i):
         s, cache, h = carry
-        s, cache = steps(s, cache)
+        s, cache = steps(s, cache, step0 + i * save_every)
         if track:
             cache, sep = cache
         step = step0 + (i + 1) * save_every                                  # (B,)

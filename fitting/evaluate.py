@@ -480,7 +480,9 @@ class Evaluator:
             idx = np.concatenate([idx, np.repeat(idx[-1:], b - live)])        # pad with copies of the last
             p = bsim.params(Params(*(np.stack([np.asarray(getattr(values[i], f), np.float64) for i in idx], axis=1)
                                      for f in Params._fields)))
-            state = init(p) if x0 is None else init(p, np.asarray(x0)[idx], np.asarray(v0)[idx])
+            start0 = np.zeros(len(idx), np.int32) if step0 is None else np.asarray(step0, np.int32)[idx]
+            state = (init(p, step0=start0) if x0 is None
+                     else init(p, np.asarray(x0)[idx], np.asarray(v0)[idx], step0=start0))
             # only as many lanes as whole chunks need: the same compiled rollout runs them (17
             # points in a batch of 32 and chunks of 8 cost 3 chunks, not 4)
             m = min(b, -(-live // bsim.chunk) * bsim.chunk)

@@ -614,10 +614,10 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
     tgt = tkind = tsteps = tdata = None
     if target is not None:
         tgt = _load_target(target, scene, dt)
-        if getattr(tgt, "controls", None) is not None:
-            raise SweepError(f"the target {getattr(tgt, 'path', '')} has controls (driven vertices): the batched "
-                             "engine of a sweep does not implement driven vertices; fit it instead "
-                             "(jaxplush-fit), or leave the controls out")
+        # a target's controls drive their vertices in every point, as in a fit
+        # (jaxplush.fitting.targets.scene_with_controls)
+        from jaxplush.fitting.targets import scene_with_controls
+        scene = scene_with_controls(scene, tgt)
         tkind, tsteps, tdata = _target_frames(tgt, scene, steps)
     n_points = len(values)
     batch = _outer_batch(n_points, batch)

@@ -164,8 +164,8 @@ def test_controls_that_conflict_with_the_scene_are_refused(tmp_path):
         make_target(pinned, 20, DT, 10, controls=True)
 
 
-def test_capture_writes_the_controls_and_a_sweep_refuses_them(tmp_path):
-    from jaxplush.fitting.sweep import SweepError, sweep
+def test_capture_writes_the_controls_and_a_sweep_drives_them(tmp_path):
+    from jaxplush.fitting.sweep import sweep
     from test_cli import run_cli
     truth = _squeezed(tmp_path, 120.0)
     traj = tmp_path / "sq.h5"
@@ -187,8 +187,13 @@ def test_capture_writes_the_controls_and_a_sweep_refuses_them(tmp_path):
     assert rc == 0, err
     rc, _, err = run_cli("capture", plain, "--eye", "0,0,0.8", "--controls", "--out", tmp_path / "no.h5")
     assert rc != 0 and "--controls: the scene of" in err and "drives no vertices" in err
-    with pytest.raises(SweepError, match="has controls"):
-        sweep(bare, {"k": [100.0, 120.0]}, steps=40, dt=DT, target=t, progress=False, batch=2)
+    # a sweep drives the controlled vertices in every point: the same losses as the scene that
+    # drives them itself against the capture without its controls
+    grid = {"k": [100.0, 120.0, 150.0]}
+    got = sweep(bare, grid, steps=40, dt=DT, target=t, progress=False, batch=3)
+    want = sweep(truth, grid, steps=40, dt=DT, target=dataclasses.replace(t, controls=None), progress=False, batch=3)
+    assert np.isfinite(got.loss).all() and np.ptp(got.loss) > 0
+    np.testing.assert_allclose(got.loss, want.loss, rtol=1e-5)
 
 
 def _write_scene(tmp_path, scene):
