@@ -12,7 +12,8 @@ its *last* axis:
 
 * positions and velocities are component-major, batch-last: a tuple ``(x, y, z)`` of three
   (V, B) arrays (the public layout is (B, V, 3));
-* parameters are a :class:`jaxplush.types.Params` of (O, B) arrays;
+* parameters are a :class:`jaxplush.types.Params` of (O, B) arrays (the spring stiffness of a
+  scene with a per-edge field, ``terms.k_field``: an (E, B) field per point);
 * the one-ring gather is one row gather over the flattened (K V,) neighbour table from the
   three components side by side, each row 3 B contiguous floats, and every force term is
   elementwise on (V, B) arrays, which XLA's CPU backend vectorises along B (benchmarks/RESULTS.md,
@@ -133,21 +134,28 @@ class BatchedSimulator:
 
     def params(self, values=None):
         """Broadcast parameters to a batch: ``values`` is a Params of scalars, (O,) or (O, B)
-        arrays (default: the scene's); returns a Params of (O, B) arrays of this dtype."""
+        arrays (default: the scene's); returns a Params of (O, B) arrays of this dtype. The
+        spring stiffness of a simulator built for a per-edge field (``terms.k_field``) is an
+        (E,) field shared by every point or an (E, B) one per point, and comes back (E, B)."""
         values = self.scene.params if values is None else values
         shape = (self.topology.n_objects, self.batch)
         out = []
         for name, a in zip(Params._fields, values):
             a = np.asarray(a, np.float64)
-            if name == "k_structural" and a.ndim == 1 and model.is_field(self.topology, a):
+            want = shape
+            if name == "k_structural" and self.terms.k_field:
+                want = (self.topology.n_edges, self.batch)
+                if a.ndim and a.shape[0] == shape[0] and not model.is_field(self.topology, a[..., 0] if a.ndim == 2 else a):
+                    a = a[self.topology.edge_object]          # one k per object: the uniform field
+            elif name == "k_structural" and a.ndim == 1 and model.is_field(self.topology, a):
                 raise NotImplementedError(FIELD_REFUSAL + f" (k_structural of shape {a.shape})")
             if a.ndim == 1:
                 a = a[:, None]
             try:
-                out.append(jnp.asarray(np.broadcast_to(a, shape), self.dtype))
+                out.append(jnp.asarray(np.broadcast_to(a, want), self.dtype))
             except ValueError:
                 raise ValueError(f"parameter {name}: shape {a.shape} does not broadcast to "
-                                 f"(n_objects, batch) = {shape}") from None
+                                 f"{'(n_edges' if want != shape else '(n_objects'}, batch) = {want}") from None
         return Params(*out)
 
     def to_public(self, state):
@@ -168,17 +176,15 @@ def _to_soa(a, batch, dtype):
     return tuple(a[:, :, c].T for c in range(3))
 
 
-#: Why a per-edge stiffness field is refused (its (O, B) parameter layout has one k per object).
-FIELD_REFUSAL = ("the batched simulator takes one spring stiffness per object and point ((O, B) parameters), not "
-                 "a per-edge stiffness field (k_region/k_edge); simulate such scenes one at a time with "
-                 "jaxplush.simulate")
+#: Why a per-edge stiffness field is refused by a simulator built without one.
+FIELD_REFUSAL = ("this batched simulator was built for one spring stiffness per object ((O, B) parameters), not "
+                 "a per-edge stiffness field (k_region/k_edge): build it for the field's terms "
+                 "(terms_for(scene, params) switches k_field on)")
 
 
 def check_terms(terms):
     """Raise NotImplementedError if ``terms`` selects anything this module does not implement."""
     extra = T.unsupported(terms, "batched")
-    if extra == ["k_field"]:
-        raise NotImplementedError(FIELD_REFUSAL)
     if extra:
         raise NotImplementedError(
             f"the batched simulator does not implement the term(s) {', '.join(extra)} that this scene "
@@ -660,6 +666,7 @@ def _make_force_fn(topo, terms, temperature):
     rest = np.ascontiguousarray(topo.ring_rest.T)
     n_ring = ring.shape[0]
     flat = ring.reshape(-1)
+    slot_edge = np.ascontiguousarray(topo.ring_edge.T).reshape(-1)     # (K V,): the edge of each ring slot
     full = [bool(mask[k].all()) for k in range(n_ring)]
 
     def neighbours(a):
@@ -676,14 +683,19 @@ def _make_force_fn(topo, terms, temperature):
         eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
         with jax.named_scope("spring"):
             d = [[n[c] - x[c] for c in range(3)] for n in neighbours(x)]            # K x 3 x (V, B)
-            k_v = per_vertex(topo, params.k_structural)
+            if terms.k_field:
+                # an (E, B) field: each ring slot's edge, one row gather (padded slots name a real
+                # edge and are masked below), as ring_stiffness for one scene
+                k_slots = params.k_structural.at[slot_edge].get(mode="promise_in_bounds").reshape(n_ring, -1, x[0].shape[1])
+            else:
+                k_v = per_vertex(topo, params.k_structural)
             if terms.dashpot:
                 c_v = per_vertex(topo, params.dashpot)
                 vn = neighbours(v)
             f = [0.0, 0.0, 0.0]
             for k in range(n_ring):
                 inv_l = T.inv_length(d[k], eps2)
-                w = T.spring_weight(k_v, jnp.asarray(rest[k], dtype)[:, None], inv_l)
+                w = T.spring_weight(k_slots[k] if terms.k_field else k_v, jnp.asarray(rest[k], dtype)[:, None], inv_l)
                 if terms.dashpot:
                     with jax.named_scope("dashpot"):
                         w = w + T.dashpot_weight(c_v, [vn[k][c] - v[c] for c in range(3)], d[k], inv_l)

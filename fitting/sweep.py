@@ -157,6 +157,10 @@ def _axes(scene, spec, what):
     axes, seen = [], {}
     for label, values in spec.items():
         lab, name, objs = canonical_label(scene, label)
+        if name == "k_structural" and getattr(scene, "has_k_field", False):
+            raise SweepError(f"{label!r}: this scene's spring stiffness is a per-edge field (its k_region/k_edge "
+                             f"lines), and a sweep sets one k per object; sweep its other parameters (every "
+                             f"point keeps the field), or sweep scenes written with the fields you want")
         for o in objs:
             if (name, o) in seen:
                 raise SweepError(f"{label!r} and {seen[(name, o)]!r} both set {name} of object "

@@ -2,7 +2,8 @@
 ``k_region``, ``k_edge``): the field acts as the per-object value where it is uniform, its forces
 are minus its energy's gradient, a stiff region stretches less than a soft one, the gradients of
 every method match finite differences, the scene format reads and writes it, and the engines that
-take one k per object refuse it or bound it by the stiffest edge."""
+take one k per object refuse it or bound it by the stiffest edge, and the batched engine runs
+one field per point."""
 
 from __future__ import annotations
 
@@ -292,16 +293,52 @@ def test_writer_checks_the_stiffness_keys():
 
 # --------------------------------------------------------------------------- engines and checks
 
-def test_batched_engine_refuses_a_field():
-    scene = jaxplush.parse_scene(_grouped_text(("k_region top 400",))[0], "<g>")
-    assert model.Terms.for_scene(scene).k_field
-    with pytest.raises(NotImplementedError, match="per-edge stiffness field"):
-        batched.make_batched_simulator(scene, DT, 2)
+def test_batched_engine_runs_a_field_per_point():
+    """The batched engine takes the field (the scene's, shared, or one per point): each lane gives
+    ``jaxplush.simulate``'s frames with that field, to float32 rounding relative to the motion; a
+    per-object k spreads to the uniform field; a simulator built without the field refuses one."""
+    scene = jaxplush.parse_scene("floor -0.101\n" + _grouped_text(("k_region top 400",))[0], "<g>")   # dropped
+    terms = model.Terms.for_scene(scene)
+    assert terms.k_field
+    bsim = batched.make_batched_simulator(scene, DT, 3)
+    assert bsim.terms.k_field
+    rng = np.random.default_rng(3)
+    sim = jaxplush.make_simulator(scene, DT)
+    fields = [np.asarray(scene.params.k_structural, np.float64), _field(sim, rng), _field(sim, rng, 1.5, 3.0)]
+    p = scene.params._replace(k_structural=np.stack(fields, axis=1))
+    pb = bsim.params(p)
+    assert pb.k_structural.shape == (len(scene.edges), 3)
+    steps, every = 200, 50
+    _, frames, health = batched.rollout(bsim, pb, bsim.init_fn(pb), steps // every, every,
+                                        observe=batched.positions_observer)
+    assert not np.asarray(health.failed).any()
+    frames = np.asarray(frames, np.float64)
+    for b, k in enumerate(fields):
+        ref = jaxplush.simulate(scene, steps, DT, every, params=scene.params._replace(k_structural=k)).positions[1:]
+        motion = np.linalg.norm(ref - scene.vertices)
+        assert np.linalg.norm(frames[:, b] - ref) < 1e-5 * motion, b
+    assert np.abs(frames[-1, 1] - frames[-1, 2]).max() > 1e-4                # the fields matter
+    # the scene's field shared by every point, and a per-object k as the uniform field
+    shared = bsim.params()
+    np.testing.assert_array_equal(np.asarray(shared.k_structural), np.asarray(pb.k_structural[:, :1]).repeat(3, 1))
+    uniform = bsim.params(scene.params._replace(k_structural=np.array([250.0])))
+    np.testing.assert_array_equal(np.asarray(uniform.k_structural), 250.0)
     plain = jaxplush.parse_scene(icosphere_text(1), "<p>")
-    bsim = batched.make_batched_simulator(plain, DT, 2)
-    field = np.full(bsim.topology.n_edges, 100.0)
+    bplain = batched.make_batched_simulator(plain, DT, 2)
     with pytest.raises(NotImplementedError, match="per-edge stiffness field"):
-        bsim.params(plain.params._replace(k_structural=field))
+        bplain.params(plain.params._replace(k_structural=np.full(bplain.topology.n_edges, 100.0)))
+
+
+def test_a_sweep_keeps_the_field_and_refuses_a_k_axis():
+    from jaxplush.fitting.sweep import SweepError, sweep
+    from jaxplush.fitting.targets import make_target
+    scene = jaxplush.parse_scene("floor -0.101\n" + _grouped_text(("k_region top 400", "dashpot 0.01"))[0], "<g>")
+    target = make_target(scene, 200, DT, 50)
+    res = sweep(scene, {"total_weight": [0.04, 0.05, 0.07]}, steps=200, dt=DT, target=target, progress=False,
+                batch=3)
+    assert res.best()["total_weight"] == 0.05 and res.loss[1] < 1e-6 * min(res.loss[0], res.loss[2])
+    with pytest.raises(SweepError, match="per-edge field"):
+        sweep(scene, {"k": [100.0, 200.0]}, steps=10, dt=DT, progress=False)
 
 
 def test_parameter_shapes_are_checked_before_tracing():

@@ -276,7 +276,7 @@ REGISTRY = (
     TermSpec("floor_restitution", "jaxplush.stepping.constraints.make_constrain", batched=True, adjoint=False),
     TermSpec("floor_smooth", "jaxplush.model.terms.smooth_floor_force", batched=True, adjoint=False),
     TermSpec("driven", "jaxplush.stepping.constraints.Drive", batched=True, adjoint=True),
-    TermSpec("k_field", "jaxplush.model.layout.edge_stiffness", batched=False, adjoint=True),
+    TermSpec("k_field", "jaxplush.model.layout.edge_stiffness", batched=True, adjoint=True),
 )
 
 
