@@ -265,10 +265,8 @@ def _check_field_args(args):
     from jaxplush.errors import JaxplushError
     if args.optimizer not in ("lbfgs", "adam"):
         raise JaxplushError(f"--field fits by gradients: --optimizer lbfgs (default) or adam, not {args.optimizer}")
-    for name, val in (("--objects", args.objects), ("--resume", args.resume or None)):
-        if val is not None:
-            raise JaxplushError(f"{name} does not go with --field (the field spans every object; the fit is not "
-                                "checkpointed)")
+    if args.objects is not None:
+        raise JaxplushError("--objects does not go with --field (the field spans every object)")
     if args.shooting not in ("auto", "off"):
         raise JaxplushError("--shooting does not go with --field (one rollout over the target)")
     w = args.field_weight

@@ -41,6 +41,7 @@ the wall time); it writes FIT.h5 (:meth:`FieldResult.save`: the common layout pl
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -470,28 +471,92 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
     shape = jax.eval_shape(opt.init, jax.ShapeDtypeStruct(np.shape(fp.theta0), fp.sim.dtype))
     linesearch = _gradfit.uses_linesearch(shape)
     step_fn = _gradfit._make_step(fp, opt, linesearch)
-    th0 = jnp.asarray(fp.theta0, fp.sim.dtype)
-    loop = _gradfit.LoopState(theta=np.asarray(th0), opt_state=jax.jit(opt.init)(th0))
-    loop.best_theta = np.asarray(th0)
-    t_loop = time.perf_counter()
+    settings = _field_settings(fp, kind, opts, iterations)
+    if kind == "optax":            # what a resume can check of a user's transformation: its state's structure
+        settings["optax_state"] = str(jax.tree_util.tree_structure(shape))
+    ck = opts.checkpoint
+    if ck.resume:
+        loop = _resumed(fp, settings, ck.path)
+    else:
+        th0 = jnp.asarray(fp.theta0, fp.sim.dtype)
+        loop = _gradfit.LoopState(theta=np.asarray(th0), opt_state=jax.jit(opt.init)(th0))
+        loop.best_theta = np.asarray(th0)
+    t_loop = time.perf_counter() - loop.wall
+    consistent, last_saved = loop.snapshot(), loop.iteration
     bar = Progress(iterations, f"fit field ({field})", enabled=progress, unit="it")
-    with bar:
-        while not loop.done and loop.iteration < iterations:
-            _gradfit._iterate(fp, opt, linesearch, step_fn, loop, opts)
-            loop.wall = time.perf_counter() - t_loop
-            if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
-                vals = fp.values(loop.h_theta[-1])
-                bar.update(1, extra=_gradfit._progress_text(loop.h_loss[-1], vals))
-                if callback is not None and callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1],
-                                                          values=vals, grad_norm=loop.h_gnorm[-1])) is True:
-                    loop.done, loop.reason, loop.stopped = True, "stopped by the callback", Stop.CALLBACK
-            else:
-                bar.update(1, extra="step rejected (rollout blew up); halving the step")
-        bar.finish(loop.reason if loop.done else "iteration limit")
+    try:
+        with bar:
+            bar.update(min(loop.iteration, iterations))
+            while not loop.done and loop.iteration < iterations:
+                consistent = loop.snapshot()
+                _gradfit._iterate(fp, opt, linesearch, step_fn, loop, opts)
+                loop.wall = time.perf_counter() - t_loop
+                if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
+                    vals = fp.values(loop.h_theta[-1])
+                    bar.update(1, extra=_gradfit._progress_text(loop.h_loss[-1], vals))
+                    if callback is not None and callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1],
+                                                              values=vals, grad_norm=loop.h_gnorm[-1])) is True:
+                        loop.done, loop.reason, loop.stopped = True, "stopped by the callback", Stop.CALLBACK
+                else:
+                    bar.update(1, extra="step rejected (rollout blew up); halving the step")
+                consistent = loop
+                if ck.path is not None and ck.every and loop.iteration - last_saved >= int(ck.every) \
+                        and not loop.done:
+                    _save_checkpoint(fp, loop, settings, ck.path)
+                    last_saved = loop.iteration
+            bar.finish(loop.reason if loop.done else "iteration limit")
+    except KeyboardInterrupt:
+        # Ctrl-C (or SIGTERM from the command line) may land inside an iteration: the last
+        # consistent state is saved, and --resume continues from it
+        if ck.path is not None:
+            consistent.wall = time.perf_counter() - t_loop
+            _save_checkpoint(fp, consistent, settings, ck.path, "interrupted")
+        raise
     if not loop.done:
         loop.reason, loop.stopped = f"reached the iteration limit ({iterations})", Stop.ITERATIONS
     return _field_result(fp, loop, kind, opts, iterations, time.perf_counter() - t_start,
                          report=opts.identifiability)
+
+
+def _field_settings(fp, kind, opts, iterations):
+    """What a field fit's FIT.h5 records of its settings (and a resume must match: :data:`RESUME_KEYS`)."""
+    prob = fp.prob
+    return dict(optimizer=kind, lr=opts.lr, iterations=int(iterations), field=fp.kind, weight=fp.weight,
+                names=list(prob.names), objects=[prob.scene.object_names[o] for o in prob.objects],
+                dt=prob.target.dt, noise_free=bool(opts.noise_free),
+                noise=-1.0 if prob.noise is None else float(prob.noise), method=opts.method,
+                frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind,
+                gtol=opts.gtol, rtol=opts.rtol, xtol=opts.xtol, ftol=opts.ftol, patience=int(opts.patience),
+                n_unknowns=int(np.size(fp.theta0)), preconditioned=fp.smoother is not None,
+                theta0_hash=hashlib.sha1(np.ascontiguousarray(fp.theta0, np.float64).tobytes()).hexdigest())
+
+
+def _save_checkpoint(fp, loop, settings, path, status="running"):
+    """A field fit's checkpoint: FIT.h5's attributes, the globals at the best point so far, the
+    field there, and the loop's state (:class:`jaxplush.fitting.gradfit.LoopState`), written
+    atomically by :func:`jaxplush.fitting.io.save_checkpoint`."""
+    from jaxplush.fitting import io as _io
+    best = loop.best_theta if loop.h_loss else np.asarray(fp.theta0)
+    _io.save_checkpoint(path, fp.prob, loop, settings, status=status, theta=fp.split(np.asarray(best))[1],
+                        history=dict(iteration=np.asarray(loop.h_iter, np.int64),
+                                     loss=np.asarray(loop.h_loss, np.float64)),
+                        loss=float(loop.best_loss), iterations=int(loop.iteration), rejected=int(loop.rejected),
+                        field=fp.kind)
+
+
+def _resumed(fp, settings, path):
+    """The :class:`jaxplush.fitting.gradfit.LoopState` checkpointed in ``path`` for this fit (its
+    settings checked by :func:`jaxplush.fitting.io.load_checkpoint`)."""
+    from jaxplush.fitting import io as _io
+
+    def check(loop):
+        if not isinstance(loop, _gradfit.LoopState):
+            raise TypeError(f"the checkpoint holds a {type(loop).__name__}, not a gradient fit's LoopState")
+        if np.shape(loop.theta) != np.shape(fp.theta0):
+            raise ValueError(f"its unknowns have shape {np.shape(loop.theta)}, this fit's {np.shape(fp.theta0)}")
+        return loop
+
+    return _io.load_checkpoint(path, fp.prob, settings, conform=check)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -630,11 +695,7 @@ def _field_result(fp, loop, kind, opts, iterations, wall, report=False):
     for i, n in enumerate(prob.names):
         hist[n] = np.exp(thetas[:, fp.n_field:].reshape(len(thetas), len(prob.names), -1)[:, i]) if len(thetas) \
             else np.zeros((0, len(prob.objects)))
-    settings = dict(optimizer=kind, lr=opts.lr, iterations=int(iterations), field=fp.kind, weight=fp.weight,
-                    names=list(prob.names), objects=[prob.scene.object_names[o] for o in prob.objects],
-                    dt=prob.target.dt, noise_free=bool(opts.noise_free),
-                    noise=-1.0 if prob.noise is None else float(prob.noise), method=opts.method,
-                    frame_steps=list(prob.loss.frame_steps), target_kind=prob.target.kind)
+    settings = _field_settings(fp, kind, opts, iterations)
     return FieldResult(kind=fp.kind, k_structural=k_edge, k_regions=k_reg, region_names=fp.region_names,
                        k_start=k0, values=vals, start=fp.values(fp.theta0), params=Params(**full),
                        loss=float(parts[0] + parts[1]), data_loss=float(parts[0]), smoothness=float(parts[1]),

@@ -60,6 +60,8 @@ _RESUME_KEYS = ("optimizer", "lr", "names", "objects", "dt", "noise_free", "nois
                 "patience", "optax_state")
 #: ... and for Adam, whose cosine learning-rate schedule spans the iterations, also these.
 _RESUME_KEYS_ADAM = ("iterations",)
+#: ... and for a stiffness field's fit, the field, its smoothness weight and its unknowns.
+_RESUME_KEYS_FIELD = ("field", "weight", "n_unknowns", "preconditioned", "theta0_hash")
 #: ... and for the default fit, its search box, global design and tuning knobs.
 _RESUME_KEYS_LM = ("box_lo", "box_hi", "samples", "starts", "seed", "local", "continuation", "smoothing")
 #: Settings a checkpoint written before they were recorded ran with (the defaults of the time).
@@ -304,7 +306,7 @@ def _check_settings(path, g, prob, settings):
     saved = json.loads(g.attrs["settings"])
     mine = _settings(prob, settings)
     keys = _RESUME_KEYS + (_RESUME_KEYS_ADAM if mine.get("optimizer") == "adam" else ()) + (
-        _RESUME_KEYS_LM if mine.get("optimizer") == "lm" else ())
+        _RESUME_KEYS_LM if mine.get("optimizer") == "lm" else ()) + (_RESUME_KEYS_FIELD if "field" in mine else ())
     for k in keys:
         if _norm(saved.get(k, _RESUME_DEFAULTS.get(k))) != _norm(mine.get(k)):
             raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "

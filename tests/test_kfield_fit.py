@@ -117,6 +117,38 @@ def test_two_region_field_from_exact_positions(two_regions):
     assert res.history["loss"][0] == res.loss_start and np.all(np.diff(res.history["time"]) >= 0)
 
 
+def test_an_interrupted_field_fit_resumes_to_the_same_answer(two_regions, tmp_path):
+    """A field fit checkpoints its loop (every 3 iterations here, and on Ctrl-C); killed part-way
+    and resumed, it takes the same steps as the run that was never stopped (the same values to
+    rounding, the same history), and a resume with another smoothness weight is refused."""
+    from jaxplush.fitting.options import CheckpointOptions, FitOptions
+    truth, start = two_regions
+    target = fitting_target(truth, point_cloud=False)
+    kw = dict(weight=1e-3, start=_start(truth), iterations=12, noise_free=True)
+    whole = F.fit_field(start, target, "regions", **kw)
+    path = tmp_path / "FIT.h5"
+    opts = FitOptions(checkpoint=CheckpointOptions(path=str(path), every=3))
+
+    def stop(info):
+        if info["iteration"] == 7:
+            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        F.fit_field(start, target, "regions", options=opts, callback=stop, **kw)
+    with h5py.File(path) as f:
+        assert f.attrs["status"] == "interrupted" and "checkpoint" in f and f.attrs["iterations"] >= 7
+    seen = []
+    resumed = F.fit_field(start, target, "regions", options=FitOptions(
+        checkpoint=CheckpointOptions(path=str(path), every=3, resume=True)), callback=lambda i: seen.append(i["iteration"]),
+        **kw)
+    assert seen and seen[0] >= 7                  # it went on from the checkpoint, not from the start
+    assert resumed.iterations == whole.iterations
+    np.testing.assert_allclose(resumed.history["loss"], whole.history["loss"], rtol=1e-5)
+    np.testing.assert_allclose(resumed.k_regions, whole.k_regions, rtol=1e-5)
+    with pytest.raises(JaxplushError, match="different fit .weight"):
+        F.fit_field(start, target, "regions", options=FitOptions(
+            checkpoint=CheckpointOptions(path=str(path), resume=True)), **dict(kw, weight=2e-3))
+
+
 def test_two_region_field_from_a_partial_point_cloud(two_regions):
     """One depth camera in front: the back group is seen only at its rim, yet the fit recovers it."""
     from jaxplush.io.capture import Camera, depth_capture
