@@ -444,8 +444,8 @@ def _make_drive(scene, terms, h, substeps):
     def blend(rows, n_vertices):
         # one scatter of every row into (V, 7, B) (slices of it fuse into the update): not a
         # scatter into x and u after the update, into whose operand XLA:CPU fused the whole
-        # Verlet kick (the step ran 2.5x slower; benchmarks/RESULTS.md, "Driven vertices in the
-        # batched engine")
+        # Verlet kick (the step ran at 0.6x the undriven step's speed; benchmarks/RESULTS.md,
+        # "Driven vertices and stiffness fields in the batched engine")
         with jax.named_scope("driven"):
             z = jnp.zeros((n_vertices,) + rows.shape[::2], rows.dtype).at[idx].set(jnp.swapaxes(rows, 0, 1))
             return 1.0 - z[:, 0], tuple(z[:, 1 + c] for c in range(3)), tuple(z[:, 4 + c] for c in range(3))
