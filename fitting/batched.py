@@ -611,14 +611,11 @@ def _make_floor(topo, terms, scene, h):
             # and reading it here made XLA copy the projected velocity every step.
             below = x_old[1] + v[1] * h < height
             if driven is not None:         # (free, path y) of _Drive.blend: a driven vertex is not moved
-                free, py = driven
-                below = below & (free > 0)
-                y = _folded(lambda yc, vc, fc, pc: jnp.maximum(yc + vc * h, height) * fc + pc,
-                            x_old[1], jnp.where(below, constraints.landing_velocity(x_old[1], height, h), v[1]),
-                            free, py)
-                vy = jnp.where(below, constraints.landing_velocity(x_old[1], height, h), v[1])
-                return (x[0], y, x[2]), (v[0], vy, v[2])
+                below = below & (driven[0] > 0)
             vy = jnp.where(below, constraints.landing_velocity(x_old[1], height, h), v[1])
+            if driven is not None:
+                y = _folded(lambda yc, vc, fc, pc: jnp.maximum(yc + vc * h, height) * fc + pc, x_old[1], vy, *driven)
+                return (x[0], y, x[2]), (v[0], vy, v[2])
             # y from the projected velocity, not from x[1]: then the (expensive) unprojected
             # velocity has one consumer and XLA does not compute the forces twice. Identical
             # where the vertex is above the floor; on it, max(.) returns the floor up to 1 ulp.
