@@ -225,7 +225,7 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
         raise
     try:
         wall = time.perf_counter() - t_start + (prior.wall if prior is not None else 0.0)
-        result = _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall)
+        result = _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, report)
     except KeyboardInterrupt:
         if checkpoint_path is not None:
             # (the checkpoint holds the first fit's state: a resumed fit plans again from it)
@@ -353,14 +353,28 @@ def _disagreement(jac_a, jac_b, unresolved, labels, noise_a, noise_b):
     return None
 
 
-def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
-    """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability."""
+def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
+    """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability. A fit in
+    segments returns its values with multiple shooting's own bias taken off (:func:`jaxplush.fitting.
+    shooting.debias`; ``say`` gets the line that says so); its loss and outcome are the fit's own."""
     from jaxplush.fitting import lmfit
     from jaxplush.fitting.search import gauss_newton
     notes = list(notes) + list(ev.notes)
     prob = dataclasses.replace(prob, sim=ev.prob.sim)       # with a grown contact capacity, if any
     best = run.best
-    e = ev(best.theta[None], keep_frames=True)
+    theta = best.theta
+    if prob.shooting is not None and prob.shooting.on and np.isfinite(best.loss):
+        # multiple shooting's own bias, measured on a twin target and taken off (shooting.debias)
+        theta, bias, line = _shooting.debias(prob, best.theta, ev)
+        if bias is not None and not np.array_equal(np.clip(theta, box.lo, box.hi), theta):
+            theta = np.clip(theta, box.lo, box.hi)
+            line += " (held within the search box)"
+        notes.append(f"shooting: {line}")
+        if say is not None:
+            say(f"shooting: {line}")
+        if bias is not None:
+            prob = dataclasses.replace(prob, shooting=dataclasses.replace(prob.shooting, bias=bias))
+    e = ev(theta[None], keep_frames=True)
     frames = e.frames[0]
     if e.clamped[0]:
         msg = f"{diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} in the fitted rollout"
@@ -417,7 +431,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall):
                   horizons=run.horizons, box_lo=box.lo, box_hi=box.hi, grad=run.grad, grad0=run.grad0)
     # the identifiability warnings only for a fit that reached the data at an optimum (converged or
     # undetermined: there the standard errors mean something)
-    return _result(prob, best.theta, frames=frames, history=hist, outcome=out, report=report,
+    return _result(prob, theta, frames=frames, history=hist, outcome=out, report=report,
                    warn_report=out.converged or out.status == "undetermined", notes=notes, settings=settings, loop=dataclasses.replace(run, state=lmfit.light_copy(run.state)),
                    wall=wall, stacklevel=3,
                    loss=float(best.loss), loss_start=float(run.loss0), iterations=int(run.evaluations),

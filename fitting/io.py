@@ -249,12 +249,16 @@ def _write_predictability(g, pred):
 def _write_shooting(g, sh):
     """The ``shooting`` group of FIT.h5 (a :class:`jaxplush.fitting.shooting.Shooting`): attributes
     ``segment_frames`` (0: single shooting), ``floor_rms`` and ``single_floor_rms`` (m; NaN: not
-    measured), ``refine`` and ``text``."""
+    measured), ``refine`` and ``text``; where multiple shooting's own bias was taken off the fitted
+    values (:func:`jaxplush.fitting.shooting.debias`), ``bias``: the relative bias per fitted
+    parameter (rows) and object (columns), as the values' layout."""
     g.attrs["segment_frames"] = int(sh.segment_frames or 0)
     g.attrs["floor_rms"] = float("nan") if sh.floor is None else float(sh.floor)
     g.attrs["single_floor_rms"] = float("nan") if sh.single_floor is None else float(sh.single_floor)
     g.attrs["refine"] = int(sh.refine)
     g.attrs["text"] = sh.reason
+    if getattr(sh, "bias", None) is not None:
+        g.attrs["bias"] = np.expm1(np.asarray(sh.bias, np.float64))
 
 
 # --------------------------------------------------------------------------- the checkpoint
