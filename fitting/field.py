@@ -514,8 +514,11 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
         raise
     if not loop.done:
         loop.reason, loop.stopped = f"reached the iteration limit ({iterations})", Stop.ITERATIONS
-    return _field_result(fp, loop, kind, opts, iterations, time.perf_counter() - t_start,
-                         report=opts.identifiability)
+    result = _field_result(fp, loop, kind, opts, iterations, time.perf_counter() - t_start,
+                           report=opts.identifiability)
+    if ck.path is not None:
+        result.save(ck.path)        # finished, with its loop: a --resume on it returns this result
+    return result
 
 
 def _field_settings(fp, kind, opts, iterations):
@@ -585,6 +588,8 @@ class FieldResult:
         (:func:`field_identifiability`: each region's and global's standard error, the data and
         the smoothness prior together); None per edge (a tangent per edge costs too much) or
         when switched off (``identifiability=False``).
+      loop: the optimiser's final :class:`jaxplush.fitting.gradfit.LoopState`, written to FIT.h5
+        as its checkpoint (a ``--resume`` on a finished FIT.h5 returns this result).
     """
 
     kind: str
@@ -613,6 +618,7 @@ class FieldResult:
     optimizer: str
     settings: dict
     identifiability: object = None
+    loop: object = None
 
     @property
     def normalisation(self):
@@ -705,7 +711,8 @@ def _field_result(fp, loop, kind, opts, iterations, wall, report=False):
                        wall_time=float(wall), frames=np.asarray(frames, np.float64),
                        steps=np.asarray(prob.loss.frame_steps, np.int64), dt=float(prob.target.dt), problem=fp,
                        optimizer=kind, settings=settings,
-                       identifiability=field_identifiability(fp, best) if report and fp.kind == "regions" else None)
+                       identifiability=field_identifiability(fp, best) if report and fp.kind == "regions" else None,
+                       loop=loop)
 
 
 # --------------------------------------------------------------------------- identifiability (regions)
@@ -839,6 +846,9 @@ def save_field_fit(result, path):
             for k, v in out.as_dict().items():
                 if k not in ("status", "message"):
                     a[f"outcome_{k}"] = json.dumps(list(v)) if isinstance(v, tuple) else v
+            if result.loop is not None:
+                # the finished loop, as a checkpoint: --resume on this file returns this result
+                _io._write_state(f, prob, result.loop, result.settings)
     return os.fspath(path)
 
 

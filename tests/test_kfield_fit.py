@@ -144,6 +144,14 @@ def test_an_interrupted_field_fit_resumes_to_the_same_answer(two_regions, tmp_pa
     assert resumed.iterations == whole.iterations
     np.testing.assert_allclose(resumed.history["loss"], whole.history["loss"], rtol=1e-5)
     np.testing.assert_allclose(resumed.k_regions, whole.k_regions, rtol=1e-5)
+    # the finished FIT.h5 keeps its loop: a resume on it returns the same result, with no new step
+    with h5py.File(path) as f:
+        assert f.attrs["status"] != "interrupted" and "checkpoint" in f
+    more = []
+    again = F.fit_field(start, target, "regions", options=FitOptions(
+        checkpoint=CheckpointOptions(path=str(path), resume=True)), callback=lambda i: more.append(i), **kw)
+    assert not more and again.iterations == resumed.iterations
+    np.testing.assert_array_equal(again.k_regions, resumed.k_regions)
     with pytest.raises(JaxplushError, match="different fit .weight"):
         F.fit_field(start, target, "regions", options=FitOptions(
             checkpoint=CheckpointOptions(path=str(path), resume=True)), **dict(kw, weight=2e-3))
