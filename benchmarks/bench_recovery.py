@@ -127,6 +127,18 @@ def start_scene(d, name, truth, factors):
     return path
 
 
+def _shooting_record(f):
+    """How a FIT.h5's fit shot: ``segment_frames`` (0: one rollout) and, where multiple shooting's
+    own bias was taken off the fitted values, ``shooting_bias`` (relative, per fitted value)."""
+    if "shooting" not in f:
+        return {}
+    g = f["shooting"]
+    out = dict(segment_frames=int(g.attrs["segment_frames"]))
+    if "bias" in g.attrs:
+        out["shooting_bias"] = [float(b) for b in np.ravel(g.attrs["bias"])]
+    return out
+
+
 def run_case(d, name, kind, truth, target, factors, extra=()):
     """Fit one case by ``jaxplush-fit`` (``extra``: more of its arguments) in a cold process."""
     start = start_scene(d, name, truth, factors)
@@ -150,6 +162,7 @@ def run_case(d, name, kind, truth, target, factors, extra=()):
         fitted = {n: float(f["params"][n][0]) for n in names}
         row["status"] = str(f.attrs["status"])
         row["message"] = str(f.attrs.get("reason", ""))
+        row.update(_shooting_record(f))
     errors = {n: fitted[n] / float(getattr(truth.params, n)[0]) - 1.0 for n in names}
     row.update(errors=errors, max_error=max(abs(e) for e in errors.values()))
     limit = TIME_LIMIT.get(truth.n_vertices, 60.0)
@@ -328,6 +341,8 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
     else:
         row["status"] = str(fit["attrs"].get("status"))
         row["message"] = str(fit["attrs"].get("reason", ""))
+        with h5py.File(out, "r") as f:
+            row.update(_shooting_record(f))
         names = [n for n in case["params"] if n in fit["params"]]
         errors = {f"{n}[{o['name']}]": float(fit["params"][n][j]) / truth_values[n][j] - 1.0
                   for n in names for j, o in enumerate(case["objects"])}
