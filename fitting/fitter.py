@@ -67,6 +67,7 @@ from jaxplush.fitting.recovery import RECOVERY_TRUTH, recovery_scene_text, synth
 from jaxplush.fitting.result import (FitResult, _history, _judge, _motion, _predictability_at, _result,  # noqa: F401
                                      identifiability_at, measure_predictability, rounding_drift)
 from jaxplush.fitting import shooting as _shooting
+from jaxplush.fitting.outcome import Status
 from jaxplush.fitting.shooting import plan_shooting
 
 
@@ -401,15 +402,14 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
         # rounding drift, not the method, sets the values' error and a linear estimate of the
         # bias does not hold (a torus dropped with the report's damping, in segments of 5 frames:
         # the estimate moved nmol from +2.3% to +3.7%), nor where the fit did not finish
-        from jaxplush.fitting.outcome import Status
         if out.status in (Status.CONVERGED, Status.POOR_FIT):
             theta, bias, line = _shooting.debias(prob, best.theta, ev)
         else:
             bias, line = None, (f"its own bias is not estimated: the fit ended {out.status.replace('_', ' ')}, where "
                                 "the values' error is not the method's alone")
-        if bias is not None and not np.array_equal(np.clip(theta, box.lo, box.hi), theta):
-            theta = np.clip(theta, box.lo, box.hi)
-            line += " (held within the search box)"
+        inside = np.clip(theta, box.lo, box.hi)
+        if not np.array_equal(inside, theta):
+            theta, line = inside, line + " (held within the search box)"
         notes.append(f"shooting: {line}")
         if say is not None:
             say(f"shooting: {line}")

@@ -257,7 +257,7 @@ def _write_shooting(g, sh):
     g.attrs["single_floor_rms"] = float("nan") if sh.single_floor is None else float(sh.single_floor)
     g.attrs["refine"] = int(sh.refine)
     g.attrs["text"] = sh.reason
-    if getattr(sh, "bias", None) is not None:
+    if sh.bias is not None:
         g.attrs["bias"] = np.expm1(np.asarray(sh.bias, np.float64))
 
 
