@@ -32,7 +32,6 @@ import os
 import platform
 import subprocess
 import sys
-import time
 
 import numpy as np
 
@@ -45,14 +44,10 @@ import jax.numpy as jnp  # noqa: E402
 UNROLL_FLAG = "--xla_backend_extra_options=-unroll-threshold=5000"
 
 
-def _best(fn, *args, repeats=7):
-    jax.block_until_ready(fn(*args))
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - t0)
-    return 1e3 * best
+def _best(fn, arg, repeats):
+    """Best wall time of ``fn(arg)`` in ms over ``repeats`` runs after compiling (bench_fit's timer)."""
+    from bench_fit import _time
+    return 1e3 * _time(fn, arg, repeats)[1]
 
 
 def split(sim, p, frames, target, repeats):
@@ -78,7 +73,7 @@ def split(sim, p, frames, target, repeats):
     f_bwd = jax.jit(lambda r: bwd(r, jnp.ones((), x0.dtype)))
     f_vg = jax.jit(jax.value_and_grad(
         lambda q: G.rollout_loss(sim, q, sim.init_fn(q), frames, _sq_loss, target, method="adjoint")))
-    return tuple(_best(f, a, repeats=repeats) for f, a in
+    return tuple(_best(f, a, repeats) for f, a in
                  ((f_plain, p), (f_rec, p), (f_bwd, res), (f_vg, p)))
 
 
@@ -116,8 +111,8 @@ def reduction_kernel(repeats, long_body=True):
         fan = sum_rows(T.cross(d, [tab[c, 1:] - x[c] for c in range(3)]))   # a second reader of the table
         return x, lam + 1e-3 * (jnp.stack(ring_sums) + jnp.stack(fan))
 
-    f = jax.jit(lambda x, lam: jax.lax.fori_loop(0, 100, body, (x, lam))[1])
-    return _best(f, x, lam, repeats=repeats) * 10.0        # ms per 100 steps -> us per step
+    f = jax.jit(lambda xl: jax.lax.fori_loop(0, 100, body, xl)[1])
+    return _best(f, (x, lam), repeats) * 10.0              # ms per 100 steps -> us per step
 
 
 def reduction_demo(repeats):
