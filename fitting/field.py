@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxplush.compilestats import compile_clock
 from jaxplush.errors import JaxplushError
 from jaxplush.progress import Progress
 from jaxplush.types import PARAM_NAMES, Params
@@ -456,6 +457,7 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
       start, or too many steps in a row.
     """
     t_start = time.perf_counter()
+    clock = compile_clock()                 # the whole fit's XLA compiles, apart from the rest
     opts = _options.resolve(options, overrides)
     kind = _gradfit.optimizer_kind(optimizer)
     if kind == "lm":
@@ -483,7 +485,7 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
         loop.best_theta = np.asarray(th0)
     t_loop = time.perf_counter() - loop.wall
     consistent, last_saved = loop.snapshot(), loop.iteration
-    bar = Progress(iterations, f"fit field ({field})", enabled=progress, unit="it")
+    bar = Progress(iterations, f"fit field ({field})", enabled=progress, unit="it", compiles=True)
     try:
         with bar:
             bar.update(min(loop.iteration, iterations))
@@ -516,8 +518,12 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
         loop.reason, loop.stopped = f"reached the iteration limit ({iterations})", Stop.ITERATIONS
     result = _field_result(fp, loop, kind, opts, iterations, time.perf_counter() - t_start,
                            report=opts.identifiability)
+    result = dataclasses.replace(result, timing=clock.stop())
     if ck.path is not None:
         result.save(ck.path)        # finished, with its loop: a --resume on it returns this result
+    if progress:
+        from jaxplush.fitting.fitter import say_timing
+        say_timing(result.timing, f"fit field ({field})")
     return result
 
 
@@ -590,6 +596,9 @@ class FieldResult:
         when switched off (``identifiability=False``).
       loop: the optimiser's final :class:`jaxplush.fitting.gradfit.LoopState`, written to FIT.h5
         as its checkpoint (a ``--resume`` on a finished FIT.h5 returns this result).
+      timing: :class:`jaxplush.compilestats.Timing` of the whole :func:`fit_field` call in this
+        process: its wall time, XLA compiles and programs apart from the rest (as
+        :attr:`jaxplush.fitting.result.FitResult.timing`); None when not measured.
     """
 
     kind: str
@@ -619,6 +628,7 @@ class FieldResult:
     settings: dict
     identifiability: object = None
     loop: object = None
+    timing: object = None
 
     @property
     def normalisation(self):
@@ -649,6 +659,8 @@ class FieldResult:
                     f"{self.normalisation}-normalised, RMS {1e3 * self.rms:.3g} mm; smoothness {self.smoothness:.3g}, "
                     f"weight {self.weight:.3g}) after {self.iterations} iterations ({self.rejected} rejected), "
                     f"{self.wall_time:.1f} s")
+        if self.timing is not None:
+            rows.append(f"time: {self.timing.text()}")
         rows.append(f"stopped: {self.reason}")
         return "\n".join(rows)
 
@@ -846,6 +858,8 @@ def save_field_fit(result, path):
             for k, v in out.as_dict().items():
                 if k not in ("status", "message"):
                     a[f"outcome_{k}"] = json.dumps(list(v)) if isinstance(v, tuple) else v
+            if result.timing is not None:
+                _io.write_timing(f, result.timing)
             if result.loop is not None:
                 # the finished loop, as a checkpoint: --resume on this file returns this result
                 _io._write_state(f, prob, result.loop, result.settings)

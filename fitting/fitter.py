@@ -43,11 +43,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
 import warnings
 
 import numpy as np
 
+from jaxplush.compilestats import compile_clock
 from jaxplush.stepping import diagnostics
 from jaxplush.errors import JaxplushError
 from jaxplush.types import PARAM_NAMES  # noqa: F401  (jaxplush.fitting.fitter.PARAM_NAMES)
@@ -129,14 +131,27 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
     again (see ``contact_capacity`` in the scene format).
     """
     t_start = time.perf_counter()
+    clock = compile_clock()                 # the whole fit's XLA compiles, apart from the rest
     opts = _options.resolve(options, overrides)
     kind = optimizer_kind(optimizer)
     _options.validate(opts, kind)
     prob, notes = _problem(scene, target, params, objects, opts)
     if kind == "lm":
-        return _fit_lm(prob, opts, notes, t_start, progress=progress, callback=callback, report=report)
-    return _GradientFit(prob, optimizer, opts, notes, progress=progress, callback=callback,
-                        report=report).run(t_start)
+        result = _fit_lm(prob, opts, notes, t_start, progress=progress, callback=callback, report=report,
+                         clock=clock)
+    else:
+        result = _GradientFit(prob, optimizer, opts, notes, progress=progress, callback=callback,
+                              report=report).run(t_start, clock)
+    if progress:
+        say_timing(result.timing)
+    return result
+
+
+def say_timing(timing, label="fit"):
+    """The line on stderr that tells a fit's compile time apart from the rest
+    (:class:`jaxplush.compilestats.Timing`), after its progress bars."""
+    if timing is not None:
+        print(f"{label}: {timing.text()}", file=sys.stderr, flush=True)
 
 
 def _problem(scene, target, params, objects, opts):
@@ -177,9 +192,12 @@ def _lm_settings(prob, opts, box):
     return settings
 
 
-def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
-    """The default fit (jaxplush.fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome."""
+def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, clock=None):
+    """The default fit (jaxplush.fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome.
+    ``clock``: a :class:`jaxplush.compilestats.CompileClock` started with the fit, whose
+    :class:`~jaxplush.compilestats.Timing` the result gets (None: one started here)."""
     from jaxplush.fitting import io as _io, lmfit
+    clock = compile_clock() if clock is None else clock
     box = _lm_box(prob, opts.search.bounds)
     settings = _lm_settings(prob, opts, box)
     checkpoint_path, want_ident = opts.checkpoint.path, opts.identifiability
@@ -232,6 +250,7 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None):
             # (the checkpoint holds the first fit's state: a resumed fit plans again from it)
             write(last[0] if replanned is not None else lmfit.light_copy(run.state), "interrupted")
         raise
+    result = dataclasses.replace(result, timing=clock.stop())
     if checkpoint_path is not None:
         _io.save_fit(result, checkpoint_path)
     return result

@@ -22,6 +22,7 @@ import numpy as np
 import optax
 
 import jaxplush
+from jaxplush.compilestats import compile_clock
 from jaxplush.stepping import diagnostics
 from jaxplush.errors import JaxplushError
 from jaxplush.progress import Progress
@@ -131,14 +132,17 @@ class _GradientFit:
         self.bar = None
         self.consistent = None      # the last loop state that is not half-way through an iteration
 
-    def run(self, t_start):
-        """The whole fit: the loop (from a checkpoint with ``resume``), its result, FIT.h5."""
+    def run(self, t_start, clock=None):
+        """The whole fit: the loop (from a checkpoint with ``resume``), its result, FIT.h5.
+        ``clock``: a :class:`jaxplush.compilestats.CompileClock` started with the fit, whose
+        :class:`~jaxplush.compilestats.Timing` the result gets (None: one started here)."""
+        clock = compile_clock() if clock is None else clock
         loop = self.initial_loop()
         if self.opts.predictability:        # every input checked (a resumed checkpoint too)
             self.prob = measure_predictability(self.prob, self.note)
         self.warn_dt(loop)
         wall_before = loop.wall
-        self.bar = Progress(self.iterations, "fit", enabled=self.progress, unit="it")
+        self.bar = Progress(self.iterations, "fit", enabled=self.progress, unit="it", compiles=True)
         self.bar.done = min(loop.iteration, self.iterations)
         t_loop = time.perf_counter() - loop.wall
         loop = self.loop(loop, t_loop)
@@ -153,6 +157,7 @@ class _GradientFit:
             # not short): the loop has finished, so save it; --resume goes straight to this step
             self.save(loop, "interrupted")
             raise
+        result = dataclasses.replace(result, timing=clock.stop())
         if self.opts.checkpoint.path is not None:
             from jaxplush.fitting import io as _io
             _io.save_fit(result, self.opts.checkpoint.path)

@@ -28,6 +28,9 @@ Layout:
   ``motion``, ``perturbation``, ``method``, ``dtype``, ``duration``, ``text``;
 * ``shooting/`` (the default fit, :mod:`jaxplush.fitting.shooting`): attributes ``segment_frames``
   (0: one rollout), ``floor_rms``, ``single_floor_rms``, ``refine``, ``text``;
+* ``timing/`` (a finished fit): attributes ``wall_s``, ``compile_s``, ``trace_s``, ``programs``,
+  ``cache_hits``: the whole fit call in the process that finished it, its XLA compiles (and loads
+  from the persistent cache) apart from the rest (:class:`jaxplush.compilestats.Timing`);
 * ``checkpoint/``: the fit's complete state (the gradient loop's log values, optimiser state,
   history and counters; the default fit's stage driver and its stage's searches), a pytree as
   :mod:`jaxplush.fitting.treeio` writes it, with attributes ``format`` and ``settings``: enough
@@ -202,6 +205,8 @@ def save_fit(result, path):
             a["status"] = Status(result.status).value
             if getattr(result, "predictability", None) is not None:
                 _write_predictability(f.create_group("predictability"), result.predictability)
+            if getattr(result, "timing", None) is not None:
+                write_timing(f, result.timing)
             if getattr(prob, "shooting", None) is not None:
                 _write_shooting(f.create_group("shooting"), prob.shooting)
             if result.search:
@@ -229,6 +234,17 @@ def save_fit(result, path):
             if loop is not None:    # a gradient fit's LoopState, or the default fit's driver state (LMRun.state)
                 _write_state(f, prob, getattr(loop, "state", loop), result.settings)
     return os.fspath(path)
+
+
+def write_timing(f, timing):
+    """The ``timing`` group of FIT.h5 (module docstring) from a
+    :class:`jaxplush.compilestats.Timing`, in the open file ``f``: attributes ``wall_s``,
+    ``compile_s``, ``trace_s`` (s) and ``programs``, ``cache_hits``."""
+    g = f.create_group("timing")
+    for k in ("wall_s", "compile_s", "trace_s"):
+        g.attrs[k] = float(getattr(timing, k))
+    for k in ("programs", "cache_hits"):
+        g.attrs[k] = int(getattr(timing, k))
 
 
 def _write_predictability(g, pred):
@@ -325,12 +341,14 @@ def _norm(v):
 
 def load_fit(path):
     """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, fitted,
-    predictability, fields (each group present: its datasets, and its attributes under "<group>_attrs")."""
+    predictability, fields, timing (each group present: its datasets, and its attributes under
+    "<group>_attrs")."""
     path = os.fspath(path)
     out = {}
     with open_hdf5(path) as f:
         out["attrs"] = {k: _attr(f.attrs[k]) for k in f.attrs}
-        for grp in ("params", "start", "history", "identifiability", "fitted", "predictability", "fields"):
+        for grp in ("params", "start", "history", "identifiability", "fitted", "predictability", "fields",
+                    "timing"):
             if grp in f:
                 out[grp] = {k: f[grp][k][()] for k in f[grp].keys()}
                 out[grp + "_attrs"] = {k: _attr(f[grp].attrs[k]) for k in f[grp].attrs}

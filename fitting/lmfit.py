@@ -255,16 +255,19 @@ class _Show:
             hs = s.horizons
             label = f"stage {s.index + 1}/{len(hs)} ({hs[s.index]} of {hs[-1]} frames)"
             if isinstance(inner, _stages.GlobalState):
-                bar = Progress(opts.search.n_samples + 1, f"global search, {label}", enabled=on, unit="points")
+                bar = Progress(opts.search.n_samples + 1, f"global search, {label}", enabled=on, unit="points",
+                               compiles=True)
             elif isinstance(inner, _objects.PerObjectState):
                 total = self.stages[run.index].first[0].evaluations(len(self.prob.objects))
-                bar = Progress(total, f"global search per object, {label}", enabled=on, unit="points")
+                bar = Progress(total, f"global search per object, {label}", enabled=on, unit="points",
+                               compiles=True)
             else:
                 total = self.stages[run.index].stage(s).max_iter
-                bar = Progress(total, f"local search, {label}", enabled=on, unit="it")
+                bar = Progress(total, f"local search, {label}", enabled=on, unit="it", compiles=True)
                 bar.done = min(inner.rounds, total)
         elif isinstance(s, _stages.SmoothState):
-            bar = Progress(opts.smoothing.iterations, "smoothing (regression designs)", enabled=on, unit="designs")
+            bar = Progress(opts.smoothing.iterations, "smoothing (regression designs)", enabled=on, unit="designs",
+                           compiles=True)
         else:
             return None
         return bar.__enter__()

@@ -47,6 +47,11 @@ class FitResult:
         measured before fitting (None: not measured), or of the first fit's values where the fit
         was planned again from them (its ``warnings`` say so); the outcome's ``floor`` is the
         reproducibility floor it was judged against.
+      timing: :class:`jaxplush.compilestats.Timing` of the whole :func:`fit` call in this process
+        (its report included; a resumed fit's earlier sessions not): ``wall_s``, ``compile_s``
+        (XLA compiles and loads from the persistent cache), ``trace_s`` (tracing and lowering),
+        ``programs`` (the programs it compiled or loaded), ``cache_hits`` (loaded); None when not
+        measured. ``wall_time`` is the search's time (every session's), without the report.
     """
 
     params: Params
@@ -81,6 +86,7 @@ class FitResult:
     outcome: object = None  # jaxplush.fitting.outcome.Outcome
     search: dict = dataclasses.field(default_factory=dict)   # the default fit's samples and paths
     predictability: object = None  # jaxplush.Predictability of the start values
+    timing: object = None  # jaxplush.compilestats.Timing: compile time apart from the rest
 
     @property
     def status(self):
@@ -109,6 +115,8 @@ class FitResult:
         rows.append(f"loss {self.loss_start:.4g} -> {self.loss:.4g} ({self.normalisation}-normalised) after "
                     f"{self.iterations} {'evaluations' if self.optimizer == 'lm' else 'iterations'} "
                     f"({self.rejected} rejected), {self.wall_time:.1f} s")
+        if self.timing is not None:
+            rows.append(f"time: {self.timing.text()}")
         if self.predictability is not None:
             rows.append(f"predictability: {self.predictability.text()}")
         rows.append(f"outcome: {self.reason}")

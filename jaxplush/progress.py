@@ -40,9 +40,11 @@ class Progress:
     """
 
     def __init__(self, total, label="", enabled=True, stream=None, unit="steps", interactive=None,
-                 interval=None):
+                 interval=None, compiles=False):
         """``interactive``: redraw in place; by default when the stream is a terminal.
-        ``interval``: seconds between plain lines when not interactive (:data:`LOG_INTERVAL`)."""
+        ``interval``: seconds between plain lines when not interactive (:data:`LOG_INTERVAL`).
+        ``compiles``: the final line also says how much of the elapsed time went to XLA compiles
+        and how many programs were compiled (:mod:`jaxplush.compilestats`)."""
         self.total = max(int(total), 1)
         self.label = label
         self.enabled = enabled
@@ -55,6 +57,10 @@ class Progress:
         self.interactive = _is_terminal(self.stream) if interactive is None else bool(interactive)
         self.interval = LOG_INTERVAL if interval is None else float(interval)
         self._last_line = self.t0
+        self.clock = None
+        if compiles and enabled:
+            from jaxplush.compilestats import compile_clock
+            self.clock = compile_clock()
 
     def __enter__(self):
         self._draw()
@@ -102,6 +108,10 @@ class Progress:
             bar = self._bar(self.done / self.total)
         why = f": {self.outcome}" if self.outcome else ""
         tail = f" {self.extra}" if self.extra else ""
+        if self.clock is not None:
+            t = self.clock.stop()
+            what += (f", XLA compiles {t.compile_s:.1f} s ({t.programs} program{'' if t.programs == 1 else 's'})"
+                     if t.programs else ", no XLA compiles")
         line = f"{self.label} [{bar}] {what}{why}{tail}"
         # on a terminal, pad so that the final line covers the longer running line it replaces
         self.stream.write(("\r" + line.ljust(99)) if self.interactive else line)

@@ -368,6 +368,13 @@ def test_resume_refuses_a_different_setting(small, tmp_path):
     kw = dict(noise_free=True, identifiability=False, check_dt=False, checkpoint_path=out)
     res = F.fit(start, target, NAMES, optimizer="adam", iterations=2, **kw)
     assert "undetermined" not in res.table()      # no report computed: no standard errors, not "undetermined"
+    # the whole fit's compile time apart from the rest, in the result and in FIT.h5
+    timing = load_fit(out)["timing_attrs"]
+    assert set(timing) == {"wall_s", "compile_s", "trace_s", "programs", "cache_hits"}
+    assert 0.0 <= timing["compile_s"] <= timing["wall_s"] and timing["programs"] >= 0
+    assert 0 <= timing["cache_hits"] <= timing["programs"]
+    assert timing["wall_s"] == res.timing.wall_s and timing["programs"] == res.timing.programs
+    assert f"time: {res.timing.text()}" in res.table()
     with pytest.raises(JaxplushError, match="different fit \\(iterations: checkpoint 2, now 5; Adam"):
         F.fit(start, target, NAMES, optimizer="adam", iterations=5, resume=True, **kw)
     with pytest.raises(JaxplushError, match="different fit \\(params_hash"):
@@ -486,6 +493,9 @@ def test_the_default_fits_tuning_knobs_are_options_that_a_resume_checks(small, t
     kw = dict(noise_free=True, identifiability=False, predictability=False, samples=4, starts=1, iterations=2)
     ref = F.fit(start, target, NAMES, checkpoint_path=out, **kw)
     assert list(ref.search["horizons"]) == [3, 5, 10]
+    timing = load_fit(out)["timing_attrs"]          # the default fit's compile time apart from the rest
+    assert 0.0 <= timing["compile_s"] <= timing["wall_s"] and timing["programs"] >= 0
+    assert timing["compile_s"] + timing["trace_s"] <= timing["wall_s"] and timing["programs"] == ref.timing.programs
     assert list(F.fit(start, target, NAMES, horizons=(0.5, 1.0), **kw).search["horizons"]) == [5, 10]
     with pytest.raises(JaxplushError, match="different fit \\(continuation: checkpoint"):
         F.fit(start, target, NAMES, checkpoint_path=out, resume=True, horizons=(0.5, 1.0), **kw)

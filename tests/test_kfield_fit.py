@@ -248,6 +248,9 @@ def test_field_identifiability_jacobian_matches_differences_and_the_report_is_sa
     with h5py.File(tmp_path / "F.h5", "r") as f:
         assert list(f["identifiability"].attrs["labels"]) == list(rep.labels)
         assert np.allclose(f["identifiability/stderr"][()], rep.stderr)
+        timing = dict(f["timing"].attrs)           # the field fit's compile time apart from the rest
+    assert 0.0 <= timing["compile_s"] <= timing["wall_s"] and timing["programs"] >= 0
+    assert timing["wall_s"] == out.timing.wall_s and f"time: {out.timing.text()}" in out.table()
     edges = F.fit_field(start, target, "edges", start=_start(truth), iterations=2, noise_free=True)
     assert edges.identifiability is None
 
