@@ -303,8 +303,8 @@ def superellipsoid(a, c, exponent, subdivisions=3):
 # --------------------------------------------------------------------------- vectorised checks
 
 def orient_all(vertices, faces, face_object, n_objects):
-    """Validate and orient every object of a scene at once (numpy and scipy.sparse, no Python loop
-    over faces or objects); the fast path of :func:`check_and_orient`.
+    """Validate and orient every object of a scene at once (numpy only, no Python loop over faces
+    or objects); the fast path of :func:`check_and_orient`.
 
     Args:
       vertices: (V, 3) positions (all objects); faces: (F, 3) global indices; face_object: (F,)
@@ -330,10 +330,9 @@ def orient_all(vertices, faces, face_object, n_objects):
     f0, f1, same, not_two = _edge_face_pairs(faces, n_v)
     bad[fo[not_two]] = True
     # one connected piece per object
-    first_of = _first_face_of_pieces(f0, f1, n_f)
+    first_of, flip = _pieces(f0, f1, same, n_f)
     per_obj = np.bincount(fo[first_of], minlength=n_objects)
     bad[per_obj != 1] = True
-    flip = _winding_flips(f0, f1, same, first_of, n_f)
     bad[fo[f1[same ^ flip[f0] ^ flip[f1]]]] = True           # not orientable
     out = np.where(flip[:, None], faces[:, ::-1], faces)
     # outward: the signed volume of each object positive (about its vertices' mean)
@@ -380,43 +379,44 @@ def _edge_face_pairs(faces, n_v):
     return f0, f1, same, order[cnt != 2] // 3
 
 
-def _first_face_of_pieces(f0, f1, n_f):
-    """The lowest face index of every connected piece of the face graph (edges f0[i]-f1[i])."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    graph = coo_matrix((np.ones(len(f0)), (f0, f1)), shape=(n_f, n_f)).tocsr()
-    n_c, comp = connected_components(graph, directed=False)
-    first_of = np.full(n_c, n_f)
-    np.minimum.at(first_of, comp, np.arange(n_f))
-    return first_of
+def _pieces(f0, f1, same, n_f):
+    """The connected pieces of the face graph (edges f0[i]-f1[i]) and a winding for each face.
 
+    Union-find with parity, vectorised (numpy only, so parsing a scene imports no scipy): each
+    round hooks every piece's root to the smallest root it shares an edge with, then compresses
+    every path to its root, until no edge joins two pieces. ``same[i]`` (the edge runs the same
+    way in both faces) asks for flip[f0[i]] != flip[f1[i]]; every face's flip is its winding
+    parity relative to the root of its piece along the edges that joined them.
 
-def _winding_flips(f0, f1, same, first_of, n_f):
-    """(F,) bool: the faces to reverse for a consistent winding, by winding parity along a
-    breadth-first tree from a virtual root joined to each piece's first face."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order
-    n_c = len(first_of)
-    rows = np.concatenate([f0, f1, np.full(n_c, n_f)])
-    cols = np.concatenate([f1, f0, first_of])
-    tree = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_f + 1, n_f + 1)).tocsr()
-    _, pred = breadth_first_order(tree, n_f, directed=True, return_predecessors=True)
-    parent = np.where(pred[:n_f] < 0, n_f, pred[:n_f])
-    pk = np.minimum(f0, f1) * (n_f + 1) + np.maximum(f0, f1)
-    srt = np.argsort(pk)
-    q = np.minimum(np.arange(n_f), parent) * (n_f + 1) + np.maximum(np.arange(n_f), parent)
-    hit = np.clip(np.searchsorted(pk[srt], q), 0, len(pk) - 1) if len(pk) else np.zeros(n_f, np.int64)
-    rel = np.zeros(n_f + 1, bool)
-    if len(pk):
-        rel[:n_f] = np.where(parent == n_f, False, same[srt][hit])
-    anc = np.append(parent, n_f)
-    flip = rel.copy()
-    for _ in range(64):                                      # pointer jumping: XOR of rel up to the root
-        if np.all(anc == n_f):
+    Returns (first_of: the lowest face index of every piece, which is its root, ascending;
+    flip (F,) bool: the faces to reverse for a consistent winding, the first face of each piece
+    kept). A piece that cannot be wound consistently (not orientable) gets a winding that breaks
+    at some edge, which the caller finds; an orientable piece's winding is the only one that
+    keeps its first face.
+    """
+    root = np.arange(n_f)
+    par = np.zeros(n_f, bool)                                # winding relative to root[f]
+    same = np.asarray(same, bool)
+    while len(f0):
+        r0, r1 = root[f0], root[f1]
+        cross = r0 != r1
+        if not cross.any():
             break
-        flip = flip ^ flip[anc]
-        anc = anc[anc]
-    return flip[:n_f]
+        hi = np.maximum(r0, r1)[cross]
+        lo = np.minimum(r0, r1)[cross]
+        rel = (par[f0] ^ par[f1] ^ same)[cross]              # flip[hi] ^ flip[lo] the edge asks for
+        order = np.lexsort((lo, hi))                         # each root hooks to its smallest neighbour
+        hi, lo, rel = hi[order], lo[order], rel[order]
+        first = np.concatenate([[True], hi[1:] != hi[:-1]])
+        root[hi[first]] = lo[first]
+        par[hi[first]] = rel[first]
+        while True:                                          # pointer jumping, parity along
+            up = root[root]
+            if np.array_equal(up, root):
+                break
+            par = par ^ par[root]
+            root = up
+    return np.nonzero(root == np.arange(n_f))[0], par
 
 
 def _object_volumes(vertices, faces, fo, vo, used, n_objects):

@@ -69,8 +69,21 @@ class Health(NamedTuple):
 
 def initial_health(sim, state, step=0):
     o = sim.topology.n_objects
-    neg = jnp.full((o,), -1, jnp.int32)
-    return Health(jnp.zeros((o,), jnp.int32), neg, neg, state, jnp.asarray(step, jnp.int32))
+    if _traced((state, step)):
+        neg = jnp.full((o,), -1, jnp.int32)
+        return Health(jnp.zeros((o,), jnp.int32), neg, neg, state, jnp.asarray(step, jnp.int32))
+    # concrete: the same arrays built on the host and put on the device, without the one-op
+    # compiled programs (fill, conversion) that jnp dispatches for them
+    neg = jax.device_put(np.full((o,), -1, np.int32))
+    return Health(jax.device_put(np.zeros((o,), np.int32)), neg, neg, state, jax.device_put(_int32(step)))
+
+
+def _int32(step):
+    """``step`` as an int32 numpy scalar when it is a Python or numpy integer in int32's range
+    (jit takes it as it is), else ``jnp.asarray(step, jnp.int32)`` (its errors, tracers)."""
+    if isinstance(step, (int, np.integer)) and not isinstance(step, bool) and -2 ** 31 <= step < 2 ** 31:
+        return np.int32(step)
+    return jnp.asarray(step, jnp.int32)
 
 
 def _core(sim, params, state, health, step0, n_frames, save_every, checkpoint, record=None):
@@ -265,9 +278,10 @@ def rollout(sim, params, state, n_frames, save_every=1, checkpoint=False, health
     model.check_params(sim.terms, params)
     if health is None:
         health = initial_health(sim, state, step0)
-    step0 = jnp.asarray(step0, jnp.int32)
+    traced = _traced((params, state, health))
+    step0 = jnp.asarray(step0, jnp.int32) if traced else _int32(step0)
     static = dict(n_frames=int(n_frames), save_every=int(save_every), checkpoint=bool(checkpoint))
-    if gradient == "autodiff" or not _traced((params, state, health)):
+    if gradient == "autodiff" or not traced:
         # concrete inputs (an eager run) cannot be differentiated: the plain call, without
         # custom_jvp's dispatch (a few hundred microseconds a call)
         return _core_jit(sim, params, state, health, step0, **static)

@@ -188,25 +188,45 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     init = compiled.get(sim, "init", lambda: jax.jit(sim.init_fn))   # one compile per program
     state = init(p, x0, v0)
     health = _rollout.initial_health(sim, state)
-    frames = [np.asarray(state.x)]
+    x_init = state.x
+    frames, volumes = [], []                 # (n, V, 3) host frames of each chunk; their volumes
     n_full, rem = divmod(steps, save_every)
     # Chunks of equal size reuse one compiled rollout; about 50 updates of the progress bar.
     per_chunk = max(1, n_full // 50) if progress else max(n_full, 1)
-    done = 0
+    chunks = [(min(per_chunk, n_full - done), save_every, done * save_every) for done in range(0, n_full, per_chunk)]
+    if rem:
+        chunks.append((1, rem, n_full * save_every))
+
+    def volumes_so_far():
+        for block in frames[len(volumes):]:
+            volumes.append([scene.volumes(x) for x in block])
+
+    def take(chunk_frames, chunk_health, n_steps, queued):
+        """The host's part of a finished chunk: its frames and the progress bar; while another
+        chunk is ``queued`` behind it and the run is healthy (so the frames are finite), also
+        the volumes of the frames so far. Returns whether the run has failed."""
+        if not frames:
+            frames.append(np.asarray(x_init)[None])
+        frames.append(np.asarray(chunk_frames))
+        bar.update(n_steps)
+        if chunk_health.failed:
+            return True
+        if queued:
+            volumes_so_far()
+        return False
+
     with Progress(steps, "simulate", enabled=progress) as bar:
-        while done < n_full:
-            n = min(per_chunk, n_full - done)
-            state, fr, health = _rollout.rollout(sim, p, state, n, save_every, health=health,
-                                                 step0=done * save_every)
-            frames.append(np.asarray(fr))
-            done += n
-            bar.update(n * save_every)
-            if health.failed:
-                break
-        if rem and not health.failed:
-            state, fr, health = _rollout.rollout(sim, p, state, 1, rem, health=health, step0=n_full * save_every)
-            frames.append(np.asarray(fr))
-            bar.update(rem)
+        # each chunk is queued behind the one before, and only then does the host take that one:
+        # the rollouts run back to back while the host copies frames and draws the bar
+        last = None
+        for n, every, step0 in chunks:
+            out = _rollout.rollout(sim, p, state, n, every, health=health, step0=step0)
+            if last is not None and take(*last, queued=True):
+                break                        # the previous chunk failed: this one goes unused
+            state, fr, health = out
+            last = (fr, health, n * every)
+        else:
+            take(*last, queued=False)
     jax.block_until_ready(state)
     wall = time.perf_counter() - t0
     if health.failed:
@@ -224,7 +244,7 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
                                   diagnostics.MESSAGES[diagnostics.CONTACT_OVERFLOW], hint=report)
         # (the stability hint compiles an estimate: only for a failure that is reported)
         raise SimulationError(step, obj, scene.objects[obj].name, diagnostics.MESSAGES[code], hint=_hint(sim, p))
-    positions = np.concatenate([frames[0][None]] + frames[1:], axis=0)
+    positions = np.concatenate(frames, axis=0)
     saved = np.arange(len(positions)) * save_every
     saved[-1] = steps
     warn = np.asarray(health.warn_step)
@@ -233,9 +253,10 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
                f"(first seen at step {int(warn[o])})")
         warnings.warn(msg, stacklevel=2)
         notes.append(msg)
+    volumes_so_far()
     return Trajectory(
         positions=positions, times=saved * sim.dt, faces=scene.faces, object_id=scene.object_id,
-        object_names=scene.object_names, volumes=np.stack([scene.volumes(x) for x in positions]),
+        object_names=scene.object_names, volumes=np.stack([v for block in volumes for v in block]),
         params=p.as_numpy(), dt=sim.dt, steps=steps, save_every=save_every, integrator=sim.integrator,
         floor=scene.floor, gravity=scene.gravity, temperature=scene.temperature, scene_text=scene.text,
         scene_path=scene.path, wall_time=wall, warnings=tuple(notes), substeps=sim.substeps)

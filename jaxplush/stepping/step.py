@@ -101,7 +101,10 @@ class Simulator:
         ``drag`` for a scene without drag), which would otherwise be ignored, or when a parameter
         is not (O,) (``k_structural`` may also be an (E,) per-edge field)."""
         p = self.scene.params if scene_params is None else scene_params
-        out = Params(*(jnp.asarray(np.asarray(a), self.dtype) for a in p))
+        # jnp.asarray(np.asarray(a), self.dtype) converts on the host too, then dispatches a
+        # one-op compiled conversion: device_put the host array instead (the same array; no
+        # program to trace, lower and load from the persistent cache in a fresh process)
+        out = Params(*(jax.device_put(np.asarray(np.asarray(a), self.dtype)) for a in p))
         model.check_param_shapes(self.topology, out)
         model.check_params(self.terms, out)
         return out
