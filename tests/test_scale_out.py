@@ -44,6 +44,10 @@ def _run_with_devices(n, out):
     return dict(np.load(out))
 
 
+# CI's heavy tier: a subprocess with four forced devices compiles every program again (XLA_FLAGS key the
+# cache), 2-5 min on 2 cores. The default run covers the grouping of chunks over devices in
+# test_a_batch_is_split_one_chunk_per_device and two processes in test_two_processes_write_the_one_process_file.
+@pytest.mark.heavy
 @pytest.mark.skipif(jax.default_backend() != "cpu" or len(jax.local_devices()) != 1,
                     reason="compares a forced 4-device CPU run with this one-device CPU process")
 def test_four_devices_give_the_one_device_results_bit_for_bit(tmp_path):
