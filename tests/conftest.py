@@ -54,24 +54,14 @@ COST_ORDER = (
     "test_fit_cli.py", "test_tracks.py", "test_predictability.py", "test_targets.py",
 )
 
-#: Files whose tests a worker may take one at a time (no module- or session-scoped fixture, no
-#: order between their tests): the long ones, so that one file does not hold one worker alone.
-#: Every other file goes to one worker whole (its module fixtures are built once, and
-#: tests/test_docs.py runs its blocks in document order).
-SPLIT_FILES = frozenset({
-    "test_user_grad.py", "test_kfield.py", "test_batched_contact.py", "test_driven.py", "test_exact_jacobian.py",
-    "test_contact.py", "test_integrators.py", "test_physics.py", "test_gradients.py", "test_term_vjp.py",
-    "test_scale_out.py", "test_smooth_floor.py",
-})
-
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.path.name in NUMERIC_FILES:
             item.add_marker(pytest.mark.numeric)
-        if item.path.name not in SPLIT_FILES:
-            item.add_marker(pytest.mark.xdist_group(item.path.name))
+        # a file goes to one worker whole: its module fixtures and compiled programs are built once
+        item.add_marker(pytest.mark.xdist_group(item.path.name))
     rank = {name: i for i, name in enumerate(COST_ORDER)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))     # stable: file order kept within
 
