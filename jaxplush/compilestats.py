@@ -155,25 +155,11 @@ class CompileClock:
             self._stopped = self.timing()
         return self._stopped
 
-    @property
-    def wall_s(self):
-        return self.timing().wall_s
-
-    @property
-    def compile_s(self):
-        return self.timing().compile_s
-
-    @property
-    def trace_s(self):
-        return self.timing().trace_s
-
-    @property
-    def programs(self):
-        return self.timing().programs
-
-    @property
-    def cache_hits(self):
-        return self.timing().cache_hits
+    def __getattr__(self, name):
+        # wall_s, compile_s, trace_s, programs, cache_hits: read off the Timing so far
+        if name in Timing.__dataclass_fields__:
+            return getattr(self.timing(), name)
+        raise AttributeError(name)
 
 
 def compile_clock():
