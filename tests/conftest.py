@@ -41,10 +41,14 @@ NUMERIC_FILES = frozenset({
 
 
 #: Test files by what they cost in a cold run (seconds on 2 cores, empty compilation cache, measured
-#: with ``--durations``), most first. The parallel run (``--dist loadgroup --no-loadscope-reorder``,
-#: pyproject.toml) hands work out in this order, so the long files start first and the two workers
-#: finish together instead of one waiting on a long file that started last. A file not listed runs
-#: after these, in collection order; the list only orders, it never selects.
+#: with ``--durations``), most first. The parallel run hands work out in this order, so the long
+#: files start first and the two workers finish together instead of one waiting on a long file that
+#: started last. A file goes to one worker whole (``--dist loadfile --no-loadscope-reorder``,
+#: pyproject.toml), so its module fixtures and compiled programs are built once and
+#: tests/test_docs.py runs its blocks in document order. (``--dist loadgroup`` with an
+#: ``xdist_group`` mark per file does not group under pytest 9.2, which no longer lets pytest-xdist
+#: 3.8 rename node ids.) A file not listed runs after these, in collection order; the list only
+#: orders, it never selects.
 COST_ORDER = (
     "test_user_grad.py", "test_kfield.py", "test_kfield_fit.py", "test_objects_stage.py",
     "test_partial_targets.py", "test_batched_contact.py", "test_docs.py", "test_driven.py", "test_shooting.py",
@@ -60,8 +64,6 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.path.name in NUMERIC_FILES:
             item.add_marker(pytest.mark.numeric)
-        # a file goes to one worker whole: its module fixtures and compiled programs are built once
-        item.add_marker(pytest.mark.xdist_group(item.path.name))
     rank = {name: i for i, name in enumerate(COST_ORDER)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))     # stable: file order kept within
 
