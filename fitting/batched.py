@@ -225,7 +225,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     check_terms(terms)
     dtype = jnp.result_type(float)
     topo = compiled.topology(scene)
-    model.check_precision(topo, dtype, scene.path)
+    model.check_precision(topo, dtype, scene.path, getattr(scene, "driven", ()))
     kernel = _make_force_fn(topo, terms, scene.temperature)
     touch = _make_contact(topo, terms, h)
     drive = _make_drive(scene, terms, h, substeps)

@@ -156,6 +156,9 @@ def _fit(args):
     names = _fit_mod.canonical_names(args.params) if args.params is not None else None
     options = _options(args, names)
     scene = jaxplush.load_scene(args.scene)
+    if args.noise is not None and not args.noise_free:
+        from jaxplush.fitting.problem import check_noise
+        check_noise(args.noise, scene, "--noise")
     if args.field:
         return _fit_field(args, scene, names, options)
     target = load_target(args.target, scene, args.dt, kind=args.target_kind)

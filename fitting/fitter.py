@@ -198,6 +198,7 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
     :class:`~jaxplush.compilestats.Timing` the result gets (None: one started here)."""
     from jaxplush.fitting import io as _io, lmfit
     clock = compile_clock() if clock is None else clock
+    _shooting.check_segments(opts.shooting, prob.target)
     box = _lm_box(prob, opts.search.bounds)
     settings = _lm_settings(prob, opts, box)
     checkpoint_path, want_ident = opts.checkpoint.path, opts.identifiability

@@ -20,7 +20,7 @@ import numpy as np
 import jaxplush
 from jaxplush.model import contact
 from jaxplush.model import forces as model
-from jaxplush.errors import JaxplushError
+from jaxplush.errors import JaxplushError, TrajectoryError
 from jaxplush.types import PARAM_NAMES, Params
 
 from jaxplush.fitting import identifiability as _ident
@@ -213,6 +213,11 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
     fit_scene = scene.replace(params=Params(**base))
     if noise is not None and not (np.isfinite(noise) and noise >= 0):
         raise JaxplushError(f"noise must be a number >= 0, got {noise!r}")
+    if not noise_free:
+        if noise is not None:
+            check_noise(noise, scene, "noise")
+        elif target.noise is not None:
+            check_noise(target.noise, scene, "attribute 'noise'", path=target.path)
     sim = _fit_simulator(scene, fit_scene, target, method)
     loss = _losses.make_loss(target, sim.topology, sim.dtype, noise=noise, noise_free=noise_free,
                              check_volume=sim.terms.gas)
@@ -220,6 +225,31 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
     sigma = None if noise_free else (target.noise if noise is None else float(noise))
     return Problem(scene=fit_scene, target=target, sim=sim, names=names, objects=objs,
                    base=Params(**base), theta0=theta0, loss=loss, method=method, noise=sigma)
+
+
+#: A measurement noise sigma must lie within these multiples of the scene's size (the diagonal of
+#: its rest bounding box): below, no measurement is that exact and sigma² underflows; above, the
+#: target carries no information about the shape (and sigma² overflows).
+NOISE_RANGE = (1e-9, 1e3)
+
+
+def check_noise(sigma, scene, what="noise", path=None):
+    """Refuse a noise sigma (m) > 0 outside :data:`NOISE_RANGE` times the scene's size: a
+    :class:`jaxplush.errors.JaxplushError` naming ``what`` (the option or attribute; with ``path``
+    a :class:`jaxplush.errors.TrajectoryError` of that file). 0 (noise-free) passes."""
+    sigma = float(sigma)
+    if sigma == 0:
+        return
+    size = float(np.linalg.norm(np.ptp(np.asarray(scene.vertices, np.float64), axis=0)))
+    lo, hi = NOISE_RANGE[0] * size, NOISE_RANGE[1] * size
+    if lo <= sigma <= hi:
+        return
+    why = (f"below {NOISE_RANGE[0]:g} of the scene's size ({size:.3g} m): no measurement is that exact; for an "
+           "exact target use noise-free (--noise-free)" if sigma < lo else
+           f"more than {NOISE_RANGE[1]:g} times the scene's size ({size:.3g} m): such a target says nothing "
+           "about the shape")
+    msg = f"{what} {sigma:g} m is {why}"
+    raise TrajectoryError(path, msg) if path is not None else JaxplushError(msg)
 
 
 def _default_param_objects(scene, objects):

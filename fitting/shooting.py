@@ -399,6 +399,21 @@ def segment_frames_for(prob):
     return max(MIN_SEGMENT, int(pred.horizon_time / h))
 
 
+def check_segments(setting, target, what="shooting (--shooting)"):
+    """Refuse frames per segment (an int ``setting``; "auto" and "off" pass) longer than the
+    fitted target's frames: a :class:`jaxplush.errors.JaxplushError` naming ``what``."""
+    if setting in ("auto", "off", None):
+        return
+    n, t = int(setting), int(target.n_frames)
+    if n < MIN_SEGMENT:
+        raise JaxplushError(f"{what} {n}: a segment needs at least {MIN_SEGMENT} frames")
+    if n > t:
+        frames = f"{t} frame" + ("s" if t != 1 else "")
+        fix = f"give at most {t}, auto or off" if t >= MIN_SEGMENT else "give auto or off"
+        raise JaxplushError(f"{what} {n}: segments of {n} frames are longer than the target, which has {frames} "
+                            f"after its start; {fix}")
+
+
 def plan(prob, setting="auto", refine=REFINE):
     """How to shoot a problem (after its predictability was measured).
 

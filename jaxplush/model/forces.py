@@ -160,10 +160,13 @@ def smooth_floor_for_scene(scene, topo=None):
 PRECISION_FRACTION = 1e-3
 
 
-def check_precision(topo, dtype, path="<scene>"):
+def check_precision(topo, dtype, path="<scene>", driven=()):
     """Refuse a scene whose coordinates ``dtype`` cannot resolve: the spacing of floats at the
     largest coordinate must be at most PRECISION_FRACTION of the shortest rest edge. (In float32
     an object 1e7 m from the origin cannot move at all, and 1e10 m away its edges collapse.)
+    The positions of the driven paths (``driven``, the scene's
+    :class:`jaxplush.scene.parse.DrivenPath` entries) are held to the same rule: a vertex driven
+    1e29 m away would tear its object apart.
 
     Raises:
       JaxplushError: naming the file, the magnitudes and the remedies.
@@ -178,6 +181,16 @@ def check_precision(topo, dtype, path="<scene>"):
             f"{path}: coordinates up to {scale:.3g} m with edges as short as {edge:.3g} m: {name} resolves only "
             f"{ulp:.3g} m at that distance from the origin, too coarse to simulate; translate the scene near "
             "the origin" + (", or run in float64 (--x64)" if name == "float32" else ""))
+    from jaxplush.stepping.constraints import driven_origin
+    for d in driven:
+        far = float(np.max(np.abs(d.positions))) if np.size(d.positions) else 0.0
+        ulp = far * float(np.finfo(np.dtype(dtype)).eps)
+        if edge > 0 and ulp > PRECISION_FRACTION * edge:
+            name = np.dtype(dtype).name
+            what = f"'driven' path file {d.source!r}" if d.line else "dataset 'controls/positions'"
+            raise driven_origin(d, path)(
+                f"{what}: positions up to {far:.3g} m from the origin, with edges as short as {edge:.3g} m: {name} "
+                f"resolves only {ulp:.3g} m there, too coarse to simulate; keep the path near the scene")
 
 
 @dataclasses.dataclass(frozen=True)

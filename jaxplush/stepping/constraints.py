@@ -37,6 +37,35 @@ def landing_velocity(y_old, height, h):
     return (height - y_old) / h
 
 
+#: The last step number a run can reach (the step counter is int32): a release time at or beyond
+#: MAX_STEPS steps is refused, since no run could ever reach it.
+MAX_STEPS = int(np.iinfo(np.int32).max) - 1
+
+
+def driven_origin(d, scene_path):
+    """Where a :class:`jaxplush.scene.parse.DrivenPath` was given, for an error message: the scene
+    file and line of its ``driven`` keyword, or the target file's ``controls`` group."""
+    from jaxplush.errors import SceneError, TrajectoryError
+    if d.line:
+        return lambda reason: SceneError(scene_path, d.line, reason)
+    return lambda reason: TrajectoryError(d.file, reason)
+
+
+def release_step(d, h, scene_path="<scene>"):
+    """The first substep (of length ``h``) in which the vertices of driven path ``d`` are free:
+    floor(until / h), decided in integers (k + 1 <= T / h). A release time so late that no run's
+    step counter reaches it raises a :class:`jaxplush.errors.JaxplushError` (a
+    :class:`~jaxplush.errors.SceneError` naming the scene line, or a
+    :class:`~jaxplush.errors.TrajectoryError` naming the target's ``controls/until``)."""
+    steps = float(d.until) / float(h) * (1 + 1e-12)
+    if not (np.isfinite(steps) and steps < MAX_STEPS):
+        what = f"'driven' release time 'until {d.until:g}'" if d.line else f"attribute 'controls/until' = {d.until:g}"
+        raise driven_origin(d, scene_path)(
+            f"{what} s is {steps:.3g} steps of {h:g} s, beyond any run (at most {MAX_STEPS} steps); leave it out "
+            "to drive the vertices throughout the run")
+    return int(np.floor(steps))
+
+
 class Drive:
     """The driven vertices of a scene (``scene.driven``) as constants of a step of length ``h``
     (docs/model.md §10). Substep k advances t_k = k h to t_{k+1} = (k + 1) h; a path is linear
@@ -56,7 +85,7 @@ class Drive:
         for d in scene.driven:
             pos = np.ascontiguousarray(np.transpose(d.positions, (2, 1, 0)))     # (3, Dg, S)
             self.groups.append((np.asarray(d.times, np.float64), pos))
-            r = np.iinfo(np.int32).max if d.until is None else int(np.floor(d.until / self.h * (1 + 1e-12)))
+            r = np.iinfo(np.int32).max if d.until is None else release_step(d, self.h, scene.path)
             release += [r] * len(d.vertices)
         self.index = np.asarray(scene.driven_vertices, np.int32)
         self.release = np.asarray(release, np.int64) if any(d.until is not None for d in scene.driven) else None

@@ -172,7 +172,7 @@ def make_simulator(scene, dt, integrator="verlet", assembly="ring", terms=None, 
     h = dt / substeps
     dtype = jnp.result_type(float)
     topo = compiled.topology(scene)
-    model.check_precision(topo, dtype, scene.path)
+    model.check_precision(topo, dtype, scene.path, getattr(scene, "driven", ()))
     terms = model.Terms.for_scene(scene) if terms is None else terms
     kernel, cache_ops = model.make_force_fn(topo, terms, scene.temperature, assembly, h=h, with_cache=True)
     drive = constraints.Drive(scene, h) if terms.driven else None
