@@ -197,6 +197,67 @@ def _point_params(scene, axes, values):
     return Params(**out)
 
 
+#: The most points one sweep may have, whatever the memory (a bound of its own, so that a machine
+#: whose free memory is unknown still refuses an absurd grid before building it).
+MAX_POINTS = 2 ** 31 - 1
+
+
+def point_bytes(scene, n_axes, n_frames=0, itemsize=4):
+    """Host memory (bytes, an estimate) one sweep point needs: its swept values (three float64
+    copies at the peak of the cartesian product), its parameters (six float64 per object), its
+    final positions and ``n_frames`` saved frames (``itemsize`` bytes a coordinate, twice: the
+    batches' results and their concatenation), its summaries, failure record and loss."""
+    n_obj = max(1, len(getattr(scene, "objects", ()) or ()))
+    shape = int(np.shape(scene.vertices)[0]) * 3 * int(itemsize)
+    return 24 * int(n_axes) + 48 * n_obj + 2 * shape * (1 + int(n_frames)) + 64 * n_obj + 16
+
+
+def available_memory():
+    """Bytes of memory available to this process now (Linux: MemAvailable), or None if unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def _fmt_bytes(n):
+    for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{int(n)} bytes"
+
+
+def check_sweep_size(scene, n_points, n_axes, n_frames=0, itemsize=4):
+    """Before anything is allocated: a :class:`SweepError` (saying how many points were asked
+    and the limit) when ``n_points`` exceed :data:`MAX_POINTS` or their results
+    (:func:`point_bytes` each) would not fit in the memory available now."""
+    n_points = int(n_points)
+    each = point_bytes(scene, n_axes, n_frames, itemsize)
+    avail = available_memory()
+    room = MAX_POINTS if avail is None else min(MAX_POINTS, avail // each)
+    if n_points <= room:
+        return
+    need = f"{n_points:,} points would need about {_fmt_bytes(n_points * each)} of memory " \
+           f"({_fmt_bytes(each)} a point" + (f", {n_frames} saved frames each" if n_frames else "") + ")"
+    if avail is not None and avail // each < MAX_POINTS:
+        raise SweepError(f"{need}; {_fmt_bytes(avail)} is available, room for at most {max(0, room):,} points")
+    raise SweepError(f"{need}; a sweep has at most {MAX_POINTS:,} points")
+
+
+def _n_points(axes, kind):
+    """The number of points, from the axes' lengths (nothing allocated)."""
+    if kind == "grid":
+        return math.prod(len(a.values) for a in axes)
+    return len(axes[0].values)
+
+
 def _normalise_points(points):
     if isinstance(points, (list, tuple)):
         if not points or not all(isinstance(p, dict) for p in points):
@@ -606,14 +667,20 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
         raise SweepError("give exactly one of grid (a cartesian product) or points")
     kind = "grid" if grid is not None else "points"
     axes = _axes(scene, grid if grid is not None else _normalise_points(points), kind)
-    values = _point_values(axes, kind)
-    pparams = _point_params(scene, axes, values)
     steps = _positive_int(steps, "steps")
     dt = float(dt)
     if not (np.isfinite(dt) and dt > 0):
         raise SweepError(f"dt must be a positive number, got {dt!r}")
     if save_every is not None:
         save_every = _positive_int(save_every, "save_every")
+    try:                                 # before the points are made: a MemoryError is no answer
+        check_sweep_size(scene, _n_points(axes, kind), len(axes),
+                         0 if save_every is None else steps // save_every + 2,
+                         8 if jax.config.jax_enable_x64 else 4)
+    except SweepError as e:
+        raise SweepError(f"{kind}: {e}") from None
+    values = _point_values(axes, kind)
+    pparams = _point_params(scene, axes, values)
     batch = default_batch() if batch is None else _positive_int(batch, "batch")
     tgt = tkind = tsteps = tdata = None
     if target is not None:
@@ -842,9 +909,13 @@ class _Checkpoint:
         if jax.process_index() == 0:
             if os.path.exists(self.path) and not os.path.isdir(self.path):
                 raise SweepError(f"{self.path}: the checkpoint must be a directory, this is a file")
-            os.makedirs(self.path, exist_ok=True)
-            if not os.path.exists(where):
-                self._write(where, lambda f: f.write(json.dumps(plan).encode()))
+            try:
+                os.makedirs(self.path, exist_ok=True)
+                if not os.path.exists(where):
+                    self._write(where, lambda f: f.write(json.dumps(plan).encode()))
+            except OSError as e:         # a file on the way, no permission, a read-only filesystem
+                raise SweepError(f"{self.path}: cannot create the checkpoint directory: "
+                                 f"{e.strerror or e}") from None
         self.barrier("plan")
         try:
             with open(where) as f:

@@ -232,3 +232,208 @@ def test_cli_exit_codes_on_mutated_scenes(tmp_path, muts):
 @given(st.lists(mutation, min_size=1, max_size=8))
 def test_many_cli_exit_codes(tmp_path, muts):
     test_cli_exit_codes_on_mutated_scenes.hypothesis.inner_test(tmp_path, muts)
+
+
+# --------------------------------------------------------------------------- the newer inputs
+# driven paths and their release times, controls, tracks and ragged clouds, the noise attribute and
+# option, and --shooting: each with extreme finite values as well as malformed ones. An accepted
+# input must then build its simulator and loss (nothing is compiled); a refused one is a
+# JaxplushError naming the file (or the option). The sweep's, capture's and viewer's options are
+# fuzzed in their own sections below.
+
+EXTREME = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True, width=64),
+    st.sampled_from([0.0, -0.0, 5e-324, 1e-300, 1e-30, 1e-9, 1e-3, 0.5, 1e9, 1e30, 9e29, 1e300,
+                     1.7976931348623157e308, -1e300, -1.0]))
+TOKEN = st.one_of(EXTREME.map(repr), st.sampled_from(["x", "", "1e", "0x10", "nan", "inf", "-inf", "-", "1/2", "1e999"]))
+FEW = 15
+FUZZ_DT = 5e-4
+
+
+def _small_fit_scene():
+    return jaxplush.parse_scene(icosphere_text(subdivisions=0, damping=500.0), "fuzz.obj")
+
+
+def _build(scene, target, **kw):
+    """build_problem: a Problem, or None after a JaxplushError (never another exception)."""
+    import warnings
+    from jaxplush.errors import JaxplushError
+    from jaxplush.fitting import fitter as F
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            prob = F.build_problem(scene, target, ("k_structural",), **kw)
+    except JaxplushError:
+        return None
+    assert np.isfinite(prob.loss.scale2) and prob.loss.scale2 > 0
+    return prob
+
+
+def _driven_case(tmp_path, until, offsets, times):
+    v0 = trimesh_vertex0()
+    rows = ["t,c0,c1,c2"] + [f"{t},{v0[0] + o!r},{v0[1]!r},{v0[2]!r}" for t, o in zip(times, offsets)]
+    (tmp_path / "p.csv").write_text("\n".join(rows) + "\n")
+    line = "driven p.csv 1" + ("" if until is None else f" until {until}")
+    path = tmp_path / "d.obj"
+    path.write_text(icosphere_text(subdivisions=0, extra=line))
+    from jaxplush.errors import JaxplushError
+    try:
+        scene = jaxplush.load_scene(path)
+        jaxplush.make_simulator(scene, FUZZ_DT)
+    except JaxplushError as e:
+        assert str(e).startswith(str(path)), str(e)
+
+
+def trimesh_vertex0():
+    import trimesh
+    return trimesh.creation.icosphere(subdivisions=0, radius=0.1).vertices[0].tolist()
+
+
+driven_args = (st.one_of(st.none(), TOKEN), st.lists(EXTREME, min_size=1, max_size=3),
+               st.sampled_from([["0.0", "1.0", "2.0"], ["0.0", "0.0", "1.0"], ["1e300", "1e301", "1e302"],
+                                ["-1e30", "0.0", "1e30"], ["nan", "1", "2"], ["0", "5e-324", "1e-323"]]))
+
+
+@settings(max_examples=FEW, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*driven_args)
+def test_driven_paths_and_release_times_are_accepted_or_scene_errors(tmp_path, until, offsets, times):
+    _driven_case(tmp_path, until, offsets, times[:len(offsets)])
+
+
+@pytest.mark.fuzz
+@settings(max_examples=MANY // 4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*driven_args)
+def test_many_driven_paths(tmp_path, until, offsets, times):
+    _driven_case(tmp_path, until, offsets, times[:len(offsets)])
+
+
+@pytest.fixture(scope="module")
+def fit_case(tmp_path_factory):
+    """A 12-vertex ball and its 3-frame positions target (two frames after the start)."""
+    scene = _small_fit_scene()
+    d = tmp_path_factory.mktemp("fuzz_fit")
+    target = make_target(scene, 20, FUZZ_DT, 10)
+    target.save(d / "t.h5", scene)
+    (d / "s.obj").write_text(icosphere_text(subdivisions=0, damping=500.0))
+    return scene, target, d
+
+
+def _controls_case(fit_case, tmp_path, until, value, times):
+    scene, target, d = fit_case
+    path = tmp_path / "c.h5"
+    path.write_bytes((d / "t.h5").read_bytes())
+    with h5py.File(path, "a") as f:
+        g = f.create_group("controls")
+        g["vertices"] = np.array([3])
+        g["times"] = np.asarray(times, np.float64)
+        g["positions"] = np.broadcast_to(scene.vertices[3] + value, (len(times), 1, 3)).copy()
+        if until is not None:
+            g.attrs["until"] = until
+    try:
+        loaded = load_target(path, scene)
+    except TrajectoryError as e:
+        assert e.path == str(path)
+        return
+    _build(scene, loaded)
+
+
+controls_args = (st.one_of(st.none(), EXTREME), EXTREME,
+                 st.sampled_from([[0.0, 0.01], [0.0], [0.0, 1e300], [1e-300, 2e-300], [0.0, 0.01, 0.02]]))
+
+
+@settings(max_examples=FEW, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*controls_args)
+def test_controls_are_loaded_and_built_or_trajectory_errors(fit_case, tmp_path, until, value, times):
+    _controls_case(fit_case, tmp_path, until, value, times)
+
+
+@pytest.mark.fuzz
+@settings(max_examples=MANY // 4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*controls_args)
+def test_many_controls(fit_case, tmp_path, until, value, times):
+    _controls_case(fit_case, tmp_path, until, value, times)
+
+
+def _cloud_case(fit_case, tmp_path, kind, values, holes, index, noise):
+    scene, target, d = fit_case
+    path = tmp_path / "k.h5"
+    t, m = 2, 4
+    data = np.broadcast_to(np.asarray(values + [0.0] * (3 - len(values)))[:3], (t, m, 3)).copy()
+    data += scene.vertices[:m][None] if np.all(np.isfinite(data)) and np.abs(data).max() < 1e3 else 0.0
+    for frame, row in holes:                                        # NaN rows: no point / not seen
+        data[frame % t, row % m] = np.nan
+    with h5py.File(path, "w") as f:
+        f[kind] = data
+        f["times"] = np.array([0.005, 0.01])
+        if kind == "tracks":
+            f["track_vertex"] = np.array([0, 1, 2, index])
+        if noise is not None:
+            f.attrs["noise"] = noise
+    try:
+        loaded = load_target(path, scene, kind=kind)
+    except TrajectoryError as e:
+        assert e.path == str(path)
+        return
+    _build(scene, loaded)
+
+
+cloud_args = (st.sampled_from(["points", "tracks"]), st.lists(EXTREME, min_size=1, max_size=3),
+              st.lists(st.tuples(st.integers(0, 3), st.integers(0, 7)), max_size=6),
+              st.sampled_from([3, 11, 12, -1, 2 ** 40]), st.one_of(st.none(), EXTREME))
+
+
+@settings(max_examples=FEW, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*cloud_args)
+def test_tracks_and_ragged_clouds_are_loaded_and_built_or_trajectory_errors(fit_case, tmp_path, kind, values,
+                                                                            holes, index, noise):
+    _cloud_case(fit_case, tmp_path, kind, values, holes, index, noise)
+
+
+@pytest.mark.fuzz
+@settings(max_examples=MANY // 4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*cloud_args)
+def test_many_tracks_and_clouds(fit_case, tmp_path, kind, values, holes, index, noise):
+    _cloud_case(fit_case, tmp_path, kind, values, holes, index, noise)
+
+
+def _fit_cli_case(fit_case, tmp_path, noise, shooting):
+    """``jaxplush-fit`` with a --noise and a --shooting that between them always refuse (every
+    --shooting is longer than the target's two frames after its start, or malformed; a valid
+    --noise leaves the refusal to it): exit 2, one line, nothing written."""
+    from jaxplush.fitting import cli as fit_cli
+    _, _, d = fit_case
+    out = tmp_path / "FIT.h5"
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        rc = fit_cli.main([str(d / "s.obj"), str(d / "t.h5"), "--noise", noise, "--shooting", shooting,
+                           "--out", str(out), "--quiet"])
+    assert rc == 2, err.getvalue()
+    lines = err.getvalue().strip().splitlines()      # argparse's own errors come after its usage line
+    assert lines[-1].startswith("jaxplush-fit: error: ") and "Traceback" not in err.getvalue(), err.getvalue()
+    assert len(lines) == 1 or lines[0].startswith("usage: "), err.getvalue()
+    assert not out.exists()
+
+
+fit_cli_args = (TOKEN, st.one_of(st.integers(3, 10 ** 18).map(str), st.integers(-5, 1).map(str),
+                                 st.sampled_from(["1e9", "x", "", "2.5", "-", "auto0", "1e999"])))
+
+
+@settings(max_examples=FEW, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*fit_cli_args)
+def test_fit_noise_and_shooting_options_are_refused_cleanly(fit_case, tmp_path, noise, shooting):
+    _fit_cli_case(fit_case, tmp_path, noise, shooting)
+
+
+@pytest.mark.fuzz
+@settings(max_examples=MANY // 4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*fit_cli_args)
+def test_many_fit_noise_and_shooting_options(fit_case, tmp_path, noise, shooting):
+    _fit_cli_case(fit_case, tmp_path, noise, shooting)
+
+
+@settings(max_examples=FEW, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(EXTREME)
+def test_noise_values_build_or_are_refused(fit_case, noise):
+    """The noise option of the API: a Problem with a finite, positive loss scale, or a JaxplushError."""
+    scene, target, _ = fit_case
+    _build(scene, target, noise=noise)

@@ -150,3 +150,18 @@ def test_segments_longer_than_the_target_are_refused(fit_files, tmp_path, capsys
     msg = _one_error_line(capsys, "jaxplush-fit")
     assert f"(--shooting) {frames}: segments of {frames} frames are longer than the target, which has 1 frame" in msg
     assert not out.exists()
+
+
+def test_a_driven_path_whose_speed_overflows_is_refused(tmp_path):
+    """Found by the fuzzing of this issue: samples 5e-324 s apart gave an infinite start velocity
+    (a numpy RuntimeWarning, then a run that blows up)."""
+    v = trimesh.creation.icosphere(subdivisions=1, radius=0.1).vertices[0].tolist()
+    (tmp_path / "p.csv").write_text(f"t,c0,c1,c2\n0.0,{v[0]!r},{v[1]!r},{v[2]!r}\n5e-324,{v[0] + 0.01!r},{v[1]!r},"
+                                    f"{v[2]!r}\n")
+    (tmp_path / "s.obj").write_text(icosphere_text(extra="driven p.csv 1"))
+    scene = jaxplush.load_scene(tmp_path / "s.obj")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(SceneError, match=r"s.obj:\d+: 'driven' path file 'p.csv': the speed between samples 0 "
+                                             r"and 1 .* overflows"):
+            jaxplush.make_simulator(scene, DT)

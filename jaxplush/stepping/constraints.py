@@ -66,6 +66,23 @@ def release_step(d, h, scene_path="<scene>"):
     return int(np.floor(steps))
 
 
+def check_path_speed(d, scene_path="<scene>"):
+    """Refuse a driven path whose speed between two samples is not a finite float64 (samples
+    5e-324 s apart, or positions 1e308 m apart): the vertex would leave with an infinite velocity."""
+    times = np.asarray(d.times, np.float64)
+    if len(times) < 2:
+        return
+    with np.errstate(all="ignore"):
+        speed = np.diff(np.asarray(d.positions, np.float64), axis=0) / np.diff(times)[:, None, None]
+    bad = ~np.isfinite(speed).all(axis=(1, 2))
+    if bad.any():
+        i = int(np.argmax(bad))
+        what = f"'driven' path file {d.source!r}" if d.line else "dataset 'controls/positions'"
+        raise driven_origin(d, scene_path)(
+            f"{what}: the speed between samples {i} and {i + 1} (t = {times[i]:g} and {times[i + 1]:g} s) "
+            "overflows: space the samples further apart in time, or move the path less")
+
+
 class Drive:
     """The driven vertices of a scene (``scene.driven``) as constants of a step of length ``h``
     (docs/model.md §10). Substep k advances t_k = k h to t_{k+1} = (k + 1) h; a path is linear
@@ -87,6 +104,7 @@ class Drive:
             self.groups.append((np.asarray(d.times, np.float64), pos))
             r = np.iinfo(np.int32).max if d.until is None else release_step(d, self.h, scene.path)
             release += [r] * len(d.vertices)
+            check_path_speed(d, scene.path)
         self.index = np.asarray(scene.driven_vertices, np.int32)
         self.release = np.asarray(release, np.int64) if any(d.until is not None for d in scene.driven) else None
         # at t = 0 (numpy): positions and the path's velocity, the slope of the interpolant from the right
