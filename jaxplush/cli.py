@@ -21,8 +21,20 @@ EXIT_USAGE = 2
 EXIT_FAILED = 3
 #: Most steps a run may take (the rollout's step counters are int32).
 MAX_STEPS = 2 ** 31 - 1
-#: Largest trajectory file ``simulate`` writes.
+#: Largest trajectory file ``simulate`` writes (and largest 'tracks' dataset ``capture`` writes).
 MAX_OUTPUT_BYTES = 8 * 2 ** 30
+#: Most rays (pixels) of a ``capture`` image.
+MAX_PIXELS = 2 ** 22
+#: ``capture``: the largest --noise and the camera's range, in multiples of the scene's extent
+#: (the same numbers as jaxplush.io.capture.MAX_NOISE_EXTENTS and CAMERA_RANGE, which a test
+#: compares; repeated here so that --help imports no JAX)
+MAX_NOISE_EXTENTS = 1.0
+CAMERA_RANGE = 1e4
+
+
+def _times(factor):
+    """A multiple of a length in words: nothing for 1, else "F times "."""
+    return "" if factor == 1 else f"{factor:g} times "
 
 
 def _parser():
@@ -72,16 +84,27 @@ def _parser():
                                        "also tracked surface points")
     c.add_argument("trajectory", help="trajectory .h5 from 'jaxplush simulate'")
     c.add_argument("--out", required=True, help="output target (.h5), points padded with NaN rows")
-    c.add_argument("--eye", required=True, help="camera position X,Y,Z in m")
+    c.add_argument("--eye", required=True,
+                   help="camera position X,Y,Z in m, within %g times the scene's extent (the diagonal of the "
+                        "box holding every vertex of every frame) of the scene's centre" % CAMERA_RANGE)
     c.add_argument("--look-at", default=None,
-                   help="the point the camera looks at, X,Y,Z in m (default: the first frame's centre)")
-    c.add_argument("--up", default="0,1,0", help="the image's up direction X,Y,Z (default 0,1,0)")
-    c.add_argument("--fov", type=float, default=60.0, help="vertical field of view, degrees (default 60)")
-    c.add_argument("--size", default="64x48", help="image WIDTHxHEIGHT in pixels, one ray each (default 64x48)")
-    c.add_argument("--noise", type=float, default=0.0, help="depth noise sigma along each ray, m (default 0)")
+                   help="the point the camera looks at, X,Y,Z in m, not at --eye and within the same range "
+                        "(default: the first frame's centre)")
+    c.add_argument("--up", default="0,1,0",
+                   help="the image's up direction X,Y,Z, not parallel to the viewing direction from --eye to the "
+                        "look-at point (default 0,1,0)")
+    c.add_argument("--fov", type=float, default=60.0,
+                   help="vertical field of view, degrees, in (0, 180) (default 60)")
+    c.add_argument("--size", default="64x48",
+                   help="image WIDTHxHEIGHT in pixels, one ray each, at most %s pixels in all (default 64x48)"
+                        % f"{MAX_PIXELS:,}")
+    c.add_argument("--noise", type=float, default=0.0,
+                   help="depth noise sigma along each ray, m: from 0 (default) to %sthe scene's extent "
+                        "(the diagonal of the box holding every vertex of every frame)" % _times(MAX_NOISE_EXTENTS))
     c.add_argument("--dropout", type=float, default=0.0,
-                   help="probability that a pixel's hit returns nothing (default 0)")
-    c.add_argument("--seed", type=int, default=0, help="seed of the noise and dropout (default 0)")
+                   help="probability in [0, 1) that a pixel's hit returns nothing (default 0)")
+    c.add_argument("--seed", type=int, default=0,
+                   help="seed of the noise and dropout, an integer >= 0 (default 0)")
     c.add_argument("--tracks", type=int, default=0,
                    help="also write N tracked surface points (random faces and barycentric coordinates from "
                         "--seed, Gaussian noise --noise per coordinate, each dropped from a frame with probability "
@@ -96,7 +119,9 @@ def _parser():
                                 "rollout against its target)")
     v.add_argument("--target", default=None,
                    help="overlay this fit target's positions, points or tracks at the frames whose times it has "
-                        "(default with a FIT.h5: the fit's target, when found)")
+                        "(default with a FIT.h5: the fit's target, when found); it must belong to FILE: as many "
+                        "vertices (positions), the same objects, faces and object_id where it records them, and "
+                        "the same objects at the same rest positions where both files store a scene")
     v.add_argument("--color", choices=("object", "strain"), default="object",
                    help="object: one colour per object (default); strain: edges coloured by edge length / rest "
                         "length (blue compressed, white 1, red stretched)")
@@ -234,15 +259,18 @@ def _render(args):
 def _view(args):
     """Serve the view until Ctrl-C (exit 130), or with --html write it and exit."""
     from jaxplush.errors import JaxplushError
-    from jaxplush.io.view import require_viser, view
+    from jaxplush.io.view import TargetMismatch, require_viser, view
     if args.max_frames < 2:
         raise JaxplushError(f"--max-frames must be >= 2, got {args.max_frames}")
     if not 0 <= args.port <= 65535:
         raise JaxplushError(f"--port must be 0 (a free one) to 65535, got {args.port}")
     require_viser()                                 # the install hint before any reading
     t = time.perf_counter()
-    v = view(args.file, target=args.target, color=args.color, max_frames=args.max_frames, html=args.html,
-             port=args.port, report=print)
+    try:
+        v = view(args.file, target=args.target, color=args.color, max_frames=args.max_frames, html=args.html,
+                 port=args.port, report=print)
+    except TargetMismatch as e:                     # only a given --target raises it
+        raise JaxplushError(f"--target {e.target}: {e.reason}") from None
     if args.html:
         print(f"wrote {args.html} ({len(v.html) / 2 ** 20:.1f} MiB, {time.perf_counter() - t:.1f} s): open it in "
               "any browser, offline")
@@ -366,16 +394,21 @@ def _vector(text, option):
 def _capture(args):
     from jaxplush.errors import JaxplushError
     from jaxplush.fitting.targets import Target
-    from jaxplush.io.capture import Camera, depth_capture, track_capture
+    from jaxplush.io.capture import Camera, NonFiniteCapture, depth_capture, track_capture
     from jaxplush.io.trajectory import load_trajectory
     check_output_path(args.out, (".h5", ".hdf5"))
-    if args.tracks < 0:
-        raise JaxplushError(f"--tracks must be a number of points >= 0, got {args.tracks}")
+    _check_capture_options(args)
     eye, up = _vector(args.eye, "--eye"), _vector(args.up, "--up")
+    if not any(up):
+        raise JaxplushError(f"--up must be a non-zero direction X,Y,Z, got {args.up!r}")
     look = None if args.look_at is None else _vector(args.look_at, "--look-at")
     size = args.size.lower().split("x")
     if len(size) != 2 or not all(t.isdigit() and int(t) >= 1 for t in size):
         raise JaxplushError(f"--size must be WIDTHxHEIGHT in whole pixels, e.g. 64x48, got {args.size!r}")
+    width, height = int(size[0]), int(size[1])
+    if width * height > MAX_PIXELS:
+        raise JaxplushError(f"--size {args.size} is {width * height:,} pixels, more than {MAX_PIXELS:,} "
+                            "(one ray each)")
     traj = load_trajectory(args.trajectory)
     meta, scene = _capture_metadata(args.trajectory, traj)      # checked before the casting
     controls = None
@@ -388,18 +421,27 @@ def _capture(args):
         except ValueError as e:
             raise JaxplushError(f"--controls: {e}") from None
     pos = np.asarray(traj["positions"], np.float64)
-    if look is None:
-        look = tuple(float(a) for a in pos[0].mean(axis=0))
+    if args.tracks and len(pos) * args.tracks * 24 > MAX_OUTPUT_BYTES:
+        raise JaxplushError(f"--tracks {args.tracks:,} would write {len(pos)} frames of {args.tracks:,} points "
+                            f"({len(pos) * args.tracks * 24 / 2 ** 30:.3g} GiB, more than "
+                            f"{MAX_OUTPUT_BYTES / 2 ** 30:.0f} GiB)")
+    look = _check_camera(args, pos, eye, look, up)
     try:
-        camera = Camera(eye=eye, target=look, up=up, fov_deg=args.fov, width=int(size[0]), height=int(size[1]))
+        camera = Camera(eye=eye, target=look, up=up, fov_deg=args.fov, width=width, height=height)
+    except ValueError as e:                         # _check_camera has said why already; a safety net
+        raise JaxplushError(f"--eye, --look-at, --up, --fov, --size: {e}") from None
+    try:
         cap = depth_capture(pos, traj["faces"], camera, noise=args.noise, dropout=args.dropout, seed=args.seed)
         tracks = None if not args.tracks else track_capture(pos, traj["faces"], args.tracks, noise=args.noise,
                                                             dropout=args.dropout, seed=args.seed)
-    except ValueError as e:
+    except NonFiniteCapture as e:
+        raise JaxplushError(f"--noise {args.noise:g}: {e}; nothing written") from None
+    except ValueError as e:                         # the options are checked: what is left is the file's
         raise JaxplushError(f"{args.trajectory}: {e}") from None
     if cap.counts.max() == 0:
         raise JaxplushError(f"the camera at {args.eye} looking at {','.join(f'{a:g}' for a in look)} sees no "
                             f"object in any of the {len(pos)} frames: check --eye, --look-at and --fov")
+    _check_capture_finite(args, cap, tracks)        # never write an inf or NaN point (depth_capture checks too)
     extra = {}
     if tracks is not None:    # the faces they index travel with them
         extra = dict(tracks=tracks.tracks, track_face=tracks.face, track_barycentric=tracks.barycentric)
@@ -416,6 +458,80 @@ def _capture(args):
           f"{cap.counts.min()}-{cap.counts.max()} points a frame (mean {cap.counts.mean():.0f}), depth noise "
           f"{args.noise:g} m, dropout {args.dropout:g}{seen}; wrote {args.out}")
     return 0
+
+
+def _check_capture_options(args):
+    """The options of ``capture`` that need no trajectory: in range, each error naming its option."""
+    from jaxplush.errors import JaxplushError
+    if args.tracks < 0:
+        raise JaxplushError(f"--tracks must be a number of points >= 0, got {args.tracks}")
+    if args.seed < 0:
+        raise JaxplushError(f"--seed must be a non-negative integer, got {args.seed}")
+    if not 0 < args.fov < 180:
+        raise JaxplushError(f"--fov must be in (0, 180) degrees, got {args.fov:g}")
+    if not 0 <= args.dropout < 1:
+        raise JaxplushError(f"--dropout must lie in [0, 1) (a probability), got {args.dropout:g}")
+    if not (np.isfinite(args.noise) and args.noise >= 0):
+        raise JaxplushError(f"--noise must be a finite number >= 0 (m), got {args.noise:g}")
+
+
+def _point_text(p):
+    return ",".join(f"{a:g}" for a in p)
+
+
+def _check_camera(args, pos, eye, look, up):
+    """--noise, --eye, --look-at and --up against the trajectory's positions ``pos`` (T, V, 3); returns
+    the look-at point. The default look-at point is the first frame's centre; every rule is the same
+    with it as with a given --look-at."""
+    from jaxplush.errors import JaxplushError
+    from jaxplush.io import capture
+    try:
+        centre, size = capture.extent(pos)
+    except ValueError as e:
+        raise JaxplushError(f"{args.trajectory}: 'positions' {e}") from None
+    size = max(size, 1e-9)                          # every vertex at one point: still a scale to measure by
+    box = "the diagonal of the box holding every vertex of every frame"
+    if args.noise > MAX_NOISE_EXTENTS * size:
+        raise JaxplushError(f"--noise must be at most {_times(MAX_NOISE_EXTENTS)}the scene's extent "
+                            f"({MAX_NOISE_EXTENTS * size:.3g} m; the extent is {box}), got {args.noise:g}")
+    given = look is not None
+    if not given:
+        look = tuple(float(a) for a in pos[0].mean(axis=0))
+    look_name = (f"--look-at {args.look_at}" if given
+                 else f"the default look-at point {_point_text(look)} (the first frame's centre)")
+    points = [("--eye", args.eye, eye)] + ([("--look-at", args.look_at, look)] if given else [])
+    for option, text, p in points:
+        with np.errstate(over="ignore", invalid="ignore"):
+            off = capture.norm(np.subtract(p, centre))
+        if not off <= CAMERA_RANGE * size:
+            far = (f"{off:.3g} m from its centre {_point_text(centre)}" if np.isfinite(off)
+                   else f"the distance from its centre {_point_text(centre)} overflows")
+            raise JaxplushError(f"{option} {text} is too far from the scene: {far}, more than {CAMERA_RANGE:g} times "
+                                f"its extent of {size:.3g} m ({box})")
+    view = np.subtract(look, eye)
+    if capture.norm(view) == 0:
+        raise JaxplushError(f"--eye {args.eye} is at the look-at point ({look_name}): the camera has no viewing "
+                            "direction; " + ("move one of them" if given else "give --look-at"))
+    if capture.parallel(view, up):
+        raise JaxplushError(f"--up {args.up} must not be parallel to the viewing direction (from --eye {args.eye} to "
+                            f"{look_name}): give another --up")
+    return look
+
+
+def _check_capture_finite(args, cap, tracks):
+    """No real point of the capture, nor any seen track, has a non-finite coordinate."""
+    from jaxplush.errors import JaxplushError
+    real = np.arange(cap.points.shape[1])[None, :] < cap.counts[:, None]
+    bad = real & ~np.isfinite(cap.points).all(axis=2)
+    what = "'points'"
+    if not bad.any() and tracks is not None:
+        t = tracks.tracks
+        bad = ~np.isfinite(t).all(axis=2) & ~np.isnan(t).all(axis=2)
+        what = "'tracks'"
+    if bad.any():
+        frame = int(np.argwhere(bad)[0][0])
+        raise JaxplushError(f"--noise {args.noise:g}: the capture's {what} would hold non-finite coordinates "
+                            f"(first in frame {frame}); nothing written")
 
 
 def _capture_metadata(path, traj):

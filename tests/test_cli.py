@@ -453,7 +453,7 @@ def test_capture_writes_a_point_cloud_target_of_what_the_camera_sees(work, tmp_p
     (("--eye", "0,0.25,0.8", "--size", "40by30"), ("--size must be WIDTHxHEIGHT",)),
     (("--eye", "0,0.25,0.8", "--look-at", "0,0.25,2"), ("sees no object",)),
     (("--eye", "0,0.25,0.8", "--dropout", "1"), ("dropout must lie in [0, 1)",)),
-    (("--eye", "0,0.25,0.8", "--fov", "0"), ("fov_deg must lie in (0, 180)",)),
+    (("--eye", "0,0.25,0.8", "--fov", "0"), ("--fov must be in (0, 180) degrees",)),
 ])
 def test_capture_refuses_bad_cameras_and_writes_nothing(work, tmp_path, args, phrases):
     out = tmp_path / "scan.h5"

@@ -437,3 +437,67 @@ def test_noise_values_build_or_are_refused(fit_case, noise):
     """The noise option of the API: a Problem with a finite, positive loss scale, or a JaxplushError."""
     scene, target, _ = fit_case
     _build(scene, target, noise=noise)
+
+
+# --------------------------------------------------------------------------- the sweep's options
+# `jaxplush-fit sweep`'s checks (fitting/sweep_cli.py `_check`) run before JAX starts, anything is
+# written or a coordinator is contacted: every combination of grid specs, distributed options,
+# checkpoint paths and step options is accepted or a JaxplushError, and leaves no file behind.
+
+GRID = st.one_of(
+    st.builds(lambda a, b, n: f"k_structural={a}:{b}:{n}", TOKEN, TOKEN,
+              st.one_of(st.integers(-3, 10 ** 13).map(str), st.sampled_from(["x", "1e3", ""]))),
+    st.builds(lambda vals: "nmol=" + ",".join(vals), st.lists(TOKEN, min_size=1, max_size=3)),
+    st.sampled_from(["k_structural=50:150:3", "damping=", "=1:2:3", "bogus=1:2:3", "k_structural", "k_structural=1:2"]))
+DISTRIBUTED = st.one_of(st.just([]), st.builds(
+    lambda c, n, i, t: ["--distributed"] + c + n + i + t,
+    st.one_of(st.just([]), st.sampled_from(["not-an-address", "127.0.0.1:99999", "127.0.0.1:0", ":", "[::1]:80",
+                                            "host:-1", "a:b:c", "127.0.0.1:1234", ""]).map(lambda s: ["--coordinator", s])),
+    st.one_of(st.just([]), st.integers(-2, 10 ** 12).map(lambda n: ["--num-processes", str(n)])),
+    st.one_of(st.just([]), st.integers(-2, 10 ** 12).map(lambda n: ["--process-id", str(n)])),
+    st.one_of(st.just([]), TOKEN.map(lambda s: ["--connect-timeout", s]))))
+
+
+def _sweep_case(fit_case, tmp_path, grids, distributed, checkpoint, steps, dt):
+    from jaxplush.errors import JaxplushError
+    from jaxplush.fitting import sweep_cli
+    _, _, d = fit_case
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "S.h5"
+    argv = [str(d / "s.obj"), "--steps", steps, "--dt", dt, "--out", str(out)] + \
+        [a for g in grids for a in ("--grid", g)] + distributed + \
+        ([] if checkpoint is None else ["--checkpoint", checkpoint.replace("TMP", str(tmp_path))])
+    before = sorted(p.name for p in tmp_path.iterdir())
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            args = sweep_cli._parser().parse_args(sweep_cli.attach_negative_values(argv))
+    except SystemExit as e:
+        assert e.code == 2 and "Traceback" not in err.getvalue()
+        return
+    try:
+        sweep_cli._check(args)
+    except (JaxplushError, NotImplementedError) as e:
+        assert "\n" not in str(e), str(e)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+sweep_args = (st.lists(GRID, min_size=0, max_size=2), DISTRIBUTED,
+              st.one_of(st.none(), st.sampled_from(["TMP/afile/sub", "/proc/x", "TMP/new/deeper", "TMP", "",
+                                                    "TMP/S.h5"])),
+              st.sampled_from(["10", "0", "-1", "1e3", "99999999999999999999"]),
+              st.one_of(TOKEN, st.just("5e-4")))
+
+
+@settings(max_examples=FEW, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*sweep_args)
+def test_sweep_options_are_checked_before_anything_starts(fit_case, tmp_path, grids, distributed, checkpoint,
+                                                          steps, dt):
+    _sweep_case(fit_case, tmp_path, grids, distributed, checkpoint, steps, dt)
+
+
+@pytest.mark.fuzz
+@settings(max_examples=MANY // 4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*sweep_args)
+def test_many_sweep_options(fit_case, tmp_path, grids, distributed, checkpoint, steps, dt):
+    _sweep_case(fit_case, tmp_path, grids, distributed, checkpoint, steps, dt)

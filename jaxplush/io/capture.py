@@ -23,7 +23,10 @@ The ray casting is a Moeller-Trumbore test of every ray against every triangle, 
 under ``jax.jit`` (a few milliseconds per frame at 642 vertices and 64 x 48 pixels on two cores).
 A ray that grazes a triangle's plane (:data:`GRAZING`) misses it: its determinant would be rounding
 noise, and so would the hit it gives.
-Random draws come from a numpy generator seeded by ``seed``, so a capture is reproducible.
+Random draws come from a numpy generator seeded by ``seed`` (an integer >= 0), so a capture is
+reproducible. Every coordinate a capture returns is finite: a noise so large that a point would
+overflow is refused (ValueError), never written as inf. ``jaxplush capture`` checks its options
+against the trajectory's :func:`extent` first (:data:`MAX_NOISE_EXTENTS`, :data:`CAMERA_RANGE`).
 """
 
 from __future__ import annotations
@@ -42,6 +45,71 @@ RAY_BLOCK = 512
 #: cos of the angle between a ray and a triangle's normal below which the ray grazes the triangle
 #: and counts as a miss (1e-4: within 0.006 degrees of its plane)
 GRAZING = 1e-4
+#: sin of the angle between a camera's up direction and its view direction at or below which the
+#: two count as parallel (the image's sideways axis would be undefined or rounding noise)
+PARALLEL = 1e-6
+#: ``jaxplush capture``: the largest --noise, as a multiple of the trajectory's :func:`extent`
+MAX_NOISE_EXTENTS = 1.0
+#: ``jaxplush capture``: --eye and --look-at lie within this many times the trajectory's
+#: :func:`extent` of its centre (beyond it the float32 ray casting loses the object, and a
+#: camera's vectors could overflow)
+CAMERA_RANGE = 1e4
+
+
+class NonFiniteCapture(ValueError):
+    """The noise would put a captured point at a non-finite position (nothing is returned)."""
+
+
+def extent(frames):
+    """(centre (3,), extent) of (T, V, 3) or (V, 3) positions: the centre of the axis-aligned box
+    that holds every vertex of every frame, and the length of its diagonal, m (ValueError when
+    the positions are not finite or their box overflows)."""
+    x = np.asarray(frames, np.float64).reshape(-1, 3)
+    if x.size == 0 or not np.all(np.isfinite(x)):
+        raise ValueError("frames hold no positions or non-finite ones")
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        centre, diag = lo / 2 + hi / 2, norm(hi - lo)
+    if not (np.all(np.isfinite(centre)) and math.isfinite(diag)):
+        raise ValueError(f"frames span a box too large to compute with (from {lo.min():.3g} to {hi.max():.3g} m)")
+    return centre, float(diag)
+
+
+def norm(v):
+    """Euclidean length of the vector ``v`` without overflow or underflow on the way (inf only when
+    the length itself overflows)."""
+    v = np.asarray(v, np.float64)
+    m = float(np.max(np.abs(v))) if v.size else 0.0
+    if m == 0 or not math.isfinite(m):
+        return m
+    return m * float(np.sqrt(np.sum((v / m) ** 2)))
+
+
+def _unit(v):
+    """``v`` / its length (as ``v / np.linalg.norm(v)`` where that neither overflows nor underflows)."""
+    v = np.asarray(v, np.float64)
+    with np.errstate(over="ignore", under="ignore"):
+        n = np.linalg.norm(v)
+    if not (math.isfinite(n) and n > 1e-150):
+        v = v / np.max(np.abs(v))
+        n = np.linalg.norm(v)
+    return v / n
+
+
+def parallel(a, b):
+    """True when the 3-vectors ``a`` and ``b`` are parallel within :data:`PARALLEL` (or one is zero)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    na, nb = norm(a), norm(b)
+    if na == 0 or nb == 0:
+        return True
+    return norm(np.cross(a / na, b / nb)) <= PARALLEL
+
+
+def check_seed(seed):
+    """``seed`` as an int, or ValueError unless it is an integer >= 0 (numpy's generators take no other)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    return int(seed)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,7 +119,8 @@ class Camera:
     Attributes:
       eye: (3,) camera position, m.
       target: (3,) the point it looks at, m.
-      up: (3,) the direction that is up in the image (not parallel to the view direction).
+      up: (3,) the direction that is up in the image (non-zero, not parallel to the view
+        direction: within :data:`PARALLEL`).
       fov_deg: vertical field of view, degrees (0 < fov < 180).
       width, height: image size in pixels (one ray per pixel).
     """
@@ -69,10 +138,15 @@ class Camera:
             raise ValueError("eye, target and up must each be 3 numbers")
         if not (np.all(np.isfinite(eye)) and np.all(np.isfinite(target)) and np.all(np.isfinite(up))):
             raise ValueError("eye, target and up must be finite")
-        view = target - eye
-        if np.linalg.norm(view) == 0:
+        with np.errstate(over="ignore", invalid="ignore"):
+            view = target - eye
+        if not np.all(np.isfinite(view)) or not math.isfinite(norm(view)):
+            raise ValueError("the camera's eye and target lie too far apart (their difference overflows)")
+        if norm(view) == 0:
             raise ValueError("the camera's eye and target coincide")
-        if np.linalg.norm(np.cross(view, up)) <= 1e-9 * np.linalg.norm(view) * np.linalg.norm(up):
+        if norm(up) == 0:
+            raise ValueError("the camera's up direction is zero")
+        if parallel(view, up):
             raise ValueError("the camera's up direction is parallel to its view direction")
         if not 0 < self.fov_deg < 180:
             raise ValueError(f"fov_deg must lie in (0, 180), got {self.fov_deg!r}")
@@ -82,9 +156,8 @@ class Camera:
     def basis(self):
         """(forward, right, up) unit vectors of the camera frame."""
         eye, target, up = (np.asarray(v, np.float64) for v in (self.eye, self.target, self.up))
-        f = (target - eye) / np.linalg.norm(target - eye)
-        r = np.cross(f, up)
-        r /= np.linalg.norm(r)
+        f = _unit(target - eye)
+        r = _unit(np.cross(f, _unit(up)))
         return f, r, np.cross(r, f)
 
     def rays(self):
@@ -156,8 +229,12 @@ def track_capture(frames, faces, n, *, noise=0.0, dropout=0.0, seed=0):
       n: number of tracks (>= 1).
       noise: Gaussian noise sigma per coordinate, m (>= 0); dropout: probability in [0, 1) that a
         track is not seen in a frame.
-      seed: seed of the draws (the surface points, noise and dropout; independent of
-        :func:`depth_capture`'s draws with the same seed).
+      seed: seed of the draws, an integer >= 0 (the surface points, noise and dropout;
+        independent of :func:`depth_capture`'s draws with the same seed).
+
+    Raises:
+      ValueError: a bad argument; :class:`NonFiniteCapture` (a ValueError): a ``noise`` that would
+        put a track at a non-finite position.
     """
     x = np.asarray(frames, np.float64)
     faces = np.asarray(faces)
@@ -169,15 +246,28 @@ def track_capture(frames, faces, n, *, noise=0.0, dropout=0.0, seed=0):
         raise ValueError(f"noise must be a number >= 0 (m), got {noise!r}")
     if not 0 <= dropout < 1:
         raise ValueError(f"dropout must lie in [0, 1), got {dropout!r}")
-    rng = np.random.default_rng([seed, 1])          # a stream of its own beside depth_capture's
+    rng = np.random.default_rng([check_seed(seed), 1])     # a stream of its own beside depth_capture's
     face, bary = sample_barycentric(x[0], faces, int(n), rng)
     tracks = np.einsum("nk,tnkc->tnc", bary, x[:, faces[face]])
-    tracks = tracks + noise * rng.standard_normal(tracks.shape)
+    with np.errstate(over="ignore", invalid="ignore"):
+        tracks = tracks + noise * rng.standard_normal(tracks.shape)
+    _check_finite(tracks, "tracked point", noise)
     draw = rng.random(tracks.shape[:2])
     drop = draw < dropout
     drop[np.argmax(draw, axis=0), np.arange(tracks.shape[1])] = False
     tracks[drop] = np.nan
     return TrackCapture(tracks=tracks, face=face, barycentric=bary)
+
+
+def _check_finite(points, what, noise, frame=None):
+    """ValueError unless every row of ``points`` (..., 3) is finite, or NaN in all three coordinates
+    (a dropped track): a non-finite coordinate means the noise overflowed it."""
+    p = np.asarray(points)
+    bad = ~np.isfinite(p).all(axis=-1) & ~np.isnan(p).all(axis=-1)
+    if bad.any():
+        where = f" in frame {frame}" if frame is not None else f" in frame {int(np.argwhere(bad)[0][0])}"
+        raise NonFiniteCapture(f"noise {noise!r} m puts a {what}{where} at a non-finite position; the capture "
+                               "would hold inf or NaN coordinates")
 
 
 def _first_hits(origin, dirs, tri):
@@ -228,10 +318,14 @@ def depth_capture(frames, faces, camera, *, noise=0.0, dropout=0.0, seed=0):
       camera: :class:`Camera`.
       noise: depth noise sigma along each ray, m (>= 0).
       dropout: probability that a hit returns nothing, in [0, 1).
-      seed: seed of the noise and dropout draws.
+      seed: seed of the noise and dropout draws, an integer >= 0.
 
     Returns:
-      :class:`Capture`; frames that see nothing have count 0.
+      :class:`Capture`; frames that see nothing have count 0. Every real point is finite.
+
+    Raises:
+      ValueError: a bad argument; :class:`NonFiniteCapture` (a ValueError): a ``noise`` that would
+        put a point at a non-finite position.
     """
     x = np.asarray(frames, np.float64)
     if x.ndim == 2:
@@ -249,7 +343,7 @@ def depth_capture(frames, faces, camera, *, noise=0.0, dropout=0.0, seed=0):
         raise ValueError(f"noise must be a number >= 0 (m), got {noise!r}")
     if not 0 <= dropout < 1:
         raise ValueError(f"dropout must lie in [0, 1), got {dropout!r}")
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(check_seed(seed))
     eye = np.asarray(camera.eye, np.float64)
     dirs = camera.rays()
     hits = np.asarray(_frames_first_hits(jnp.asarray(eye), jnp.asarray(dirs), jnp.asarray(x[:, faces])), np.float64)
@@ -257,8 +351,10 @@ def depth_capture(frames, faces, camera, *, noise=0.0, dropout=0.0, seed=0):
     for t in hits:
         hit = np.isfinite(t)
         keep = hit & (rng.random(t.shape) >= dropout)
-        depth = t[keep] + noise * rng.standard_normal(int(keep.sum()))
-        kept.append(eye + depth[:, None] * dirs[keep])
+        with np.errstate(over="ignore", invalid="ignore"):
+            depth = t[keep] + noise * rng.standard_normal(int(keep.sum()))
+            kept.append(eye + depth[:, None] * dirs[keep])
+        _check_finite(kept[-1], "point", noise, frame=len(kept) - 1)
     counts = np.array([len(k) for k in kept], np.int64)
     points = np.full((len(kept), max(1, int(counts.max())), 3), np.nan)
     for i, k in enumerate(kept):

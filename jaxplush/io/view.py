@@ -29,7 +29,8 @@ import numpy as np
 from jaxplush.errors import JaxplushError, TrajectoryError
 from jaxplush.io.trajectory import atomic_path, check_output_path, open_hdf5
 
-__all__ = ["view", "LiveView", "StaticView", "ViewerUnavailable", "INSTALL_HINT", "COLORS", "SPEEDS"]
+__all__ = ["view", "LiveView", "StaticView", "ViewerUnavailable", "TargetMismatch", "INSTALL_HINT", "COLORS",
+           "SPEEDS"]
 
 #: How to get the optional dependency.
 INSTALL_HINT = 'pip install -e ".[viewer]" (in a checkout of jaxplush) or pip install "jaxplush[viewer]"'
@@ -82,6 +83,9 @@ class _Data:
     floor: float | None
     rest: np.ndarray            # (V, 3) rest positions (the scene's vertices, else frame 0)
     rest_source: str            # which, in words
+    object_id: np.ndarray | None = None   # (V,) each vertex's object, where the input records it
+    names_recorded: bool = True  # False: ``names`` are defaults ("object 0", ...), not the file's
+    scene_text: str | None = None  # the stored scene (a FIT.h5's, a trajectory's), for checking a target
     target: list | None = None  # per shown frame: (M, 3) float32 points, or None (no target frame then)
     target_kind: str | None = None
     target_path: str | None = None
@@ -101,12 +105,16 @@ def _read_input(source, max_frames):
         oid = np.asarray(getattr(source, "object_id", np.zeros(pos.shape[1], int)))
         faces = np.asarray(source.faces, np.int64)
         floor = getattr(source, "floor", None)
-        rest = _rest_from_text(getattr(source, "scene_text", None), pos.shape[1])
+        scene_text = getattr(source, "scene_text", None)
+        rest = _rest_from_text(scene_text, pos.shape[1])
         return _Data(path="<trajectory>", kind="trajectory", n_frames=len(pos), frames=frames, times=times[frames],
                      positions=pos[frames].astype(np.float32), faces=faces, face_object=oid[faces[:, 0]],
                      names=[str(n) for n in getattr(source, "object_names", ["object 0"])],
                      floor=None if floor is None or not math.isfinite(float(floor)) else float(floor),
-                     rest=pos[0] if rest is None else rest, rest_source="frame 0" if rest is None else "the scene")
+                     rest=pos[0] if rest is None else rest, rest_source="frame 0" if rest is None else "the scene",
+                     object_id=oid if hasattr(source, "object_id") else None,
+                     names_recorded=hasattr(source, "object_names"), scene_text=scene_text or None)
+    from jaxplush.io.render import _read_names
     path = os.fspath(source)
     with open_hdf5(path) as f:
         fit = "positions" not in f and ("fitted" in f or "checkpoint" in f)
@@ -117,17 +125,21 @@ def _read_input(source, max_frames):
         scene_text = _text_attr(f, "scene")
         scene_path = _text_attr(f, "scene_path") or path
         target_path = _text_attr(f, "target_path") if fit else None
+        names_recorded = bool(_read_names(f))
     if fit:
         return _read_fit(path, scene_text, scene_path, target_path, max_frames)
-    from jaxplush.io.render import _read_trajectory
+    from jaxplush.io.render import _read_objects, _read_trajectory
     t = _read_trajectory(path, None, max_frames)
     n_verts = t.positions.shape[1]
     rest = _rest_from_text(scene_text, n_verts, scene_path)
+    with open_hdf5(path) as f:                      # read and checked by _read_trajectory already
+        object_id = _read_objects(path, f, n_verts)[0] if "object_id" in f else None
     return _Data(path=path, kind="trajectory", n_frames=t.n_frames, frames=t.frames, times=t.times[t.frames],
                  positions=t.positions.astype(np.float32), faces=t.faces, face_object=t.face_object,
                  names=list(t.names), floor=t.floor if math.isfinite(t.floor) else None,
                  rest=t.positions[0] if rest is None else rest,      # frame 0 is always among those shown
-                 rest_source="frame 0" if rest is None else "the stored scene")
+                 rest_source="frame 0" if rest is None else "the stored scene",
+                 object_id=object_id, names_recorded=names_recorded, scene_text=scene_text)
 
 
 def _text_attr(f, name):
@@ -185,12 +197,15 @@ def _read_fit(path, scene_text, scene_path, target_path, max_frames):
                  positions=positions.astype(np.float32), faces=faces,
                  face_object=np.asarray(scene.object_id)[faces[:, 0]], names=list(scene.object_names),
                  floor=scene.floor, rest=np.asarray(scene.vertices, np.float64), rest_source="the stored scene",
-                 target_path=target_path)
+                 target_path=target_path, object_id=np.asarray(scene.object_id, np.int64), scene_text=scene_text)
 
 
 def _read_target(path):
-    """(kind, times (T,), frames: list of (M_t, 3) float32 observed points) of a target file."""
-    from jaxplush.io.render import _read_times
+    """(kind, times (T,), frames: list of (M_t, 3) float32 observed points, what the file records of
+    its scene: a dict of ``names``, ``faces``, ``object_id``, ``scene`` (each None when absent),
+    ``width`` (N of the kind's [T, N, 3]) and ``correspondence`` (True: it holds 'positions' or
+    'tracks', which name the mesh's vertices or faces)) of a target file."""
+    from jaxplush.io.render import _read_names, _read_times
     path = os.fspath(path)
     try:
         with open_hdf5(path) as f:
@@ -205,16 +220,122 @@ def _read_target(path):
                 raise TrajectoryError(path, f"'{kind}' must be numeric, got dtype {ds.dtype}")
             data = np.asarray(ds[()], np.float32)
             times = _read_times(path, f, data.shape[0])
+            rec = dict(names=_read_names(f) or None,
+                       faces=_small_dataset(f, "faces", 2), object_id=_small_dataset(f, "object_id", 1),
+                       scene=_text_attr(f, "scene"), width=int(data.shape[1]),
+                       correspondence="positions" in have or "tracks" in have)
     except TrajectoryError:
         raise
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
         raise TrajectoryError(path, f"could not read the target ({type(e).__name__}: {e})") from None
     frames = [d[np.isfinite(d).all(axis=1)] for d in data]      # NaN rows: padding, or a track not seen
-    return kind, times, frames
+    return kind, times, frames, rec
+
+
+def _small_dataset(f, name, ndim):
+    """A numeric dataset of ``ndim`` dimensions as an int64 array, or None (absent, or not such a dataset)."""
+    ds = f.get(name)
+    if ds is None or not hasattr(ds, "dtype") or ds.dtype.kind not in "iu" or ds.ndim != ndim:
+        return None
+    return np.asarray(ds[()], np.int64)
+
+
+class TargetMismatch(JaxplushError):
+    """A target that does not belong to the trajectory or fit being viewed (:attr:`target`: its
+    name; :attr:`reason`: what does not match)."""
+
+    def __init__(self, target, reason):
+        self.target, self.reason = target, reason
+        super().__init__(f"target {target}: {reason}")
+
+
+def _check_target(data, kind, rec, name):
+    """Raise :class:`TargetMismatch` unless the target ``name`` (of ``kind``, recording ``rec``:
+    :func:`_read_target`) belongs to what ``data`` shows: the checks a fit makes of a target against
+    its scene, and the stored scenes' objects and rest shape where both files hold a scene."""
+    what = os.path.basename(data.path) if data.path != "<trajectory>" else "the trajectory"
+    n_verts = data.positions.shape[1]
+    if kind == "positions" and rec["width"] != n_verts:
+        raise TargetMismatch(name, f"its 'positions' hold {rec['width']} vertices but {what} has {n_verts}: "
+                                   "the target belongs to another scene")
+    names = rec["names"]
+    if names is not None and (data.names_recorded or data.object_id is not None):
+        if len(names) != len(data.names) or (data.names_recorded and list(names) != list(data.names)):
+            raise TargetMismatch(name, f"its objects {list(names)} differ from {what}'s {list(data.names)}: the "
+                                       "target belongs to another scene")
+    if rec["correspondence"]:
+        if rec["faces"] is not None and not _same_faces(rec["faces"], data.faces):
+            raise TargetMismatch(name, f"its 'faces' ({len(rec['faces'])} triangles) differ from {what}'s "
+                                       f"({len(data.faces)}): the target was made from another mesh")
+        oid = rec["object_id"]
+        if oid is not None and data.object_id is not None and not np.array_equal(oid, data.object_id):
+            raise TargetMismatch(name, f"its 'object_id' differs from {what}'s: its objects' vertices are "
+                                       "numbered differently")
+    if rec["scene"] and data.scene_text and rec["scene"] != data.scene_text:
+        reason = _scene_difference(rec["scene"], data.scene_text, what)
+        if reason:
+            raise TargetMismatch(name, reason)
+
+
+def _same_faces(a, b):
+    """The same triangles, in any order and with any winding."""
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    if a.ndim != 2 or a.shape != b.shape:
+        return False
+    key = lambda f: np.unique(np.sort(f, axis=1), axis=0)  # noqa: E731
+    return np.array_equal(key(a), key(b))
+
+
+#: A target's stored scene and the viewed file's place each object where the other does: the same
+#: rest vertices within REST_TOLERANCE of the scene's extent when their meshes have the same vertex
+#: counts, else (a point cloud of another mesh of the same objects) the same bounding box within
+#: BOX_TOLERANCE of the object's size.
+REST_TOLERANCE = 1e-6
+BOX_TOLERANCE = 0.1
+
+
+def _scene_difference(target_text, text, what):
+    """Why a target's stored scene (text) is not the scene of what is viewed, or None (the same
+    objects, at the same rest positions: parameters may differ, as a fit's start values do)."""
+    import warnings
+    from jaxplush.scene.parse import parse_scene
+
+    def geometry(t):      # 'driven' lines name path files relative to a scene file: not geometry
+        return "\n".join(line for line in t.splitlines() if line.split()[:1] != ["driven"])
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")     # unused vertices and the like: said when the scene was run
+            a, b = parse_scene(geometry(target_text), "<target's scene>"), parse_scene(geometry(text), "<scene>")
+    except Exception:      # noqa: BLE001: a scene that does not parse cannot be compared
+        return None
+    if list(a.object_names) != list(b.object_names):
+        return (f"its stored scene has the objects {list(a.object_names)}, {what}'s {list(b.object_names)}: the "
+                "target belongs to another scene")
+    xa, xb = np.asarray(a.vertices, np.float64), np.asarray(b.vertices, np.float64)
+    ia, ib = np.asarray(a.object_id), np.asarray(b.object_id)
+    size = float(max(np.max(np.ptp(np.concatenate([xa, xb]), axis=0)), 1e-12))
+    for o, obj in enumerate(a.object_names):
+        pa, pb = xa[ia == o], xb[ib == o]
+        if len(pa) == len(pb):
+            off = float(np.max(np.linalg.norm(pa - pb, axis=1)))
+            if off > REST_TOLERANCE * size:
+                return (f"its stored scene places object {obj!r} elsewhere than {what}'s (rest vertices up to "
+                        f"{off:.3g} m apart): the target belongs to another scene")
+        else:
+            box_a, box_b = np.stack([pa.min(axis=0), pa.max(axis=0)]), np.stack([pb.min(axis=0), pb.max(axis=0)])
+            off = float(np.max(np.abs(box_a - box_b)))
+            if off > BOX_TOLERANCE * float(max(np.max(np.ptp(pb, axis=0)), 1e-12)):
+                return (f"its stored scene's object {obj!r} ({len(pa)} vertices) does not lie where {what}'s "
+                        f"({len(pb)} vertices) does (bounding boxes {off:.3g} m apart): the target belongs to "
+                        "another scene")
+    return None
 
 
 def _attach_target(data, target, report):
-    """Put the target's frames on the shown frames whose times they match."""
+    """Put the target's frames on the shown frames whose times they match, once it is known to
+    belong to what is shown (:func:`_check_target`: else :class:`TargetMismatch`; a FIT.h5's own
+    target that does not belong is left out, with a note)."""
+    located = target is None
     if target is None:
         if data.kind != "fit" or not data.target_path:
             return
@@ -222,11 +343,22 @@ def _attach_target(data, target, report):
         if target is None:
             return
     if isinstance(target, (str, os.PathLike)):
-        kind, times, frames = _read_target(target)
+        kind, times, frames, rec = _read_target(target)
         name = os.fspath(target)
+        try:
+            _check_target(data, kind, rec, name)
+        except TargetMismatch as e:
+            if not located:
+                raise
+            report(f"the fit's target {name} does not belong to {data.path} ({e.reason}); showing the fitted "
+                   "rollout alone (--target names the right one)")
+            return
     else:                                           # a jaxplush.fitting.Target
         kind, times, name = target.kind, np.asarray(target.times, np.float64), getattr(target, "path", "<target>")
         frames = [d[np.isfinite(d).all(axis=1)].astype(np.float32) for d in np.asarray(target.data)]
+        if kind == "positions":
+            _check_target(data, kind, dict(names=None, faces=None, object_id=None, scene=None, correspondence=True,
+                                           width=int(np.shape(target.data)[1])), name)
     order = np.argsort(times, kind="stable")
     times, frames = np.asarray(times, np.float64)[order], [frames[i] for i in order]
     shown = data.times
@@ -525,6 +657,10 @@ def view(trajectory, *, target=None, color="object", max_frames=MAX_FRAMES, html
         :class:`jaxplush.Trajectory`.
       target: a fit target file (``positions``, ``points`` or ``tracks``) or a
         :class:`jaxplush.fitting.Target`, drawn as points at the shown frames whose times it has.
+        It must belong to what is shown (:class:`TargetMismatch` otherwise): a ``positions``
+        target has its vertex count; recorded objects, ``faces`` and ``object_id`` match (as a
+        fit checks a target against its scene); and where both files store a scene, the two
+        hold the same objects at the same rest positions (parameters may differ).
       color: "object" (one colour per object) or "strain" (edges coloured by edge length / rest
         length; the rest lengths are the stored scene's, else frame 0's).
       max_frames: most frames shown; a longer trajectory is subsampled evenly (first and last
@@ -540,7 +676,8 @@ def view(trajectory, *, target=None, color="object", max_frames=MAX_FRAMES, html
 
     Raises:
       ViewerUnavailable: viser is not installed. TrajectoryError: an input file is missing or
-      unreadable (named). JaxplushError: a bad argument.
+      unreadable (named). TargetMismatch: ``target`` belongs to another scene (a FIT.h5's own
+      target that does not is left out, with a note). JaxplushError: a bad argument.
     """
     report = report or (lambda _line: None)
     if color not in COLORS:
