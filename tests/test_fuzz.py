@@ -501,3 +501,108 @@ def test_sweep_options_are_checked_before_anything_starts(fit_case, tmp_path, gr
 @given(*sweep_args)
 def test_many_sweep_options(fit_case, tmp_path, grids, distributed, checkpoint, steps, dt):
     _sweep_case(fit_case, tmp_path, grids, distributed, checkpoint, steps, dt)
+
+
+# --------------------------------------------------------------------------- capture and view
+# `jaxplush capture`'s camera and noise options and `jaxplush view --target`: exit 0 with a file of
+# finite points (a row of NaN is a missing point), or exit 2 with one line and nothing written;
+# never a traceback or a numpy RuntimeWarning.
+
+VEC = st.one_of(st.builds(lambda a, b, c: f"{a},{b},{c}", TOKEN, TOKEN, TOKEN),
+                st.sampled_from(["0,0.3,1", "0,1,0", "0,0,1", "0,0,0", "1,2", "a,b,c", "0,0.3,0", "1e300,0,0"]))
+
+
+@pytest.fixture(scope="module")
+def capture_case(tmp_path_factory):
+    """A dropped 42-vertex ball (3 frames), a target of another scene and a damaged copy."""
+    d = tmp_path_factory.mktemp("fuzz_capture")
+    scene = jaxplush.parse_scene(icosphere_text(1, 0.1, translate=(0, 0.3, 0), floor=0.0), str(d / "ball.obj"))
+    jaxplush.simulate(scene, 20, 5e-4, 10, progress=False).save(d / "ball.h5")
+    other = _small_fit_scene()
+    make_target(other, 20, FUZZ_DT, 10).save(d / "other.h5", other)
+    raw = bytearray((d / "ball.h5").read_bytes())
+    raw[600:700] = b"\xff" * 100
+    (d / "damaged.h5").write_bytes(bytes(raw))
+    return d
+
+
+def _cli_case(argv, out, prog):
+    import warnings
+    out.unlink(missing_ok=True)                       # tmp_path is shared by a test's examples
+    err = io.StringIO()
+    with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stdout(io.StringIO()), \
+            contextlib.redirect_stderr(err):
+        warnings.simplefilter("always")
+        try:
+            rc = cli.main([str(a) for a in argv])
+        except SystemExit as e:                       # argparse's own errors
+            rc = e.code
+    text = err.getvalue()
+    assert rc in (0, 2), text
+    assert "Traceback" not in text and not [w for w in caught if issubclass(w.category, RuntimeWarning)], text
+    if rc == 2:
+        lines = text.strip().splitlines()
+        assert lines[-1].startswith(f"jaxplush {prog}: error: ") or lines[-1].startswith("jaxplush: error: "), text
+        assert len(lines) == 1 or lines[0].startswith("usage: "), text
+        assert not out.exists()
+    return rc
+
+
+def _capture_case(capture_case, tmp_path, eye, look, up, fov, seed, noise, dropout):
+    out = tmp_path / "scan.h5"
+    argv = ["capture", capture_case / "ball.h5", "--eye", eye, "--out", out]
+    for opt, val in (("--look-at", look), ("--up", up), ("--fov", fov), ("--seed", seed), ("--noise", noise),
+                     ("--dropout", dropout)):
+        if val is not None:
+            argv += [opt, val]
+    if _cli_case(argv, out, "capture") == 0:
+        with h5py.File(out) as f:
+            pts = f["points"][()]
+        finite = np.isfinite(pts).all(axis=-1)
+        assert (finite | np.isnan(pts).all(axis=-1)).all()        # a row is a point or no point
+
+
+capture_args = (VEC, st.one_of(st.none(), VEC), st.one_of(st.none(), VEC), st.one_of(st.none(), TOKEN),
+                st.one_of(st.none(), st.integers(-2, 2 ** 70).map(str), st.just("x")), st.one_of(st.none(), TOKEN),
+                st.one_of(st.none(), TOKEN))
+
+
+@settings(max_examples=FEW, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*capture_args)
+def test_capture_options_give_finite_points_or_clean_refusals(capture_case, tmp_path, eye, look, up, fov, seed,
+                                                               noise, dropout):
+    _capture_case(capture_case, tmp_path, eye, look, up, fov, seed, noise, dropout)
+
+
+@pytest.mark.fuzz
+@settings(max_examples=MANY // 4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*capture_args)
+def test_many_capture_options(capture_case, tmp_path, eye, look, up, fov, seed, noise, dropout):
+    _capture_case(capture_case, tmp_path, eye, look, up, fov, seed, noise, dropout)
+
+
+def _view_case(capture_case, tmp_path, shown, target, max_frames):
+    out = tmp_path / "v.html"
+    argv = ["view", capture_case / shown, "--html", out] + ([] if target is None else ["--target",
+                                                                                       capture_case / target])
+    _cli_case(argv + ([] if max_frames is None else ["--max-frames", max_frames]), out, "view")
+
+
+view_args = (st.sampled_from(["ball.h5", "other.h5", "damaged.h5", "missing.h5"]),
+             st.one_of(st.none(), st.sampled_from(["ball.h5", "other.h5", "damaged.h5", "missing.h5"])),
+             st.one_of(st.none(), st.sampled_from(["0", "-1", "1", "x", "1e9", "99999999999999999999"])))
+
+
+@settings(max_examples=FEW, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*view_args)
+def test_viewer_inputs_are_shown_or_refused_cleanly(capture_case, tmp_path, shown, target, max_frames):
+    pytest.importorskip("viser")
+    _view_case(capture_case, tmp_path, shown, target, max_frames)
+
+
+@pytest.mark.fuzz
+@settings(max_examples=MANY // 10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(*view_args)
+def test_many_viewer_inputs(capture_case, tmp_path, shown, target, max_frames):
+    pytest.importorskip("viser")
+    _view_case(capture_case, tmp_path, shown, target, max_frames)

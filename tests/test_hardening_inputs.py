@@ -165,3 +165,20 @@ def test_a_driven_path_whose_speed_overflows_is_refused(tmp_path):
         with pytest.raises(SceneError, match=r"s.obj:\d+: 'driven' path file 'p.csv': the speed between samples 0 "
                                              r"and 1 .* overflows"):
             jaxplush.make_simulator(scene, DT)
+
+
+def test_view_of_a_damaged_file_is_a_clean_error(tmp_path, capsys):
+    """Found by the fuzzing of this issue: a trajectory whose HDF5 is damaged past its header made
+    ``jaxplush view`` raise h5py's RuntimeError ("bad local heap signature") with a traceback."""
+    pytest.importorskip("viser")
+    scene = jaxplush.parse_scene(icosphere_text(), "<ball>")
+    good = tmp_path / "t.h5"
+    jaxplush.simulate(scene, 4, DT, 2, progress=False).save(good)
+    raw = bytearray(good.read_bytes())
+    raw[600:700] = b"\xff" * 100
+    bad = tmp_path / "damaged.h5"
+    bad.write_bytes(bytes(raw))
+    out = tmp_path / "v.html"
+    assert cli.main(["view", str(bad), "--html", str(out)]) == 2
+    msg = _one_error_line(capsys, "jaxplush view")
+    assert f"{bad}: not a readable trajectory or FIT.h5 (damaged HDF5" in msg and not out.exists()

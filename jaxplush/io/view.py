@@ -114,8 +114,16 @@ def _read_input(source, max_frames):
                      rest=pos[0] if rest is None else rest, rest_source="frame 0" if rest is None else "the scene",
                      object_id=oid if hasattr(source, "object_id") else None,
                      names_recorded=hasattr(source, "object_names"), scene_text=scene_text or None)
-    from jaxplush.io.render import _read_names
     path = os.fspath(source)
+    try:
+        return _read_file(path, max_frames)
+    except (OSError, RuntimeError, KeyError) as e:    # h5py on a damaged file, past its header
+        raise TrajectoryError(path, f"not a readable trajectory or FIT.h5 (damaged HDF5: {e})") from None
+
+
+def _read_file(path, max_frames):
+    """:func:`_read_input` of a file (h5py's errors on a damaged file pass through)."""
+    from jaxplush.io.render import _read_names
     with open_hdf5(path) as f:
         fit = "positions" not in f and ("fitted" in f or "checkpoint" in f)
         if fit and "fitted" not in f:
