@@ -152,7 +152,7 @@ class BatchedSimulator:
             if a.ndim == 1:
                 a = a[:, None]
             try:
-                out.append(jnp.asarray(np.broadcast_to(a, want), self.dtype))
+                out.append(jax.device_put(np.asarray(np.broadcast_to(a, want), self.dtype)))   # converted on the host
             except ValueError:
                 raise ValueError(f"parameter {name}: shape {a.shape} does not broadcast to "
                                  f"{'(n_edges' if want != shape else '(n_objects'}, batch) = {want}") from None
@@ -722,7 +722,10 @@ def lanes(state):
 def take_lanes(tree, m):
     """The first ``m`` lanes of a batched pytree whose leaves carry the batch on their last axis
     (params (O, B), an internal state's (V, B) components)."""
-    return jax.tree_util.tree_map(lambda a: a[..., :m], tree)
+    if _traced(tree):
+        return jax.tree_util.tree_map(lambda a: a[..., :m], tree)
+    # concrete: cut in numpy (a compiled slice per shape cost more than the copy)
+    return jax.tree_util.tree_map(lambda a: jax.device_put(np.asarray(a)[..., :m]), tree)
 
 
 def initial_health(bsim, state, step0=0):
@@ -730,9 +733,14 @@ def initial_health(bsim, state, step0=0):
     number of lanes) at step ``step0`` (scalar or per lane)."""
     b = lanes(state)
     shape = (bsim.topology.n_objects, b)
-    neg = jnp.full(shape, -1, jnp.int32)
-    good_step = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (b,))
-    return Health(jnp.zeros(shape, jnp.int32), neg, neg, state, good_step)
+    if _traced((state, step0)):
+        neg = jnp.full(shape, -1, jnp.int32)
+        good_step = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (b,))
+        return Health(jnp.zeros(shape, jnp.int32), neg, neg, state, good_step)
+    # concrete: made in numpy and put on the device (no one-op program per shape)
+    neg = jax.device_put(np.full(shape, -1, np.int32))
+    good_step = jax.device_put(np.broadcast_to(np.asarray(step0, np.int32), (b,)).copy())
+    return Health(jax.device_put(np.zeros(shape, np.int32)), neg, neg, state, good_step)
 
 
 def contact_pairs(bsim):
@@ -857,25 +865,39 @@ class _LazyJit:
 _core_jit = _LazyJit(_core, ("bsim", "n_frames", "save_every", "observe", "separation"))
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2))
+def _traced(tree):
+    return any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(tree))
+
+
 def _split(tree, n, chunk):
     """Every leaf (batch on its last axis) padded to n * chunk points by repeating its last point,
-    then cut into n chunks: a list of n trees."""
+    then cut into n chunks: a list of n trees. Concrete arrays are cut in numpy (on the CPU a
+    view of the device buffer): a compiled program per batch size cost more than the copies."""
+    xp = jnp if _traced(tree) else np
+
     def cut(a, i):
+        a = xp.asarray(a)
         pad = n * chunk - a.shape[-1]
         if pad:
-            a = jnp.concatenate([a, jnp.repeat(a[..., -1:], pad, axis=-1)], axis=-1)
+            a = xp.concatenate([a, xp.repeat(a[..., -1:], pad, axis=-1)], axis=-1)
         return a[..., i * chunk:(i + 1) * chunk]
     return [jax.tree_util.tree_map(lambda a: cut(a, i), tree) for i in range(n)]
 
 
-@functools.partial(jax.jit, static_argnums=1)
 def _join(parts, batch):
     """Inverse of _split for rollout outputs (padding dropped): state and health leaves (and the
     separations, if any) joined on their last axis, observations (frames first, then the batch)
-    on axis 1."""
+    on axis 1. Concrete outputs are joined in numpy and handed back as jax arrays."""
+    traced = _traced(parts)
+    xp = jnp if traced else np
+
     def cat(axis):
-        return lambda *a: jax.lax.slice_in_dim(jnp.concatenate(a, axis=axis), 0, batch, axis=axis)
+        def join(*a):
+            out = xp.concatenate([xp.asarray(x) for x in a], axis=axis)
+            out = jax.lax.slice_in_dim(out, 0, batch, axis=axis) if traced else \
+                np.take(out, np.arange(batch), axis=axis) if out.shape[axis] != batch else out
+            return out if traced else jax.device_put(out)
+        return join
     (states, outs, healths) = list(zip(*parts))[:3]
     out = None if outs[0] is None else jax.tree_util.tree_map(cat(1), *outs)
     joined = (jax.tree_util.tree_map(cat(-1), *states), out, jax.tree_util.tree_map(cat(-1), *healths))
@@ -976,7 +998,8 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
     batch = lanes(state)
-    step0 = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (batch,))
+    step0 = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (batch,)) if _traced(step0) else \
+        jax.device_put(np.broadcast_to(np.asarray(step0, np.int32), (batch,)).copy())    # no one-op program
     if health is None:
         health = initial_health(bsim, state, step0)
     static = dict(n_frames=int(n_frames), save_every=int(save_every), observe=observe, separation=bool(separation))

@@ -377,7 +377,7 @@ class Evaluator:
                 key = (piece, size, res.kind, res.normalisation, res.scale2)
                 if key not in self._res_fns:
                     self._res_fns[key] = jax.jit(jax.vmap(res.frame_fn, in_axes=(0, None)))
-                r = np.asarray(self._res_fns[key](jnp.asarray(xs, dtype), jnp.asarray(ys, dtype)), np.float64)
+                r = np.asarray(self._res_fns[key](np.asarray(xs, dtype), np.asarray(ys, dtype)), np.float64)
                 cols.append(r[:, :c * res.per_frame])
             out.append(np.concatenate(cols, axis=1) * res.norm)
         return np.concatenate(out)[:n_pts]

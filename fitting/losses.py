@@ -289,9 +289,12 @@ def rest_distance(target, x_rest, faces=None):
     (:func:`combined_scale2`)."""
     if target.kind == "mixed":
         return combined_scale2(target, [rest_distance(p, x_rest, faces) for p in target.parts])
+    if target.kind == "positions":       # in numpy: nothing to compile for the commonest kind
+        d = np.asarray(target.data, np.float64) - np.asarray(x_rest, np.float64)[None]
+        return float(np.mean(np.sum(d * d, axis=-1)))
     with jax.enable_x64(True):
         f = jax.jit(jax.vmap(_frame_mean_sq(target, faces, len(x_rest)), in_axes=(None, 0)))
-        return float(jnp.mean(f(jnp.asarray(x_rest, jnp.float64), jnp.asarray(target.data, jnp.float64))))
+        return float(np.mean(np.asarray(f(jnp.asarray(x_rest, jnp.float64), jnp.asarray(target.data, jnp.float64)))))
 
 
 def loss_scale(target, topology, noise=None, noise_free=False):
@@ -350,7 +353,7 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
             d = jnp.where(jnp.all(volumes(x) > 0), d, jnp.nan)
         return d
 
-    aux = jnp.asarray(target.data, dtype)
+    aux = jax.device_put(np.asarray(target.data, dtype))     # converted on the host: no conversion program
     return Loss(loss_fn, aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind, parts)
 
 

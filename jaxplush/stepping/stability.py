@@ -1,7 +1,7 @@
 """Largest stable explicit time step (docs/model.md §4).
 
 omega_max² = lambda_max(M^-1 K) with K = -df/dx the stiffness at the given positions (springs
-and gas), found by power iteration on the symmetric M^-1/2 K M^-1/2 with Jacobian-vector
+and gas; soft-soft contact, which acts only where objects touch, is left out), found by power iteration on the symmetric M^-1/2 K M^-1/2 with Jacobian-vector
 products of the force (no matrix is formed). Velocity damping (dashpot, drag, the report's
 Verlet damping) tightens the limit: for the Verlet/symplectic update of a mode with frequency
 omega and damping rate gamma the iteration matrix is stable iff dt² omega² + 2 dt gamma < 4,
@@ -79,7 +79,8 @@ def _runner(sim, iters, seed):
 
 
 def _build_runner(sim, iters, seed):
-    topo, dtype, force_fn, damped = sim.topology, sim.dtype, sim.force_fn, sim.terms.dashpot or sim.terms.drag
+    topo, dtype, damped = sim.topology, sim.dtype, sim.terms.dashpot or sim.terms.drag
+    force_fn = _mesh_force_fn(sim)
     free = np.ones((topo.n_vertices, 1))
     free[topo.fixed] = 0.0
 
@@ -90,11 +91,11 @@ def _build_runner(sim, iters, seed):
         v0 = jnp.zeros_like(x)
 
         def stiff(z):
-            _, df = jax.jvp(lambda y: force_fn(params, y, v0)[0], (x,), (s * z,))
+            _, df = jax.jvp(lambda y: force_fn(params, y, v0), (x,), (s * z,))
             return -s * df
 
         def damp(z):
-            _, df = jax.jvp(lambda w: force_fn(params, x, w)[0], (v0,), (s * z,))
+            _, df = jax.jvp(lambda w: force_fn(params, x, w), (v0,), (s * z,))
             return -s * df
 
         key = jax.random.PRNGKey(seed)
@@ -103,6 +104,21 @@ def _build_runner(sim, iters, seed):
         return lam, gam
 
     return run
+
+
+def _mesh_force_fn(sim):
+    """``force(params, x (V, 3), v (V, 3))``: the simulator's force without soft-soft contact.
+
+    The estimate linearises the springs, the gas and the velocity damping (and a smooth floor)
+    at the given positions; soft-soft contact is left out. Its penalty acts only where objects
+    touch, as the floor projection does, so at the rest shape it adds nothing, and compiling its
+    search and narrow phase into the power iteration's Jacobian-vector products cost several
+    times the rest of the program (benchmarks/RESULTS.md, 2026-11-29)."""
+    if not sim.terms.contact:
+        return lambda params, x, v: sim.force_fn(params, x, v)[0]
+    import dataclasses
+    kernel = model.make_force_fn(sim.topology, dataclasses.replace(sim.terms, contact=None), sim.scene.temperature)
+    return lambda params, x, v: kernel(params, x.T, v.T)[0].T
 
 
 def estimate(sim, params, x=None, iters=100, seed=0):
@@ -118,7 +134,9 @@ def estimate(sim, params, x=None, iters=100, seed=0):
       :class:`StabilityEstimate`.
     """
     topo = sim.topology
-    x = jnp.asarray(topo.x0 if x is None else x, sim.dtype)
+    x = topo.x0 if x is None else x
+    # a concrete x converted on the host (no one-op conversion program per dtype)
+    x = jnp.asarray(x, sim.dtype) if isinstance(x, jax.Array) else jax.device_put(np.asarray(x, sim.dtype))
     run = _runner(sim, iters, seed)
     lam, gam = (float(a) for a in run(params, x))
     if sim.terms.gas:
