@@ -43,3 +43,12 @@ class SimulationError(JaxplushError):
         if hint:
             msg += f". {hint}"
         super().__init__(msg)
+
+
+def driven_path_error(d, scene_path, reason):
+    """The error for a :class:`jaxplush.scene.parse.DrivenPath` ``d`` whose values are out of
+    range: a :class:`SceneError` naming the scene file and the line of its ``driven`` keyword, or,
+    for a path from a target's ``controls`` (no line), a :class:`TrajectoryError` naming that file."""
+    if d.line:
+        return SceneError(scene_path, d.line, reason)
+    return TrajectoryError(d.file, reason)

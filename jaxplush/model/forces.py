@@ -181,16 +181,16 @@ def check_precision(topo, dtype, path="<scene>", driven=()):
             f"{path}: coordinates up to {scale:.3g} m with edges as short as {edge:.3g} m: {name} resolves only "
             f"{ulp:.3g} m at that distance from the origin, too coarse to simulate; translate the scene near "
             "the origin" + (", or run in float64 (--x64)" if name == "float32" else ""))
-    from jaxplush.stepping.constraints import driven_origin
+    from jaxplush.errors import driven_path_error
     for d in driven:
         far = float(np.max(np.abs(d.positions))) if np.size(d.positions) else 0.0
         ulp = far * float(np.finfo(np.dtype(dtype)).eps)
         if edge > 0 and ulp > PRECISION_FRACTION * edge:
             name = np.dtype(dtype).name
             what = f"'driven' path file {d.source!r}" if d.line else "dataset 'controls/positions'"
-            raise driven_origin(d, path)(
-                f"{what}: positions up to {far:.3g} m from the origin, with edges as short as {edge:.3g} m: {name} "
-                f"resolves only {ulp:.3g} m there, too coarse to simulate; keep the path near the scene")
+            raise driven_path_error(
+                d, path, f"{what}: positions up to {far:.3g} m from the origin, with edges as short as {edge:.3g} m: "
+                f"{name} resolves only {ulp:.3g} m there, too coarse to simulate; keep the path near the scene")
 
 
 @dataclasses.dataclass(frozen=True)

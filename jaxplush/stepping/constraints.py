@@ -44,11 +44,10 @@ MAX_STEPS = int(np.iinfo(np.int32).max) - 1
 
 def driven_origin(d, scene_path):
     """Where a :class:`jaxplush.scene.parse.DrivenPath` was given, for an error message: the scene
-    file and line of its ``driven`` keyword, or the target file's ``controls`` group."""
-    from jaxplush.errors import SceneError, TrajectoryError
-    if d.line:
-        return lambda reason: SceneError(scene_path, d.line, reason)
-    return lambda reason: TrajectoryError(d.file, reason)
+    file and line of its ``driven`` keyword, or the target file's ``controls`` group
+    (:func:`jaxplush.errors.driven_path_error`)."""
+    from jaxplush.errors import driven_path_error
+    return lambda reason: driven_path_error(d, scene_path, reason)
 
 
 def release_step(d, h, scene_path="<scene>"):
