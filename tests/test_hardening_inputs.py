@@ -182,3 +182,16 @@ def test_view_of_a_damaged_file_is_a_clean_error(tmp_path, capsys):
     assert cli.main(["view", str(bad), "--html", str(out)]) == 2
     msg = _one_error_line(capsys, "jaxplush view")
     assert f"{bad}: not a readable trajectory or FIT.h5 (damaged HDF5" in msg and not out.exists()
+
+
+@pytest.mark.parametrize("command", ["fit", "sweep"])
+def test_a_release_time_no_run_reaches_is_refused_by_the_fit_and_the_sweep(fit_files, tmp_path, capsys, command):
+    d, _ = fit_files
+    scene, line = _driven_scene(tmp_path, "driven p.csv 1 until 1e300")
+    out = tmp_path / "o.h5"
+    argv = ([str(scene), str(d / "t.h5"), "--noise-free"] if command == "fit" else
+            ["sweep", str(scene), "--grid", "k_structural=50:150:3", "--steps", "10", "--dt", str(DT)])
+    assert fit_cli.main(argv + ["--out", str(out), "--quiet"]) == 2
+    msg = _one_error_line(capsys, "jaxplush-fit" + (" sweep" if command == "sweep" else ""))
+    assert f"s.obj:{line}: 'driven' release time 'until 1e+300' s is" in msg
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.csv", "s.obj"]
