@@ -108,3 +108,31 @@ def test_a_progress_bar_tells_its_compiles_apart():
     with Progress(1, "stage", stream=buf, unit="it", interactive=False, compiles=True) as bar:
         bar.update(1)
     assert buf.getvalue().splitlines()[-1].endswith("no XLA compiles")
+
+
+def test_a_fits_data_movement_compiles_nothing():
+    """Issue 52 (few programs per fit): what moves data between a fit's programs (a batch cut into
+    chunks and joined, lane cuts, fresh health records, dtype conversions of targets and
+    parameters, a positions target's rest distance) runs on the host. Before, each was a one-op
+    program per shape: 40 of a two-ball fit's 52. Three 12-vertex balls (a vertex count no other
+    test uses, so these shapes are new to the process and any such program would compile here)."""
+    import warnings
+    import jaxplush
+    from jaxplush.fitting import fitter as F
+    from jaxplush.fitting.targets import make_target
+    from conftest import compiles, icosphere_text
+
+    def scene(k):
+        text = "contact off\n" + "".join(
+            icosphere_text(subdivisions=0, k=k * (1 + 0.3 * i), damping=400.0, name=f"b{i}", offset=12 * i,
+                           header=i == 0, translate=(0.3 * i, 0.0, 0.0)) for i in range(3))
+        return jaxplush.parse_scene(text, "<three>")
+    target = make_target(scene(80.0), 40, 1e-3, 10)
+    with compiles() as seen, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        F.fit(scene(50.0), target, ("k_structural",), noise_free=True, identifiability=False, predictability=False,
+              samples=6, starts=1, iterations=2)
+    names = {s.split(" ")[1].split("(")[-1].rstrip(")") for s in seen if s.startswith("Compiling ")}
+    host_side = {"_split", "_join", "broadcast_in_dim", "dynamic_slice", "convert_element_type", "squared_distance",
+                 "_mean", "slice", "concatenate"}
+    assert names and not names & host_side, sorted(names)
