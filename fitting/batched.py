@@ -74,7 +74,7 @@ from jaxplush.stepping import compiled
 from jaxplush.stepping import constraints
 from jaxplush.stepping import diagnostics
 from jaxplush.stepping import integrators
-from jaxplush.stepping.rollouts import Health
+from jaxplush.stepping.rollouts import Health, _traced
 from jaxplush.model import contact as _contact
 from jaxplush.model import forces as model
 from jaxplush.model import terms as T
@@ -865,10 +865,6 @@ class _LazyJit:
 _core_jit = _LazyJit(_core, ("bsim", "n_frames", "save_every", "observe", "separation"))
 
 
-def _traced(tree):
-    return any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(tree))
-
-
 def _split(tree, n, chunk):
     """Every leaf (batch on its last axis) padded to n * chunk points by repeating its last point,
     then cut into n chunks: a list of n trees. Concrete arrays are cut in numpy (on the CPU a
@@ -894,8 +890,9 @@ def _join(parts, batch):
     def cat(axis):
         def join(*a):
             out = xp.concatenate([xp.asarray(x) for x in a], axis=axis)
-            out = jax.lax.slice_in_dim(out, 0, batch, axis=axis) if traced else \
-                np.take(out, np.arange(batch), axis=axis) if out.shape[axis] != batch else out
+            keep = [slice(None)] * out.ndim
+            keep[axis] = slice(0, batch)                         # the padding dropped
+            out = out[tuple(keep)]
             return out if traced else jax.device_put(out)
         return join
     (states, outs, healths) = list(zip(*parts))[:3]

@@ -151,15 +151,8 @@ def main(argv=None):
         checked = _check(args)          # every option and input, before JAX starts or anything is written
         if args.distributed:            # before anything starts a JAX backend
             _initialize_distributed(args, checked)
-    except (JaxplushError, NotImplementedError) as e:
-        print(f"jaxplush-fit sweep: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
-    except KeyboardInterrupt:
-        print("jaxplush-fit sweep: interrupted; nothing written", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    from jaxplush.stepping.compiled import enable_persistent_cache
-    enable_persistent_cache()          # a second run of the same scene reuses this one's compiles
-    try:
+        from jaxplush.stepping.compiled import enable_persistent_cache
+        enable_persistent_cache()       # a second run of the same scene reuses this one's compiles
         return _run(args, checked)
     except (JaxplushError, NotImplementedError) as e:
         print(f"jaxplush-fit sweep: error: {e}", file=sys.stderr)

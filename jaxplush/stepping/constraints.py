@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxplush.errors import driven_path_error
+
 
 def landing_velocity(y_old, height, h):
     """The floor projection's vertical velocity (H - y_old) / h: the one that lands a vertex that
@@ -42,14 +44,6 @@ def landing_velocity(y_old, height, h):
 MAX_STEPS = int(np.iinfo(np.int32).max) - 1
 
 
-def driven_origin(d, scene_path):
-    """Where a :class:`jaxplush.scene.parse.DrivenPath` was given, for an error message: the scene
-    file and line of its ``driven`` keyword, or the target file's ``controls`` group
-    (:func:`jaxplush.errors.driven_path_error`)."""
-    from jaxplush.errors import driven_path_error
-    return lambda reason: driven_path_error(d, scene_path, reason)
-
-
 def release_step(d, h, scene_path="<scene>"):
     """The first substep (of length ``h``) in which the vertices of driven path ``d`` are free:
     floor(until / h), decided in integers (k + 1 <= T / h). A release time so late that no run's
@@ -59,7 +53,8 @@ def release_step(d, h, scene_path="<scene>"):
     steps = float(d.until) / float(h) * (1 + 1e-12)
     if not (np.isfinite(steps) and steps < MAX_STEPS):
         what = f"'driven' release time 'until {d.until:g}'" if d.line else f"attribute 'controls/until' = {d.until:g}"
-        raise driven_origin(d, scene_path)(
+        raise driven_path_error(
+            d, scene_path,
             f"{what} s is {steps:.3g} steps of {h:g} s, beyond any run (at most {MAX_STEPS} steps); leave it out "
             "to drive the vertices throughout the run")
     return int(np.floor(steps))
@@ -77,7 +72,8 @@ def check_path_speed(d, scene_path="<scene>"):
     if bad.any():
         i = int(np.argmax(bad))
         what = f"'driven' path file {d.source!r}" if d.line else "dataset 'controls/positions'"
-        raise driven_origin(d, scene_path)(
+        raise driven_path_error(
+            d, scene_path,
             f"{what}: the speed between samples {i} and {i + 1} (t = {times[i]:g} and {times[i + 1]:g} s) "
             "overflows: space the samples further apart in time, or move the path less")
 

@@ -1,8 +1,8 @@
 """Largest stable explicit time step (docs/model.md §4).
 
 omega_max² = lambda_max(M^-1 K) with K = -df/dx the stiffness at the given positions (springs
-and gas; soft-soft contact, which acts only where objects touch, is left out), found by power iteration on the symmetric M^-1/2 K M^-1/2 with Jacobian-vector
-products of the force (no matrix is formed). Velocity damping (dashpot, drag, the report's
+and gas; soft-soft contact, which acts only where objects touch, is left out), found by power
+iteration on the symmetric M^-1/2 K M^-1/2 with Jacobian-vector products of the force (no matrix is formed). Velocity damping (dashpot, drag, the report's
 Verlet damping) tightens the limit: for the Verlet/symplectic update of a mode with frequency
 omega and damping rate gamma the iteration matrix is stable iff dt² omega² + 2 dt gamma < 4,
 so dt_max = (sqrt(gamma² + 4 omega²) - gamma) / omega², with gamma_max = lambda_max(M^-1 C)
