@@ -20,6 +20,7 @@ that an optimiser would read as data.
 
 from __future__ import annotations
 
+import collections
 import math
 from typing import NamedTuple
 
@@ -28,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush.fitting import batched
-from jaxplush.stepping import diagnostics
+from jaxplush.stepping import compiled, diagnostics
 from jaxplush.stepping import stability
 from jaxplush.types import Params
 
@@ -93,6 +94,28 @@ def _pad_frames(a, size, axis):
         return a
     last = np.take(a, [-1], axis=axis)
     return np.concatenate([a, np.repeat(last, short, axis=axis)], axis=axis)
+
+
+#: Batched simulators (with their jitted inits) kept alive for reuse, least recently used first out.
+SHARED_BSIMS = 8
+_SHARED: "collections.OrderedDict" = collections.OrderedDict()
+
+
+def _shared_bsim(scene, dt, b, terms, substeps, chunk):
+    """(batched simulator, jitted init) of one program, shared by every evaluator of this process:
+    the key is what the compiled code depends on (the scene's fingerprint, not its values, which
+    an evaluator always passes), as :mod:`jaxplush.stepping.compiled` keys single simulators."""
+    key = (scene.fingerprint, float(dt), int(b), terms, int(substeps), int(chunk),
+           jnp.dtype(jnp.result_type(float)).str)
+    hit = _SHARED.get(key)
+    if hit is None:
+        bsim = batched.make_batched_simulator(scene, dt, b, terms=terms, substeps=substeps, chunk=chunk)
+        hit = _SHARED[key] = (bsim, compiled.jit_once(bsim.init_fn))
+        while len(_SHARED) > SHARED_BSIMS:
+            _SHARED.popitem(last=False)
+    else:
+        _SHARED.move_to_end(key)
+    return hit
 
 
 def _pow2_at_least(n):
@@ -426,13 +449,13 @@ class Evaluator:
         return max(1, min(b // 2, self._chunk()))
 
     def _bsim(self, n, b):
-        """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b`` (built once)."""
+        """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b``: built
+        once per process for a program (:func:`_shared_bsim`), so every evaluator of the scene
+        (another horizon, the predictability measurement, a later fit) runs the same compiled code."""
         key = (n, b, self.prob.sim.terms, self.prob.target.dt)
         if key not in self._bsims:
-            chunk = self._chunk_of(b)
-            bsim = batched.make_batched_simulator(self.prob.scene, self.prob.target.dt, b,
-                                                  terms=self.prob.sim.terms, substeps=n, chunk=chunk)
-            self._bsims[key] = (bsim, jax.jit(bsim.init_fn))
+            self._bsims[key] = _shared_bsim(self.prob.scene, self.prob.target.dt, b, self.prob.sim.terms, n,
+                                            self._chunk_of(b))
         return self._bsims[key]
 
     def _frames_batched(self, thetas, n):
@@ -458,7 +481,8 @@ class Evaluator:
         return self._run_lanes([self.prob.params_at(th) for th in thetas], n, self.runs, separation=True,
                                failures=True)
 
-    def _run_lanes(self, values, n, runs, x0=None, v0=None, step0=None, separation=False, failures=False):
+    def _run_lanes(self, values, n, runs, x0=None, v0=None, step0=None, separation=False, failures=False,
+                   width=None):
         """(frames (N, T, V, 3), ok, clamped, overflowed) of N independent runs ("lanes") on the
         batched simulator at ``n`` substeps: lane i with parameter values ``values[i]``
         (:class:`Params` of numpy arrays), from positions ``x0[i]`` and velocities ``v0[i]``
@@ -466,13 +490,14 @@ class Evaluator:
         ``runs`` [(gap, count), ...] (steps between frames, frames). With ``separation``, also
         (N,) the closest any contact pair came over the run's steps, in units of its reach
         (:class:`Evaluation`; NaN without such pairs); with ``failures``, then (N,) the step at
-        which a lane failed by an inverted volume alone (-1: it did not, or failed otherwise)."""
+        which a lane failed by an inverted volume alone (-1: it did not, or failed otherwise).
+        ``width``: the batch width to run at (default :meth:`_width`'s choice)."""
         out, good, clamp, over, seps, invs = [], [], [], [], [], []
         track = separation and self._reach is not None
         n_lanes = len(values)
         start = 0
         while start < n_lanes:
-            b = self._width(n_lanes - start, n)
+            b = width or self._width(n_lanes - start, n)
             bsim, init = self._bsim(n, b)
             idx = np.arange(start, min(start + b, n_lanes))
             start += len(idx)
@@ -481,8 +506,13 @@ class Evaluator:
             p = bsim.params(Params(*(np.stack([np.asarray(getattr(values[i], f), np.float64) for i in idx], axis=1)
                                      for f in Params._fields)))
             start0 = np.zeros(len(idx), np.int32) if step0 is None else np.asarray(step0, np.int32)[idx]
-            state = (init(p, step0=start0) if x0 is None
-                     else init(p, np.asarray(x0)[idx], np.asarray(v0)[idx], step0=start0))
+            if x0 is None:
+                # the rest shape at rest, given as every lane's start: one compiled init serves
+                # these runs, multiple shooting's node states and the predictability's twins
+                xs = np.broadcast_to(np.asarray(bsim.topology.x0, bsim.dtype), (b,) + np.shape(bsim.topology.x0))
+                state = init(p, xs, np.zeros_like(xs), step0=start0)
+            else:
+                state = init(p, np.asarray(x0)[idx], np.asarray(v0)[idx], step0=start0)
             # only as many lanes as whole chunks need: the same compiled rollout runs them (17
             # points in a batch of 32 and chunks of 8 cost 3 chunks, not 4)
             m = min(b, -(-live // bsim.chunk) * bsim.chunk)

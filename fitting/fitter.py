@@ -205,7 +205,8 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
     prior = _io.load_checkpoint(checkpoint_path, prob, settings, conform=_driver_state) \
         if opts.checkpoint.resume else None
     if opts.predictability:                 # every input checked (a resumed checkpoint too)
-        prob = measure_predictability(prob, report)
+        # its float32 runs on the batched simulator the search runs next (no program of their own)
+        prob = measure_predictability(prob, report, batched=True, chunk_frames=_first_horizon(prob, opts))
     full = prob
     prob = planned = plan_shooting(prob, opts.shooting, report)
     last = [prior]
@@ -267,7 +268,7 @@ def _replan(full, prob, theta, opts, report=None):
         return None
     if not _shooting.restricted(full, prob):
         return None
-    pred = _predictability_at(full, theta)
+    pred = _predictability_at(full, theta, batched=True, chunk_frames=_first_horizon(full, opts))
     if pred is None:
         return None
     sh, again = _shooting.plan(dataclasses.replace(full, predictability=pred), "auto")
@@ -279,6 +280,13 @@ def _replan(full, prob, theta, opts, report=None):
     if report is not None:
         report(note)
     return new, note
+
+
+def _first_horizon(prob, opts):
+    """Frames of the default fit's first horizon over ``prob``'s target: the piece length its
+    batched rollouts run in (:class:`jaxplush.fitting.stages.Horizons`)."""
+    from jaxplush.fitting.stages import horizons
+    return horizons(prob.target.n_frames, opts.continuation)[0]
 
 
 def _driver_state(state):
@@ -411,7 +419,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     if want_ident and report.unresolved:
         report = _resolve_again(prob, box, run, ev, _options.LocalOptions(**settings["local"]), report, drift,
                                 factor, notes)
-    out = _judge(prob, best.theta, rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
+    out = _judge(prob, best.theta, batched=True, chunk_frames=run.horizons[0] if run.horizons else None, rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
                  stopped=best.stopped, at_bound=at_bound, gn_step=gn_step, stderr=stderr,
                  undetermined=report.undetermined if want_ident else ())
     theta = best.theta

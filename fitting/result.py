@@ -198,34 +198,61 @@ def _predictability_grid(target):
     return steps, every
 
 
-def _predictability_at(prob, theta=None):
+def _predictability_at(prob, theta=None, batched=False, chunk_frames=None):
     """:func:`jaxplush.predictability` of the problem's scene over its target at log values theta
-    (default: the start values); None when a run blows up."""
+    (default: the start values); None when a run blows up. With ``batched`` (for the default
+    fit, whose search compiles the batched simulator anyway) its two float32 runs are lanes of that
+    simulator's rollout, in pieces of ``chunk_frames`` frames as the search runs them
+    (:func:`_batched_lanes`; None: each run of frames in one piece)."""
     steps, every = _predictability_grid(prob.target)
     params = None if theta is None else prob.params_at(theta)
+    lanes = _batched_lanes(prob, steps, every, chunk_frames) if batched else None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")   # a volume clamp or grown capacity: the fit reports its own
             return jaxplush.predictability(prob.scene, steps, prob.target.dt, every, params=params, sim=prob.sim,
-                                           noise=prob.noise, motion=_motion(prob))
+                                           noise=prob.noise, motion=_motion(prob), lanes=lanes)
     except jaxplush.SimulationError:
         return None
 
 
-def measure_predictability(prob, report=None):
+def _batched_lanes(prob, steps, every, chunk_frames=None):
+    """``lanes`` for :func:`jaxplush.predictability`: its runs as lanes of the batched simulator
+    that the fit's evaluators share (:class:`jaxplush.fitting.evaluate.Evaluator`, the full
+    batch width, the frames in pieces of ``chunk_frames``), so that the measurement compiles no
+    float32 program of its own; None where the evaluator would not run the target batched, or
+    its frames are not the measurement's grid (every ``every`` steps up to ``steps``)."""
+    from jaxplush.fitting.evaluate import Evaluator
+    ev = Evaluator(prob, calibrate=False, chunk_frames=chunk_frames)
+    grid = every * np.arange(1, steps // every + 1, dtype=np.int64)
+    if not ev.batched or not np.array_equal(ev.steps, grid):
+        return None
+
+    def lanes(params, starts):
+        values = [prob.scene.params if params is None else params] * len(starts)
+        values = [Params(*(np.asarray(a, np.float64) for a in v)) for v in values]
+        fr, ok, _, over, _ = ev._run_lanes(values, 1, ev.runs, x0=starts, v0=np.zeros_like(starts),
+                                           separation=True, width=ev.batch)
+        return fr if ok.all() and not over.any() else None
+    return lanes
+
+
+def measure_predictability(prob, report=None, batched=False, chunk_frames=None):
     """The problem with :attr:`Problem.predictability` measured at the start values; ``report``
-    (if given) gets the line that describes it."""
-    pred = _predictability_at(prob)
+    (if given) gets the line that describes it. ``batched``, ``chunk_frames``: as
+    :func:`_predictability_at` (the gradient fits, which compile no batched simulator, leave it off)."""
+    pred = _predictability_at(prob, batched=batched, chunk_frames=chunk_frames)
     if report is not None:
         report("predictability: " + (pred.text() if pred is not None else
                                      "not measured (the rollout at the start values blows up)"))
     return dataclasses.replace(prob, predictability=pred)
 
 
-def _judge(prob, theta, **kw):
+def _judge(prob, theta, batched=False, chunk_frames=None, **kw):
     """:func:`jaxplush.fitting.outcome.judge` of a fit ending at log values theta, with the
     reproducibility floor of :attr:`Problem.predictability`; for a fit that does not reach the
-    data the floor is measured again at theta (the start's may be far from the result's)."""
+    data the floor is measured again at theta (the start's may be far from the result's;
+    ``batched``, ``chunk_frames``: as :func:`_predictability_at`)."""
     from jaxplush.fitting import outcome as _outcome
     pred = prob.predictability
     start = (None, None) if pred is None else (pred.floor, pred.horizon_time)
@@ -235,7 +262,7 @@ def _judge(prob, theta, **kw):
     out = _outcome.judge(**kw, floor=start[0], horizon=start[1])
     if out.reached or pred is None:
         return out
-    pred = _predictability_at(prob, theta) or pred
+    pred = _predictability_at(prob, theta, batched=batched, chunk_frames=chunk_frames) or pred
     return _outcome.judge(**kw, floor=pred.floor, horizon=pred.horizon_time)
 
 

@@ -576,8 +576,8 @@ def test_a_start_far_less_predictable_than_the_result_leaves_a_determined_fit_co
     start = truth.replace(params=p._replace(k_structural=p.k_structural * 1.3, nmol=p.nmol * 0.8))
     measure = F.measure_predictability
 
-    def drifting_start(prob, report=None):
-        prob = measure(prob)
+    def drifting_start(prob, report=None, **kw):
+        prob = measure(prob, **kw)
         pred = prob.predictability
         return dataclasses.replace(prob, predictability=dataclasses.replace(pred, drift_rms=pred.drift_rms * 1e4))
 

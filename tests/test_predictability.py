@@ -257,3 +257,31 @@ def test_info_shows_the_predictable_horizon_only_when_asked(tmp_path):
     assert rc == 0 and "predictable" not in out and "reproducibility" not in out
     rc, _, err = _info(scene, "--steps", 100)
     assert rc == cli.EXIT_USAGE and "--steps needs --dt" in err
+
+
+def test_the_fits_measurement_runs_its_float32_twins_on_the_batched_simulator():
+    """Issue 52 (few programs per fit): the default fit measures the predictability with its two
+    float32 runs as lanes of the batched simulator its search compiles anyway (no float32
+    single-scene rollout of its own). The measurement agrees with the one made by ``simulate``:
+    the same motion to float32 rounding, both predictable, both floors at rounding level. A
+    42-vertex ball with a dashpot falling onto a floor, 0.1 s."""
+    from jaxplush.fitting import result as R
+    scene = icosphere_scene(dashpot=0.4, k=157.0, floor=-0.15)
+    # the target from the ball 1 mm higher: another program, so this one's is not compiled yet
+    target = make_target(icosphere_scene(dashpot=0.4, k=157.0, floor=-0.15, translate=(0, 1e-3, 0)), 200, 5e-4, 10)
+    prob = F.build_problem(scene, target, ("k_structural",), noise_free=True)
+    with compiles() as seen:
+        lanes = R._predictability_at(prob, batched=True)
+    # no single-scene program of the working dtype ((42, 3) float32 states): the float64 twin's alone
+    single_f32 = [x for x in seen if x.startswith(("Compiling jit(_core)", "Compiling jit(init_fn)"))
+                  and "float32[42,3]" in x]
+    assert not single_f32, single_f32
+    assert any("float64[42,3]" in x for x in seen if x.startswith("Compiling jit(_core)")), seen
+    single = R._predictability_at(prob, batched=False)
+    assert lanes is not None and single is not None
+    np.testing.assert_allclose(lanes.times, single.times)
+    np.testing.assert_array_equal(lanes.steps, single.steps)
+    assert lanes.motion == pytest.approx(single.motion, rel=1e-4)
+    np.testing.assert_allclose(lanes.motion_rms, single.motion_rms, atol=1e-4 * lanes.motion)
+    assert lanes.predictable and single.predictable
+    assert lanes.floor < 1e-4 * lanes.motion and single.floor < 1e-4 * single.motion

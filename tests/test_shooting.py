@@ -303,8 +303,8 @@ def test_a_fit_cut_short_by_the_start_horizon_fits_again_over_what_its_result_pr
     start = scene.replace(params=p._replace(k_structural=p.k_structural * 1.3, nmol=p.nmol * 0.8))
     measure = F.measure_predictability
 
-    def short_at_the_start(prob, report=None):      # as if the start's two runs drifted apart at once
-        prob = measure(prob)
+    def short_at_the_start(prob, report=None, **kw):      # as if the start's two runs drifted apart at once
+        prob = measure(prob, **kw)
         pred = dataclasses.replace(prob.predictability, horizon_time=float(cloud.times[3]) + 1e-9)
         return dataclasses.replace(prob, predictability=pred)
 

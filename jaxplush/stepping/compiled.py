@@ -48,6 +48,30 @@ def get(sim, name, build):
     return fn
 
 
+#: XLA options of programs that run once per call (a rollout's init, a stability estimate): the
+#: backend's optimisation level 0 compiles them in about 3/4 of the time (benchmarks/RESULTS.md,
+#: "Fewer programs per fit") and they run a few milliseconds longer, once.
+ONCE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+_ONCE_OK = []
+
+
+def jit_once(fn, **kw):
+    """``jax.jit(fn, **kw)`` for a function that runs once per call (an init, an estimate): with
+    :data:`ONCE_COMPILER_OPTIONS` on XLA:CPU where the installed XLA accepts them, else plain."""
+    import jax
+    if not _ONCE_OK:
+        ok = jax.default_backend() == "cpu"
+        if ok:
+            try:
+                jax.jit(lambda a: a + 1, compiler_options=dict(ONCE_COMPILER_OPTIONS)).lower(0.0).compile()
+            except Exception:                       # an unknown option, or no compiler_options
+                ok = False
+        _ONCE_OK.append(ok)
+    if _ONCE_OK[0]:
+        kw = dict(kw, compiler_options=dict(ONCE_COMPILER_OPTIONS))
+    return jax.jit(fn, **kw)
+
+
 def clear():
     """Drop every cached compiled function (their executables are freed with them)."""
     _CACHE.clear()

@@ -24,7 +24,10 @@ parameters, so :func:`predictability` measures it before fitting:
 * the **floor** is the RMS of the drift over the saved frames after the start: the residual RMS
   a fit at the exact parameters would have against a target run like this one.
 
-The runs are :func:`jaxplush.simulate` calls on one simulator (one compiled program for both).
+The runs are :func:`jaxplush.simulate` calls on one simulator (one compiled program for both),
+or, given ``lanes``, the two working-dtype runs are lanes of one call of a caller's batched
+program: a fit passes the batched simulator its search compiles anyway, so the measurement
+compiles only its float64 twin.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import dataclasses
 import math
 import time
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
@@ -104,7 +108,7 @@ def _mm(x):
 
 
 def predictability(scene, steps, dt, save_every=None, *, params=None, integrator="verlet", substeps=1, sim=None,
-                   noise=None, motion=None, method="both", seed=0):
+                   noise=None, motion=None, method="both", seed=0, lanes=None):
     """Measure how far two runs of ``scene`` that differ only by rounding drift apart.
 
     Args:
@@ -118,6 +122,11 @@ def predictability(scene, steps, dt, save_every=None, *, params=None, integrator
         run's own).
       method: one of :data:`METHODS` (module docstring).
       seed: seed of the perturbation's direction.
+      lanes: optional ``lanes(params, starts) -> (N, T, V, 3)`` positions of N runs of the working
+        dtype from the start positions ``starts`` ((N, V, 3), zero velocity) at the saved steps
+        after the start (``save_every``, ``2 save_every``, ..., ``steps``, a multiple of
+        ``save_every``), or None where a run failed: then the runs are :func:`jaxplush.simulate`
+        calls after all (which say why). Not for scenes with driven vertices.
 
     Returns:
       :class:`Predictability`.
@@ -138,12 +147,18 @@ def predictability(scene, steps, dt, save_every=None, *, params=None, integrator
     x0 = np.asarray(sim.topology.x0, np.float64)
     delta = perturbation(scene, x0, sim.dtype, seed)
     run = _runner(scene, steps, save_every, params)
-    base, notes = run(sim, None, "unperturbed")
-    drifts = []
-    if method in ("perturbed", "both"):
-        twin, more = run(sim, x0 + delta, "perturbed")
-        drifts.append(_rms(twin.positions - base.positions))
-        notes += more
+    pair = _lanes_pair(scene, steps, save_every, params, sim, x0, delta, lanes, method)
+    if pair is not None:
+        base, twin = pair
+        notes = ()
+        drifts = [] if twin is None else [_rms(twin.positions - base.positions)]
+    else:
+        base, notes = run(sim, None, "unperturbed")
+        drifts = []
+        if method in ("perturbed", "both"):
+            twin, more = run(sim, x0 + delta, "perturbed")
+            drifts.append(_rms(twin.positions - base.positions))
+            notes += more
     if method in ("x64", "both"):
         twin, more = _run_x64(scene, sim, run)
         drifts.append(_rms(twin.positions - base.positions))
@@ -151,6 +166,33 @@ def predictability(scene, steps, dt, save_every=None, *, params=None, integrator
     drift = np.max(drifts, axis=0)
     return _result(base, drift, float(_rms(delta[None])[0]), noise, motion, method, sim.dtype,
                    time.perf_counter() - t0, tuple(dict.fromkeys(notes)))
+
+
+class _Frames(NamedTuple):
+    """The parts of a :class:`jaxplush.Trajectory` the measurement reads, of runs made by ``lanes``."""
+    positions: np.ndarray
+    times: np.ndarray
+    steps: int
+    dt: float
+    save_every: int
+
+
+def _lanes_pair(scene, steps, save_every, params, sim, x0, delta, lanes, method):
+    """(base, perturbed twin or None) run as lanes of ``lanes`` (see :func:`predictability`),
+    each with its start as frame 0; None without ``lanes``, for a scene with driven vertices
+    (whose start is its paths' and not the rest shape), or where a lane failed."""
+    if lanes is None or scene.driven or steps % save_every:
+        return None
+    starts = [x0] + ([x0 + delta] if method in ("perturbed", "both") else [])
+    starts = np.asarray(np.stack(starts), np.dtype(sim.dtype))
+    out = lanes(params, starts)
+    n = steps // save_every
+    if out is None or np.shape(out) != (len(starts), n) + x0.shape or not np.isfinite(out).all():
+        return None
+    times = np.arange(n + 1, dtype=np.float64) * save_every * sim.dt
+    runs = [_Frames(np.concatenate([starts[i][None].astype(np.float64), np.asarray(out[i], np.float64)]),
+                    times, steps, sim.dt, save_every) for i in range(len(starts))]
+    return runs[0], (runs[1] if len(runs) > 1 else None)
 
 
 def _check(steps, dt, save_every, integrator, substeps, noise, motion, method):

@@ -185,7 +185,7 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     # explicit arrays, so a default and a given initial state share one compiled init
     x0 = np.asarray(sim.topology.x0 if x0 is None else x0, np.float64)
     v0 = np.zeros_like(x0) if v0 is None else np.asarray(v0, np.float64)
-    init = compiled.get(sim, "init", lambda: jax.jit(sim.init_fn))   # one compile per program
+    init = compiled.get(sim, "init", lambda: compiled.jit_once(sim.init_fn))   # one compile per program
     state = init(p, x0, v0)
     health = _rollout.initial_health(sim, state)
     x_init = state.x
