@@ -1,7 +1,7 @@
 """Soft-soft contact in the batched engine: the contact term's cost, its transposes, and the default
 fit's Evaluator on a two-ball scene, batched against one point at a time.
 
-1. Step cost of one 16-point chunk (``fitting.batched.rollout``, one core) of two 162-vertex balls
+1. Step cost of one 16-point chunk (``jaxplush.stepping.batched.rollout``, one core) of two 162-vertex balls
    pressed together (the batched engine with contact, without it, and with only the transposes
    that contact adds: positions (V, B) components -> (B, 3, V) and a (B, 3, V) force back).
 2. The Evaluator (:class:`jaxplush.fitting.evaluate.Evaluator`) on a fit of both balls' k to a
@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
-from jaxplush.fitting import batched  # noqa: E402
+from jaxplush.stepping import batched  # noqa: E402
 from jaxplush.fitting import fitter as F  # noqa: E402
 from jaxplush.fitting.evaluate import Evaluator  # noqa: E402
 from jaxplush.fitting.targets import make_target  # noqa: E402

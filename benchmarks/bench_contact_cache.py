@@ -8,7 +8,7 @@ per step near the other object, and the candidate lists are rebuilt every few st
 
 1. Rebuilds of the candidate lists over the first ``--steps`` steps of one run (the cache's own
    ``stale`` test replayed on the saved steps).
-2. Step cost of one ``--batch``-point chunk of the batched engine (``fitting.batched.rollout``) at
+2. Step cost of one ``--batch``-point chunk of the batched engine (``jaxplush.stepping.batched.rollout``) at
    each contact capacity in ``--caps`` (the fit grows the capacity from the scene's 256 to 512 at
    its start and to 642 after an overflow), and without contact, best of ``--repeats`` after a
    compiling call, in microseconds per point-step.
@@ -30,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import jaxplush  # noqa: E402
-from jaxplush.fitting import batched  # noqa: E402
+from jaxplush.stepping import batched  # noqa: E402
 from jaxplush.fitting.scenarios import case_scene_text, draw_case  # noqa: E402
 from jaxplush.model import contact  # noqa: E402
 

@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import jaxplush  # noqa: E402
-from jaxplush.fitting import batched  # noqa: E402
+from jaxplush.stepping import batched  # noqa: E402
 from jaxplush.fitting.scenarios import drop_scene_text  # noqa: E402
 
 DT = 2.5e-4

@@ -4,7 +4,7 @@ A refactor of the force model must not slow the code that runs it. This script t
 of two source trees (say the commit before a change and the working tree after it):
 
 * ``step``: ``jaxplush.rollout`` of one scene, simulated steps/s (1000 steps, one compiled scan);
-* ``sweep``: ``jaxplush.fitting.batched.rollout`` of B parameter points (chunks of 16, run
+* ``sweep``: ``jaxplush.stepping.batched.rollout`` of B parameter points (chunks of 16, run
   concurrently, as ``sweep`` does), total point-steps/s;
 * ``gradient``: the jitted ``jax.value_and_grad`` of a 500-step squared-distance loss with the
   fused adjoint (``rollout_loss(..., method="adjoint")``), gradients/s;
@@ -85,7 +85,7 @@ def measure(case, repeats=5, subdivisions=3):
         steps = 1000
         return steps / _best(lambda: jaxplush.rollout(sim, p, s, 1, steps), repeats)
     if kind == "sweep":
-        from jaxplush.fitting import batched
+        from jaxplush.stepping import batched
         b, steps = 64, 500
         bsim = batched.make_batched_simulator(scene, dt, b)
         bp = bsim.params()

@@ -6,9 +6,9 @@ B it times a ``steps``-step rollout (one compiled scan, compile time apart, min 
 
 * ``unbatched``: ``jaxplush.rollout`` of one scene (the reference, steps/s);
 * ``vmap``: ``jax.vmap`` of that rollout over B parameter points (batch on the leading axis);
-* ``batched, 1 call``: :func:`jaxplush.fitting.batched.rollout` with the whole batch in one compiled
+* ``batched, 1 call``: :func:`jaxplush.stepping.batched.rollout` with the whole batch in one compiled
   call (``chunk=B``; batch on the last axis);
-* ``batched``: :func:`jaxplush.fitting.batched.rollout` as ``sweep`` uses it: the batch cut into chunks
+* ``batched``: :func:`jaxplush.stepping.batched.rollout` as ``sweep`` uses it: the batch cut into chunks
   of ``default_chunk(B)`` points (16 at B = 64) that run concurrently, one per core;
 
 and prints total steps/s (B x steps / best time), the speed-up over ``unbatched`` (the median,
@@ -35,7 +35,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.dirname(__file__))
 import jaxplush  # noqa: E402
-from jaxplush.fitting import batched  # noqa: E402
+from jaxplush.stepping import batched  # noqa: E402
 from bench_step import ball_scene  # noqa: E402
 
 

@@ -4,7 +4,7 @@ Scene and settings as benchmarks/bench_sweep.py (the 642-vertex ball: springs, g
 floor; dt 2e-4; 1000-step rollouts; best of repeats). It measures
 
 1. ``unbatched``: ``jaxplush.rollout`` of one scene, the reference of the 5x target;
-2. ``one chunk, one core``: one 16-point chunk (:func:`jaxplush.fitting.batched.rollout`) in a child
+2. ``one chunk, one core``: one 16-point chunk (:func:`jaxplush.stepping.batched.rollout`) in a child
    process confined to a single core before JAX starts. XLA then compiles with a parallelism of
    one (no kernel split into parallel partitions) and runs every kernel of the step on that core:
    the cost of the batched kernels themselves, with no thread in their way;
@@ -54,7 +54,7 @@ def _measure(fn, repeats):
 def _split_kernels(bsim, params, state):
     """Kernels of the compiled chunk rollout that XLA:CPU splits into parallel partitions."""
     import jax.numpy as jnp
-    from jaxplush.fitting import batched
+    from jaxplush.stepping import batched
     health = batched.initial_health(bsim, state, 0)
     compiled = batched._core_jit.lower(bsim, params, state, health, jnp.zeros((bsim.batch,), jnp.int32), None,
                                        n_frames=1, save_every=10, observe=None).compile()
@@ -67,7 +67,7 @@ def _chunk(batch, steps, repeats, dt):
     sys.path.insert(0, os.path.join(HERE, ".."))
     sys.path.insert(0, HERE)
     from bench_step import ball_scene
-    from jaxplush.fitting import batched
+    from jaxplush.stepping import batched
     scene = ball_scene(3)
     bsim = batched.make_batched_simulator(scene, dt, batch)
     ks = np.linspace(0.8, 1.2, batch) * float(scene.params.k_structural[0])

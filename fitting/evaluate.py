@@ -3,7 +3,7 @@
 :class:`Evaluator` runs a :class:`jaxplush.fitting.problem.Problem` at N points theta (log-parameters)
 and returns each point's residual vector (:func:`jaxplush.fitting.losses.make_residual`: sum(r²) is the
 fit's loss), its loss and whether it ran. Points run in compiled batches of the batched
-simulator (:mod:`jaxplush.fitting.batched`, one compile per batch width and substep count) where the
+simulator (:mod:`jaxplush.stepping.batched`, one compile per batch width and substep count) where the
 scene allows it (Verlet, at most 8 runs of equally spaced target frames; soft-soft contact
 included), otherwise one at a time. A point whose contact candidates overflow their capacity is
 run again with a grown capacity (:meth:`Evaluator._frames_batched`).
@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 from jaxplush.stepping import compiled, diagnostics
 from jaxplush.stepping import stability
 from jaxplush.types import Params

@@ -8,7 +8,7 @@
 
 It reads like ``jax.vmap`` over parameter points: every point is an independent simulation of
 the scene with some parameters replaced. Under the hood the points run in chunks of a static
-batch size B through :mod:`jaxplush.fitting.batched` (the batch on the last axis, for throughput, which a
+batch size B through :mod:`jaxplush.stepping.batched` (the batch on the last axis, for throughput, which a
 plain ``vmap`` of the single-scene step does not give; see benchmarks/RESULTS.md, "Batch sweeps"),
 so a grid of any size compiles once. A sweep larger than B runs in equal batches of whole
 chunks (:func:`_outer_batch`); the last batch is padded by repeating its last point.
@@ -72,7 +72,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 from jaxplush.stepping import diagnostics
 from jaxplush.errors import JaxplushError
 from jaxplush.progress import Progress
@@ -374,7 +374,7 @@ def _frame_period(steps, required):
 
 @lru_cache(maxsize=None)
 def _observer(kind, keep_positions):
-    """The static per-frame ``observe`` of :func:`jaxplush.fitting.batched.rollout` for a sweep: the
+    """The static per-frame ``observe`` of :func:`jaxplush.stepping.batched.rollout` for a sweep: the
     loss contribution of target frames (a ``lax.cond``: other frames cost nothing) and,
     optionally, the positions."""
 

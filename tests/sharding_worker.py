@@ -14,7 +14,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 import jax                                    # noqa: E402
 import jaxplush                               # noqa: E402
-from jaxplush.fitting import batched          # noqa: E402
+from jaxplush.stepping import batched          # noqa: E402
 from test_batched_contact import DT, _pressed_problem, _thrown  # noqa: E402
 
 def collect():

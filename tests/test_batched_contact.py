@@ -1,4 +1,4 @@
-"""Soft-soft contact in the batched engine (jaxplush.fitting.batched): the single-scene contact under
+"""Soft-soft contact in the batched engine (jaxplush.stepping.batched): the single-scene contact under
 ``jax.vmap``, each point carrying its own candidate lists.
 
 A batch of points of a two-ball collision must give, point for point, the frames of separate
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 from jaxplush.model import contact
 from jaxplush.stepping import diagnostics
 from test_contact import two_balls

@@ -16,7 +16,7 @@ import pytest
 import jaxplush
 from conftest import assert_gradient_matches_fd, icosphere_text
 from jaxplush import SceneError
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 from jaxplush.fitting import gradients as G
 from jaxplush.stepping import constraints
 from jaxplush.stepping.integrators import INTEGRATORS

@@ -93,7 +93,7 @@ def test_a_shorter_last_chunk_of_frames_reuses_the_compiled_rollout_and_ignores_
     of a fit) runs a last, shorter chunk at the full chunk length, with no new compile: its frames
     and residuals are those of a run in one piece, and a blow-up in the frames past the target's
     end does not fail the point (its substeps stay 1), while one inside the target does."""
-    from jaxplush.fitting import batched
+    from jaxplush.stepping import batched
     truth = _drop()
     target = make_target(truth, 120, DT, 4)                       # 30 frames, 4 steps apart
     with pytest.warns(UserWarning):

@@ -15,7 +15,7 @@ import trimesh
 
 import jaxplush
 from jaxplush import SceneError
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 from jaxplush.fitting import gradients as G
 from jaxplush.model import forces as model
 from jaxplush.model import layout

@@ -29,7 +29,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 
 HERE = os.path.dirname(__file__)
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 from jaxplush.model import forces as model
 from jaxplush.stepping import stability
 from jaxplush.scene.write import format_scene

@@ -1,4 +1,4 @@
-"""Batched simulation (jaxplush.fitting.batched) and parameter sweeps (jaxplush.fitting.sweep, jaxplush-fit sweep).
+"""Batched simulation (jaxplush.stepping.batched) and parameter sweeps (jaxplush.fitting.sweep, jaxplush-fit sweep).
 
 The batched step must be the single-scene step, point for point: it is checked against separate
 ``jaxplush.simulate`` runs in float32 and float64, with every term compiled in, on two objects.
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 from jaxplush.model import forces as model
 from conftest import icosphere_scene, icosphere_text
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush.fitting import batched
+from jaxplush.stepping import batched
 from jaxplush.fitting import gradients as G
 from jaxplush.model import contact
 from jaxplush.model import forces as model

@@ -49,7 +49,7 @@ fluttering far from the contact does not rebuild the lists every few steps. A re
 moving contact then costs only the narrow phase. Objects that are apart cost less still: the
 distance tables of a pair are built only when both its objects have candidates, and the narrow
 phase and the walk run no block while no pair has a query (the batched engine of
-:mod:`jaxplush.fitting.batched` takes each block's branch once for the whole batch). ``make_simulator(..., coherent_contact=False)`` and the
+:mod:`jaxplush.stepping.batched` takes each block's branch once for the whole batch). ``make_simulator(..., coherent_contact=False)`` and the
 single ``step_fn`` search every step (the same forces but for near-ties between faces).
 
 The search over a vertex's ring runs on slot-major (K, Q) arrays, and values are gathered and
@@ -970,7 +970,7 @@ class CacheOps(NamedTuple):
     """``init(x) -> ContactCache`` (a full search) and ``update(cache, x) -> ContactCache`` (rebuild
     once stale, else walk the nearest vertices); x internal (3, V). ``update``'s parts, for callers
     that decide the rebuild for many caches at once (the batched engine,
-    :mod:`jaxplush.fitting.batched`): ``stale(cache, x) -> bool`` (a rebuild is due; under
+    :mod:`jaxplush.stepping.batched`): ``stale(cache, x) -> bool`` (a rebuild is due; under
     ``jax.vmap``), ``walk(cache, x) -> ContactCache`` (the targets walked, no rebuild) and
     ``walk_lanes(cache, xs) -> ContactCache``, the walk of a batched cache (xs (B, 3, V)) that
     runs only the blocks of queries some point holds."""

@@ -217,7 +217,7 @@ class Terms:
     driven: bool = False
     #: the spring stiffness is an (E,) per-edge field (scene keywords ``k_region``/``k_edge``), not
     #: one value per object. The kernels follow the parameter's shape; this flag only gates the
-    #: engines that take (O, B) parameters (:mod:`jaxplush.fitting.batched` refuses a field).
+    #: engines that take (O, B) parameters (:mod:`jaxplush.stepping.batched` refuses a field).
     k_field: bool = False
 
     @classmethod

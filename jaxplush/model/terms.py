@@ -7,7 +7,7 @@ and every argument broadcasts, so the same functions serve
 
 * the single-scene ring kernel, on (K, V) ring tables (:func:`jaxplush.model.forces.make_force_fn`);
 * its segment assembly, on (E,) edges and (F,) faces;
-* the batched sweep, on (V, B) arrays per ring slot (:mod:`jaxplush.fitting.batched`);
+* the batched sweep, on (V, B) arrays per ring slot (:mod:`jaxplush.stepping.batched`);
 * the fused adjoint's hand VJP (:mod:`jaxplush.stepping.adjoint`), from the ``*_vjp`` functions;
 * the implicit integrator's Jacobian products (:mod:`jaxplush.stepping.integrators`).
 
@@ -249,7 +249,7 @@ class TermSpec:
     Attributes:
       name: the Terms field (as in ``Terms.names()``).
       forward: where its forward is written (module.function).
-      batched: :mod:`jaxplush.fitting.batched` implements it.
+      batched: :mod:`jaxplush.stepping.batched` implements it.
       adjoint: the fused adjoint of :mod:`jaxplush.stepping.adjoint` implements its transpose.
     """
 

@@ -30,7 +30,7 @@ from jaxplush.types import State
 
 
 class Health(NamedTuple):
-    """Carried health record of a rollout; a batched rollout (:mod:`jaxplush.fitting.batched`)
+    """Carried health record of a rollout; a batched rollout (:mod:`jaxplush.stepping.batched`)
     carries the same record with a trailing batch axis B on every field.
 
     Attributes:
