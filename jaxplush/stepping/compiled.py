@@ -52,24 +52,37 @@ def get(sim, name, build):
 #: backend's optimisation level 0 compiles them in about 3/4 of the time (benchmarks/RESULTS.md,
 #: "Fewer programs per fit") and they run a few milliseconds longer, once.
 ONCE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
-_ONCE_OK = []
+_ONCE_REFUSED = []
 
 
 def jit_once(fn, **kw):
-    """``jax.jit(fn, **kw)`` for a function that runs once per call (an init, an estimate): with
-    :data:`ONCE_COMPILER_OPTIONS` on XLA:CPU where the installed XLA accepts them, else plain."""
+    """``jax.jit(fn, **kw)`` for a function that runs once per call (an init, an estimate), with
+    :data:`ONCE_COMPILER_OPTIONS` on XLA:CPU. Where the installed jax or XLA refuses them (found at
+    the first call, no probe compile at start-up), it is a plain jit from then on."""
     import jax
-    if not _ONCE_OK:
-        ok = jax.default_backend() == "cpu"
-        if ok:
-            try:
-                jax.jit(lambda a: a + 1, compiler_options=dict(ONCE_COMPILER_OPTIONS)).lower(0.0).compile()
-            except Exception:                       # an unknown option, or no compiler_options
-                ok = False
-        _ONCE_OK.append(ok)
-    if _ONCE_OK[0]:
-        kw = dict(kw, compiler_options=dict(ONCE_COMPILER_OPTIONS))
-    return jax.jit(fn, **kw)
+    plain = jax.jit(fn, **kw)
+    if _ONCE_REFUSED or jax.default_backend() != "cpu":
+        return plain
+    try:
+        tuned = jax.jit(fn, compiler_options=dict(ONCE_COMPILER_OPTIONS), **kw)
+    except TypeError:                               # a jax without compiler_options
+        _ONCE_REFUSED.append(True)
+        return plain
+    state = []
+
+    def call(*args, **kwargs):
+        if state:
+            return state[0](*args, **kwargs)
+        try:
+            out = tuned(*args, **kwargs)
+        except Exception:
+            # refused options (or any other error, which the plain jit raises again)
+            _ONCE_REFUSED.append(True)
+            state.append(plain)
+            return plain(*args, **kwargs)
+        state.append(tuned)
+        return out
+    return call
 
 
 def clear():
