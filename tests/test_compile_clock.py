@@ -136,3 +136,18 @@ def test_a_fits_data_movement_compiles_nothing():
     host_side = {"_split", "_join", "broadcast_in_dim", "dynamic_slice", "convert_element_type", "squared_distance",
                  "_mean", "slice", "concatenate"}
     assert names and not names & host_side, sorted(names)
+
+
+def test_a_once_per_call_program_compiles_with_its_options_or_falls_back():
+    """``compiled.jit_once``: the same values as a plain jit; an error of the call itself is
+    raised as a plain jit raises it and does not turn the options off for later programs."""
+    import numpy as np
+    from jaxplush.stepping import compiled
+    f = compiled.jit_once(lambda a, b: jnp.sin(a) * b + 1.0)
+    a = np.linspace(0.0, 1.0, 7, dtype=np.float32)
+    np.testing.assert_allclose(np.asarray(f(a, 2.0)), np.sin(a) * 2.0 + 1.0, rtol=1e-6)
+    refused = list(compiled._ONCE_REFUSED)
+    g = compiled.jit_once(lambda a: a @ a)
+    with pytest.raises(TypeError):
+        g(np.ones((2, 3), np.float32))                 # a shape error of the call
+    assert compiled._ONCE_REFUSED == refused

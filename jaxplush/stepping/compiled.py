@@ -77,10 +77,12 @@ def jit_once(fn, **kw):
         try:
             out = tuned(*args, **kwargs)
         except Exception:
-            # refused options (or any other error, which the plain jit raises again)
+            # refused options, or an error of the call itself, which the plain jit raises again
+            # (and then nothing is marked refused)
+            out = plain(*args, **kwargs)
             _ONCE_REFUSED.append(True)
             state.append(plain)
-            return plain(*args, **kwargs)
+            return out
         state.append(tuned)
         return out
     return call
