@@ -20,7 +20,6 @@ that an optimiser would read as data.
 
 from __future__ import annotations
 
-import collections
 import math
 from typing import NamedTuple
 
@@ -29,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxplush.stepping import batched
-from jaxplush.stepping import compiled, diagnostics
+from jaxplush.stepping import diagnostics
 from jaxplush.stepping import stability
 from jaxplush.types import Params
 
@@ -94,28 +93,6 @@ def _pad_frames(a, size, axis):
         return a
     last = np.take(a, [-1], axis=axis)
     return np.concatenate([a, np.repeat(last, short, axis=axis)], axis=axis)
-
-
-#: Batched simulators (with their jitted inits) kept alive for reuse, least recently used first out.
-SHARED_BSIMS = 8
-_SHARED: "collections.OrderedDict" = collections.OrderedDict()
-
-
-def _shared_bsim(scene, dt, b, terms, substeps, chunk):
-    """(batched simulator, jitted init) of one program, shared by every evaluator of this process:
-    the key is what the compiled code depends on (the scene's fingerprint, not its values, which
-    an evaluator always passes), as :mod:`jaxplush.stepping.compiled` keys single simulators."""
-    key = (scene.fingerprint, float(dt), int(b), terms, int(substeps), int(chunk),
-           jnp.dtype(jnp.result_type(float)).str)
-    hit = _SHARED.get(key)
-    if hit is None:
-        bsim = batched.make_batched_simulator(scene, dt, b, terms=terms, substeps=substeps, chunk=chunk)
-        hit = _SHARED[key] = (bsim, compiled.jit_once(bsim.init_fn))
-        while len(_SHARED) > SHARED_BSIMS:
-            _SHARED.popitem(last=False)
-    else:
-        _SHARED.move_to_end(key)
-    return hit
 
 
 def _pow2_at_least(n):
@@ -450,12 +427,12 @@ class Evaluator:
 
     def _bsim(self, n, b):
         """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b``: built
-        once per process for a program (:func:`_shared_bsim`), so every evaluator of the scene
+        once per process for a program (:func:`jaxplush.stepping.batched.shared_simulator`), so every evaluator of the scene
         (another horizon, the predictability measurement, a later fit) runs the same compiled code."""
         key = (n, b, self.prob.sim.terms, self.prob.target.dt)
         if key not in self._bsims:
-            self._bsims[key] = _shared_bsim(self.prob.scene, self.prob.target.dt, b, self.prob.sim.terms, n,
-                                            self._chunk_of(b))
+            self._bsims[key] = batched.shared_simulator(self.prob.scene, self.prob.target.dt, b, self.prob.sim.terms,
+                                                        n, self._chunk_of(b))
         return self._bsims[key]
 
     def _frames_batched(self, thetas, n):

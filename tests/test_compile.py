@@ -106,3 +106,22 @@ def test_the_command_line_keeps_compiled_programs_across_processes(tmp_path):
 def test_the_persistent_cache_can_be_turned_off(value, monkeypatch):
     monkeypatch.setenv("JAXPLUSH_CACHE_DIR", value)
     assert compiled.enable_persistent_cache() is None
+
+
+def test_batched_simulators_are_shared_per_program_and_cleared_with_the_rest():
+    """``batched.shared_simulator``: one batched simulator per program in a process (the scene's
+    geometry, dt, width, terms, substeps, chunk), whatever the scene's values; another geometry
+    or width is another; ``compiled.clear()`` drops them. Nothing is compiled here."""
+    from conftest import icosphere_scene
+    from jaxplush.stepping import batched
+    a = icosphere_scene(k=111.0)
+    same_geometry = icosphere_scene(k=222.0, mass=0.2)
+    moved = icosphere_scene(k=111.0, translate=(0.0, 0.01, 0.0))
+    terms = batched.terms_for(a)
+    first = batched.shared_simulator(a, 5e-4, 8, terms, 1, 4)
+    assert batched.shared_simulator(same_geometry, 5e-4, 8, terms, 1, 4) is first
+    assert batched.shared_simulator(moved, 5e-4, 8, terms, 1, 4)[0] is not first[0]
+    assert batched.shared_simulator(a, 5e-4, 16, terms, 1, 4)[0] is not first[0]
+    assert batched.shared_simulator(a, 5e-4, 8, terms, 2, 4)[0] is not first[0]
+    compiled.clear()
+    assert batched.shared_simulator(a, 5e-4, 8, terms, 1, 4)[0] is not first[0]

@@ -88,10 +88,22 @@ def jit_once(fn, **kw):
     return call
 
 
+_REGISTERED = []
+
+
+def register(cache):
+    """``cache`` (a dict of compiled things kept for reuse elsewhere, such as the batched
+    simulators of :func:`jaxplush.stepping.batched.shared_simulator`), emptied by :func:`clear` too."""
+    _REGISTERED.append(cache)
+    return cache
+
+
 def clear():
     """Drop every cached compiled function (their executables are freed with them)."""
     _CACHE.clear()
     _TOPOLOGY.clear()
+    for cache in _REGISTERED:
+        cache.clear()
 
 
 _TOPOLOGY: "collections.OrderedDict" = collections.OrderedDict()
