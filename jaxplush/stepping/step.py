@@ -276,7 +276,20 @@ def _public_fns(topo, terms, dtype, scheme, internal_step, kernel, overflow):
     def velocity_fn(params, state):
         return scheme.velocity(params, to_internal(state)).T
 
-    return dict(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn, velocity_fn=velocity_fn)
+    # Each is jitted: called directly (a notebook's first ``sim.init_fn(p)``, a test's force check)
+    # it is one compiled program instead of about a hundred one-op programs run eagerly, each
+    # compiled on its first call (4-6 s against 0.5 s for a 162-vertex ball, cold; benchmarks/RESULTS.md);
+    # inside a user's own jit, grad or vmap it is inlined as before.
+    # (a scene without driven vertices ignores ``step``: it is dropped before the compiled step, so
+    # passing one or not is the same program)
+    jit_step = jax.jit(step_fn)
+    if not terms.driven:
+        def public_step(params, state, step=None):
+            return jit_step(params, state)
+    else:
+        public_step = jit_step
+    return dict(init_fn=jax.jit(init_fn), step_fn=public_step, status_fn=jax.jit(status_fn),
+                force_fn=jax.jit(force_fn), velocity_fn=jax.jit(velocity_fn))
 
 
 def to_internal(state):
