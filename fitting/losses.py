@@ -354,7 +354,9 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
         return d
 
     aux = jax.device_put(np.asarray(target.data, dtype))     # converted on the host: no conversion program
-    return Loss(loss_fn, aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind, parts)
+    # jitted: a direct call (a notebook's, a test's) is one program, not one per operation; inside
+    # the fit's own jit it is inlined
+    return Loss(jax.jit(loss_fn), aux, tuple(int(s) for s in target.steps), float(scale2), how, target.kind, parts)
 
 
 def _mixed_distance(target, topology, scales):
@@ -554,7 +556,7 @@ def make_residual(target, topology, loss):
 
     def fn(frames):
         return frame_fn(frames, jnp.asarray(data, frames.dtype)) * jnp.asarray(norm, frames.dtype)
-    return Residual(fn, t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame,
+    return Residual(jax.jit(fn), t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame,
                     frame_fn=frame_fn, norm=float(norm) if np.ndim(norm) == 0 else norm, data=data, near_fn=near_fn)
 
 
