@@ -146,6 +146,9 @@ def test_a_once_per_call_program_compiles_with_its_options_or_falls_back():
     f = compiled.jit_once(lambda a, b: jnp.sin(a) * b + 1.0)
     a = np.linspace(0.0, 1.0, 7, dtype=np.float32)
     np.testing.assert_allclose(np.asarray(f(a, 2.0)), np.sin(a) * 2.0 + 1.0, rtol=1e-6)
+    # inside another trace (JAX takes compiler options on the outermost jit only): the plain jit
+    np.testing.assert_allclose(np.asarray(jax.jit(lambda b: f(b, 2.0))(a)), np.sin(a) * 2.0 + 1.0, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.vmap(lambda b: f(b, 2.0))(a)), np.sin(a) * 2.0 + 1.0, rtol=1e-6)
     refused = list(compiled._ONCE_REFUSED)
     g = compiled.jit_once(lambda a: a @ a)
     with pytest.raises(TypeError):

@@ -243,7 +243,10 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
         f, volume = kernel(params, x, v)
         return (f if touch is None else touch.add(params, x, v, f)), volume
 
-    return BatchedSimulator(init_fn=init_fn, step_fn=step_fn, status_fn=status_fn, force_fn=force_fn,
+    # the start and the forces jitted (a direct call, as a sweep's start or a test's, is one program,
+    # not one per operation); the step and the status stay plain: the rollout traces them
+    return BatchedSimulator(init_fn=compiled.jit_once(init_fn), step_fn=step_fn, status_fn=status_fn,
+                            force_fn=jax.jit(force_fn),
                             topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
                             dtype=dtype, chunk=chunk, coherent=coherent, drive=drive, step_rows=step_rows)
 
@@ -261,14 +264,14 @@ def shared_simulator(scene, dt, batch, terms, substeps=1, chunk=None):
     predictability measurement, a later fit of the scene). The key is what the compiled code
     depends on (the scene's fingerprint, as :mod:`jaxplush.stepping.compiled` keys single
     simulators), not the scene's values: pass parameter values to :meth:`BatchedSimulator.params`
-    (its default, the first scene's values, is not the caller's). The init runs once per
-    rollout and compiles with :func:`jaxplush.stepping.compiled.jit_once`."""
+    (its default, the first scene's values, is not the caller's). The second item is the
+    simulator's ``init_fn`` (jitted with :func:`jaxplush.stepping.compiled.jit_once`)."""
     key = (scene.fingerprint, float(dt), int(batch), terms, int(substeps), None if chunk is None else int(chunk),
            jnp.dtype(jnp.result_type(float)).str)
     hit = _SHARED.get(key)
     if hit is None:
         bsim = make_batched_simulator(scene, dt, batch, terms=terms, substeps=substeps, chunk=chunk)
-        hit = _SHARED[key] = (bsim, compiled.jit_once(bsim.init_fn))
+        hit = _SHARED[key] = (bsim, bsim.init_fn)
         while len(_SHARED) > SHARED:
             _SHARED.popitem(last=False)
     else:

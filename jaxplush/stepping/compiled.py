@@ -59,7 +59,9 @@ _ONCE_REFUSED = []
 def jit_once(fn, **kw):
     """``jax.jit(fn, **kw)`` for a function that runs once per call (an init, an estimate), with
     :data:`ONCE_COMPILER_OPTIONS` on XLA:CPU. Where the installed jax or XLA refuses them (found at
-    the first call, no probe compile at start-up), it is a plain jit from then on."""
+    the first call, no probe compile at start-up), it is a plain jit from then on; called inside
+    another trace (a user's jit, vmap or grad), it is the plain jit (JAX takes compiler options
+    on the outermost jit only)."""
     import jax
     plain = jax.jit(fn, **kw)
     if _ONCE_REFUSED or jax.default_backend() != "cpu":
@@ -72,6 +74,8 @@ def jit_once(fn, **kw):
     state = []
 
     def call(*args, **kwargs):
+        if not _top_level():
+            return plain(*args, **kwargs)       # inside a trace: options belong to the outer jit
         if state:
             return state[0](*args, **kwargs)
         try:
@@ -96,6 +100,15 @@ def register(cache):
     simulators of :func:`jaxplush.stepping.batched.shared_simulator`), emptied by :func:`clear` too."""
     _REGISTERED.append(cache)
     return cache
+
+
+def _top_level():
+    """True outside any JAX trace (jit, vmap, grad, ...): only there may a jit carry compiler options."""
+    try:
+        from jax._src import core
+        return bool(core.trace_state_clean())
+    except Exception:                               # a jax without it: never nest options
+        return False
 
 
 def clear():
