@@ -185,7 +185,10 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     # explicit arrays, so a default and a given initial state share one compiled init
     x0 = np.asarray(sim.topology.x0 if x0 is None else x0, np.float64)
     v0 = np.zeros_like(x0) if v0 is None else np.asarray(v0, np.float64)
-    init = compiled.get(sim, "init", lambda: compiled.jit_once(sim.init_fn))   # one compile per program
+    # one compile per program; at XLA's default optimisation (not jit_once's level 0), so that
+    # simulate's runs are bit for bit those of earlier versions: a reference run or a target
+    # made by simulate does not move by a rounding when the code is updated
+    init = compiled.get(sim, "init", lambda: jax.jit(sim.init_fn))
     state = init(p, x0, v0)
     health = _rollout.initial_health(sim, state)
     x_init = state.x
