@@ -48,9 +48,9 @@ def get(sim, name, build):
     return fn
 
 
-#: XLA options of programs that run once per call (a rollout's init, a stability estimate): the
-#: backend's optimisation level 0 compiles them in a half to two thirds of the time, and they run
-#: a few milliseconds longer, once (benchmarks/RESULTS.md, "A fit's float32 twins on the batched
+#: XLA options of programs that run once per call (the batched engine's init, a stability
+#: estimate): the backend's optimisation level 0 compiles them in about half the time, and they
+#: run a few milliseconds longer, once (benchmarks/RESULTS.md, "A fit's float32 twins on the batched
 #: engine").
 ONCE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 _ONCE_REFUSED = []
