@@ -426,13 +426,15 @@ class Evaluator:
         return max(1, min(b // 2, self._chunk()))
 
     def _bsim(self, n, b):
-        """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b``: built
-        once per process for a program (:func:`jaxplush.stepping.batched.shared_simulator`), so every evaluator of the scene
-        (another horizon, the predictability measurement, a later fit) runs the same compiled code."""
+        """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b``: built once
+        per process for a program (:func:`jaxplush.stepping.batched.shared_simulator`), so every
+        evaluator of the scene (another horizon, the predictability measurement, a later fit)
+        runs the same compiled code."""
         key = (n, b, self.prob.sim.terms, self.prob.target.dt)
         if key not in self._bsims:
-            self._bsims[key] = batched.shared_simulator(self.prob.scene, self.prob.target.dt, b, self.prob.sim.terms,
-                                                        n, self._chunk_of(b))
+            bsim = batched.shared_simulator(self.prob.scene, self.prob.target.dt, b, self.prob.sim.terms, n,
+                                            self._chunk_of(b))
+            self._bsims[key] = (bsim, bsim.init_fn)
         return self._bsims[key]
 
     def _frames_batched(self, thetas, n):

@@ -419,7 +419,8 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     if want_ident and report.unresolved:
         report = _resolve_again(prob, box, run, ev, _options.LocalOptions(**settings["local"]), report, drift,
                                 factor, notes)
-    out = _judge(prob, best.theta, batched=True, chunk_frames=run.horizons[0] if run.horizons else None, rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
+    out = _judge(prob, best.theta, batched=True, chunk_frames=run.horizons[0] if run.horizons else None,
+                 rms=rms, noise=prob.noise, motion=motion, grad=run.grad, grad0=run.grad0,
                  stopped=best.stopped, at_bound=at_bound, gn_step=gn_step, stderr=stderr,
                  undetermined=report.undetermined if want_ident else ())
     theta = best.theta

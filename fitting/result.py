@@ -229,9 +229,8 @@ def _batched_lanes(prob, steps, every, chunk_frames=None):
         return None
 
     def lanes(params, starts):
-        values = [prob.scene.params if params is None else params] * len(starts)
-        values = [Params(*(np.asarray(a, np.float64) for a in v)) for v in values]
-        fr, ok, _, over, _ = ev._run_lanes(values, 1, ev.runs, x0=starts, v0=np.zeros_like(starts),
+        one = Params(*(np.asarray(a, np.float64) for a in (prob.scene.params if params is None else params)))
+        fr, ok, _, over, _ = ev._run_lanes([one] * len(starts), 1, ev.runs, x0=starts, v0=np.zeros_like(starts),
                                            separation=True, width=ev.batch)
         return fr if ok.all() and not over.any() else None
     return lanes

@@ -120,8 +120,8 @@ def test_batched_simulators_are_shared_per_program_and_cleared_with_the_rest():
     terms = batched.terms_for(a)
     first = batched.shared_simulator(a, 5e-4, 8, terms, 1, 4)
     assert batched.shared_simulator(same_geometry, 5e-4, 8, terms, 1, 4) is first
-    assert batched.shared_simulator(moved, 5e-4, 8, terms, 1, 4)[0] is not first[0]
-    assert batched.shared_simulator(a, 5e-4, 16, terms, 1, 4)[0] is not first[0]
-    assert batched.shared_simulator(a, 5e-4, 8, terms, 2, 4)[0] is not first[0]
+    assert batched.shared_simulator(moved, 5e-4, 8, terms, 1, 4) is not first
+    assert batched.shared_simulator(a, 5e-4, 16, terms, 1, 4) is not first
+    assert batched.shared_simulator(a, 5e-4, 8, terms, 2, 4) is not first
     compiled.clear()
-    assert batched.shared_simulator(a, 5e-4, 8, terms, 1, 4)[0] is not first[0]
+    assert batched.shared_simulator(a, 5e-4, 8, terms, 1, 4) is not first

@@ -251,27 +251,25 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
                             dtype=dtype, chunk=chunk, coherent=coherent, drive=drive, step_rows=step_rows)
 
 
-#: Batched simulators (with their jitted inits) that :func:`shared_simulator` keeps alive for
-#: reuse, least recently used first out; :func:`jaxplush.stepping.compiled.clear` empties it.
+#: Batched simulators that :func:`shared_simulator` keeps alive for reuse, least recently used
+#: first out; :func:`jaxplush.stepping.compiled.clear` empties it.
 SHARED = 8
 _SHARED: "collections.OrderedDict" = compiled.register(collections.OrderedDict())
 
 
 def shared_simulator(scene, dt, batch, terms, substeps=1, chunk=None):
-    """(:func:`make_batched_simulator` (Verlet), its jitted ``init_fn``), one per program in a
-    process: every caller with the same scene geometry, dt, width, terms, substeps, chunk and
-    dtype gets the same simulator, so they run the same compiled code (a fit's evaluators, its
-    predictability measurement, a later fit of the scene). The key is what the compiled code
-    depends on (the scene's fingerprint, as :mod:`jaxplush.stepping.compiled` keys single
-    simulators), not the scene's values: pass parameter values to :meth:`BatchedSimulator.params`
-    (its default, the first scene's values, is not the caller's). The second item is the
-    simulator's ``init_fn`` (jitted with :func:`jaxplush.stepping.compiled.jit_once`)."""
+    """:func:`make_batched_simulator` (Verlet), one per program in a process: every caller with the
+    same scene geometry, dt, width, terms, substeps, chunk and dtype gets the same simulator, so
+    they run the same compiled code (a fit's evaluators, its predictability measurement, a later
+    fit of the scene). The key is what the compiled code depends on (the scene's fingerprint, as
+    :mod:`jaxplush.stepping.compiled` keys single simulators), not the scene's values: pass
+    parameter values to :meth:`BatchedSimulator.params` (its default, the first scene's values,
+    is not the caller's)."""
     key = (scene.fingerprint, float(dt), int(batch), terms, int(substeps), None if chunk is None else int(chunk),
            jnp.dtype(jnp.result_type(float)).str)
     hit = _SHARED.get(key)
     if hit is None:
-        bsim = make_batched_simulator(scene, dt, batch, terms=terms, substeps=substeps, chunk=chunk)
-        hit = _SHARED[key] = (bsim, bsim.init_fn)
+        hit = _SHARED[key] = make_batched_simulator(scene, dt, batch, terms=terms, substeps=substeps, chunk=chunk)
         while len(_SHARED) > SHARED:
             _SHARED.popitem(last=False)
     else:

@@ -2,8 +2,8 @@
 
 omega_max² = lambda_max(M^-1 K) with K = -df/dx the stiffness at the given positions (springs
 and gas; soft-soft contact, which acts only where objects touch, is left out), found by power
-iteration on the symmetric M^-1/2 K M^-1/2 with Jacobian-vector products of the force (no matrix is formed). Velocity damping (dashpot, drag, the report's
-Verlet damping) tightens the limit: for the Verlet/symplectic update of a mode with frequency
+iteration on the symmetric M^-1/2 K M^-1/2 with Jacobian-vector products of the force (no
+matrix is formed). Velocity damping (dashpot, drag, the report's Verlet damping) tightens the limit: for the Verlet/symplectic update of a mode with frequency
 omega and damping rate gamma the iteration matrix is stable iff dt² omega² + 2 dt gamma < 4,
 so dt_max = (sqrt(gamma² + 4 omega²) - gamma) / omega², with gamma_max = lambda_max(M^-1 C)
 (the report's per-step damping D enters as 4 - 2/D in place of 4, see _estimate_from)

@@ -278,7 +278,7 @@ def _public_fns(topo, terms, dtype, scheme, internal_step, kernel, overflow):
 
     # Each is jitted: called directly (a notebook's first ``sim.init_fn(p)``, a test's force check)
     # it is one compiled program instead of about a hundred one-op programs run eagerly, each
-    # compiled on its first call (4-6 s against 0.5 s for a 162-vertex ball, cold; benchmarks/RESULTS.md);
+    # compiled on its first call (4.3 s against 0.23 s for a 162-vertex ball, cold; benchmarks/RESULTS.md);
     # inside a user's own jit, grad or vmap it is inlined as before.
     # (a scene without driven vertices ignores ``step``: it is dropped before the compiled step, so
     # passing one or not is the same program)
