@@ -77,6 +77,9 @@ def _parser():
                         "default: each fitted parameter from start/4 to start*4")
     p.add_argument("--samples", type=int, default=None, help="global-stage Sobol points (default 64)")
     p.add_argument("--starts", type=int, default=None, help="local starts from the global stage (default 5)")
+    p.add_argument("--no-linear-start", dest="linear_start", action="store_false",
+                   help="leave out of the global stage the start estimated from the model's linear force balance "
+                        "(position targets; docs/fitting.md, 'A start from the model's linearity')")
     p.add_argument("--iterations", type=int, default=None,
                    help="maximum iterations (default: 40 Levenberg-Marquardt iterations per start; 200 for adam "
                         "and lbfgs)")
@@ -302,7 +305,8 @@ def _options(args, names):
     return FitOptions(iterations=args.iterations, lr=args.lr, start=start, noise=args.noise,
                       noise_free=args.noise_free, track_weight=args.track_weight, method=args.method, force=args.force,
                       shooting=args.shooting,
-                      search=SearchOptions(bounds=bounds, samples=args.samples, starts=args.starts),
+                      search=SearchOptions(bounds=bounds, samples=args.samples, starts=args.starts,
+                                           linear=args.linear_start),
                       local=LocalOptions() if args.jacobian is None else LocalOptions(jacobian=args.jacobian),
                       checkpoint=CheckpointOptions(path=args.out, every=args.checkpoint_every, resume=args.resume))
 

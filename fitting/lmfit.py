@@ -107,7 +107,7 @@ def default_stages(prob, opts, progress=None):
     # several fitted objects, positions observed: each object's parameters scored by its own residuals
     kind = _objects.PerObjectGlobal if _objects.suits(prob) else _stages.GlobalStage
     first = kind(samples=opts.search.n_samples, starts=opts.search.n_starts, seed=opts.search.seed,
-                 local=local, progress=progress, retries=opts.search.retries)
+                 local=local, progress=progress, retries=opts.search.retries, linear=opts.search.linear)
     out = [_stages.Continuation(local=_stages.LocalLM(max_iter=opts.iteration_limit("lm"), options=local),
                                 first=(first,), options=opts.continuation, noisy=_noisy(prob)),
            _stages.Linearise(local=local)]

@@ -184,7 +184,8 @@ class PerObjectState:
       theta: the start; owner: :func:`residual_objects` (None until the first step);
       result: :class:`jaxplush.fitting.search.GlobalResult` of every point evaluated so far
         (designs and composed candidates); rounds: designs run; composed: the composed candidates'
-        rows in ``result``; states: the local searches it starts (after the last round).
+        rows in ``result``; states: the local searches it starts (after the last round); linear:
+        the design point of :func:`jaxplush.fitting.stages.linear_start` (NaN: none).
     """
 
     theta: np.ndarray
@@ -194,6 +195,7 @@ class PerObjectState:
     composed: list = dataclasses.field(default_factory=list)
     states: list = dataclasses.field(default_factory=list)
     done: bool = False
+    linear: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,8 +212,9 @@ class PerObjectGlobal:
     points evaluated, each ``local.start_distance`` of the box's width from those before (as a
     :class:`~jaxplush.fitting.stages.GlobalStage`'s).
 
-    Attributes: samples, per_object, rounds, zoom, starts, seed, retries (as
-    :class:`~jaxplush.fitting.stages.GlobalStage`'s); local
+    Attributes: samples, per_object, rounds, zoom, starts, seed, retries, linear (as
+    :class:`~jaxplush.fitting.stages.GlobalStage`'s; the first round's design also holds the
+    linear start); local
     (:class:`jaxplush.fitting.options.LocalOptions`: the spacing, and the searches' radius and mu);
     progress: ``progress(n)`` after each batch of n points (or None).
     """
@@ -225,11 +228,14 @@ class PerObjectGlobal:
     local: LocalOptions = LocalOptions()
     progress: object = None
     retries: int | None = None
+    linear: bool = False
 
     def evaluations(self, n_objects):
         """Points this stage evaluates at most for ``n_objects`` fitted objects (the first round's
-        start included)."""
-        return 1 + self.rounds * (self.samples + self.per_object ** n_objects) if self.samples > 0 else 1
+        start and linear start included; not the linear start's own rollouts)."""
+        if self.samples <= 0:
+            return 1
+        return 1 + int(self.linear) + self.rounds * (self.samples + self.per_object ** n_objects)
 
     def init(self, objective, theta, state=None):
         return PerObjectState(theta=np.asarray(theta, np.float64))
@@ -262,7 +268,14 @@ class PerObjectGlobal:
             s.owner = self._owner(objective, s)
         n_obj = s.theta.shape[-1]
         if s.rounds == 0:
-            design = np.concatenate([s.theta[None], _search.sobol_design(box, self.samples, self.seed)])
+            extra = []
+            if self.linear:
+                from jaxplush.fitting.stages import linear_start
+                if s.linear is None:
+                    s.linear = linear_start(objective)
+                if np.all(np.isfinite(s.linear)):
+                    extra = [box.clip(s.linear)[None]]
+            design = np.concatenate([s.theta[None]] + extra + [_search.sobol_design(box, self.samples, self.seed)])
         else:
             best = s.result.thetas[s.result.best(1, 0.0)[0]]
             half = 0.5 * (box.hi - box.lo) * self.zoom ** s.rounds

@@ -57,6 +57,11 @@ class SearchOptions:
         :data:`jaxplush.fitting.evaluate.MAX_SUBSTEPS`, as a local search's points are). The
         design does not need every point, and each further substep count is one more compiled
         simulator (5-20 s with soft-soft contact) for a point or two at the box's wild corners.
+      linear: add the start that needs no start values to the design (``linear_start``): indirect
+        inference on the equation-error estimate of the model's linear force balance
+        (:mod:`jaxplush.fitting.equation_error`), where the target is vertex positions and every
+        fitted parameter enters the forces linearly (k, dashpot, nmol, drag, damping); a dozen
+        rollouts or so. The design keeps whichever point fits best.
     """
 
     bounds: object = None
@@ -64,6 +69,7 @@ class SearchOptions:
     starts: int | None = None
     seed: int = 0
     retries: int | None = dataclasses.field(default=1, metadata={"flat": "global_retries"})
+    linear: bool = dataclasses.field(default=True, metadata={"flat": "linear_start"})
 
     @property
     def n_samples(self):
@@ -312,7 +318,8 @@ def _tuning_shortcuts():
 
 #: Flat keyword -> (group, field) for the fields of FitOptions' groups.
 SHORTCUTS = {"bounds": ("search", "bounds"), "samples": ("search", "samples"), "starts": ("search", "starts"),
-             "seed": ("search", "seed"), "global_retries": ("search", "retries"), "checkpoint_path": ("checkpoint", "path"),
+             "seed": ("search", "seed"), "global_retries": ("search", "retries"), "linear_start": ("search", "linear"),
+             "checkpoint_path": ("checkpoint", "path"),
              "checkpoint_every": ("checkpoint", "every"), "resume": ("checkpoint", "resume"),
              **_tuning_shortcuts()}
 
@@ -354,6 +361,8 @@ def validate(opts, optimizer):
             raise JaxplushError(f"{name} must be an integer >= {0 if name == 'samples' else 1}, got {val!r}")
     if s.retries is not None and (not _is_whole(s.retries) or int(s.retries) < 0):
         raise JaxplushError(f"global_retries must be None or an integer >= 0, got {s.retries!r}")
+    if not isinstance(s.linear, bool):
+        raise JaxplushError(f"linear_start must be True or False, got {s.linear!r}")
     c = opts.checkpoint
     if c.every is not None and (not _is_whole(c.every) or int(c.every) < 1):
         raise JaxplushError(f"checkpoint_every must be >= 1, got {c.every}")

@@ -107,10 +107,12 @@ def sobol_design(box, n, seed=0):
     return (lo + u * (hi - lo)).reshape((n,) + shape)
 
 
-def global_stage(evaluator, box, start, n=64, seed=0, progress=None, retries=None):
-    """Evaluate the start and ``n`` Sobol points of the box (a point that blows up retried at most
-    ``retries`` times, :class:`jaxplush.fitting.evaluate.Evaluator`). Returns :class:`GlobalResult`."""
-    thetas = np.concatenate([np.asarray(start, np.float64)[None], sobol_design(box, n, seed)])
+def global_stage(evaluator, box, start, n=64, seed=0, progress=None, retries=None, extra=()):
+    """Evaluate the start, the ``extra`` points (clipped into the box) and ``n`` Sobol points of the
+    box (a point that blows up retried at most ``retries`` times,
+    :class:`jaxplush.fitting.evaluate.Evaluator`). Returns :class:`GlobalResult`."""
+    extra = [box.clip(np.asarray(t, np.float64)) for t in extra]
+    thetas = np.concatenate([np.asarray(start, np.float64)[None]] + [t[None] for t in extra] + [sobol_design(box, n, seed)])
     ev = evaluator(thetas) if retries is None else evaluator(thetas, retries=retries)
     if progress is not None:
         progress(len(thetas))

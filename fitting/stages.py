@@ -170,6 +170,7 @@ class GlobalState:
     theta: np.ndarray
     result: object = None
     states: list = dataclasses.field(default_factory=list)
+    linear: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,7 +179,11 @@ class GlobalStage:
     in one step; its ``states`` are :class:`jaxplush.fitting.search.LMState` s at the best
     ``starts`` of them, each ``local.start_distance`` of the box's width from those before.
 
-    Attributes: samples, starts, seed, retries (:class:`jaxplush.fitting.options.SearchOptions`);
+    With ``linear`` (and a problem it suits, :func:`jaxplush.fitting.equation_error.suits`), the
+    design also holds the start that needs no start values: indirect inference on the
+    equation-error estimate (:func:`linear_start`; ``GlobalState.linear``).
+
+    Attributes: samples, starts, seed, retries, linear (:class:`jaxplush.fitting.options.SearchOptions`);
     local: :class:`jaxplush.fitting.options.LocalOptions` (the spacing, and the searches' radius and mu);
     progress: ``progress(n)`` after the design ran (or None).
     """
@@ -189,14 +194,18 @@ class GlobalStage:
     local: LocalOptions = LocalOptions()
     progress: object = None
     retries: int | None = None
+    linear: bool = False
 
     def init(self, objective, theta, state=None):
         return GlobalState(theta=np.asarray(theta, np.float64))
 
     def step(self, objective, s):
         box, o = objective.box, self.local
+        if self.linear and s.linear is None:
+            s.linear = linear_start(objective)
+        extra = () if s.linear is None or not np.all(np.isfinite(s.linear)) else (s.linear,)
         s.result = _search.global_stage(objective.evaluator, box, s.theta, self.samples, self.seed,
-                                        progress=self.progress, retries=self.retries)
+                                        progress=self.progress, retries=self.retries, extra=extra)
         width = float(np.max(box.hi - box.lo))
         chosen = s.result.best(self.starts, o.start_distance * width)
         s.states = [_search.LMState(theta=s.result.thetas[i].copy(), loss=float(s.result.loss[i]), mu=o.mu0,
@@ -205,6 +214,25 @@ class GlobalStage:
 
     def terminate(self, objective, s):
         return s.result is not None, Stop.NONE
+
+
+def linear_start(objective):
+    """The design point of indirect inference on the equation-error estimate
+    (:func:`jaxplush.fitting.equation_error.indirect_inference`, its rollouts on the objective's
+    batched evaluator), or an all-NaN theta where it does not suit the problem or found nothing
+    that runs (so that a resumed stage does not try again)."""
+    from jaxplush.fitting import equation_error as _ee
+    prob = objective.prob
+    nothing = np.full(np.shape(prob.theta0), np.nan)
+    if not _ee.suits(prob):
+        return nothing
+    try:
+        ii = _ee.indirect_inference(prob, frames_fn=_ee.evaluator_frames(objective.evaluator))
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError):
+        return nothing
+    if not ii.history or not np.all(np.isfinite(ii.theta)):
+        return nothing
+    return ii.theta
 
 
 # --------------------------------------------------------------------------- local Levenberg-Marquardt

@@ -521,7 +521,8 @@ def test_the_default_fits_stages_recombine_and_reach_its_searches_result(small):
     box = lmfit.default_box(prob)
     run, _ = lmfit.run(prob, box, FitOptions().replace(samples=4, starts=2, iterations=3))
     objective = stages.Objective(prob, box)
-    cont = stages.Continuation(local=stages.LocalLM(max_iter=3), first=(stages.GlobalStage(samples=4, starts=2),))
+    cont = stages.Continuation(local=stages.LocalLM(max_iter=3),
+                               first=(stages.GlobalStage(samples=4, starts=2, linear=True),))
     (c,) = stages.run_stages(objective, prob.theta0, [cont])
     best = c.states[stages.order(c.states)[0]]
     np.testing.assert_array_equal(best.theta, run.best.theta)
