@@ -327,7 +327,7 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
     with _deadline(stop_after * row["budget"] if stop_after else None), \
             contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
         try:
-            code = cli.main([start, target, "--out", out, "--quiet"])
+            code = cli.main([start, target, "--out", out, "--quiet", *FIT_ARGS])
         except KeyboardInterrupt:   # the deadline rang outside the fit's own handler
             code = cli.EXIT_INTERRUPTED
     wall = time.perf_counter() - t
@@ -494,6 +494,8 @@ def _case_in_child(args, case):
     for flag, val in (("--max-vertices", args.max_vertices), ("--steps", args.steps), ("--dt", args.dt)):
         if val is not None:
             argv += [flag, str(val)]
+    if args.no_linear_start:
+        argv.append("--no-linear-start")
     t0 = time.perf_counter()
     proc = subprocess.run(argv, capture_output=True, text=True)
     rows = [ln[4:] for ln in proc.stdout.splitlines() if ln.startswith("ROW ")]
@@ -514,7 +516,8 @@ def main_random(args):
     print(f"# {platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}; "
           f"{time.strftime('%Y-%m-%d %H:%M')}; --random {args.random} --seed {args.seed}"
           + (f" --max-vertices {args.max_vertices}" if args.max_vertices else "")
-          + f" --max-objects {args.max_objects} --kinds {args.kinds}", flush=True)
+          + f" --max-objects {args.max_objects} --kinds {args.kinds}"
+          + (" --no-linear-start" if args.no_linear_start else ""), flush=True)
     if args.only is not None:                    # one case, in this process (the parent reads the last line)
         with tempfile.TemporaryDirectory() as d:
             row = run_random_case(d, cases[args.only], dt=args.dt, steps=args.steps, stop_after=args.stop_after)
@@ -546,6 +549,10 @@ def main_random(args):
     return 0 if all(r["verdict"] == "recovered" for r in rows) else 1
 
 
+#: More arguments of every random case's ``jaxplush-fit`` (``--no-linear-start``).
+FIT_ARGS = []
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default=",".join(SCENES))
@@ -567,8 +574,12 @@ def main(argv=None):
                     "time budget (default 1: at the budget; 0: never)")
     ap.add_argument("--in-process", action="store_true", help="--random: fit every case in this process "
                     "(default: each in a fresh process)")
+    ap.add_argument("--no-linear-start", action="store_true", help="--random: fit without the linear start "
+                    "(jaxplush-fit --no-linear-start), to compare")
     ap.add_argument("--only", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.no_linear_start:
+        FIT_ARGS.append("--no-linear-start")
     if args.random is not None:
         if args.random < 1 or not 1 <= args.max_objects <= 3:
             ap.error("--random needs N >= 1 and --max-objects 1-3")

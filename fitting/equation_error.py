@@ -159,8 +159,10 @@ def equation_error(prob, frames=None):
         np.asarray(topo.vertex_object)]
     kernel, terms = _kernel(prob)
     dtype = prob.sim.dtype
-    xt = jnp.asarray(np.swapaxes(xs[1:-1], 1, 2), dtype)
-    vt = jnp.asarray(np.swapaxes(v, 1, 2), dtype)
+    # (converted on the host and put on the device: no one-op conversion program to compile)
+    host = np.dtype(dtype)
+    xt = jax.device_put(np.ascontiguousarray(np.swapaxes(xs[1:-1], 1, 2), host))
+    vt = jax.device_put(np.ascontiguousarray(np.swapaxes(v, 1, 2), host))
 
     def force(**on):
         vals = {n: np.zeros_like(np.asarray(getattr(base, n), np.float64)) for n in PARAM_NAMES}
@@ -168,7 +170,7 @@ def equation_error(prob, frames=None):
         vals["k_structural"] = np.zeros(topo.n_objects)
         for n, val in on.items():
             vals[n] = np.broadcast_to(np.asarray(val, np.float64), (topo.n_objects,)).copy()
-        p = type(base)(**{n: jnp.asarray(vals[n], dtype) for n in PARAM_NAMES})
+        p = type(base)(**{n: jax.device_put(np.asarray(vals[n], host)) for n in PARAM_NAMES})
         return np.swapaxes(np.asarray(kernel(p, xt, vt), np.float64), 1, 2)      # (T-1, V, 3)
 
     fitted = set(prob.names)
@@ -431,3 +433,21 @@ def _split_as_start(prob, theta):
     theta[i_g] = np.log(share * rate)
     theta[i_d] = np.log([_damping_of_rate(r, dt) for r in (1 - share) * rate])
     return theta
+
+
+def design_point(objective):
+    """The global stage's design point from indirect inference
+    (:func:`indirect_inference`, its rollouts on the objective's batched evaluator): log values,
+    or all NaN where it does not suit the problem or found nothing that runs (so that a resumed
+    stage does not try again)."""
+    prob = objective.prob
+    nothing = np.full(np.shape(prob.theta0), np.nan)
+    if not suits(prob):
+        return nothing
+    try:
+        ii = indirect_inference(prob, frames_fn=evaluator_frames(objective.evaluator))
+    except (ValueError, np.linalg.LinAlgError, FloatingPointError):
+        return nothing
+    if not ii.history or not np.all(np.isfinite(ii.theta)):
+        return nothing
+    return ii.theta

@@ -31,6 +31,7 @@ import itertools
 
 import numpy as np
 
+from jaxplush.fitting import equation_error as _ee
 from jaxplush.fitting import search as _search
 from jaxplush.fitting.options import LocalOptions
 from jaxplush.fitting.outcome import Stop
@@ -185,7 +186,7 @@ class PerObjectState:
       result: :class:`jaxplush.fitting.search.GlobalResult` of every point evaluated so far
         (designs and composed candidates); rounds: designs run; composed: the composed candidates'
         rows in ``result``; states: the local searches it starts (after the last round); linear:
-        the design point of :func:`jaxplush.fitting.stages.linear_start` (NaN: none).
+        the design point of :func:`jaxplush.fitting.equation_error.design_point` (NaN: none).
     """
 
     theta: np.ndarray
@@ -270,9 +271,8 @@ class PerObjectGlobal:
         if s.rounds == 0:
             extra = []
             if self.linear:
-                from jaxplush.fitting.stages import linear_start
                 if s.linear is None:
-                    s.linear = linear_start(objective)
+                    s.linear = _ee.design_point(objective)
                 if np.all(np.isfinite(s.linear)):
                     extra = [box.clip(s.linear)[None]]
             design = np.concatenate([s.theta[None]] + extra + [_search.sobol_design(box, self.samples, self.seed)])

@@ -36,6 +36,7 @@ from typing import Protocol
 
 import numpy as np
 
+from jaxplush.fitting import equation_error as _ee
 from jaxplush.fitting import search as _search
 from jaxplush.fitting import shooting as _shooting
 from jaxplush.fitting.options import ContinuationOptions, LocalOptions, SmoothingOptions
@@ -181,7 +182,7 @@ class GlobalStage:
 
     With ``linear`` (and a problem it suits, :func:`jaxplush.fitting.equation_error.suits`), the
     design also holds the start that needs no start values: indirect inference on the
-    equation-error estimate (:func:`linear_start`; ``GlobalState.linear``).
+    equation-error estimate (:func:`jaxplush.fitting.equation_error.design_point`; ``GlobalState.linear``).
 
     Attributes: samples, starts, seed, retries, linear (:class:`jaxplush.fitting.options.SearchOptions`);
     local: :class:`jaxplush.fitting.options.LocalOptions` (the spacing, and the searches' radius and mu);
@@ -202,7 +203,7 @@ class GlobalStage:
     def step(self, objective, s):
         box, o = objective.box, self.local
         if self.linear and s.linear is None:
-            s.linear = linear_start(objective)
+            s.linear = _ee.design_point(objective)
         extra = () if s.linear is None or not np.all(np.isfinite(s.linear)) else (s.linear,)
         s.result = _search.global_stage(objective.evaluator, box, s.theta, self.samples, self.seed,
                                         progress=self.progress, retries=self.retries, extra=extra)
@@ -214,25 +215,6 @@ class GlobalStage:
 
     def terminate(self, objective, s):
         return s.result is not None, Stop.NONE
-
-
-def linear_start(objective):
-    """The design point of indirect inference on the equation-error estimate
-    (:func:`jaxplush.fitting.equation_error.indirect_inference`, its rollouts on the objective's
-    batched evaluator), or an all-NaN theta where it does not suit the problem or found nothing
-    that runs (so that a resumed stage does not try again)."""
-    from jaxplush.fitting import equation_error as _ee
-    prob = objective.prob
-    nothing = np.full(np.shape(prob.theta0), np.nan)
-    if not _ee.suits(prob):
-        return nothing
-    try:
-        ii = _ee.indirect_inference(prob, frames_fn=_ee.evaluator_frames(objective.evaluator))
-    except (ValueError, np.linalg.LinAlgError, FloatingPointError):
-        return nothing
-    if not ii.history or not np.all(np.isfinite(ii.theta)):
-        return nothing
-    return ii.theta
 
 
 # --------------------------------------------------------------------------- local Levenberg-Marquardt
