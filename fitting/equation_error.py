@@ -90,10 +90,16 @@ def _fd(x_prev, x, x_next, h1, h2):
 
 def _kernel(prob):
     """The force kernel without contact and the smooth floor (those vertices are masked),
-    vmapped over frames: (params, x (T, 3, V), v (T, 3, V)) -> f (T, 3, V)."""
+    vmapped over frames: (params, x (T, 3, V), v (T, 3, V)) -> f (T, 3, V); jitted once per
+    simulator program (:func:`jaxplush.stepping.compiled.get`: every call of an indirect inference
+    reuses it)."""
+    from jaxplush.stepping import compiled
     terms = dataclasses.replace(prob.sim.terms, contact=None, floor_smooth=None, k_field=False)
-    kernel = model.make_force_fn(prob.sim.topology, terms, prob.scene.temperature)
-    return jax.jit(jax.vmap(lambda p, x, v: kernel(p, x, v)[0], in_axes=(None, 0, 0))), terms
+
+    def build():
+        kernel = model.make_force_fn(prob.sim.topology, terms, prob.scene.temperature)
+        return jax.jit(jax.vmap(lambda p, x, v: kernel(p, x, v)[0], in_axes=(None, 0, 0)))
+    return compiled.get(prob.sim, "equation_error_forces", build), terms
 
 
 def _masks(prob, xs):
