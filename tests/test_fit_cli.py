@@ -61,8 +61,9 @@ def test_fit_end_to_end(files, tmp_path, capsys):
             assert f["params"][n].shape == (1,) and f["start"][n][0] == getattr(start, n)[0]
             fitted_vals[n] = f["params"][n][0]
             assert fitted_vals[n] == pytest.approx(getattr(files["truth"], n)[0], rel=0.01)
-            # the search: every global sample and the local paths, for plots
-            assert f["search"]["global"][n].shape == (65, 1) and f["search"]["global"]["loss"].shape == (65,)
+            # the search: every global sample (the start, the linear start and 64 Sobol points) and the
+            # local paths, for plots
+            assert f["search"]["global"][n].shape == (66, 1) and f["search"]["global"]["loss"].shape == (66,)
             assert f["history"][n][-1, 0] == pytest.approx(fitted_vals[n], rel=1e-6)
         assert f.attrs["loss"] == pytest.approx(f["history"]["loss"][-1]) and f.attrs["loss"] < f.attrs["loss_start"]
         ig = f["identifiability"]
