@@ -2,8 +2,9 @@
 
 Given positions and velocities, every force of the model is linear in its parameter: the springs in
 k, the edge dashpot in its coefficient c, the gas in nmol (P = nRT/V), air drag in gamma; the
-report's per-step damping D acts as a drag rate gamma_D = -ln(1 - 1/D)/dt, with the same regressor
-as drag (docs/model.md §5, docs/fitting.md "A start from the model's linearity").
+report's per-step damping D enters Verlet's update as the rate gamma_D = 1/(D dt) (:func:`damping_rate`),
+with the same regressor as drag (docs/model.md §5, docs/fitting.md "A start from the model's
+linearity").
 
 **The equation-error estimate** (:func:`equation_error`). From a positions target's frames, the
 velocities and accelerations of every vertex at every interior frame by second-order finite
@@ -21,13 +22,14 @@ It is global (no start values, no rollout) and costs one pass over the frames.
 **Indirect inference** (:func:`indirect_inference`). Frames saved every 15-200 steps alias the
 fast modes: the finite-difference accelerations carry false components correlated with the
 regressors, and the estimate is biased (k mostly low). Applying the same estimator to frames
-simulated at theta and iterating, in log space,
+simulated at theta and iterating, in log values,
 
-    theta <- theta + [log s(target) - log s(simulated at theta)]
+    theta <- theta + J^-1 [s(target) - s(simulated at theta)]
 
 cancels what the sampling, the masking and the noise do to both alike (Gourieroux, Monfort and
-Renault 1993): a few rollouts in all. The estimator averages over every vertex and frame, so it
-stays smooth where a trajectory is chaotic and a rollout loss is rough.
+Renault 1993): a few rollouts in all. Where the fast modes stay excited between frames (light
+damping, impacts, soft-soft contact at 10 ms frames), the statistic follows their aliased phases
+more than the parameters and the iteration does not converge (benchmarks/RESULTS.md).
 
 The report's damping and air drag share one regressor: only their combined rate is determined.
 Where both are fitted, the combined rate is estimated and the start's split between them is kept
@@ -161,8 +163,8 @@ def equation_error(prob, frames=None):
     v = np.where(one, (xs[1:-1] - xs[:-2]) / h1, v)
     ok = _masks(prob, xs)
     base = prob.base
-    mass = np.asarray(base.total_weight, np.float64)[np.asarray(topo.vertex_object)] / np.asarray(topo.count)[
-        np.asarray(topo.vertex_object)]
+    vobj = np.asarray(topo.vertex_object)
+    mass = (np.asarray(base.total_weight, np.float64) / np.asarray(topo.count, np.float64))[vobj]      # (V,)
     kernel, terms = _kernel(prob)
     dtype = prob.sim.dtype
     # (converted on the host and put on the device: no one-op conversion program to compile)
@@ -173,15 +175,13 @@ def equation_error(prob, frames=None):
     def force(**on):
         vals = {n: np.zeros_like(np.asarray(getattr(base, n), np.float64)) for n in PARAM_NAMES}
         vals["total_weight"] = np.asarray(base.total_weight, np.float64)
-        vals["k_structural"] = np.zeros(topo.n_objects)
         for n, val in on.items():
             vals[n] = np.broadcast_to(np.asarray(val, np.float64), (topo.n_objects,)).copy()
         p = type(base)(**{n: jax.device_put(np.asarray(vals[n], host)) for n in PARAM_NAMES})
         return np.swapaxes(np.asarray(kernel(p, xt, vt), np.float64), 1, 2)      # (T-1, V, 3)
 
     fitted = set(prob.names)
-    k_base = np.asarray(base.k_structural, np.float64)
-    if k_base.shape != (topo.n_objects,):
+    if np.shape(base.k_structural) != (topo.n_objects,):
         raise ValueError("the equation-error estimate needs one spring stiffness per object, not a field")
     reg = {"k_structural": force(k_structural=1.0)}
     if terms.dashpot:
@@ -198,9 +198,8 @@ def equation_error(prob, frames=None):
     known = np.zeros_like(a)
     for n, r in reg.items():
         if n not in fitted:
-            known += np.asarray(getattr(base, n), np.float64)[np.asarray(topo.vertex_object)][None, :, None] * r
+            known += np.asarray(getattr(base, n), np.float64)[vobj][None, :, None] * r
     gravity = np.asarray(prob.scene.gravity, np.float64) if terms.gravity else np.zeros(3)
-    vobj = np.asarray(topo.vertex_object)
     lhs = a - gravity - known / mass[None, :, None] + rate_known[vobj][None, :, None] * v
     cols = [n for n in ("k_structural", "dashpot", "nmol") if n in fitted and n in reg]
     out = {n: np.full(len(prob.objects), np.nan) for n in prob.names}

@@ -10,6 +10,7 @@ regressor: only their combined rate is determined."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -124,7 +125,6 @@ def test_damping_and_drag_are_one_rate():
 def test_refuses_what_it_cannot_estimate(hung):
     prob = _problem(hung, 5)
     with pytest.raises(ValueError, match="positions target"):
-        import dataclasses
         EE.equation_error(dataclasses.replace(prob, target=dataclasses.replace(
             prob.target, positions=None, points=prob.target.positions)))
     assert EE.suits(prob)
