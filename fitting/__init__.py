@@ -45,6 +45,7 @@ _EXPORTS = {
     "CheckpointOptions": "jaxplush.fitting.options",
     "FitResult": "jaxplush.fitting.result",
     "FitError": "jaxplush.fitting.errors",
+    "Intervals": "jaxplush.fitting.intervals",
     "synthetic_recovery": "jaxplush.fitting.recovery",
     "identifiability": "jaxplush.fitting.identifiability",
     "load_fit": "jaxplush.fitting.io",

@@ -21,8 +21,9 @@ target, or segments no longer than the horizon, restarted from the observed posi
 
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
-exits 3; a fit that finished without converging to the data (jaxplush.fitting.outcome) writes FIT.h5 with
-its status and exits 4. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130;
+exits 3; a fit that finished at neither the data nor the model's reproducibility floor
+(jaxplush.fitting.outcome) writes FIT.h5 with its status and exits 4; one at the floor (``at_floor``)
+has done what the data allow and exits 0, its values reported with their intervals. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130;
 ``--resume`` continues it.
 """
 
@@ -361,11 +362,11 @@ def _report(args, result):
     if args.out_scene:
         result.write_scene(args.out_scene)
     print(result.table())
+    from jaxplush.fitting.outcome import DONE, REPORTED
     if result.identifiability is not None:
-        print(result.identifiability.summary() if result.converged or result.status == "undetermined" else
-              result.identifiability.summary(standard_errors=False))
+        print(result.identifiability.summary(standard_errors=result.status in REPORTED))
     print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))
-    if not result.converged:
+    if result.status not in DONE:
         what = ("reproduces the target but does not determine every parameter" if result.status == "undetermined"
                 else "did not converge to the data")
         print(f"jaxplush-fit: the fit {what} ({result.status}); see FIT.h5 and the "

@@ -50,6 +50,7 @@ import warnings
 import numpy as np
 
 from jaxplush.compilestats import compile_clock
+from jaxplush.fitting import intervals as _intervals
 from jaxplush.stepping import diagnostics
 from jaxplush.errors import JaxplushError
 from jaxplush.types import PARAM_NAMES  # noqa: F401  (jaxplush.fitting.fitter.PARAM_NAMES)
@@ -69,7 +70,7 @@ from jaxplush.fitting.recovery import RECOVERY_TRUTH, recovery_scene_text, synth
 from jaxplush.fitting.result import (FitResult, _history, _judge, _motion, _predictability_at, _result,  # noqa: F401
                                      identifiability_at, measure_predictability, rounding_drift)
 from jaxplush.fitting import shooting as _shooting
-from jaxplush.fitting.outcome import Status
+from jaxplush.fitting.outcome import REPORTED as _REPORTED, Status
 from jaxplush.fitting.shooting import plan_shooting
 
 
@@ -455,7 +456,11 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
                "(their explicit limit is below dt); simulate them with --substeps")
         warnings.warn(msg, stacklevel=3)
         notes.append(msg)
-    if not want_ident:
+    ivals = None
+    if want_ident:
+        # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.intervals)
+        ivals = _intervals.twins(prob, ev, theta, run.jac, report)
+    else:
         report = None
     path = best.history
     hist = _history(prob, [t for _, t in path], iteration=np.arange(len(path), dtype=np.int64),
@@ -471,7 +476,8 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     # the identifiability warnings only for a fit that reached the data at an optimum (converged or
     # undetermined: there the standard errors mean something)
     return _result(prob, theta, frames=frames, history=hist, outcome=out, report=report,
-                   warn_report=out.converged or out.status == "undetermined", notes=notes, settings=settings, loop=dataclasses.replace(run, state=lmfit.light_copy(run.state)),
+                   warn_report=out.status in _REPORTED, notes=notes, settings=settings,
+                   loop=dataclasses.replace(run, state=lmfit.light_copy(run.state)),
                    wall=wall, stacklevel=3,
                    loss=float(best.loss), loss_start=float(run.loss0), iterations=int(run.evaluations),
-                   rejected=int((~g.ok).sum()), reason=out.text, lr=None, search=search)
+                   rejected=int((~g.ok).sum()), reason=out.text, lr=None, search=search, intervals=ivals)

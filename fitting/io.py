@@ -18,6 +18,10 @@ Layout:
   ``determined`` datasets; attributes ``labels``, ``condition``, ``sigma``, ``n_data``,
   ``warnings`` (JSON), ``weakest``, ``summary``, ``jac_noise`` (the Jacobian's rounding noise,
   m; NaN: not known), ``undetermined`` (JSON list of the labels the target does not determine);
+* ``intervals/`` (the default fit, :mod:`jaxplush.fitting.intervals`): ``theta`` (log values),
+  ``sd`` (the spread of each log value: its relative error; inf: undetermined), ``lower``,
+  ``upper`` (the 95% interval in parameter units) datasets; attributes ``labels``, ``method``
+  (``twins`` or ``residuals``), ``level``, ``quantile``, ``n_twins``, ``note``;
 * ``fitted/positions`` [T, V, 3], ``fitted/steps``, ``fitted/times``: the fitted rollout at the
   target frames;
 * ``search/`` (the default fit): ``global/<name>`` and ``global/loss`` of every global sample,
@@ -168,6 +172,20 @@ def write_identifiability(f, rep):
     ig.attrs["summary"] = rep.summary()
 
 
+def write_intervals(f, iv):
+    """The ``intervals`` group of FIT.h5 (module docstring) from an
+    :class:`jaxplush.fitting.intervals.Intervals`, in the open file ``f``."""
+    g = f.create_group("intervals")
+    for k in ("theta", "sd", "lower", "upper"):
+        g.create_dataset(k, data=np.asarray(getattr(iv, k), np.float64))
+    g.attrs["labels"] = np.asarray(iv.labels, dtype=object)
+    g.attrs["method"] = iv.method
+    g.attrs["level"] = float(iv.level)
+    g.attrs["quantile"] = float(iv.quantile)
+    g.attrs["n_twins"] = int(iv.n_twins)
+    g.attrs["note"] = iv.note
+
+
 def save_fit(result, path):
     """Write a :class:`jaxplush.fitting.result.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
     fit's outcome (jaxplush.fitting.outcome: "converged", "poor_fit", "stalled", ...)."""
@@ -194,6 +212,8 @@ def save_fit(result, path):
                 hg.create_dataset(k, data=np.asarray(v))
             if result.identifiability is not None:
                 write_identifiability(f, result.identifiability)
+            if getattr(result, "intervals", None) is not None:
+                write_intervals(f, result.intervals)
             fg = f.create_group("fitted")
             fg.create_dataset("positions", data=np.asarray(result.frames), compression="gzip", compression_opts=1)
             fg.create_dataset("steps", data=np.asarray(result.steps, np.int64))
@@ -340,15 +360,15 @@ def _norm(v):
 
 
 def load_fit(path):
-    """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, fitted,
-    predictability, fields, timing (each group present: its datasets, and its attributes under
+    """Read FIT.h5 into a dict: attributes, params, start, history, identifiability, intervals,
+    fitted, predictability, fields, timing (each group present: its datasets, and its attributes under
     "<group>_attrs")."""
     path = os.fspath(path)
     out = {}
     with open_hdf5(path) as f:
         out["attrs"] = {k: _attr(f.attrs[k]) for k in f.attrs}
-        for grp in ("params", "start", "history", "identifiability", "fitted", "predictability", "fields",
-                    "timing"):
+        for grp in ("params", "start", "history", "identifiability", "intervals", "fitted", "predictability",
+                    "fields", "timing"):
             if grp in f:
                 out[grp] = {k: f[grp][k][()] for k in f[grp].keys()}
                 out[grp + "_attrs"] = {k: _attr(f[grp].attrs[k]) for k in f[grp].attrs}

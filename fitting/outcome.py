@@ -121,6 +121,14 @@ STATUSES = tuple(Status)
 NOT_CONVERGED = tuple(s for s in Status if s is not Status.CONVERGED)
 #: jaxplush-fit's exit code for a fit that did not reach the data or did not converge.
 EXIT_NOT_CONVERGED = 4
+#: The statuses at which a fit has done what the data allow: it reached the data (converged), or
+#: the model's own reproducibility floor (at_floor: no parameters do better; the values and their
+#: twin intervals are the answer). jaxplush-fit exits 0 for these; 4 for every other status.
+DONE = (Status.CONVERGED, Status.AT_FLOOR)
+#: The statuses whose standard errors and 95% intervals mean something (the fit reached the data
+#: or the floor at an optimum): the result table shows them, and the identifiability warnings
+#: are issued.
+REPORTED = (Status.CONVERGED, Status.UNDETERMINED, Status.AT_FLOOR)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -262,6 +270,7 @@ def _at_floor(rms, noise, demand, floor, horizon):
     if horizon is not None and np.isfinite(horizon):
         beyond = f"; the motion is not predictable beyond {horizon:.3g} s at this precision"
     return (f"the fit reached the model's own reproducibility floor, not the data: {at}{beyond}. Not "
-            "converged: two runs that differ only by rounding drift apart by as much, so no parameters do "
-            "better; fit a shorter target (up to the predictable horizon), use multiple shooting when "
+            "converged, but done: two runs that differ only by rounding drift apart by as much, so no parameters "
+            "do better, and the values with their 95% intervals are what this target allows; for tighter "
+            "values fit a shorter target (up to the predictable horizon), use multiple shooting when "
             "available, or model the damping with a dashpot")

@@ -20,7 +20,7 @@ from jaxplush.types import PARAM_NAMES, Params
 
 from jaxplush.fitting import identifiability as _ident
 from jaxplush.fitting import losses as _losses
-from jaxplush.fitting.outcome import Status
+from jaxplush.fitting.outcome import REPORTED, Status
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -47,6 +47,10 @@ class FitResult:
         measured before fitting (None: not measured), or of the first fit's values where the fit
         was planned again from them (its ``warnings`` say so); the outcome's ``floor`` is the
         reproducibility floor it was judged against.
+      intervals: :class:`jaxplush.fitting.intervals.Intervals`, the fitted values' 95% intervals
+        (the default fit: from twins of the fitted values where they apply, else from the
+        residuals; ``intervals.method`` says which), or None (not measured). Shown by
+        :meth:`table` for a fit that reached the data or the floor (:data:`jaxplush.fitting.outcome.REPORTED`).
       timing: :class:`jaxplush.compilestats.Timing` of the whole :func:`fit` call in this process
         (its report included; a resumed fit's earlier sessions not): ``wall_s``, ``compile_s``
         (XLA compiles and loads from the persistent cache), ``trace_s`` (tracing and lowering),
@@ -87,6 +91,7 @@ class FitResult:
     search: dict = dataclasses.field(default_factory=dict)   # the default fit's samples and paths
     predictability: object = None  # jaxplush.Predictability of the start values
     timing: object = None  # jaxplush.compilestats.Timing: compile time apart from the rest
+    intervals: object = None  # jaxplush.fitting.intervals.Intervals: the values' 95% intervals
 
     @property
     def status(self):
@@ -97,21 +102,29 @@ class FitResult:
         return Status.CONVERGED if self.converged else Status.STALLED
 
     def table(self):
-        """The fitted values as a text table: start, fitted value and, for a converged fit only,
-        the approximate standard error; then the predictability and the outcome."""
+        """The fitted values as a text table: start, fitted value and, for a fit that reached the
+        data or the floor (:data:`jaxplush.fitting.outcome.REPORTED`), the approximate standard
+        error and the 95% interval; then the predictability and the outcome."""
         rep = self.identifiability
         se = {} if rep is None else dict(zip(rep.labels, rep.stderr))
-        rows = [f"{'parameter':<14} {'object':<14} {'start':>12} {'fitted':>12} {'std. error':>11}"]
+        shown = self.status in REPORTED
+        iv = self.intervals
+        rows = [f"{'parameter':<14} {'object':<14} {'start':>12} {'fitted':>12} {'std. error':>11}"
+                + ("  95% interval" if iv is not None else "")]
         for n in self.names:
             for j, o in enumerate(self.objects):
-                e = se.get(f"{n}[{o}]", np.nan)
+                label = f"{n}[{o}]"
+                e = se.get(label, np.nan)
                 if rep is None:
                     es = "-"
-                elif not (self.converged or self.status == Status.UNDETERMINED):
+                elif not shown:
                     es = "n/a"
                 else:
                     es = f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined"
-                rows.append(f"{n:<14} {o:<14} {self.start[n][j]:>12.6g} {self.values[n][j]:>12.6g} {es:>11}")
+                row = f"{n:<14} {o:<14} {self.start[n][j]:>12.6g} {self.values[n][j]:>12.6g} {es:>11}"
+                if iv is not None and label in iv.labels:
+                    row += "  " + (iv.text(label) if shown else "n/a")
+                rows.append(row)
         rows.append(f"loss {self.loss_start:.4g} -> {self.loss:.4g} ({self.normalisation}-normalised) after "
                     f"{self.iterations} {'evaluations' if self.optimizer == 'lm' else 'iterations'} "
                     f"({self.rejected} rejected), {self.wall_time:.1f} s")
@@ -120,8 +133,10 @@ class FitResult:
         if self.predictability is not None:
             rows.append(f"predictability: {self.predictability.text()}")
         rows.append(f"outcome: {self.reason}")
-        if rep is not None and not (self.converged or self.status == Status.UNDETERMINED):
-            rows.append("standard errors: not meaningful, the fit did not converge to the data")
+        if iv is not None and shown:
+            rows.append(f"95% intervals: {iv.note}")
+        if rep is not None and not shown:
+            rows.append("standard errors: not meaningful, the fit reached neither the data nor the model's floor")
         return "\n".join(rows)
 
     def save(self, path):

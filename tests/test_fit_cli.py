@@ -69,6 +69,10 @@ def test_fit_end_to_end(files, tmp_path, capsys):
         ig = f["identifiability"]
         assert ig["jtj"].shape == (3, 3) and ig["stderr"].shape == (3,) and ig.attrs["condition"] > 1
         assert f["fitted"]["positions"].shape == (10, 42, 3)
+        # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.intervals)
+        iv = f["intervals"]
+        assert iv.attrs["method"] == "twins" and iv["lower"].shape == (3,) and np.all(iv["lower"][()] < iv["upper"][()])
+        assert "95% interval" in text.out
         assert "checkpoint" in f
     fitted = jaxplush.load_scene(obj)
     for n, v in fitted_vals.items():
