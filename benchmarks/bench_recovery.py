@@ -45,7 +45,7 @@ at least half the tolerance: the target does not determine it that well), time (
 or other (the status). A scene
 damped by both the report's ``damping`` and air ``drag`` fits both, which no target can tell
 apart (both decay every velocity uniformly): the fit should end ``undetermined``, and the row
-also gives the error of the combined rate -ln(1 - 1/D)/dt + drag, which is what the target
+also gives the error of the combined rate 1/(D dt) + drag, which is what the target
 determines.
 
 Usage: python benchmarks/bench_recovery.py [--scenes ball,torus,bean,ball2562] [--kinds positions,points]
@@ -383,8 +383,9 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
             # determined parameter is flagged too
             row["identifiability_warnings"] = [w for w in warns if "determined" in w or "ill-conditioned" in w]
         if "damping" in names and "drag" in names and row.get("dt"):
-            # one effect (uniform velocity decay): what a target determines is the combined rate
-            rate = lambda d, g: -math.log1p(-1.0 / d) / row["dt"] + g  # noqa: E731
+            # one effect (uniform velocity decay): what a target determines is the combined rate,
+            # 1/(D dt) + drag in the damped Verlet update (jaxplush.fitting.intervals.damping_rate)
+            rate = lambda d, g: 1.0 / (d * row["dt"]) + g  # noqa: E731
             row["combined_rate_errors"] = [
                 rate(float(fit["params"]["damping"][j]), float(fit["params"]["drag"][j]))
                 / rate(truth_values["damping"][j], truth_values["drag"][j]) - 1.0

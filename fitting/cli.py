@@ -22,8 +22,10 @@ target, or segments no longer than the horizon, restarted from the observed posi
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
 exits 3; a fit that finished at neither the data nor the model's reproducibility floor
-(jaxplush.fitting.outcome) writes FIT.h5 with its status and exits 4; one at the floor (``at_floor``)
-has done what the data allow and exits 0, its values reported with their intervals. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130;
+(jaxplush.fitting.outcome) writes FIT.h5 with its status and exits 4. One that has done what the
+data allow exits 0: converged; at the floor (``at_floor``); or reproducing the target with some
+parameters undetermined (``undetermined``, said on stderr), its values, and the combinations the
+target determines, reported with their intervals. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130;
 ``--resume`` continues it.
 """
 
@@ -362,16 +364,20 @@ def _report(args, result):
     if args.out_scene:
         result.write_scene(args.out_scene)
     print(result.table())
-    from jaxplush.fitting.outcome import DONE, REPORTED
+    from jaxplush.fitting.outcome import DONE, REPORTED, Status
     if result.identifiability is not None:
         print(result.identifiability.summary(standard_errors=result.status in REPORTED))
     print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))
     if result.status not in DONE:
-        what = ("reproduces the target but does not determine every parameter" if result.status == "undetermined"
-                else "did not converge to the data")
-        print(f"jaxplush-fit: the fit {what} ({result.status}); see FIT.h5 and the "
-              f"message above (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
+        print(f"jaxplush-fit: the fit reached neither the data nor the model's reproducibility floor "
+              f"({result.status}); see FIT.h5 and the message above (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
         return EXIT_NOT_CONVERGED
+    if result.status == Status.UNDETERMINED:
+        rep = result.identifiability
+        which = ", ".join(rep.undetermined) if rep is not None else "some parameters"
+        print(f"jaxplush-fit: the fit reproduces the target but does not determine {which} (undetermined); "
+              "the values it determines, and any combination it determines, are in the table with their "
+              "intervals", file=sys.stderr)
     return 0
 
 

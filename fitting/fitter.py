@@ -459,9 +459,11 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     ivals = None
     if want_ident:
         # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.intervals)
-        ivals = _intervals.twins(prob, ev, theta, run.jac, report)
+        ivals = _intervals.twins(prob, ev, theta, run.jac, report, residual=run.residual)
     else:
         report = None
+    # what the target determines where the parts are not: the report's damping with drag
+    combos = _intervals.combinations(prob, theta, ivals, substeps=int(e.substeps[0]))
     path = best.history
     hist = _history(prob, [t for _, t in path], iteration=np.arange(len(path), dtype=np.int64),
                     loss=np.asarray([l for l, _ in path], np.float64), grad_norm=np.full(len(path), np.nan),
@@ -480,4 +482,5 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
                    loop=dataclasses.replace(run, state=lmfit.light_copy(run.state)),
                    wall=wall, stacklevel=3,
                    loss=float(best.loss), loss_start=float(run.loss0), iterations=int(run.evaluations),
-                   rejected=int((~g.ok).sum()), reason=out.text, lr=None, search=search, intervals=ivals)
+                   rejected=int((~g.ok).sum()), reason=out.text, lr=None, search=search, intervals=ivals,
+                   combinations=combos)

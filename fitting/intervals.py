@@ -18,7 +18,9 @@ Twins measure the spread instead of assuming it. At the fitted values theta:
   r_0 - r_b the difference of lane 0's residual and twin b's: where the fitted values would land
   had the target been twin b;
 * the interval of parameter i is ``theta_i +- t * s_i``, s_i the RMS of delta_b,i over the
-  twins (about zero: a twin's mean offset counts as error too), t the 97.5% quantile of
+  twins (about zero: a twin's mean offset counts as error too) and, in quadrature, the
+  Gauss-Newton step from theta to the optimum of the target itself (a fit stops once that step
+  is below its tolerance, which can be more than the twins' spread), t the 97.5% quantile of
   Student's t with B degrees of freedom (s_i is estimated from B twins).
 
 So an interval is as wide as rounding and noise, propagated through the same rollout and the same
@@ -46,6 +48,9 @@ import numpy as np
 N_TWINS = 31
 #: The intervals' coverage.
 LEVEL = 0.95
+#: Singular values of the Jacobian below this fraction of the largest are dropped from the twins'
+#: minimum-norm steps (:attr:`Intervals.steps`): directions the target does not determine.
+RCOND = 1e-6
 #: Fewest twins that must run (a twin that blows up is dropped) for a spread to be estimated.
 MIN_TWINS = 4
 
@@ -90,6 +95,13 @@ class Intervals:
       method: "twins" or "residuals".
       n_twins: twins that ran (0 for ``residuals``).
       note: one line on how they were measured.
+      offset: (P,) the Gauss-Newton step from theta to the optimum the fit stopped short of
+        (``twins`` only, else None), part of ``sd`` in quadrature.
+      steps: (B, P) each twin's Gauss-Newton step in log space (``twins`` only, else None), the
+        minimum-norm step over every parameter the frames are sensitive to (singular values below
+        :data:`RCOND` of the largest dropped): a combination of parameters that the target
+        determines although its parts are not (the report's damping with drag) gets its spread
+        from them (:meth:`spread_of`).
     """
 
     labels: tuple
@@ -100,6 +112,24 @@ class Intervals:
     method: str
     n_twins: int
     note: str
+    steps: np.ndarray | None = None
+    offset: np.ndarray | None = None
+
+    def spread_of(self, fn, h=1e-6):
+        """(value, spread) of a positive function ``fn(theta)`` of the (P,) log values: its value at
+        the fitted values, and the RMS over the twins of the change of log fn that each twin's step
+        makes, linearised as the steps are (central differences of step ``h``): its relative error.
+        Spread NaN without twins."""
+        value = float(fn(self.theta))
+        if self.steps is None or not len(self.steps) or not value > 0:
+            return value, math.nan
+        grad = np.zeros(len(self.theta))
+        for i in np.flatnonzero(np.any(self.steps != 0, axis=0)):
+            e = np.zeros(len(self.theta))
+            e[i] = h
+            grad[i] = (math.log(fn(self.theta + e)) - math.log(fn(self.theta - e))) / (2 * h)
+        off = 0.0 if self.offset is None else float(self.offset @ grad)
+        return value, float(np.sqrt(np.mean((self.steps @ grad) ** 2) + off ** 2))
 
     @property
     def lower(self):
@@ -151,11 +181,14 @@ def applies(prob, ev):
     return None
 
 
-def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0):
+def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
     """:class:`Intervals` of a fit ending at log values ``theta`` ((P_n, O_f)) from ``n_twins``
     twins (module docstring), with ``jac`` (n, P) the Jacobian of ``ev``'s residuals at theta
     (log space) and ``report`` the identifiability report (its undetermined parameters get an
-    infinite spread). Falls back to :func:`from_report` (and says why in ``note``) where twins do
+    infinite spread). ``residual``: ``ev``'s residual at theta (the fit's own), whose Gauss-Newton
+    step says how far theta lies from the optimum the fit stopped short of: it is added to each
+    spread in quadrature (a fit stops once that step is below its tolerance, which can exceed the
+    twins' spread). Falls back to :func:`from_report` (and says why in ``note``) where twins do
     not apply or fewer than :data:`MIN_TWINS` ran."""
     from jaxplush.stepping import predictability as _pred
     theta = np.asarray(theta, np.float64)
@@ -186,9 +219,94 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0):
     if ok.any():
         steps = -np.linalg.lstsq(j[:, ok], diff.T, rcond=None)[0]      # (P_ok, B)
         sd[ok] = np.sqrt(np.mean(steps ** 2, axis=1))
+    sens = np.asarray(report.determined, bool)
+    all_steps = np.zeros((len(diff), j.shape[1]))
+    offset = np.zeros(j.shape[1])
+    if sens.any():
+        all_steps[:, sens] = -np.linalg.lstsq(j[:, sens], diff.T, rcond=RCOND)[0].T
+        if residual is not None:
+            offset[sens] = -np.linalg.lstsq(j[:, sens], np.nan_to_num(np.asarray(residual, np.float64)),
+                                            rcond=RCOND)[0]
+    sd = np.sqrt(sd ** 2 + offset ** 2)
     b = len(frames) - 1
     what = "rounding" + (f" and noise of sigma {1e3 * float(prob.noise):.3g} mm drawn afresh" if prob.noise else "")
     return Intervals(labels=tuple(report.labels), theta=theta.ravel(), sd=sd, quantile=t_quantile(0.5 + LEVEL / 2, b),
                      level=LEVEL, method="twins", n_twins=b,
                      note=f"from {b} twins of the fitted values that differ by {what}, each propagated by one "
-                          "Gauss-Newton step of the fit's Jacobian")
+                          "Gauss-Newton step of the fit's Jacobian, and the step to the optimum the fit stopped "
+                          "short of", steps=all_steps, offset=offset)
+
+
+@dataclasses.dataclass(frozen=True)
+class Combination:
+    """A combination of fitted parameters that the target determines although its parts are not.
+
+    Attributes:
+      label: e.g. "damping+drag rate[ball]"; parts: the labels of the parameters it combines.
+      value: its value at the fitted values; unit: its unit.
+      sd: its spread (relative error) from the twins (NaN: not measured); lower, upper: its 95%
+        interval (NaN: not measured).
+      note: one line: what it is, and that the split between its parts is undetermined.
+    """
+
+    label: str
+    parts: tuple
+    value: float
+    unit: str
+    sd: float
+    lower: float
+    upper: float
+    note: str
+
+    def text(self):
+        iv = (f"[{self.lower:.6g}, {self.upper:.6g}]" if np.isfinite(self.lower) else "interval not measured")
+        return f"{self.label} = {self.value:.6g} {self.unit}, 95% interval {iv}: {self.note}"
+
+
+def damping_rate(damping, dt, substeps=1):
+    """The rate (1/s) at which the report's per-step damping D takes velocity off in the damped
+    Verlet update, in the units of air drag: each of the s substeps of h = dt / s keeps
+    (1 - 1/D)^(1/s) of the half-step velocity u, and drag takes gamma u h off it, so
+    u' = (1 - h (rate + gamma)) u + ..., rate = s (1 - (1 - 1/D)^(1/s)) / dt (1 / (D dt) at one
+    substep). ``rate + gamma`` is what a target determines of the two, exactly."""
+    s = int(substeps)
+    keep = (1.0 - 1.0 / float(damping)) ** (1.0 / s)
+    return s * (1.0 - keep) / float(dt)
+
+
+def combinations(prob, theta, iv, substeps=1):
+    """The determined combinations of a fit ending at log values ``theta`` ((P_n, O_f)), with their
+    twin intervals from ``iv`` (:class:`Intervals`; NaN intervals without twins): for every fitted
+    object whose report's ``damping`` and air ``drag`` are both fitted, their combined rate
+    :func:`damping_rate` + drag (at the ``substeps`` the fitted values ran with), which is all a
+    target determines of the two: both take the same share of every vertex's velocity off at every
+    step. A tuple of :class:`Combination`."""
+    names = tuple(prob.names)
+    if "damping" not in names or "drag" not in names:
+        return ()
+    th = np.asarray(theta, np.float64)
+    shape, dt = th.shape, float(prob.target.dt)
+    i_d, i_g = names.index("damping"), names.index("drag")
+    q = iv.quantile if iv is not None else math.nan
+    out = []
+    for j, o in enumerate(prob.objects):
+        name = prob.scene.object_names[o]
+
+        def rate(flat, j=j):
+            t = np.asarray(flat, np.float64).reshape(shape)
+            d = math.exp(t[i_d, j])
+            return (damping_rate(d, dt, substeps) if d > 1.0 else math.inf) + math.exp(t[i_g, j])
+
+        if iv is not None and iv.steps is not None:
+            value, sd = iv.spread_of(rate)
+        else:
+            value, sd = rate(th.ravel()), math.nan
+        lo, hi = (value * math.exp(-q * sd), value * math.exp(q * sd)) if np.isfinite(sd) else (math.nan, math.nan)
+        out.append(Combination(
+            label=f"damping+drag rate[{name}]", parts=(f"damping[{name}]", f"drag[{name}]"), value=value, unit="1/s",
+            sd=sd, lower=lo, upper=hi,
+            note=(f"the rate 1/(D dt) + drag at which the two take velocity off (dt = {dt:g} s"
+                  + (f", {substeps} substeps: s (1 - (1 - 1/D)^(1/s))/dt + drag" if substeps > 1 else "")
+                  + "), which is all the target determines of the two; the split between damping and drag is "
+                  "undetermined")))
+    return tuple(out)

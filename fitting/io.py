@@ -22,6 +22,10 @@ Layout:
   ``sd`` (the spread of each log value: its relative error; inf: undetermined), ``lower``,
   ``upper`` (the 95% interval in parameter units) datasets; attributes ``labels``, ``method``
   (``twins`` or ``residuals``), ``level``, ``quantile``, ``n_twins``, ``note``;
+* ``combinations/`` (the default fit, where the target determines a combination of fitted
+  parameters but not its parts: the report's ``damping`` with ``drag``): ``value``, ``sd``,
+  ``lower``, ``upper`` datasets, one entry per combination; attributes ``labels``, ``parts``
+  (JSON), ``units``, ``notes`` (JSON);
 * ``fitted/positions`` [T, V, 3], ``fitted/steps``, ``fitted/times``: the fitted rollout at the
   target frames;
 * ``search/`` (the default fit): ``global/<name>`` and ``global/loss`` of every global sample,
@@ -214,6 +218,14 @@ def save_fit(result, path):
                 write_identifiability(f, result.identifiability)
             if getattr(result, "intervals", None) is not None:
                 write_intervals(f, result.intervals)
+            if getattr(result, "combinations", ()):
+                cg = f.create_group("combinations")
+                for k in ("value", "sd", "lower", "upper"):
+                    cg.create_dataset(k, data=np.asarray([getattr(c, k) for c in result.combinations], np.float64))
+                cg.attrs["labels"] = np.asarray([c.label for c in result.combinations], dtype=object)
+                cg.attrs["parts"] = json.dumps([list(c.parts) for c in result.combinations])
+                cg.attrs["units"] = np.asarray([c.unit for c in result.combinations], dtype=object)
+                cg.attrs["notes"] = json.dumps([c.note for c in result.combinations])
             fg = f.create_group("fitted")
             fg.create_dataset("positions", data=np.asarray(result.frames), compression="gzip", compression_opts=1)
             fg.create_dataset("steps", data=np.asarray(result.steps, np.int64))
@@ -367,8 +379,8 @@ def load_fit(path):
     out = {}
     with open_hdf5(path) as f:
         out["attrs"] = {k: _attr(f.attrs[k]) for k in f.attrs}
-        for grp in ("params", "start", "history", "identifiability", "intervals", "fitted", "predictability",
-                    "fields", "timing"):
+        for grp in ("params", "start", "history", "identifiability", "intervals", "combinations", "fitted",
+                    "predictability", "fields", "timing"):
             if grp in f:
                 out[grp] = {k: f[grp][k][()] for k in f[grp].keys()}
                 out[grp + "_attrs"] = {k: _attr(f[grp].attrs[k]) for k in f[grp].attrs}

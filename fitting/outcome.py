@@ -121,10 +121,13 @@ STATUSES = tuple(Status)
 NOT_CONVERGED = tuple(s for s in Status if s is not Status.CONVERGED)
 #: jaxplush-fit's exit code for a fit that did not reach the data or did not converge.
 EXIT_NOT_CONVERGED = 4
-#: The statuses at which a fit has done what the data allow: it reached the data (converged), or
-#: the model's own reproducibility floor (at_floor: no parameters do better; the values and their
-#: twin intervals are the answer). jaxplush-fit exits 0 for these; 4 for every other status.
-DONE = (Status.CONVERGED, Status.AT_FLOOR)
+#: The statuses at which a fit has done what the data allow: it reached the data (converged), the
+#: data with some parameters undetermined (undetermined: the values and combinations the target
+#: determines are reported, the rest said to be undetermined), or the model's own reproducibility
+#: floor (at_floor: no parameters do better; the values and their twin intervals are the answer).
+#: jaxplush-fit exits 0 for these; 4 for every other status (the fit reached neither the data nor
+#: the floor).
+DONE = (Status.CONVERGED, Status.AT_FLOOR, Status.UNDETERMINED)
 #: The statuses whose standard errors and 95% intervals mean something (the fit reached the data
 #: or the floor at an optimum): the result table shows them, and the identifiability warnings
 #: are issued.

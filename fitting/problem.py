@@ -166,9 +166,9 @@ class Problem:
 
 #: Said before a fit of both the report's damping and air drag (they are one effect).
 DAMPING_DRAG_NOTE = ("damping and drag are fitted together, but in this model both decay every vertex's velocity "
-                     "uniformly (the report's damping D acts as the drag rate -ln(1 - 1/D)/dt), so a target "
-                     "determines only their combined rate: the fit will end 'undetermined'; fit one of them "
-                     "(--params) to measure it")
+                     "uniformly (the report's damping D takes 1/D of it off per step, as a drag of rate 1/(D dt)), "
+                     "so a target determines only their combined rate: the fit will report that rate with its "
+                     "interval and end 'undetermined' for the split; fit one of them (--params) to measure it")
 
 
 def default_params(scene, objects=None):

@@ -51,6 +51,9 @@ class FitResult:
         (the default fit: from twins of the fitted values where they apply, else from the
         residuals; ``intervals.method`` says which), or None (not measured). Shown by
         :meth:`table` for a fit that reached the data or the floor (:data:`jaxplush.fitting.outcome.REPORTED`).
+      combinations: :class:`jaxplush.fitting.intervals.Combination` records of what the target
+        determines where its parts are not (the report's ``damping`` fitted with ``drag``: their
+        combined velocity decay rate), with their intervals; () when there are none.
       timing: :class:`jaxplush.compilestats.Timing` of the whole :func:`fit` call in this process
         (its report included; a resumed fit's earlier sessions not): ``wall_s``, ``compile_s``
         (XLA compiles and loads from the persistent cache), ``trace_s`` (tracing and lowering),
@@ -92,6 +95,7 @@ class FitResult:
     predictability: object = None  # jaxplush.Predictability of the start values
     timing: object = None  # jaxplush.compilestats.Timing: compile time apart from the rest
     intervals: object = None  # jaxplush.fitting.intervals.Intervals: the values' 95% intervals
+    combinations: tuple = ()  # jaxplush.fitting.intervals.Combination: determined combinations of undetermined parts
 
     @property
     def status(self):
@@ -132,6 +136,8 @@ class FitResult:
             rows.append(f"time: {self.timing.text()}")
         if self.predictability is not None:
             rows.append(f"predictability: {self.predictability.text()}")
+        for c in self.combinations:
+            rows.append(f"determined: {c.text()}")
         rows.append(f"outcome: {self.reason}")
         if iv is not None and shown:
             rows.append(f"95% intervals: {iv.note}")

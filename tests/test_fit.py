@@ -201,11 +201,21 @@ def test_damping_and_drag_fitted_together_end_undetermined():
     und = res.identifiability.undetermined
     assert "damping[ball]" in und and "drag[ball]" in und, res.identifiability.summary()
     assert "k_structural[ball]" not in und and "nmol[ball]" not in und
-    rate = lambda d, g: -np.log1p(-1.0 / d) / dt + g  # noqa: E731
+    # (Verlet's update takes 1/D of the half-step velocity off per step, and drag gamma dt of it)
+    rate = lambda d, g: 1.0 / (d * dt) + g  # noqa: E731
     got, want = rate(res.values["damping"][0], res.values["drag"][0]), rate(p.damping[0], p.drag[0])
     assert got == pytest.approx(want, rel=1e-2)
     for n in ("k_structural", "nmol"):
         assert res.values[n][0] == pytest.approx(getattr(p, n)[0], rel=1e-2)
+    # the determined combination is reported, with its value and its interval from twins; the
+    # split is called undetermined
+    (c,) = res.combinations
+    assert c.label == "damping+drag rate[ball]" and c.parts == ("damping[ball]", "drag[ball]") and c.unit == "1/s"
+    assert c.value == pytest.approx(got, rel=1e-12) and "split between damping and drag is undetermined" in c.note
+    assert np.isfinite(c.sd) and c.lower < c.value < c.upper
+    assert abs(np.log(want / c.value)) <= 4 * c.sd + 1e-12, (c, want)
+    assert "determined: damping+drag rate[ball]" in res.table()
+    assert np.isinf(res.intervals.sd[list(res.intervals.labels).index("drag[ball]")])
 
 
 # --------------------------------------------------------------------------- blow-ups
