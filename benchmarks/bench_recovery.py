@@ -51,7 +51,7 @@ determines.
 Usage: python benchmarks/bench_recovery.py [--scenes ball,torus,bean,ball2562] [--kinds positions,points]
            [--corners all|N] [--json results.jsonl]
        python benchmarks/bench_recovery.py --random N [--seed S] [--max-vertices V] [--max-objects O]
-           [--kinds positions,points] [--steps N] [--dt DT] [--stop-after F] [--json results.jsonl]
+           [--kinds positions,points] [--steps N] [--dt DT] [--stop-after F] [--json results.jsonl [--resume]]
 """
 
 from __future__ import annotations
@@ -536,6 +536,13 @@ def _case_in_child(args, case):
                 max_error=math.inf, errors={}, verdict="failed", reason="other", detail=tail[0][-200:])
 
 
+def _draw_key(args):
+    """What identifies a random run's draw of cases (and so which JSON lines ``--resume`` keeps)."""
+    return (f"--random {args.random} --seed {args.seed} --max-objects {args.max_objects} --kinds {args.kinds}"
+            f" --max-vertices {args.max_vertices} --steps {args.steps} --dt {args.dt}"
+            + (" --no-linear-start" if args.no_linear_start else ""))
+
+
 def main_random(args):
     kinds = tuple(args.kinds.split(","))
     cases = draw_cases(args.random, args.seed, max_vertices=args.max_vertices, max_objects=args.max_objects,
@@ -551,12 +558,29 @@ def main_random(args):
         print("ROW " + json.dumps(row, default=float), flush=True)
         return 0
     rows = []
+    draw = _draw_key(args)
+    done = {}
+    if args.resume and args.json and os.path.exists(args.json):
+        # the cases of this draw already in the JSON lines (an earlier, stopped run): kept, not run again
+        with open(args.json) as fh:
+            for ln in fh:
+                try:
+                    r = json.loads(ln)
+                except ValueError:
+                    continue                            # a line cut short when the run was stopped
+                if r.get("draw") == draw:
+                    done[r["index"]] = r
+        print(f"# resumed: {len(done)} of {len(cases)} cases already in {args.json}", flush=True)
     with tempfile.TemporaryDirectory() as d:
         for case in cases:
+            if case["index"] in done:
+                rows.append(done[case["index"]])
+                continue
             if args.in_process:
                 row = run_random_case(d, case, dt=args.dt, steps=args.steps, stop_after=args.stop_after)
             else:
                 row = _case_in_child(args, case)
+            row["draw"] = draw
             rows.append(row)
             print(f"case {row['index']}: {row['description']}, {row['n_objects']} object(s), start "
                   f"{_factors_text(row)}: {row['status']}, exit {row.get('exit')}, {row['wall']:.1f} s, "
@@ -588,6 +612,9 @@ def main(argv=None):
     ap.add_argument("--jacobian", default=None, choices=("difference", "forward"),
                     help="the fits' Jacobians (jaxplush-fit --jacobian; default: the fit's default)")
     ap.add_argument("--json", default=None, help="append each case as a JSON line to this file")
+    ap.add_argument("--resume", action="store_true", help="--random with --json: keep the cases of the same draw "
+                    "already in the JSON file and run only the others (a run stopped part way, or spread over "
+                    "sittings)")
     ap.add_argument("--random", type=int, default=None, metavar="N", help="fit N random scenes instead")
     ap.add_argument("--seed", type=int, default=0, help="--random: the seed of the draws (default 0)")
     ap.add_argument("--max-vertices", type=int, default=None, help="--random: largest mesh per object "

@@ -249,3 +249,30 @@ def test_roughness_case_variants_are_the_drawn_scene_with_one_change(bench):
     for a, b in zip(smooth.params, drawn.params):
         np.testing.assert_array_equal(a, b)
     assert jax.config.jax_enable_x64 == x64          # importing the script left the precision alone
+
+
+def test_a_random_run_resumes_from_its_json_lines(bench, tmp_path, monkeypatch, capsys):
+    """``--json F --resume`` keeps the cases of the same draw already in F (one JSON line each,
+    written as each case ends; a line cut short by a stop is skipped) and runs only the others, so
+    100 cases can run across sittings; the lines of another draw are not taken."""
+    ran = []
+
+    def fake(args, case):
+        ran.append(case["index"])
+        return dict(index=case["index"], description="d", n_objects=1, kind="positions", vertices=[42],
+                    start_factors={"k_structural": [1.0]}, status="converged", exit=0, wall=1.0, budget=120.0,
+                    max_error=0.0, errors={}, verdict="recovered", reason=None, steps=10, dt=1e-3)
+    monkeypatch.setattr(bench, "_case_in_child", fake)
+    out = tmp_path / "r.jsonl"
+    bench.main(["--random", "3", "--seed", "5", "--json", str(out)])
+    assert ran == [0, 1, 2]
+    lines = out.read_text().splitlines()
+    assert len(lines) == 3 and all(json.loads(ln)["draw"].startswith("--random 3 --seed 5") for ln in lines)
+    out.write_text(lines[0] + "\n" + lines[1][:25])             # stopped while writing case 1
+    ran.clear()
+    bench.main(["--random", "3", "--seed", "5", "--json", str(out), "--resume"])
+    assert ran == [1, 2]
+    assert "resumed: 1 of 3 cases" in capsys.readouterr().out
+    ran.clear()
+    bench.main(["--random", "3", "--seed", "6", "--json", str(out), "--resume"])
+    assert ran == [0, 1, 2]
