@@ -20,8 +20,10 @@ Twins measure the spread instead of assuming it. At the fitted values theta:
 * the interval of parameter i is ``theta_i +- t * s_i``, s_i the RMS of delta_b,i over the
   twins (about zero: a twin's mean offset counts as error too) and, in quadrature, the
   Gauss-Newton step from theta to the optimum of the target itself (a fit stops once that step
-  is below its tolerance, which can be more than the twins' spread), t the 97.5% quantile of
-  Student's t with B degrees of freedom (s_i is estimated from B twins).
+  is below its tolerance, which can be more than the twins' spread) and the working dtype's
+  resolution of the value (:func:`_resolution`: the report's damping D is held as 1 - 1/D, which
+  float32 resolves D to about D x 2^-24), t the 97.5% quantile of Student's t with B degrees of
+  freedom (s_i is estimated from B twins).
 
 So an interval is as wide as rounding and noise, propagated through the same rollout and the same
 Jacobian as the fit, move the values. It is linear: where one Gauss-Newton step from theta does
@@ -97,6 +99,8 @@ class Intervals:
       note: one line on how they were measured.
       offset: (P,) the Gauss-Newton step from theta to the optimum the fit stopped short of
         (``twins`` only, else None), part of ``sd`` in quadrature.
+      resolution: (P,) how finely the working dtype resolves each value (``twins`` only, else
+        None; :func:`_resolution`), part of ``sd`` in quadrature.
       steps: (B, P) each twin's Gauss-Newton step in log space (``twins`` only, else None), the
         minimum-norm step over every parameter the frames are sensitive to (singular values below
         :data:`RCOND` of the largest dropped): a combination of parameters that the target
@@ -114,6 +118,7 @@ class Intervals:
     note: str
     steps: np.ndarray | None = None
     offset: np.ndarray | None = None
+    resolution: np.ndarray | None = None
 
     def spread_of(self, fn, h=1e-6):
         """(value, spread) of a positive function ``fn(theta)`` of the (P,) log values: its value at
@@ -129,7 +134,8 @@ class Intervals:
             e[i] = h
             grad[i] = (math.log(fn(self.theta + e)) - math.log(fn(self.theta - e))) / (2 * h)
         off = 0.0 if self.offset is None else float(self.offset @ grad)
-        return value, float(np.sqrt(np.mean((self.steps @ grad) ** 2) + off ** 2))
+        res = 0.0 if self.resolution is None else float(np.sum((self.resolution * grad) ** 2))
+        return value, float(np.sqrt(np.mean((self.steps @ grad) ** 2) + off ** 2 + res))
 
     @property
     def lower(self):
@@ -168,6 +174,26 @@ def from_report(report, theta, note=None):
     return Intervals(labels=tuple(report.labels), theta=np.asarray(theta, np.float64).ravel(), sd=sd,
                      quantile=_normal_quantile(0.5 + LEVEL / 2), level=LEVEL, method="residuals", n_twins=0,
                      note=note or "from the residuals at the optimum, treated as independent noise")
+
+
+def _resolution(prob, theta, dtype):
+    """(P,) the relative resolution of each fitted value in the working ``dtype``: the spread of a
+    value's quantisation where it acts. The report's damping D acts through Verlet's factor
+    keep = 1 - 1/D, which the dtype holds to a spacing u (2^-24 in float32 just below 1): the
+    damping 1 - keep then carries an error of up to u/2, D a relative error of up to D u/2, and a
+    fit cannot tell D apart more finely than that (D = 622 in float32: 0.0019%). As a spread,
+    D u / sqrt(12) (a uniform quantisation). Every other parameter acts as a factor of its term,
+    resolved to the dtype's epsilon / sqrt(12)."""
+    th = np.asarray(theta, np.float64)
+    eps = float(np.finfo(np.dtype(dtype)).eps)
+    out = np.full(th.shape, eps / math.sqrt(12.0))
+    if "damping" in prob.names:
+        i = list(prob.names).index("damping")
+        d = np.exp(th[i])
+        keep = np.where(d > 1.0, 1.0 - 1.0 / np.maximum(d, 1.0), 0.5)
+        u = np.spacing(keep.astype(np.dtype(dtype))).astype(np.float64)
+        out[i] = np.maximum(out[i], d * u / math.sqrt(12.0))
+    return out.ravel()
 
 
 def applies(prob, ev):
@@ -227,14 +253,15 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
         if residual is not None:
             offset[sens] = -np.linalg.lstsq(j[:, sens], np.nan_to_num(np.asarray(residual, np.float64)),
                                             rcond=RCOND)[0]
-    sd = np.sqrt(sd ** 2 + offset ** 2)
+    resolution = _resolution(prob, theta, dtype)
+    sd = np.sqrt(sd ** 2 + offset ** 2 + resolution ** 2)
     b = len(frames) - 1
     what = "rounding" + (f" and noise of sigma {1e3 * float(prob.noise):.3g} mm drawn afresh" if prob.noise else "")
     return Intervals(labels=tuple(report.labels), theta=theta.ravel(), sd=sd, quantile=t_quantile(0.5 + LEVEL / 2, b),
                      level=LEVEL, method="twins", n_twins=b,
                      note=f"from {b} twins of the fitted values that differ by {what}, each propagated by one "
                           "Gauss-Newton step of the fit's Jacobian, and the step to the optimum the fit stopped "
-                          "short of", steps=all_steps, offset=offset)
+                          "short of", steps=all_steps, offset=offset, resolution=resolution)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -95,3 +95,21 @@ def test_a_fit_that_did_what_the_data_allow_exits_0_and_any_other_4(status, code
     err = capsys.readouterr().err
     assert ("reached neither the data nor the model's reproducibility floor" in err) == (code == 4)
     assert ("does not determine damping[ball], drag[ball] (undetermined)" in err) == (status == "undetermined")
+
+
+def test_the_damping_is_resolved_only_as_finely_as_its_float32_factor():
+    """The report's damping D acts through Verlet's factor 1 - 1/D: in float32 that factor is held
+    to a spacing u of 2^-24, so every D within about D u of another gives the same factor and the
+    same rollout. The intervals count that resolution (D u / sqrt(12) as a spread); k acts as a
+    factor of its own and is resolved to float32's epsilon."""
+    d = 621.9
+    keep = np.float32(1.0) - np.float32(1.0) / np.float32(d)
+    u = float(np.spacing(keep))
+    same = [x for x in d * (1 + np.linspace(-1e-4, 1e-4, 2001))
+            if np.float32(1.0) - np.float32(1.0) / np.float32(x) == keep]
+    assert (max(same) - min(same)) / d > 0.5 * d * u            # a whole step of D maps to one factor
+    prob = types.SimpleNamespace(names=("k_structural", "damping"))
+    res = I._resolution(prob, np.log([[282.8], [d]]), np.float32)
+    assert res[1] == pytest.approx(d * u / math.sqrt(12), rel=1e-6)
+    assert res[0] == pytest.approx(float(np.finfo(np.float32).eps) / math.sqrt(12))
+    assert I._resolution(prob, np.log([[282.8], [d]]), np.float64)[1] < 1e-12
