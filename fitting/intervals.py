@@ -31,9 +31,13 @@ not reach a twin's optimum (a motion beyond its predictable horizon), the interv
 linear model's. It costs one batched call of B + 1 lanes (the fit's compiled program) and no
 Jacobian.
 
-Twins apply to targets whose residual is linear in the frames (``positions`` and ``tracks``) on
-the batched engine, with single shooting; elsewhere :func:`intervals` gives the identifiability
-report's standard errors as the interval (``method == "residuals"``), and says so.
+Twins apply to ``positions``, ``tracks`` and ``points`` targets on the batched engine, with single
+shooting. A point's residual is its distance to the simulated surface: the difference between
+a twin's residual and the fit's is how far the twin's surface lies from the fit's there (to first
+order, as the Jacobian sees it), and the noise drawn afresh is the point's noise along the
+normal. Elsewhere (a mixed target, a fit in segments, a scene off the batched engine)
+:func:`from_report` gives the identifiability report's standard errors as the interval
+(``method == "residuals"``), and says so.
 """
 
 from __future__ import annotations
@@ -198,8 +202,8 @@ def _resolution(prob, theta, dtype):
 
 def applies(prob, ev):
     """Why twins do not apply to this fit (a phrase), or None when they do."""
-    if prob.target.kind not in ("positions", "tracks"):
-        return f"a {prob.target.kind} target's residual is not linear in the frames"
+    if prob.target.kind not in ("positions", "tracks", "points"):
+        return f"a {prob.target.kind} target mixes residuals of two kinds"
     if prob.shooting is not None and prob.shooting.on:
         return "the fit ran in segments (multiple shooting)"
     if not getattr(ev, "batched", False):
@@ -234,10 +238,18 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
         return from_report(report, theta, note="from the residuals, treated as independent noise: the twins did "
                                               "not run")
     frames = frames[np.concatenate([[True], good[1:]])]
-    if prob.noise:
-        rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(seed)
+    points = prob.target.kind == "points"
+    if prob.noise and not points:
         frames[1:] = frames[1:] + rng.normal(0.0, float(prob.noise), frames[1:].shape)
     res = ev._residuals(frames)
+    if prob.noise and points:
+        # a point's residual is its distance to the surface, which a twin's surface shifts by as
+        # much as it moves along the normal there (to first order, as the Jacobian sees it); the
+        # noise drawn afresh is a point's noise along that normal: sigma per observed point
+        seen = np.isfinite(res[0]) & (res[0] != 0)
+        norm = np.broadcast_to(np.asarray(ev.residual.norm, np.float64), res[0].shape)
+        res[1:] = res[1:] + rng.normal(0.0, float(prob.noise), res[1:].shape) * norm * seen
     diff = np.nan_to_num(res[0][None] - res[1:])                 # (B, n): the fit at theta against twin b
     j = np.nan_to_num(np.asarray(jac, np.float64))
     sd = np.full(j.shape[1], np.inf)

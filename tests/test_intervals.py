@@ -57,6 +57,19 @@ def test_on_a_noisy_target_the_twins_spread_is_the_residuals_standard_error(nois
     assert "95% interval" in res.table() and iv.note in res.table()
 
 
+def test_on_a_noisy_point_cloud_the_twins_spread_is_the_residuals_standard_error():
+    """The same for a point cloud (150 points a frame, 1 mm noise), whose residual is each point's
+    distance to the surface: a twin shifts it by as much as its surface lies off the fit's there,
+    and the fresh noise is along the normal. (64 twins: 0.91-1.20x on two draws.)"""
+    truth = jaxplush.parse_scene(F.recovery_scene_text(1), "<truth>")
+    target = make_target(truth, 200, 1e-3, 20, point_cloud=True, n_points=150, noise=1e-3, seed=1)
+    res = F.fit(truth, target, samples=4, starts=1)
+    iv = res.intervals
+    assert res.status == "converged" and iv.method == "twins" and iv.n_twins == I.N_TWINS
+    ratio = iv.sd / np.asarray(res.identifiability.stderr)
+    assert np.all((ratio > 0.6) & (ratio < 1.6)), ratio
+
+
 def test_the_intervals_are_saved_and_read_back(noisy_fit, tmp_path):
     _, res = noisy_fit
     out = res.save(tmp_path / "FIT.h5")
@@ -76,8 +89,11 @@ def test_where_twins_do_not_apply_the_residuals_give_the_interval_and_say_so():
     assert iv.method == "residuals" and iv.n_twins == 0 and iv.quantile == pytest.approx(1.959964, abs=1e-6)
     assert iv.lower[0] == pytest.approx(100 * math.exp(-1.959964 * 0.01), rel=1e-6)
     assert iv.text("nmol[a]") == "undetermined" and iv.upper[1] == math.inf
+    prob = types.SimpleNamespace(target=types.SimpleNamespace(kind="mixed"), shooting=None)
+    assert "mixes residuals of two kinds" in I.applies(prob, types.SimpleNamespace(batched=True))
     prob = types.SimpleNamespace(target=types.SimpleNamespace(kind="points"), shooting=None)
-    assert "not linear in the frames" in I.applies(prob, types.SimpleNamespace(batched=True))
+    assert I.applies(prob, types.SimpleNamespace(batched=True)) is None
+    assert "batched engine" in I.applies(prob, types.SimpleNamespace(batched=False))
 
 
 @pytest.mark.parametrize("status,code", [("converged", 0), ("at_floor", 0), ("undetermined", 0), ("poor_fit", 4),
