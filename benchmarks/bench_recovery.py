@@ -464,15 +464,21 @@ def _summary(rows):
         told = sum(r.get("status") == "undetermined" for r in pair)
         lines.append(f"damping+drag cases (the pair is one effect, never separately identifiable): {len(pair)}, "
                      f"{told} reported 'undetermined'")
-    cov = [(r, k, c) for r in rows for k, c in (r.get("covered") or {}).items()]
-    if cov:
+    # the intervals a fit reports (converged, undetermined, at_floor: jaxplush.fitting.outcome.REPORTED),
+    # and apart those FIT.h5 keeps for a fit that reached neither the data nor the floor (not shown)
+    for label, want in (("reported", True), ("not reported (the fit reached neither the data nor the floor)", False)):
+        cov = [(r, k, c) for r in rows for k, c in (r.get("covered") or {}).items()
+               if (r.get("status") in ("converged", "undetermined", "at_floor")) == want]
+        if not cov:
+            continue
         inside = sum(c for _, _, c in cov)
         wide = [(r, k) for r, k, _ in cov if not r["covered4"][k]]
-        lines.append(f"calibration: {inside} of {len(cov)} (case, parameter) truths inside the reported 95% "
+        lines.append(f"calibration, {label}: {inside} of {len(cov)} (case, parameter) truths inside the 95% "
                      f"intervals ({100 * inside / len(cov):.0f}%); {len(wide)} outside 4 spreads"
                      + "".join(f"\n  case {r['index']} {k}: {100 * r['errors'][k]:+.3g}% against a spread of "
                                f"{100 * r['interval_sd'][k]:.2g}% ({r.get('interval_method')}, {r['status']})"
                                for r, k in wide))
+    if any(r.get("covered") for r in rows):
         confident = [r for r in rows if r.get("status") == "converged" and r.get("max_error", math.inf) > TOLERANCE[r["kind"]]]
         lines.append(f"confidently wrong (converged outside tolerance): {len(confident)}"
                      + "".join(f"\n  case {r['index']}: {100 * r['max_error']:.3g}%" for r in confident))
