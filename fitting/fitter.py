@@ -460,9 +460,6 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     if want_ident:
         # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.intervals)
         ivals = _intervals.twins(prob, ev, theta, run.jac, report, residual=run.residual)
-        if out.status == Status.AT_FLOOR:
-            # at the floor one Gauss-Newton step is too short a view: the values within the floor
-            ivals = _intervals.floor_band(prob, ev, theta, ivals, out.floor, prob.noise)
     else:
         report = None
     # what the target determines where the parts are not: the report's damping with drag

@@ -110,9 +110,6 @@ class Intervals:
         :data:`RCOND` of the largest dropped): a combination of parameters that the target
         determines although its parts are not (the report's damping with drag) gets its spread
         from them (:meth:`spread_of`).
-      band: (P, 2) log-space (lower, upper) ends from a scan of the reproducibility floor
-        (:func:`floor_band`), NaN where not scanned; where set they are the interval (and ``sd``
-        stays inf: a band has no spread); -inf / inf: the scan found no end.
     """
 
     labels: tuple
@@ -126,7 +123,6 @@ class Intervals:
     steps: np.ndarray | None = None
     offset: np.ndarray | None = None
     resolution: np.ndarray | None = None
-    band: np.ndarray | None = None
 
     def spread_of(self, fn, h=1e-6):
         """(value, spread) of a positive function ``fn(theta)`` of the (P,) log values: its value at
@@ -145,41 +141,30 @@ class Intervals:
         res = 0.0 if self.resolution is None else float(np.sum((self.resolution * grad) ** 2))
         return value, float(np.sqrt(np.mean((self.steps @ grad) ** 2) + off ** 2 + res))
 
-    def _ends(self, q=None):
-        """(P, 2) log-space ends: theta -+ q sd, or the floor band where it was scanned."""
-        q = self.quantile if q is None else float(q)
-        with np.errstate(invalid="ignore"):
-            ends = np.stack([self.theta - q * self.sd, self.theta + q * self.sd], axis=1)
-        if self.band is not None:
-            scanned = ~np.isnan(self.band[:, 0])
-            ends[scanned] = self.band[scanned]
-        return ends
-
     @property
     def lower(self):
         """(P,) lower ends in parameter units (0 where undetermined)."""
-        return np.exp(self._ends()[:, 0])
+        return np.exp(self.theta - self.quantile * self.sd)
 
     @property
     def upper(self):
         """(P,) upper ends in parameter units (inf where undetermined)."""
         with np.errstate(over="ignore"):
-            return np.exp(self._ends()[:, 1])
+            return np.exp(self.theta + self.quantile * self.sd)
 
     def contains(self, label, value, width=None):
         """Whether ``value`` lies in the interval of ``label`` (``width``: a multiple of ``sd``
-        instead of the level's quantile, say 4; a floor band is its own interval either way)."""
+        instead of the level's quantile, say 4)."""
         i = self.labels.index(label)
-        lo, hi = self._ends(width)[i]
-        return bool(lo <= math.log(value) <= hi)
+        q = self.quantile if width is None else float(width)
+        return bool(abs(math.log(value) - self.theta[i]) <= q * self.sd[i])
 
     def text(self, label):
         """"[lo, hi]" of ``label``, or "undetermined"."""
         i = self.labels.index(label)
-        lo, hi = self._ends()[i]
-        if not (np.isfinite(lo) or np.isfinite(hi)):
+        if not np.isfinite(self.sd[i]):
             return "undetermined"
-        return f"[{math.exp(lo):.6g}, {math.exp(hi) if np.isfinite(hi) else math.inf:.6g}]"
+        return f"[{self.lower[i]:.6g}, {self.upper[i]:.6g}]"
 
     def as_dict(self):
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -193,17 +178,6 @@ def from_report(report, theta, note=None):
     return Intervals(labels=tuple(report.labels), theta=np.asarray(theta, np.float64).ravel(), sd=sd,
                      quantile=_normal_quantile(0.5 + LEVEL / 2), level=LEVEL, method="residuals", n_twins=0,
                      note=note or "from the residuals at the optimum, treated as independent noise")
-
-
-def _degenerate(prob):
-    """(P,) bool: the parameters that share their regressor with another fitted one, so that no
-    target determines them apart: the report's damping and air drag of an object when both are
-    fitted (:func:`combinations` reports their rate)."""
-    names = list(prob.names)
-    out = np.zeros((len(names), len(prob.objects)), bool)
-    if "damping" in names and "drag" in names:
-        out[names.index("damping")] = out[names.index("drag")] = True
-    return out.ravel()
 
 
 def _resolution(prob, theta, dtype):
@@ -300,59 +274,6 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
                      note=f"from {b} twins of the fitted values that differ by {what}, each propagated by one "
                           "Gauss-Newton step of the fit's Jacobian, and the step to the optimum the fit stopped "
                           "short of", steps=all_steps, offset=offset, resolution=resolution)
-
-
-#: Relative steps of the floor band's scan (:func:`floor_band`), each taken up and down in log space.
-BAND_LEVELS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
-
-
-def floor_band(prob, ev, theta, iv, floor, noise=None):
-    """``iv`` with floor bands (:attr:`Intervals.band`) for a fit at the reproducibility floor.
-
-    At the floor the twins' one Gauss-Newton step is too short a view: the loss is rough, and
-    values far apart reproduce the target as well as each other (measured: a 642-vertex bean on a
-    floor with drag, its fit 4.4% off in drag, the truth's residual RMS the fit's own to 4
-    digits, and the twins' linear spread 0.046%). So every parameter without a finite spread that
-    the frames are sensitive to is scanned: its value moved up and down by each of
-    :data:`BAND_LEVELS` (the others held), all points in one batched call. A value whose residual
-    RMS is within the floor (with the noise in quadrature) cannot be told from the fitted one.
-    Each end of the interval is the first scanned step beyond the farthest such value on its
-    side (inf, or 0, when even the largest step stays within). Returns ``iv`` unchanged where
-    nothing is to scan or the scan did not run."""
-    from jaxplush.fitting import losses as _losses
-    if iv is None or iv.method != "twins" or not (np.isfinite(floor) and floor > 0):
-        return iv
-    th = np.asarray(theta, np.float64)
-    flat = th.ravel()
-    degenerate = _degenerate(prob)
-    todo = [i for i in range(len(flat)) if not np.isfinite(iv.sd[i]) and not degenerate[i]
-            and iv.steps is not None and np.any(iv.steps[:, i] != 0)]
-    if not todo:
-        return iv
-    steps = np.log1p(np.asarray(BAND_LEVELS))
-    pts = []
-    for i in todo:
-        for sign in (-1.0, 1.0):
-            for st in steps:
-                p = flat.copy()
-                p[i] += sign * st
-                pts.append(p.reshape(th.shape))
-    e = ev(np.asarray(pts), retries=0)
-    rms = np.array([_losses.rms_metres(float(l), prob.loss.scale2, prob.target.kind) if ok else math.inf
-                    for l, ok in zip(e.loss, e.ok)])
-    within = rms <= math.hypot(noise or 0.0, float(floor))
-    band = np.full((len(flat), 2), np.nan)
-    k = 0
-    for i in todo:
-        for side, sign in ((0, -1.0), (1, 1.0)):
-            inside = within[k:k + len(steps)]
-            k += len(steps)
-            last = int(np.max(np.flatnonzero(inside))) if inside.any() else -1
-            band[i, side] = sign * math.inf if last == len(steps) - 1 else flat[i] + sign * steps[last + 1]
-    return dataclasses.replace(
-        iv, band=band,
-        note=iv.note + f"; at the reproducibility floor, {', '.join(iv.labels[i] for i in todo)}: the values whose "
-                       "rollout stays within the floor, scanned one parameter at a time")
 
 
 @dataclasses.dataclass(frozen=True)

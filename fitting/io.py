@@ -20,8 +20,7 @@ Layout:
   m; NaN: not known), ``undetermined`` (JSON list of the labels the target does not determine);
 * ``intervals/`` (the default fit, :mod:`jaxplush.fitting.intervals`): ``theta`` (log values),
   ``sd`` (the spread of each log value: its relative error; inf: undetermined), ``lower``,
-  ``upper`` (the 95% interval in parameter units) datasets, and ``band`` [P, 2] (log-space ends
-  from the scan of a fit at the reproducibility floor; NaN where not scanned); attributes ``labels``, ``method``
+  ``upper`` (the 95% interval in parameter units) datasets; attributes ``labels``, ``method``
   (``twins`` or ``residuals``), ``level``, ``quantile``, ``n_twins``, ``note``;
 * ``combinations/`` (the default fit, where the target determines a combination of fitted
   parameters but not its parts: the report's ``damping`` with ``drag``): ``value``, ``sd``,
@@ -183,8 +182,6 @@ def write_intervals(f, iv):
     g = f.create_group("intervals")
     for k in ("theta", "sd", "lower", "upper"):
         g.create_dataset(k, data=np.asarray(getattr(iv, k), np.float64))
-    if iv.band is not None:
-        g.create_dataset("band", data=np.asarray(iv.band, np.float64))
     g.attrs["labels"] = np.asarray(iv.labels, dtype=object)
     g.attrs["method"] = iv.method
     g.attrs["level"] = float(iv.level)

@@ -125,9 +125,6 @@ class FitResult:
                     es = "n/a"
                 else:
                     es = f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined"
-                    if (not np.isfinite(e) and iv is not None and iv.band is not None and label in iv.labels
-                            and not np.isnan(iv.band[iv.labels.index(label), 0])):
-                        es = "floor band"        # no spread: the values within the floor (intervals.floor_band)
                 row = f"{n:<14} {o:<14} {self.start[n][j]:>12.6g} {self.values[n][j]:>12.6g} {es:>11}"
                 if iv is not None and label in iv.labels:
                     row += "  " + (iv.text(label) if shown else "n/a")

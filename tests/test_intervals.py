@@ -3,7 +3,6 @@ fit at the reproducibility floor (0: it has done what the data allow)."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import types
 
@@ -130,42 +129,3 @@ def test_the_damping_is_resolved_only_as_finely_as_its_float32_factor():
     assert res[1] == pytest.approx(d * u / math.sqrt(12), rel=1e-6)
     assert res[0] == pytest.approx(float(np.finfo(np.float32).eps) / math.sqrt(12))
     assert I._resolution(prob, np.log([[282.8], [d]]), np.float64)[1] < 1e-12
-
-
-def test_at_the_floor_an_interval_is_the_scanned_band_of_values_within_the_floor():
-    """At the reproducibility floor the loss is rough and one Gauss-Newton step too short a view:
-    a parameter without a finite spread is scanned up and down (BAND_LEVELS, one batched call), and
-    each end of its interval is the first step beyond the farthest value whose residual RMS stays
-    within the floor: here the RMS grows by 5 mm per unit log from 0.8 mm, with a dip back under
-    the 1 mm floor at +10% (rough), so the band is -5% .. +20%, never narrower than the dip."""
-    levels = np.log1p(np.asarray(I.BAND_LEVELS))
-
-    def rms_of(delta):                       # mm
-        r = 0.8 + 5.0 * abs(delta)
-        return 0.9 if abs(delta - math.log1p(0.1)) < 1e-9 else r
-
-    seen = []
-
-    def ev(thetas, retries=None):
-        seen.append((len(thetas), retries))
-        d = np.asarray(thetas)[:, 0, 0]
-        loss = np.array([(1e-3 * rms_of(x)) ** 2 * 3.0 for x in d])       # positions: 3 components, scale2 1
-        return types.SimpleNamespace(loss=loss, ok=np.ones(len(d), bool))
-
-    prob = types.SimpleNamespace(names=("drag",), objects=(0,), loss=types.SimpleNamespace(scale2=1.0),
-                                 target=types.SimpleNamespace(kind="positions"))
-    iv = I.Intervals(labels=("drag[b]",), theta=np.zeros(1), sd=np.array([np.inf]), quantile=2.04, level=0.95,
-                     method="twins", n_twins=31, note="twins", steps=np.ones((31, 1)) * 1e-4)
-    out = I.floor_band(prob, ev, np.zeros((1, 1)), iv, floor=1e-3)
-    assert seen == [(2 * len(levels), 0)]                   # one batched call, no retries (no new compile)
-    assert out.band[0, 0] == pytest.approx(-levels[2]) and out.band[0, 1] == pytest.approx(levels[4])
-    assert out.lower[0] == pytest.approx(1 / 1.05) and out.upper[0] == pytest.approx(1.2)
-    assert out.contains("drag[b]", 1.04) and not out.contains("drag[b]", 1.3)
-    assert out.text("drag[b]") == "[0.952381, 1.2]" and "within the floor" in out.note
-    # where even the largest step stays within the floor, that end is open
-    wide = I.floor_band(prob, lambda t, retries=None: types.SimpleNamespace(
-        loss=np.full(len(t), 3e-8), ok=np.ones(len(t), bool)), np.zeros((1, 1)), iv, floor=1e-3)
-    assert wide.lower[0] == 0.0 and wide.upper[0] == math.inf
-    # a parameter with a finite spread, or the damping/drag pair, is not scanned
-    assert I.floor_band(prob, ev, np.zeros((1, 1)), dataclasses.replace(iv, sd=np.array([0.01])), floor=1e-3).band \
-        is None
