@@ -34,11 +34,9 @@ each case in a fresh Python process (``--in-process``: all in this one; the pers
 compilation cache on, as the command sets it, but every scene differs, so each case compiles its
 own programs), stopped (Ctrl-C, as a user would)
 once it has run ``--stop-after`` times its time budget (120 s for one object, 300 s for several).
-A case is recovered when the fit says it is done (exit 0: converged, or at the model's own
-reproducibility floor, ``at_floor``, where its values and their intervals are the answer; the
-summary counts those apart) and every fitted parameter of every object is within 1% (positions)
-or 3% (points) of the truth, within the budget; a failed case gets a reason: floor (status
-at_floor, outside the tolerance), horizon (FIT.h5's predictability says the target is not
+A case is recovered when the fit says converged (exit 0) and every fitted parameter of every
+object is within 1% (positions) or 3% (points) of the truth, within the budget; a failed case
+gets a reason: floor (status at_floor), horizon (FIT.h5's predictability says the target is not
 predictable over its length), identifiability (status undetermined, or the fit's identifiability
 report has undetermined parameters, or a parameter outside the tolerance has a standard error of
 at least half the tolerance: the target does not determine it that well), time (over the budget),
@@ -397,8 +395,7 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
 def verdict(row):
     """Set ``row["verdict"]`` (recovered / failed) and ``row["reason"]`` (None or one of :data:`REASONS`)."""
     tol = TOLERANCE[row["kind"]]
-    fit_ok = (row.get("exit") == 0 and row.get("status") in ("converged", "at_floor")
-              and row.get("max_error", math.inf) <= tol)
+    fit_ok = row.get("exit") == 0 and row.get("status") == "converged" and row.get("max_error", math.inf) <= tol
     in_time = row.get("wall", math.inf) <= row["budget"] and not row.get("stopped")
     length = row.get("steps", 0) * (row.get("dt") or 0.0)
     if fit_ok and in_time:
@@ -457,18 +454,17 @@ def _summary(rows):
         sel = [r for r in rows if r["kind"] == kind]
         out.append(f"{label} {sum(r['verdict'] == 'recovered' for r in sel)}/{len(sel)}")
     rec = sum(r["verdict"] == "recovered" for r in rows)
-    floor = sum(r["verdict"] == "recovered" and r.get("status") == "at_floor" for r in rows)
-    lines = [f"recovered {rec}/{len(rows)} ({', '.join(out)})" + (f"; {floor} of them at the floor" if floor else "")]
+    lines = [f"recovered {rec}/{len(rows)} ({', '.join(out)})"]
     pair = [r for r in rows if r.get("combined_rate_errors") is not None]
     if pair:
         told = sum(r.get("status") == "undetermined" for r in pair)
         lines.append(f"damping+drag cases (the pair is one effect, never separately identifiable): {len(pair)}, "
                      f"{told} reported 'undetermined'")
-    # the intervals a fit reports (converged, undetermined, at_floor: jaxplush.fitting.outcome.REPORTED),
-    # and apart those FIT.h5 keeps for a fit that reached neither the data nor the floor (not shown)
-    for label, want in (("reported", True), ("not reported (the fit reached neither the data nor the floor)", False)):
+    # the intervals a fit reports (converged, undetermined: jaxplush.fitting.outcome.REPORTED), and
+    # apart those FIT.h5 keeps for a fit that did not reach the data (not shown)
+    for label, want in (("reported", True), ("not reported (the fit did not reach the data)", False)):
         cov = [(r, k, c) for r in rows for k, c in (r.get("covered") or {}).items()
-               if (r.get("status") in ("converged", "undetermined", "at_floor")) == want]
+               if (r.get("status") in ("converged", "undetermined")) == want]
         if not cov:
             continue
         inside = sum(c for _, _, c in cov)

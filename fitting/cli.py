@@ -21,9 +21,9 @@ target, or segments no longer than the horizon, restarted from the observed posi
 
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
-exits 3; a fit that finished at neither the data nor the model's reproducibility floor
-(jaxplush.fitting.outcome) writes FIT.h5 with its status and exits 4. One that has done what the
-data allow exits 0: converged; at the floor (``at_floor``); or reproducing the target with some
+exits 3; a fit that finished without reaching the data (jaxplush.fitting.outcome; ``at_floor``
+included) writes FIT.h5 with its status and exits 4. One
+that has done what the data allow exits 0: converged, or reproducing the target with some
 parameters undetermined (``undetermined``, said on stderr), its values, and the combinations the
 target determines, reported with their intervals. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130;
 ``--resume`` continues it.
@@ -369,8 +369,8 @@ def _report(args, result):
         print(result.identifiability.summary(standard_errors=result.status in REPORTED))
     print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))
     if result.status not in DONE:
-        print(f"jaxplush-fit: the fit reached neither the data nor the model's reproducibility floor "
-              f"({result.status}); see FIT.h5 and the message above (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
+        print(f"jaxplush-fit: the fit did not reach the data ({result.status}); see FIT.h5 and the message "
+              f"above (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
         return EXIT_NOT_CONVERGED
     if result.status == Status.UNDETERMINED:
         rep = result.identifiability

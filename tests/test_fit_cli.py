@@ -94,7 +94,7 @@ def test_a_fit_that_did_not_converge_says_so_and_exits_4(files, tmp_path, capsys
     assert "\r" not in text.err and 1 <= text.err.count("fit [") <= 2, text.err
     assert "outcome: iteration limit: " in text.out and "n/a" in text.out and "%" not in text.out.split("loss")[0]
     assert "standard errors: not meaningful" in text.out and "converged:" not in text.out
-    assert "reached neither the data nor the model's reproducibility floor (iteration_limit)" in text.err
+    assert "the fit did not reach the data (iteration_limit)" in text.err
     assert "Traceback" not in text.err
     with h5py.File(out) as f:
         assert f.attrs["status"] == "iteration_limit" and not f.attrs["converged"]

@@ -131,13 +131,12 @@ def test_judge_tells_the_reproducibility_floor_from_a_poor_fit():
     at = outcome.judge(rms=3e-3, noise=None, motion=motion, floor=2e-3, horizon=0.15, **_OPTIMAL)
     assert at.status == "at_floor" and not at.converged and at.floor == 2e-3 and at.horizon == 0.15
     for words in ("reproducibility floor", "3 mm against the floor 2 mm", "not predictable beyond 0.15 s",
-                  "Not converged, but done", "95% intervals", "shorter target", "multiple shooting", "dashpot"):
+                  "Not converged", "shorter target", "multiple shooting", "dashpot"):
         assert words in at.text, words
-    # at the floor the fit has done what the data allow: jaxplush-fit exits 0 (every other status but
-    # converged exits 4), and its standard errors and intervals are shown
-    assert at.status in outcome.DONE and at.status in outcome.REPORTED
-    assert set(outcome.DONE) == {"converged", "at_floor", "undetermined"}
-    assert outcome.Status.UNDETERMINED in outcome.REPORTED and outcome.Status.POOR_FIT not in outcome.REPORTED
+    # jaxplush-fit exits 0 for converged and undetermined fits (they reached the data), 4 for the
+    # rest, at_floor included: a fit at the floor can be far off with no interval that says so
+    assert at.status not in outcome.DONE and at.status not in outcome.REPORTED
+    assert set(outcome.DONE) == set(outcome.REPORTED) == {"converged", "undetermined"}
     assert outcome.judge(rms=3e-2, noise=None, motion=motion, floor=2e-3, **_OPTIMAL).status == "poor_fit"
     assert outcome.judge(rms=5e-4, noise=None, motion=motion, floor=2e-3, **_OPTIMAL).status == "converged"
     # a floor far below what the data ask for is no obstacle: the fit is poor
