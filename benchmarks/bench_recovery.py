@@ -382,7 +382,7 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
             row["identifiability_warnings"] = [w for w in warns if "determined" in w or "ill-conditioned" in w]
         if "damping" in names and "drag" in names and row.get("dt"):
             # one effect (uniform velocity decay): what a target determines is the combined rate,
-            # 1/(D dt) + drag in the damped Verlet update (jaxplush.fitting.intervals.damping_rate)
+            # 1/(D dt) + drag in the damped Verlet update (jaxplush.fitting.equation_error.damping_rate)
             rate = lambda d, g: 1.0 / (d * row["dt"]) + g  # noqa: E731
             row["combined_rate_errors"] = [
                 rate(float(fit["params"]["damping"][j]), float(fit["params"]["drag"][j]))

@@ -245,13 +245,19 @@ def equation_error(prob, frames=None):
     return Estimate(values=out, rate=rate, rows=rows, masked=masked, clamped=tuple(clamped), coef=coef)
 
 
-def damping_rate(damping, dt):
+def damping_rate(damping, dt, substeps=1):
     """(numpy, float64) the report's damping D as a velocity-decay rate, 1/s: f / dt with f = 1/D
     (0 for D <= 0). Verlet's update gives (x_(n+1) - 2 x_n + x_(n-1)) / dt^2 = a_n - (f / dt) u_n
     exactly, the same form as drag's -gamma u_n, so the balance is linear in f / dt (which is
-    -ln(1 - f) / dt, the decay rate, to first order in f)."""
+    -ln(1 - f) / dt, the decay rate, to first order in f), and f / dt + gamma is exactly what a
+    target determines of the two. With s substeps of h = dt / s each keeps (1 - f)^(1/s) of u:
+    the rate is s (1 - (1 - f)^(1/s)) / dt."""
     d = np.asarray(damping, np.float64)
-    return np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0) / float(dt)
+    f = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
+    if int(substeps) == 1:
+        return f / float(dt)
+    s = int(substeps)
+    return s * (1.0 - np.power(1.0 - np.minimum(f, 1.0), 1.0 / s)) / float(dt)
 
 
 def _damping_of_rate(rate, dt):

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 
 import numpy as np
 
@@ -60,8 +61,6 @@ RCOND = 1e-6
 #: Fewest twins that must run (a twin that blows up is dropped) for a spread to be estimated.
 MIN_TWINS = 4
 
-METHODS = ("twins", "residuals")
-
 
 def t_quantile(p, dof):
     """The ``p`` quantile of Student's t with ``dof`` degrees of freedom (Cornish-Fisher expansion
@@ -75,15 +74,7 @@ def t_quantile(p, dof):
 
 
 def _normal_quantile(p):
-    # bisection on the normal CDF (math.erfc): exact to float64 in 100 halvings
-    lo, hi = -10.0, 10.0
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        if 0.5 * math.erfc(-mid / math.sqrt(2.0)) < p:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
+    return statistics.NormalDist().inv_cdf(p)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -228,9 +219,8 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
                                               f"apply ({why})")
     values = prob.params_at(theta)
     n = int(ev.substeps_for(theta[None])[0])
-    bsim, _ = ev._bsim(n, ev._width(n_twins + 1, n))
-    x0 = np.asarray(bsim.topology.x0, np.float64)
-    dtype = bsim.dtype
+    x0 = np.asarray(prob.sim.topology.x0, np.float64)
+    dtype = prob.sim.dtype
     starts = np.stack([x0] + [x0 + _pred.perturbation(prob.scene, x0, dtype, seed=seed + 1 + b)
                               for b in range(n_twins)])
     frames, good, *_ = ev._run_lanes([values] * (n_twins + 1), n, ev.runs, x0=starts, v0=np.zeros_like(starts))
@@ -302,24 +292,14 @@ class Combination:
         return f"{self.label} = {self.value:.6g} {self.unit}, 95% interval {iv}: {self.note}"
 
 
-def damping_rate(damping, dt, substeps=1):
-    """The rate (1/s) at which the report's per-step damping D takes velocity off in the damped
-    Verlet update, in the units of air drag: each of the s substeps of h = dt / s keeps
-    (1 - 1/D)^(1/s) of the half-step velocity u, and drag takes gamma u h off it, so
-    u' = (1 - h (rate + gamma)) u + ..., rate = s (1 - (1 - 1/D)^(1/s)) / dt (1 / (D dt) at one
-    substep). ``rate + gamma`` is what a target determines of the two, exactly."""
-    s = int(substeps)
-    keep = (1.0 - 1.0 / float(damping)) ** (1.0 / s)
-    return s * (1.0 - keep) / float(dt)
-
-
 def combinations(prob, theta, iv, substeps=1):
     """The determined combinations of a fit ending at log values ``theta`` ((P_n, O_f)), with their
     twin intervals from ``iv`` (:class:`Intervals`; NaN intervals without twins): for every fitted
     object whose report's ``damping`` and air ``drag`` are both fitted, their combined rate
-    :func:`damping_rate` + drag (at the ``substeps`` the fitted values ran with), which is all a
+    :func:`jaxplush.fitting.equation_error.damping_rate` + drag (at the ``substeps`` the fitted values ran with), which is all a
     target determines of the two: both take the same share of every vertex's velocity off at every
     step. A tuple of :class:`Combination`."""
+    from jaxplush.fitting.equation_error import damping_rate
     names = tuple(prob.names)
     if "damping" not in names or "drag" not in names:
         return ()
@@ -334,7 +314,7 @@ def combinations(prob, theta, iv, substeps=1):
         def rate(flat, j=j):
             t = np.asarray(flat, np.float64).reshape(shape)
             d = math.exp(t[i_d, j])
-            return (damping_rate(d, dt, substeps) if d > 1.0 else math.inf) + math.exp(t[i_g, j])
+            return (float(damping_rate(d, dt, substeps)) if d > 1.0 else math.inf) + math.exp(t[i_g, j])
 
         if iv is not None and iv.steps is not None:
             value, sd = iv.spread_of(rate)
