@@ -71,10 +71,10 @@ def _best(fn, repeats):
 def measure(case, repeats=5, subdivisions=3):
     """One case's throughput (see the module docstring) in this process. The step is 2e-4 s at
     642 vertices, halved with each further subdivision (the stable limit halves)."""
+    import jaxplush  # first: it sets options that jax reads when it is imported
     import jax
     import jax.numpy as jnp
     import numpy as np
-    import jaxplush
     kind, variant = case.split(":")
     scene = _scene(jaxplush, variant == "full", subdivisions)
     dt = 2e-4 * 0.5 ** (subdivisions - 3)

@@ -18,11 +18,11 @@ import statistics
 import sys
 import time
 
-import jax
 import trimesh
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-import jaxplush  # noqa: E402
+import jaxplush  # noqa: E402  (before jax: it sets options jax reads when imported)
+import jax  # noqa: E402
 
 
 def ball_scene(subdivisions, dashpot=False):

@@ -28,13 +28,13 @@ import platform
 import sys
 import time
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.dirname(__file__))
-import jaxplush  # noqa: E402
+import jaxplush  # noqa: E402  (before jax: it sets options jax reads when imported)
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
 from jaxplush.stepping import batched  # noqa: E402
 from bench_step import ball_scene  # noqa: E402
 

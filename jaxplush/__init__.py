@@ -22,6 +22,7 @@ Lower level: ``sim = make_simulator(scene, dt)``; ``params = sim.params()``;
 __version__ = "0.1.0"
 
 from jaxplush import _xla
+_xla.hoist_constants()           # topology as data (before jax is imported, which reads the option)
 _xla.disable_ynn_fusion()        # before anything starts a backend: XLA reads XLA_FLAGS once
 
 from jaxplush.errors import JaxplushError, SceneError, SimulationError, TrajectoryError

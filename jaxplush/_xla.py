@@ -12,6 +12,14 @@ So, before jax starts its backends, :func:`disable_ynn_fusion` adds
 already there (your own choice wins), and only for jaxlib versions that know the flag. XLA reads
 ``XLA_FLAGS`` once, when its first backend starts: if jax ran a computation before jaxplush was
 imported, the setting comes too late, and a warning says so.
+
+Topology as data. :func:`hoist_constants` asks JAX to pass every non-scalar constant of a traced
+program (a scene's ring tables, rest lengths, faces, contact tables, and the geometry's scalars,
+which :func:`jaxplush.model.layout.scene_value` makes one-element arrays) to the compiled program
+as an argument instead of writing it into the program. Two scenes of one size bucket (the same
+objects' vertex, edge and face counts, ring width and switched-on terms) then lower to the same
+program, and the second loads it from the persistent compilation cache instead of compiling it
+(docs/cli.md, "Programs shared by scenes of one size"). ``JAXPLUSH_TOPOLOGY_AS_DATA=0`` turns it off.
 """
 
 from __future__ import annotations
@@ -56,3 +64,30 @@ def disable_ynn_fusion():
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {FLAG}".strip()
     return True
+
+
+def hoist_constants():
+    """Ask JAX to hoist closed-over array constants into program arguments: set
+    ``JAX_USE_SIMPLIFIED_JAXPR_CONSTANTS=true`` and ``JAX_EMBEDDED_CONSTANTS_MAX_BYTES=0`` (every
+    non-scalar constant) in the environment. JAX reads the first when it is imported, so this must
+    run before ``import jax``; afterwards it changes nothing: programs then carry their scene's
+    constants, and only the same scene reuses them (the same results, more compiles). Off with
+    ``JAXPLUSH_TOPOLOGY_AS_DATA=0``; a value the user set for either variable wins. Returns True
+    when hoisting is in effect for this process."""
+    import sys
+    if os.environ.get("JAXPLUSH_TOPOLOGY_AS_DATA", "1").strip().lower() in ("0", "off", "false", "no"):
+        return False
+    if "jax" in sys.modules:
+        return _hoisting()
+    os.environ.setdefault("JAX_USE_SIMPLIFIED_JAXPR_CONSTANTS", "true")
+    os.environ.setdefault("JAX_EMBEDDED_CONSTANTS_MAX_BYTES", "0")
+    return os.environ["JAX_USE_SIMPLIFIED_JAXPR_CONSTANTS"].strip().lower() in ("1", "true", "yes", "on")
+
+
+def _hoisting():
+    """Whether the imported jax hoists array constants into program arguments."""
+    try:
+        from jax._src.interpreters import mlir
+        return bool(mlir.LoweringParameters().hoist_constants_as_args)
+    except Exception:                                     # pragma: no cover - jax internals moved
+        return False

@@ -303,6 +303,10 @@ def _info(args):
     print(f"  gravity ({g[0]:g}, {g[1]:g}, {g[2]:g}) m/s², floor "
           f"{'none' if scene.floor is None else f'y = {scene.floor:g} m'}, temperature {scene.temperature:g} K")
     print(f"  compiled terms: {', '.join(sim.terms.names())}")
+    from jaxplush.stepping import compiled
+    print(f"  program bucket: {compiled.bucket(scene, sim.terms).text()}; padding: ring slots to the largest "
+          f"valence, vertex counts exact (scenes of one bucket, with the same terms and step options, share "
+          f"their compiled programs)")
     for i, o in enumerate(scene.objects):
         e = int((topo.edge_object == i).sum())
         print(f"  object {i} {o.name!r}: {o.n_vertices} vertices, {e} edges, {o.n_faces} faces, "

@@ -18,12 +18,11 @@ sys.path[:] = [p for p in sys.path if os.path.abspath(p or os.curdir) != _ROOT]
 
 os.environ.setdefault("JAXPLUSH_CACHE_DIR", os.path.join(tempfile.gettempdir(), f"jaxplush-tests-xla-{os.getuid()}"))
 
+import jaxplush  # noqa: I001  (first: it sets the options jax reads when imported)
 import jax
 import numpy as np
 import pytest
 import trimesh
-
-import jaxplush
 
 #: Test files whose assertions rest on iterative float code (fits and their outcomes, gradients and
 #: finite differences, stability limits and blow-ups, integrator agreement, batched against single

@@ -91,7 +91,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.model.layout import object_stiffness, sum_rows as _sum_rows, vertex_mass
+from jaxplush.model.layout import object_stiffness, scene_value, sum_rows as _sum_rows, vertex_mass
 
 #: kappa of the default stiffness k_c = kappa * 2 * n_max * min(k_A, k_B).
 STIFFNESS_FACTOR = 0.1
@@ -401,7 +401,7 @@ def make_contact_energy(topo, cfg):
     def energy(params, x):
         dtype = x.dtype
         params = _per_object_k(topo, params)
-        tiny = jnp.asarray(tiny_len ** 2, dtype)
+        tiny = scene_value(tiny_len ** 2, dtype)
         total = jnp.zeros((), dtype)
         overflow = jnp.zeros((), bool)
         xs = jax.lax.stop_gradient(x)
@@ -413,10 +413,11 @@ def make_contact_energy(topo, cfg):
             va, vb = jnp.arange(cap_a) < n_a, jnp.arange(cap_b) < n_b
             kc = _energy_stiffness(params, cfg, tab, oa, ob, dtype)
             any_a, any_b = n_a > 0, n_b > 0
+            delta = scene_value(delta, dtype)
             total = total + _directed_energy(x, a0 + ia, va & any_b, near_b, delta, kc, tab, ring_next, tiny)
             total = total + _directed_energy(x, b0 + ib, vb & any_a, near_a, delta, kc, tab, ring_next, tiny)
         for o, delta, excl in zip(cfg.self_objects, cfg.self_thickness, tab.self_exclude):
-            total = total + _self_energy(params, x, o, delta, excl, tiny, slices[o], cfg, tab)
+            total = total + _self_energy(params, x, o, scene_value(delta, dtype), excl, tiny, slices[o], cfg, tab)
         return total, overflow
 
     return energy
@@ -435,7 +436,7 @@ def _energy_stiffness(params, cfg, tab, a, b, dtype):
     if cfg.stiffness is not None:
         return jnp.asarray(cfg.stiffness, dtype)
     k = params.k_structural
-    return STIFFNESS_FACTOR * 2.0 * tab.n_max * jnp.minimum(k[a], k[b])
+    return STIFFNESS_FACTOR * 2.0 * scene_value(tab.n_max, dtype) * jnp.minimum(k[a], k[b])
 
 
 def _ramp_energy(s, delta, kc):
@@ -531,7 +532,7 @@ def _self_energy(params, x, o, delta, excl, tiny, vertex_slice, cfg, tab):
     d2u, *_ = _closest(p, fa, fb, fc, tiny)
     s = jnp.sqrt(d2u + tiny)
     kc = (jnp.asarray(cfg.stiffness, x.dtype) if cfg.stiffness is not None
-          else STIFFNESS_FACTOR * 2.0 * tab.n_max * params.k_structural[o])
+          else STIFFNESS_FACTOR * 2.0 * scene_value(tab.n_max, x.dtype) * params.k_structural[o])
     return jnp.sum(jnp.where(valid, _ramp_energy(s, delta, kc), 0.0))
 
 
@@ -590,7 +591,7 @@ def make_contact(topo, cfg, h=None):
         i B .. (i + 1) B, B = QUERY_BLOCK)."""
         dtype = x.dtype
         mass = vertex_mass(topo, params) if friction > 0 else None
-        tiny = jnp.asarray(tiny_len ** 2, dtype)
+        tiny = scene_value(tiny_len ** 2, dtype)
         take = lambda a: jax.lax.dynamic_slice_in_dim(a, i * QUERY_BLOCK, QUERY_BLOCK)   # noqa: E731
         pair = take(cache.pair)
         kc = _take(_pair_stiffnesses(_per_object_k(topo, params), cfg, tab, dtype), pair)
@@ -688,7 +689,7 @@ def _pair_stiffnesses(params, cfg, tab, dtype):
     if cfg.stiffness is not None:
         return jnp.full((len(cfg.pairs),), cfg.stiffness, dtype)
     k = params.k_structural
-    return STIFFNESS_FACTOR * 2.0 * tab.n_max * jnp.stack([jnp.minimum(k[a], k[b]) for a, b in cfg.pairs])
+    return STIFFNESS_FACTOR * 2.0 * scene_value(tab.n_max, dtype) * jnp.stack([jnp.minimum(k[a], k[b]) for a, b in cfg.pairs])
 
 
 def _narrow(x, v, mass, q_idx, q_valid, target, delta, kc, tiny, ring_t, valence, friction, h):
@@ -833,7 +834,8 @@ def _search(xs, topo, cfg, margins, skin, _near_limits):
             d2 = sum((pc - tc) ** 2 for pc, tc in zip(_gather(xs, q), _gather(xs, t)))
             qs.append(q)
             targets.append(t)
-            valids.append((jnp.arange(cap) < n) & (other > 0) & (d2 <= near * near))
+            near2 = scene_value(near * near, xs.dtype)
+            valids.append((jnp.arange(cap) < n) & (other > 0) & (d2 <= near2))
     pair_of_query = _query_layout(cfg)
     valid = jnp.concatenate(valids)
     length = _list_length(cfg)
@@ -842,7 +844,7 @@ def _search(xs, topo, cfg, margins, skin, _near_limits):
                         jnp.arange(length) < jnp.sum(valid),
                         _take(jnp.concatenate(targets).astype(jnp.int32), order), xs,
                         _overflow_flags(cfg, topo.n_objects, counts),
-                        jnp.asarray((0.5 * skin) ** 2, xs.dtype),
+                        scene_value((0.5 * skin) ** 2, xs.dtype),
                         _take(jnp.asarray(pair_of_query), order),
                         jnp.concatenate(watch))
 
@@ -1026,6 +1028,8 @@ def _broad_phase(xa, xb, margin):
     box and its bounding sphere (about the vertex mean), both inflated by ``margin``. Works on
     (3, n) jax arrays and on numpy (for the checks outside jit)."""
     mod = jnp if isinstance(xa, jax.Array) else np
+    if mod is jnp:
+        margin = scene_value(margin, xa.dtype)
 
     def near(p, q):
         lo, hi = q.min(axis=1, keepdims=True), q.max(axis=1, keepdims=True)

@@ -30,8 +30,8 @@ from jaxplush.model import contact as _contact
 from jaxplush.model import mesh as _mesh
 from jaxplush.model import terms as T
 from jaxplush.model.layout import (  # noqa: F401
-    edge_stiffness, is_field, object_stiffness, per_object_sum, per_vertex, ring_stiffness, sum_rows as _sum_rows,
-    vertex_mass)
+    edge_stiffness, is_field, length_eps2, object_stiffness, per_object_sum, per_vertex, ring_stiffness, scene_value,
+    sum_rows as _sum_rows, vertex_mass)
 from jaxplush.model.terms import (  # noqa: F401  (the terms' public names, also reachable from here)
     FLOOR_KAPPA, pressure, smooth_floor_energy, smooth_floor_force, smooth_floor_push, smooth_floor_stiffness)
 from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
@@ -364,7 +364,7 @@ def _ring_force_fn(topo, terms, temperature):
     def force_fn(params, x, v):
         dtype = x.dtype
         rest = jnp.asarray(ring_rest, dtype)
-        eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
+        eps2 = length_eps2(topo, dtype)
         with jax.named_scope("spring"):
             src = jnp.concatenate([x, v]) if terms.dashpot else x
             t = src.at[:, table].get(mode="promise_in_bounds")          # indices valid by construction
@@ -438,7 +438,7 @@ def _segment_force_fn(topo, terms, temperature):
         rest = jnp.asarray(topo.rest_length, dtype)
         with jax.named_scope("spring"):
             d = x[:, e1] - x[:, e0]                                     # (3, E)
-            inv_l = T.inv_length(d, jnp.asarray(topo.length_eps ** 2, dtype))
+            inv_l = T.inv_length(d, length_eps2(topo, dtype))
             w = T.spring_weight(per_edge(params.k_structural), rest, inv_l)
             if terms.dashpot:
                 with jax.named_scope("dashpot"):
@@ -467,7 +467,7 @@ def potential_energy(topo, params, x, temperature, gravity=None, gas=True, floor
     f = -dU/dx with ``jax.grad``.
     """
     d = x[topo.edges[:, 0]] - x[topo.edges[:, 1]]
-    l = jnp.sqrt(_dot(d, d) + topo.length_eps ** 2)
+    l = jnp.sqrt(_dot(d, d) + length_eps2(topo, x.dtype))
     k = edge_stiffness(topo, params.k_structural)
     u = jnp.sum(0.5 * k * (l - topo.rest_length) ** 2)
     if gas:

@@ -20,6 +20,23 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def scene_value(value, dtype):
+    """A number derived from a scene's geometry (a softening length, a contact margin, a valence),
+    as a traced scalar of ``dtype``, not a literal of the compiled program.
+
+    Inside a trace it enters as a one-element array constant, which JAX hoists out of the program
+    into its arguments (:func:`jaxplush._xla.hoist_constants`), as it does the topology's tables:
+    two scenes that differ only in such values lower to the same program, and the second loads it
+    from the persistent compilation cache (docs/cli.md, "Programs shared by scenes of one size")."""
+    return jnp.asarray(np.asarray([value], dtype=jnp.dtype(dtype)))[0]
+
+
+def length_eps2(topo, dtype):
+    """The squared softening length of edge lengths, eps² (:attr:`Topology.length_eps`), as a
+    :func:`scene_value` of ``dtype``."""
+    return scene_value(topo.length_eps ** 2, dtype)
+
+
 def per_vertex(topo, values):
     """Spread an (O,) per-object array to (V,), or an (O, B) one to (V, B). A single object's
     values broadcast instead: (V,) from (1,), and (1, B) from (1, B), which broadcasts against

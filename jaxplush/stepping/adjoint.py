@@ -120,7 +120,7 @@ def _make_force_vjp(topo, terms, temperature):
         rest = jnp.asarray(ring_rest, dtype)
         d = [gather(x[c]) - x[c] for c in range(3)]                      # 3 x (K, V)
         dl = [gather(lam[c]) - lam[c] for c in range(3)]
-        inv_l = T.inv_length(d, topo.length_eps ** 2)
+        inv_l = T.inv_length(d, model.length_eps2(topo, dtype))
         t = masked(T.dot(d, dl))
         w, coef, dens = T.spring_vjp(model.ring_stiffness(topo, params.k_structural), rest, inv_l, t)
         # k's density: per vertex (V,), reduced per object at the end; for a per-edge field kept per

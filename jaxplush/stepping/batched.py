@@ -707,7 +707,7 @@ def _make_force_fn(topo, terms, temperature):
 
     def force_fn(params, x, v):
         dtype = x[0].dtype
-        eps2 = jnp.asarray(topo.length_eps ** 2, dtype)
+        eps2 = model.length_eps2(topo, dtype)
         with jax.named_scope("spring"):
             d = [[n[c] - x[c] for c in range(3)] for n in neighbours(x)]            # K x 3 x (V, B)
             if terms.k_field:

@@ -23,7 +23,10 @@ Environment:
 from __future__ import annotations
 
 import collections
+import dataclasses
 import os
+
+import numpy as np
 
 SIZE = max(1, int(os.environ.get("JAXPLUSH_COMPILED_SIMULATORS", "16") or 16))
 
@@ -140,6 +143,64 @@ def topology(scene):
     else:
         _TOPOLOGY.move_to_end(key)
     return topo
+
+
+@dataclasses.dataclass(frozen=True)
+class Bucket:
+    """The sizes that decide a scene's compiled programs (topology as data).
+
+    A program takes the scene's topology (ring tables, edges, faces, rest lengths and volumes,
+    contact tables, pins) and the values derived from its geometry (softening length, contact
+    margins, valences) as arguments (:func:`jaxplush._xla.hoist_constants`), so what it is
+    compiled for is only their sizes: two scenes with equal buckets, equal switched-on terms and
+    equal step options (dt, substeps, integrator, batch width, dtype) lower to the same program,
+    and the second loads it from the persistent compilation cache.
+
+    Attributes:
+      objects: per object (vertices, edges, faces, pinned vertices).
+      ring_width: slots of the one-ring tables (the largest valence; rings of smaller valence are
+        padded by repeating their last neighbour).
+      valence: the smallest valence: every slot below it is real at every vertex, which the
+        batched kernel uses to skip masking those slots.
+      near_faces: with soft-soft contact, the width of the reference energy's near-face table.
+      capacity: with soft-soft contact, the candidate capacity of each object.
+    """
+
+    objects: tuple
+    ring_width: int
+    valence: int
+    near_faces: int | None = None
+    capacity: tuple | None = None
+
+    def text(self):
+        """One line for ``jaxplush info``."""
+        sizes = collections.Counter(self.objects)
+        parts = []
+        for (v, e, f, p), n in sizes.items():
+            pins = f", {p} pinned" if p else ""
+            parts.append(f"{n} x ({v} vertices, {e} edges, {f} faces{pins})")
+        out = f"{' + '.join(parts)}; ring width {self.ring_width} (valence {self.valence}-{self.ring_width})"
+        if self.capacity is not None:
+            out += f"; contact capacity {'/'.join(str(c) for c in self.capacity)}, near faces {self.near_faces}"
+        return out
+
+
+def bucket(scene, terms=None):
+    """The :class:`Bucket` of ``scene`` (with soft-soft contact as ``terms``, default the scene's)."""
+    from jaxplush.model import contact as _contact
+    from jaxplush.model import forces as model
+    topo = topology(scene)
+    terms = model.Terms.for_scene(scene) if terms is None else terms
+    fixed = np.asarray(topo.fixed)
+    objects = tuple((int(b - a), int(eb - ea), int(fb - fa), int(((fixed >= a) & (fixed < b)).sum()))
+                    for (a, b), (ea, eb), (fa, fb) in zip(topo.vertex_slices, topo.edge_slices, topo.face_slices))
+    valence = topo.ring_mask.sum(axis=1)
+    near, capacity = None, None
+    if terms.contact:
+        near = int(_contact._tables(topo, terms.contact).near_faces.shape[1])
+        capacity = tuple(int(c) for c in terms.contact.capacity)
+    return Bucket(objects=objects, ring_width=int(topo.ring.shape[1]), valence=int(valence.min()),
+                  near_faces=near, capacity=capacity)
 
 
 def size():

@@ -76,7 +76,7 @@ def energy_terms(sim, params, state):
     v = sim.velocity_fn(params, state)
     kin = model.kinetic_energy(topo, params, v)
     d = x[topo.edges[:, 0]] - x[topo.edges[:, 1]]
-    l = jnp.sqrt(jnp.sum(d * d, axis=-1) + topo.length_eps ** 2)
+    l = jnp.sqrt(jnp.sum(d * d, axis=-1) + model.length_eps2(topo, x.dtype))
     spring = jnp.sum(0.5 * model.edge_stiffness(topo, params.k_structural) * (l - topo.rest_length) ** 2)
     zero = jnp.zeros((), x.dtype)
     gas = jnp.sum(model.gas_energy(topo, params, x, sim.scene.temperature)) if sim.terms.gas else zero

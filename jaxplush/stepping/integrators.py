@@ -512,7 +512,7 @@ def _jacobians(topo, terms, params, x, volume, temperature, gather, ring_rest, m
     m = model.vertex_mass(topo, params)
     rest = jnp.asarray(ring_rest, dtype)
     d = [gather(x[c]) - x[c] for c in range(3)]                             # 3 x (K, V)
-    inv_l = T.inv_length(d, jnp.asarray(topo.length_eps ** 2, dtype))
+    inv_l = T.inv_length(d, model.length_eps2(topo, dtype))
     dh = [dc * inv_l for dc in d]
     transverse, axial = T.spring_jacobian(model.ring_stiffness(topo, params.k_structural), rest, inv_l)
     if not all_real:
