@@ -21,11 +21,12 @@ import sys
 import time
 import warnings
 
-import jax
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
+import jaxplush  # noqa: E402,F401  (before jax: it sets options jax reads when imported)
+import jax  # noqa: E402
 from jaxplush.stepping import batched  # noqa: E402
 from jaxplush.fitting import fitter as F  # noqa: E402
 from jaxplush.fitting.evaluate import Evaluator  # noqa: E402

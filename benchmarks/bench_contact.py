@@ -23,12 +23,12 @@ import statistics
 import sys
 import time
 
-import jax
 import numpy as np
 import trimesh
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-import jaxplush  # noqa: E402
+import jaxplush  # noqa: E402  (before jax: it sets options jax reads when imported)
+import jax  # noqa: E402
 from jaxplush.model import contact  # noqa: E402
 
 

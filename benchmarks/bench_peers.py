@@ -5,7 +5,7 @@ The model is the ball-drop plush of benchmarks/bench_step.py (``ball_scene``: ic
 computes it (docs/model.md §1, §5, §6):
 
 * springs on every unique edge, f_i += k (1 - L/l) (x_j - x_i), l = sqrt(|x_j - x_i|² + eps²) with
-  jaxplush's softening eps = LENGTH_EPS x the shortest rest edge;
+  jaxplush's softening eps = LENGTH_EPS x the shortest rest edge, rounded to a power of two;
 * gas P = nRT / max(V, VOLUME_EPS V0) (jaxplush's volume clamp), V by signed tetrahedra (against the
   first vertex, as jaxplush does, which keeps float32 cancellation small), P (b - a) x (c - a) / 6 to
   each corner of each face (= P A n / 3);
@@ -62,7 +62,7 @@ class Model:
     implementation), with its constants taken from a jaxplush Scene."""
 
     def __init__(self, scene, dt, damping=0.0, dtype=np.float64):
-        from jaxplush.model.forces import LENGTH_EPS
+        from jaxplush.model.forces import softening_length
         from jaxplush.types import GAS_CONSTANT, VOLUME_EPS
         assert scene.n_objects == 1
         self.x0 = np.asarray(scene.vertices, np.float64)
@@ -70,7 +70,7 @@ class Model:
         e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
         self.edges = np.unique(np.sort(e, axis=1), axis=0)
         self.rest = np.linalg.norm(self.x0[self.edges[:, 1]] - self.x0[self.edges[:, 0]], axis=1)
-        self.eps2 = (LENGTH_EPS * self.rest.min()) ** 2
+        self.eps2 = softening_length(self.rest.min()) ** 2
         p = scene.params
         self.k = float(p.k_structural[0])
         self.mass = float(p.total_weight[0]) / len(self.x0)

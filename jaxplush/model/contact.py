@@ -401,7 +401,7 @@ def make_contact_energy(topo, cfg):
     def energy(params, x):
         dtype = x.dtype
         params = _per_object_k(topo, params)
-        tiny = scene_value(tiny_len ** 2, dtype)
+        tiny = jnp.asarray(tiny_len ** 2, dtype)        # a power of two (length_eps2), in the bucket
         total = jnp.zeros((), dtype)
         overflow = jnp.zeros((), bool)
         xs = jax.lax.stop_gradient(x)
@@ -591,7 +591,7 @@ def make_contact(topo, cfg, h=None):
         i B .. (i + 1) B, B = QUERY_BLOCK)."""
         dtype = x.dtype
         mass = vertex_mass(topo, params) if friction > 0 else None
-        tiny = scene_value(tiny_len ** 2, dtype)
+        tiny = jnp.asarray(tiny_len ** 2, dtype)        # a power of two (length_eps2), in the bucket
         take = lambda a: jax.lax.dynamic_slice_in_dim(a, i * QUERY_BLOCK, QUERY_BLOCK)   # noqa: E731
         pair = take(cache.pair)
         kc = _take(_pair_stiffnesses(_per_object_k(topo, params), cfg, tab, dtype), pair)

@@ -164,11 +164,15 @@ class Bucket:
         batched kernel uses to skip masking those slots.
       near_faces: with soft-soft contact, the width of the reference energy's near-face table.
       capacity: with soft-soft contact, the candidate capacity of each object.
+      softening: the exponent of the edge-length softening eps = 2**softening m
+        (:func:`jaxplush.model.forces.softening_length`: 1e-6 of the shortest rest edge, to the
+        nearest power of two), a constant of the programs.
     """
 
     objects: tuple
     ring_width: int
     valence: int
+    softening: int = 0
     near_faces: int | None = None
     capacity: tuple | None = None
 
@@ -179,7 +183,8 @@ class Bucket:
         for (v, e, f, p), n in sizes.items():
             pins = f", {p} pinned" if p else ""
             parts.append(f"{n} x ({v} vertices, {e} edges, {f} faces{pins})")
-        out = f"{' + '.join(parts)}; ring width {self.ring_width} (valence {self.valence}-{self.ring_width})"
+        out = (f"{' + '.join(parts)}; ring width {self.ring_width} (valence {self.valence}-{self.ring_width}); "
+               f"softening 2^{self.softening} m")
         if self.capacity is not None:
             out += f"; contact capacity {'/'.join(str(c) for c in self.capacity)}, near faces {self.near_faces}"
         return out
@@ -200,7 +205,7 @@ def bucket(scene, terms=None):
         near = int(_contact._tables(topo, terms.contact).near_faces.shape[1])
         capacity = tuple(int(c) for c in terms.contact.capacity)
     return Bucket(objects=objects, ring_width=int(topo.ring.shape[1]), valence=int(valence.min()),
-                  near_faces=near, capacity=capacity)
+                  softening=int(np.round(np.log2(topo.length_eps))), near_faces=near, capacity=capacity)
 
 
 def size():
