@@ -70,6 +70,35 @@ def test_an_unsupported_term_is_refused_by_name():
     batched.check_terms(model.Terms(contact=contact.ContactConfig(((0, 1),), (), (0.01,), (), None, (8, 8), 0.5)))
 
 
+def test_every_engine_sums_the_edge_terms_in_edge_weight(monkeypatch):
+    """The edge terms are assembled once: the single-scene ring and segment kernels and the
+    batched kernel all call terms.edge_weight, with every switched-on edge term's coefficient
+    spread to their layout (a term added to EDGE_TERMS reaches every engine)."""
+    calls = []
+    real = T.edge_weight
+
+    def spy(terms, coefficient, rest, d, inv_l, dv=None):
+        calls.append({f: jnp.shape(coefficient(f)) for f in T.edge_fields(terms)})
+        return real(terms, coefficient, rest, d, inv_l, dv)
+
+    monkeypatch.setattr(T, "edge_weight", spy)
+    scene = jaxplush.parse_scene(icosphere_text(0, dashpot=0.01, nmol=0.001), "<dashpot>")
+    assert T.edge_fields(model.Terms.for_scene(scene)) == ("k_structural", "dashpot")
+    for assembly in ("ring", "segment"):
+        sim = jaxplush.make_simulator(scene, 1e-4, assembly=assembly)
+        state = sim.init_fn(sim.params())
+        calls.clear()
+        jax.eval_shape(sim.force_fn, sim.params(), state.x, state.x)
+        assert calls and all(set(c) == {"k_structural", "dashpot"} for c in calls), assembly
+    bsim = batched.make_batched_simulator(scene, 1e-4, 2)
+    p = bsim.params()
+    state = bsim.init_fn(p)
+    calls.clear()
+    jax.eval_shape(bsim.force_fn, p, state.x, state.v)
+    assert len(calls) == bsim.topology.ring.shape[1]         # one per ring slot
+    assert all(set(c) == {"k_structural", "dashpot"} for c in calls)
+
+
 # --------------------------------------------------------------------------- transposes
 
 def _rand(key, shape, lo=-1.0, hi=1.0):

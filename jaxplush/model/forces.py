@@ -381,11 +381,9 @@ def _ring_force_fn(topo, terms, temperature):
             de = [t[c] - x[c] for c in range(3)]                        # 3 x (K(+1), V)
             d = [dc[:n_slots] for dc in de]                             # 3 x (K, V)
             inv_l = T.inv_length(d, eps2)
-            w = T.spring_weight(ring_stiffness(topo, params.k_structural), rest, inv_l)
-            if terms.dashpot:
-                with jax.named_scope("dashpot"):
-                    dv = [t[3 + c, :n_slots] - v[c] for c in range(3)]
-                    w = w + T.dashpot_weight(per_vertex(topo, params.dashpot), dv, d, inv_l)
+            w = T.edge_weight(terms, lambda field: ring_stiffness(topo, params.k_structural)
+                              if field == "k_structural" else per_vertex(topo, getattr(params, field)),
+                              rest, d, inv_l, dv=lambda: [t[3 + c, :n_slots] - v[c] for c in range(3)])
             if not all_real:
                 w = jnp.where(mask, w, 0.0)
             fs = [w * d[c] for c in range(3)]
@@ -449,10 +447,8 @@ def _segment_force_fn(topo, terms, temperature):
         with jax.named_scope("spring"):
             d = x[:, e1] - x[:, e0]                                     # (3, E)
             inv_l = T.inv_length(d, length_eps2(topo, dtype))
-            w = T.spring_weight(per_edge(params.k_structural), rest, inv_l)
-            if terms.dashpot:
-                with jax.named_scope("dashpot"):
-                    w = w + T.dashpot_weight(per_edge(params.dashpot), v[:, e1] - v[:, e0], d, inv_l)
+            w = T.edge_weight(terms, lambda field: per_edge(getattr(params, field)), rest, d, inv_l,
+                              dv=lambda: v[:, e1] - v[:, e0])
             fe = w * d
             f = [scatter(fe[c], e0) - scatter(fe[c], e1) for c in range(3)]
 

@@ -12,7 +12,8 @@ and every argument broadcasts, so the same functions serve
 * the implicit integrator's Jacobian products (:mod:`jaxplush.stepping.integrators`).
 
 An assembly gathers neighbour values, calls these functions and sums over the ring; none of
-them restates a formula. Per-object values reach vertices through
+them restates a formula. The edge terms are summed in one place, :func:`edge_weight`, which
+every kernel calls on its layout (:data:`EDGE_TERMS` lists them). Per-object values reach vertices through
 :func:`jaxplush.model.layout.per_vertex`, which takes (O,) or batched (O, B) arrays; the spring
 stiffness, which may be an (E,) per-edge field, through :func:`jaxplush.model.layout.ring_stiffness`.
 
@@ -119,6 +120,41 @@ def dashpot_vjp(c, dv, d, inv_l, t):
     inv_l2 = inv_l * inv_l
     q = dot(dv, d) * inv_l2
     return c * q, -2.0 * c * q * inv_l2, c * inv_l2 * t, -0.5 * q * t
+
+
+# --------------------------------------------------------------------------- the edge terms, assembled once
+
+#: Every per-edge term: (its :class:`jaxplush.model.forces.Terms` switch, the Params field of its
+#: coefficient), in the order :func:`edge_weight` sums them. A new edge term is a line here, a
+#: branch in :func:`edge_weight` and its transpose in the fused adjoint; the engines' assemblies
+#: need no change (each spreads any field named here to its layout).
+EDGE_TERMS = (("spring", "k_structural"), ("dashpot", "dashpot"))
+
+
+def edge_fields(terms):
+    """The Params fields of the per-edge terms ``terms`` switches on (:data:`EDGE_TERMS`)."""
+    return tuple(field for name, field in EDGE_TERMS if getattr(terms, name))
+
+
+def edge_weight(terms, coefficient, rest, d, inv_l, dv=None):
+    """The summed weight w of every switched-on per-edge term at each edge entry (the force on
+    vertex i is w d, d = x_j - x_i): the one assembly of the edge terms, which every engine's
+    kernel calls on its own layout (the single-scene ring kernel on (K, V) tables, its segment
+    assembly on (E,) edges, the batched kernel on (V, B) slots).
+
+    Args:
+      terms: the :class:`jaxplush.model.forces.Terms` switches.
+      coefficient: ``coefficient(field) -> array``: the Params field (of :data:`EDGE_TERMS`)
+        spread to the engine's layout, broadcasting against ``d``'s components.
+      rest: rest lengths L; d: the edge vector (three components); inv_l: 1/l
+        (:func:`inv_length`).
+      dv: ``() -> vector``, the relative velocity v_j - v_i, called only by a term that needs it.
+    """
+    w = spring_weight(coefficient("k_structural"), rest, inv_l)
+    if terms.dashpot:
+        with jax.named_scope("dashpot"):
+            w = w + dashpot_weight(coefficient("dashpot"), dv(), d, inv_l)
+    return w
 
 
 # --------------------------------------------------------------------------- gas

@@ -710,22 +710,21 @@ def _make_force_fn(topo, terms, temperature):
         eps2 = model.length_eps2(topo, dtype)
         with jax.named_scope("spring"):
             d = [[n[c] - x[c] for c in range(3)] for n in neighbours(x)]            # K x 3 x (V, B)
+            # each edge term's coefficient per vertex (V, B), once for every slot
+            spread = {f: per_vertex(topo, getattr(params, f)) for f in T.edge_fields(terms)
+                      if not (f == "k_structural" and terms.k_field)}
             if terms.k_field:
                 # an (E, B) field: each ring slot's edge, one row gather (padded slots name a real
                 # edge and are masked below), as ring_stiffness for one scene
                 k_slots = params.k_structural.at[slot_edge].get(mode="promise_in_bounds").reshape(n_ring, -1, x[0].shape[1])
-            else:
-                k_v = per_vertex(topo, params.k_structural)
             if terms.dashpot:
-                c_v = per_vertex(topo, params.dashpot)
                 vn = neighbours(v)
             f = [0.0, 0.0, 0.0]
             for k in range(n_ring):
                 inv_l = T.inv_length(d[k], eps2)
-                w = T.spring_weight(k_slots[k] if terms.k_field else k_v, jnp.asarray(rest[k], dtype)[:, None], inv_l)
-                if terms.dashpot:
-                    with jax.named_scope("dashpot"):
-                        w = w + T.dashpot_weight(c_v, [vn[k][c] - v[c] for c in range(3)], d[k], inv_l)
+                w = T.edge_weight(terms, lambda field, k=k: k_slots[k] if field == "k_structural" and terms.k_field
+                                  else spread[field], jnp.asarray(rest[k], dtype)[:, None], d[k], inv_l,
+                                  dv=lambda k=k: [vn[k][c] - v[c] for c in range(3)])
                 if not full[k]:
                     w = jnp.where(mask[k][:, None], w, 0.0)
                 f = [fc + w * dc for fc, dc in zip(f, d[k])]
