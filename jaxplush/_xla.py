@@ -16,9 +16,9 @@ imported, the setting comes too late, and a warning says so.
 Topology as data. :func:`hoist_constants` asks JAX to pass every non-scalar constant of a traced
 program (a scene's ring tables, rest lengths, faces, contact tables, and the geometry's scalars,
 which :func:`jaxplush.model.layout.scene_value` makes one-element arrays) to the compiled program
-as an argument instead of writing it into the program. Two scenes of one size bucket (the same
-objects' vertex, edge and face counts, ring width and switched-on terms) then lower to the same
-program, and the second loads it from the persistent compilation cache instead of compiling it
+as an argument instead of writing it into the program. Two scenes of one size bucket
+(:func:`jaxplush.stepping.compiled.bucket`) with the same terms and step options then lower to the
+same program, and the second loads it from the persistent compilation cache instead of compiling it
 (docs/cli.md, "Programs shared by scenes of one size"). ``JAXPLUSH_TOPOLOGY_AS_DATA=0`` turns it off.
 """
 

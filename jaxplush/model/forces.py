@@ -30,7 +30,7 @@ from jaxplush.model import contact as _contact
 from jaxplush.model import mesh as _mesh
 from jaxplush.model import terms as T
 from jaxplush.model.layout import (  # noqa: F401
-    edge_stiffness, is_field, length_eps2, object_stiffness, per_object_sum, per_vertex, ring_stiffness, scene_value,
+    edge_stiffness, is_field, length_eps2, object_stiffness, per_object_sum, per_vertex, ring_stiffness,
     sum_rows as _sum_rows, vertex_mass)
 from jaxplush.model.terms import (  # noqa: F401  (the terms' public names, also reachable from here)
     FLOOR_KAPPA, pressure, smooth_floor_energy, smooth_floor_force, smooth_floor_push, smooth_floor_stiffness)

@@ -21,7 +21,7 @@ import numpy as np
 
 
 def scene_value(value, dtype):
-    """A number derived from a scene's geometry (a softening length, a contact margin, a valence),
+    """A number derived from a scene's geometry (a contact margin, a valence),
     as a traced scalar of ``dtype``, not a literal of the compiled program.
 
     Inside a trace it enters as a one-element array constant, which JAX hoists out of the program
