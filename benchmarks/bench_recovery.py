@@ -50,6 +50,16 @@ Usage: python benchmarks/bench_recovery.py [--scenes ball,torus,bean,ball2562] [
            [--corners all|N] [--json results.jsonl]
        python benchmarks/bench_recovery.py --random N [--seed S] [--max-vertices V] [--max-objects O]
            [--kinds positions,points] [--steps N] [--dt DT] [--stop-after F] [--json results.jsonl [--resume]]
+           [--oracle oracle.jsonl]
+       python benchmarks/bench_recovery.py --random N [--seed S] ... --oracle-only --json oracle.jsonl [--resume]
+
+The oracle (``--oracle-only``; benchmarks/oracle.py) is computed at the truth before any fit
+runs and independent of the fitter: the Cramér-Rao sd of every fitted parameter from segments
+restarted from the true states (float64 sensitivities; the noise of the target: a float32 twin's
+rounding for positions, the 2 mm of a cloud). A case is determinable when every parameter's sd
+is at most half the tolerance (a damping+drag pair by its combined rate). With ``--oracle FILE``
+the summary also judges the fits against it: the determinable cases recovered, and the excluded
+ones with their reasons.
 """
 
 from __future__ import annotations
@@ -392,6 +402,70 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
     return row
 
 
+def run_oracle_case(d, case, *, dt=None, steps=None):
+    """The oracle of one random case (``benchmarks/oracle.py``): its target drawn as the fit's
+    would be (the same dt, steps and frames; a case drawn again as there), and which of its
+    parameters the target determines, computed at the truth. Returns its record (a dict)."""
+    import importlib.util
+    from jaxplush.errors import SimulationError
+    from jaxplush.fitting.scenarios import describe_case
+    spec = importlib.util.spec_from_file_location("recovery_oracle", os.path.join(os.path.dirname(
+        os.path.abspath(__file__)), "oracle.py"))
+    oracle = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(oracle)
+    row = dict(index=case.get("index"), seed=case.get("seed"), description=describe_case(case),
+               n_objects=case["n_objects"], kind=case["kind"], params=list(case["params"]))
+    t = time.perf_counter()
+    try:
+        truth, _, _ = random_case_files(d, case, dt=dt, steps=steps)
+    except SimulationError:
+        attempt = case.get("attempt", 0) + 1
+        if dt is None and attempt < MAX_DRAWS:
+            return run_oracle_case(d, redraw(case["index"], case.get("seed", 0), attempt,
+                                             **case.get("draw_kw", {})), dt=dt, steps=steps)
+        row.update(oracle=None, case_determinable=False, oracle_reason="the truth cannot be simulated")
+        return row
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        o = oracle.oracle_case(truth, case, dt=case["dt"], steps=case["steps"], every=case["save_every"],
+                               kind=case["kind"], n_points=CLOUD_POINTS, noise=CLOUD_NOISE,
+                               tolerance=TOLERANCE[case["kind"]])
+    row.update(attempt=case.get("attempt", 0), dt=case["dt"], steps=case["steps"], oracle=o,
+               case_determinable=o["case_determinable"], oracle_reason=o["reason"],
+               oracle_wall=time.perf_counter() - t)
+    return row
+
+
+def oracle_verdict(row, orc):
+    """With the case's oracle record ``orc`` (``--oracle FILE``): set ``row["determinable"]`` and
+    ``row["judged"]`` ("recovered": every quantity the oracle judges within the tolerance, a
+    damping+drag pair by its combined rate, the fit ended converged, or undetermined only in
+    that pair, exit 0, in time; "excluded": the oracle found the case not determinable; else
+    "failed")."""
+    tol = TOLERANCE[row["kind"]]
+    o = (orc or {}).get("oracle") or {}
+    row["determinable"] = bool(orc and orc.get("case_determinable"))
+    row["oracle_reason"] = (orc or {}).get("oracle_reason") or ("no oracle record" if not orc else None)
+    if not row["determinable"]:
+        row["judged"] = "excluded"
+        return row
+    errors = dict(row.get("errors") or {})
+    damping = [k for k in errors if k.startswith("damping[")]       # in the objects' order
+    for lab, e in zip(damping, row.get("combined_rate_errors") or []):
+        errors[f"rate[{lab[len('damping['):-1]}]"] = e
+    judged = o.get("determinable", {})
+    errs = [abs(errors.get(k, math.inf)) for k in judged]
+    row["judged_error"] = max(errs, default=math.inf)
+    pair = bool(row.get("combined_rate_errors"))
+    und = set(row.get("undetermined") or [])
+    status_ok = row.get("status") == "converged" or (
+        pair and row.get("status") == "undetermined" and all(k.startswith(("damping[", "drag[")) for k in und))
+    in_time = row.get("wall", math.inf) <= row["budget"] and not row.get("stopped")
+    ok = row.get("exit") == 0 and status_ok and row["judged_error"] <= tol and in_time
+    row["judged"] = "recovered" if ok else "failed"
+    return row
+
+
 def verdict(row):
     """Set ``row["verdict"]`` (recovered / failed) and ``row["reason"]`` (None or one of :data:`REASONS`)."""
     tol = TOLERANCE[row["kind"]]
@@ -525,6 +599,8 @@ def _case_in_child(args, case):
             argv += [flag, str(val)]
     if args.no_linear_start:
         argv.append("--no-linear-start")
+    if args.oracle_only:
+        argv.append("--oracle-only")
     t0 = time.perf_counter()
     proc = subprocess.run(argv, capture_output=True, text=True)
     rows = [ln[4:] for ln in proc.stdout.splitlines() if ln.startswith("ROW ")]
@@ -532,6 +608,10 @@ def _case_in_child(args, case):
         return json.loads(rows[-1])
     tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or [""]
     from jaxplush.fitting.scenarios import describe_case
+    if args.oracle_only:
+        return dict(index=case["index"], seed=case.get("seed"), description=describe_case(case),
+                    n_objects=case["n_objects"], kind=case["kind"], oracle=None, case_determinable=False,
+                    oracle_reason=f"the oracle's process exited {proc.returncode}: {tail[0][-200:]}")
     return dict(index=case["index"], seed=case.get("seed"), description=describe_case(case),
                 n_objects=case["n_objects"], kind=case["kind"], start_factors=case["start"],
                 status=f"process exited {proc.returncode}", exit=proc.returncode, wall=time.perf_counter() - t0,
@@ -545,6 +625,83 @@ def _draw_key(args):
             + (" --no-linear-start" if args.no_linear_start else ""))
 
 
+def _oracle_key(args):
+    """What identifies the draw of an oracle run (the fit's options aside; case i of a seed is the
+    same whatever N, so an oracle of N cases serves a run of fewer)."""
+    return (f"oracle --seed {args.seed} --max-objects {args.max_objects} --kinds {args.kinds}"
+            f" --max-vertices {args.max_vertices} --steps {args.steps} --dt {args.dt}")
+
+
+def _read_lines(path, key):
+    """{index: row} of the JSON lines of ``path`` whose draw is ``key`` (a line cut short is skipped)."""
+    out = {}
+    if path and os.path.exists(path):
+        with open(path) as fh:
+            for ln in fh:
+                try:
+                    r = json.loads(ln)
+                except ValueError:
+                    continue
+                if r.get("draw") == key:
+                    out[r["index"]] = r
+    return out
+
+
+def _oracle_summary(rows, oracles):
+    """Lines: the oracle's verdicts, and the fits judged against it (``oracle_verdict``)."""
+    lines = []
+    n = len(rows)
+    excluded = [r for r in rows if r.get("judged") == "excluded"]
+    det = [r for r in rows if r.get("judged") in ("recovered", "failed")]
+    rec = [r for r in det if r["judged"] == "recovered"]
+    lines.append(f"oracle: {len(det)} of {n} cases determinable; {len(excluded)} excluded "
+                 f"({100 * len(excluded) / max(n, 1):.0f}%; at most 10% allowed)")
+    for r in excluded:
+        lines.append(f"  excluded: case {r['index']} {r['description']}: {r.get('oracle_reason')}")
+    if det:
+        lines.append(f"determinable cases recovered: {len(rec)} of {len(det)} ({100 * len(rec) / len(det):.0f}%; "
+                     f"the target is at least 95%)")
+        for r in det:
+            if r["judged"] == "failed":
+                lines.append(f"  not recovered: case {r['index']} {r['description']}: {r.get('status')}, exit "
+                             f"{r.get('exit')}, judged error {100 * r.get('judged_error', math.inf):.3g}%, "
+                             f"{r['wall']:.1f} s ({r.get('reason')})")
+    return lines
+
+
+def main_oracle(args, cases):
+    """``--oracle-only``: the oracle of every case, one JSON line each; fixed before the fits run."""
+    key = _oracle_key(args)
+    done = _read_lines(args.json, key) if args.resume else {}
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        for case in cases:
+            if case["index"] in done:
+                rows.append(done[case["index"]])
+                continue
+            row = (run_oracle_case(d, case, dt=args.dt, steps=args.steps) if args.in_process
+                   else _case_in_child(args, case))
+            row["draw"] = key
+            rows.append(row)
+            o = row.get("oracle") or {}
+            sd = {**o.get("sd", {}), **o.get("rate_sd", {})}
+            print(f"case {row['index']}: {row['description']}: "
+                  + ("determinable" if row.get("case_determinable") else f"not determinable: {row.get('oracle_reason')}")
+                  + (f"; sd {', '.join(f'{k} {100 * v:.2g}%' for k, v in sd.items())}; {o.get('segments')} "
+                     f"segments of {o.get('frames')} frames; {row.get('oracle_wall', 0):.1f} s" if o else ""),
+                  flush=True)
+            if args.json:
+                with open(args.json, "a") as fh:
+                    fh.write(json.dumps(row, default=float) + "\n")
+    det = sum(bool(r.get("case_determinable")) for r in rows)
+    print(f"\noracle: {det} of {len(rows)} cases determinable; {len(rows) - det} excluded "
+          f"({100 * (len(rows) - det) / max(len(rows), 1):.0f}%; at most 10% allowed)")
+    for r in rows:
+        if not r.get("case_determinable"):
+            print(f"  excluded: case {r['index']} {r['description']}: {r.get('oracle_reason')}")
+    return 0
+
+
 def main_random(args):
     kinds = tuple(args.kinds.split(","))
     cases = draw_cases(args.random, args.seed, max_vertices=args.max_vertices, max_objects=args.max_objects,
@@ -556,9 +713,17 @@ def main_random(args):
           + (" --no-linear-start" if args.no_linear_start else ""), flush=True)
     if args.only is not None:                    # one case, in this process (the parent reads the last line)
         with tempfile.TemporaryDirectory() as d:
-            row = run_random_case(d, cases[args.only], dt=args.dt, steps=args.steps, stop_after=args.stop_after)
+            if args.oracle_only:
+                row = run_oracle_case(d, cases[args.only], dt=args.dt, steps=args.steps)
+            else:
+                row = run_random_case(d, cases[args.only], dt=args.dt, steps=args.steps, stop_after=args.stop_after)
         print("ROW " + json.dumps(row, default=float), flush=True)
         return 0
+    if args.oracle_only:
+        return main_oracle(args, cases)
+    oracles = _read_lines(args.oracle, _oracle_key(args)) if args.oracle else None
+    if args.oracle and not oracles:
+        print(f"# no oracle of this draw in {args.oracle} (run --oracle-only first)", flush=True)
     rows = []
     draw = _draw_key(args)
     done = {}
@@ -591,6 +756,9 @@ def main_random(args):
             if args.json:
                 with open(args.json, "a") as fh:
                     fh.write(json.dumps(row, default=float) + "\n")
+    if oracles is not None:
+        for row in rows:
+            oracle_verdict(row, oracles.get(row["index"]))
     print()
     print("| # | scene | objects | start factors | dt x steps | wall s | exit | status | max error | verdict |")
     print("|---:|---|---:|---|---|---:|---:|---|---:|---|")
@@ -599,6 +767,9 @@ def main_random(args):
     print()
     for line in _summary(rows):
         print(line)
+    if oracles is not None:
+        for line in _oracle_summary(rows, oracles):
+            print(line)
     return 0 if all(r["verdict"] == "recovered" for r in rows) else 1
 
 
@@ -632,6 +803,11 @@ def main(argv=None):
                     "(default: each in a fresh process)")
     ap.add_argument("--no-linear-start", action="store_true", help="--random: fit without the linear start "
                     "(jaxplush-fit --no-linear-start), to compare")
+    ap.add_argument("--oracle-only", action="store_true", help="--random: compute only the oracle of every case "
+                    "(benchmarks/oracle.py: which parameters its target determines, at the truth), one JSON line "
+                    "each (--json), before any fit runs")
+    ap.add_argument("--oracle", default=None, metavar="FILE", help="--random: judge the fits against the oracle "
+                    "lines of this draw in FILE (written by --oracle-only)")
     ap.add_argument("--only", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.no_linear_start:
