@@ -353,6 +353,15 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
         row["message"] = str(fit["attrs"].get("reason", ""))
         with h5py.File(out, "r") as f:
             row.update(_shooting_record(f))
+            fitted = np.asarray(f["fitted/positions"], np.float64) if "fitted/positions" in f else None
+        if fitted is not None:
+            # each frame's misfit at the fitted values (against the oracle's float64 truth twin)
+            from jaxplush.fitting.targets import load_target
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                tgt = load_target(target, truth)
+            row["fit_rms"] = [float(r) for r in _oracle_module().frame_rms(fitted, tgt, np.asarray(truth.faces))]
+            row["frame_times"] = [float(t) for t in np.asarray(tgt.times, np.float64)]
         names = [n for n in case["params"] if n in fit["params"]]
         errors = {f"{n}[{o['name']}]": float(fit["params"][n][j]) / truth_values[n][j] - 1.0
                   for n in names for j, o in enumerate(case["objects"])}
@@ -402,22 +411,28 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
     return row
 
 
+def _oracle_module():
+    """benchmarks/oracle.py (beside this file, whatever sys.path holds)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("recovery_oracle", os.path.join(os.path.dirname(
+        os.path.abspath(__file__)), "oracle.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def run_oracle_case(d, case, *, dt=None, steps=None):
     """The oracle of one random case (``benchmarks/oracle.py``): its target drawn as the fit's
     would be (the same dt, steps and frames; a case drawn again as there), and which of its
     parameters the target determines, computed at the truth. Returns its record (a dict)."""
-    import importlib.util
     from jaxplush.errors import SimulationError
     from jaxplush.fitting.scenarios import describe_case
-    spec = importlib.util.spec_from_file_location("recovery_oracle", os.path.join(os.path.dirname(
-        os.path.abspath(__file__)), "oracle.py"))
-    oracle = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(oracle)
+    oracle = _oracle_module()
     row = dict(index=case.get("index"), seed=case.get("seed"), description=describe_case(case),
                n_objects=case["n_objects"], kind=case["kind"], params=list(case["params"]))
     t = time.perf_counter()
     try:
-        truth, _, _ = random_case_files(d, case, dt=dt, steps=steps)
+        truth, target_path, _ = random_case_files(d, case, dt=dt, steps=steps)
     except SimulationError:
         attempt = case.get("attempt", 0) + 1
         if dt is None and attempt < MAX_DRAWS:
@@ -425,11 +440,13 @@ def run_oracle_case(d, case, *, dt=None, steps=None):
                                              **case.get("draw_kw", {})), dt=dt, steps=steps)
         row.update(oracle=None, case_determinable=False, oracle_reason="the truth cannot be simulated")
         return row
+    from jaxplush.fitting.targets import load_target
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        target = load_target(target_path, truth)
         o = oracle.oracle_case(truth, case, dt=case["dt"], steps=case["steps"], every=case["save_every"],
                                kind=case["kind"], n_points=CLOUD_POINTS, noise=CLOUD_NOISE,
-                               tolerance=TOLERANCE[case["kind"]])
+                               tolerance=TOLERANCE[case["kind"]], target=target)
     row.update(attempt=case.get("attempt", 0), dt=case["dt"], steps=case["steps"], oracle=o,
                case_determinable=o["case_determinable"], oracle_reason=o["reason"],
                oracle_wall=time.perf_counter() - t)
@@ -463,7 +480,31 @@ def oracle_verdict(row, orc):
     in_time = row.get("wall", math.inf) <= row["budget"] and not row.get("stopped")
     ok = row.get("exit") == 0 and status_ok and row["judged_error"] <= tol and in_time
     row["judged"] = "recovered" if ok else "failed"
+    twin_ratio(row, orc)
     return row
+
+
+#: Several objects in contact: the frames re-simulated at the fitted values match the target,
+#: within the fit's horizon, to at most this many times the RMS of the truth's float64 twin.
+TWIN_RATIO = 1.25
+
+
+def twin_ratio(row, orc):
+    """Set ``row["twin_ratio"]``: the RMS misfit of the fitted frames (``fit_rms``) over that of the
+    oracle's float64 truth twin (``twin_rms``), over the frames within the fit's horizon (every
+    frame when it has none). None when either is missing."""
+    fit, twin = row.get("fit_rms"), ((orc or {}).get("oracle") or {}).get("twin_rms")
+    times = row.get("frame_times")
+    if not fit or not twin or not times or len(fit) != len(twin):
+        row["twin_ratio"] = None
+        return None
+    horizon = row.get("horizon_time", math.inf)
+    keep = [i for i, t in enumerate(times) if t <= horizon * (1 + 1e-9)] or list(range(len(times)))
+    f = math.sqrt(sum(fit[i] ** 2 for i in keep) / len(keep))
+    w = math.sqrt(sum(twin[i] ** 2 for i in keep) / len(keep))
+    row["twin_ratio"] = f / w if w > 0 else math.inf
+    row["twin_frames"] = len(keep)
+    return row["twin_ratio"]
 
 
 def verdict(row):
@@ -666,6 +707,16 @@ def _oracle_summary(rows, oracles):
                 lines.append(f"  not recovered: case {r['index']} {r['description']}: {r.get('status')}, exit "
                              f"{r.get('exit')}, judged error {100 * r.get('judged_error', math.inf):.3g}%, "
                              f"{r['wall']:.1f} s ({r.get('reason')})")
+    several = [r for r in rows if r.get("n_objects", 1) > 1 and r.get("twin_ratio") is not None]
+    if several:
+        within = [r for r in several if r["twin_ratio"] <= TWIN_RATIO]
+        ratios = ", ".join(f"case {r['index']} {r['twin_ratio']:.3g}x" for r in several)
+        lines.append(f"several objects: fitted frames within {TWIN_RATIO:g}x the float64 truth twin's RMS (within "
+                     f"the horizon): {len(within)} of {len(several)} ({ratios})")
+        for r in several:
+            if r["twin_ratio"] > TWIN_RATIO:
+                lines.append(f"  case {r['index']} {r['description']}: {r['twin_ratio']:.3g}x over "
+                             f"{r.get('twin_frames')} frames")
     return lines
 
 

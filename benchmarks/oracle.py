@@ -246,9 +246,10 @@ def judge(case, dt, sd, rate_sd, tolerance):
     return judged, not bad, reason
 
 
-def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0, tolerance):
+def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0, tolerance, target=None):
     """The oracle of one case (a dict: labels, sd, rate_sd, rounding, determinable, case
-    determinable, reason, segments, frames). The float64 parts run under ``jax.enable_x64(True)``,
+    determinable, reason, segments, frames; with the ``target`` (:class:`jaxplush.fitting.targets.Target`)
+    also ``twin_rms``, :func:`frame_rms` of the float64 truth). The float64 parts run under ``jax.enable_x64(True)``,
     the float32 twin under ``jax.enable_x64(False)``, whatever the caller's precision."""
     import jax
     saved = saved_steps(steps, every)
@@ -294,6 +295,27 @@ def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0
             grad[labels.index(f"drag[{o['name']}]")] = g / r
             rate_sd[f"rate[{o['name']}]"] = sds(F, grad[None])[0]
     judged, ok, reason = judge(case, dt, sd, rate_sd, tolerance)
-    return dict(labels=labels, sd=sd, rate_sd=rate_sd, rounding=rounding,
-                determinable=judged, case_determinable=ok, reason=reason,
-                segments=len(segments), frames=len(saved) - 1)
+    out = dict(labels=labels, sd=sd, rate_sd=rate_sd, rounding=rounding,
+               determinable=judged, case_determinable=ok, reason=reason,
+               segments=len(segments), frames=len(saved) - 1)
+    if target is not None:
+        truth_frames = np.stack([x.T for x, *_ in states[1:]])
+        out["twin_rms"] = [float(r) for r in frame_rms(truth_frames, target, np.asarray(scene.faces, np.int64))]
+    return out
+
+
+def frame_rms(frames, target, faces):
+    """(T,) RMS misfit of simulated ``frames`` (T, V, 3) to the target at each of its frames: of
+    the coordinates for positions, of the points' distances to the simulated surface for clouds.
+
+    The measure of the acceptance for several objects in contact: the frames re-simulated at
+    the fitted values against those of the truth's float64 twin (the oracle's ``twin_rms``)."""
+    frames = np.asarray(frames, np.float64)
+    if getattr(target, "positions", None) is not None:
+        return np.sqrt(np.mean((frames - np.asarray(target.positions, np.float64)) ** 2, axis=(1, 2)))
+    import jax
+    import jax.numpy as jnp
+    from jaxplush.fitting.losses import point_surface_distance2, vertex_faces
+    vf = vertex_faces(faces, frames.shape[1])
+    one = jax.jit(lambda x, p: jnp.sqrt(jnp.mean(point_surface_distance2(x, p, faces, vf))))
+    return np.array([float(one(x, p)) for x, p in zip(frames, np.asarray(target.points, np.float64))])

@@ -150,3 +150,25 @@ def test_the_benchmark_judges_fits_against_the_oracle(bench):
     out = bench.oracle_verdict(dict(row), dict(case_determinable=False, oracle_reason="rate[ball0] sd 3% > 0.5%"))
     assert out["judged"] == "excluded" and "sd 3%" in out["oracle_reason"]
     assert bench.oracle_verdict(dict(row), None)["judged"] == "excluded"
+
+
+def test_the_twin_ratio_counts_the_frames_within_the_horizon(bench, oracle):
+    """Several objects in contact are judged on their re-simulated frames: the RMS misfit at the
+    fitted values over that of the float64 truth twin, over the frames within the fit's horizon."""
+    orc = dict(case_determinable=True, oracle=dict(twin_rms=[1.0, 1.0, 100.0]))
+    row = dict(fit_rms=[1.0, 1.5, 1.0], frame_times=[0.1, 0.2, 0.3], horizon_time=0.2)
+    assert bench.twin_ratio(row, orc) == pytest.approx(math.sqrt((1 + 2.25) / 2))
+    assert row["twin_frames"] == 2
+    row = dict(fit_rms=[1.0, 1.5, 1.0], frame_times=[0.1, 0.2, 0.3])     # no horizon: every frame
+    assert bench.twin_ratio(row, orc) == pytest.approx(math.sqrt(4.25 / 10002))
+    assert bench.twin_ratio(dict(fit_rms=[1.0], frame_times=[0.1]), orc) is None
+    # the measure itself: the RMS of the coordinates per frame for positions
+    tgt = type("T", (), dict(positions=np.zeros((2, 3, 3))))()
+    frames = np.zeros((2, 3, 3))
+    frames[1, 0, 0] = 3.0
+    assert np.allclose(oracle.frame_rms(frames, tgt, None), [0.0, 1.0])
+    # and of the points' distances to the surface for clouds
+    faces = np.array([[0, 1, 2]])
+    x = np.array([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
+    cloud = type("T", (), dict(positions=None, points=np.array([[[0.2, 0.2, 0.01], [0.1, 0.3, -0.02]]])))()
+    assert np.allclose(oracle.frame_rms(x, cloud, faces), [math.sqrt((0.01 ** 2 + 0.02 ** 2) / 2)], rtol=1e-5)
