@@ -707,6 +707,19 @@ def _oracle_summary(rows, oracles):
                 lines.append(f"  not recovered: case {r['index']} {r['description']}: {r.get('status')}, exit "
                              f"{r.get('exit')}, judged error {100 * r.get('judged_error', math.inf):.3g}%, "
                              f"{r['wall']:.1f} s ({r.get('reason')})")
+    # every case not recovered: a named reason, and a 95% interval that holds the truth
+    others = [r for r in rows if r.get("judged") != "recovered"]
+    if others:
+        named = [r for r in others if r.get("reason") in ("floor", "horizon", "identifiability", "time")]
+        held = [r for r in others if r.get("covered") and all(r["covered"].values())]
+        lines.append(f"cases not recovered: {len(others)}; with a named reason {len(named)}, with every truth inside "
+                     f"its 95% interval {len(held)}")
+        for r in others:
+            if r not in named or r not in held:
+                miss = [k for k, c in (r.get("covered") or {}).items() if not c]
+                lines.append(f"  case {r['index']}: reason {r.get('reason')}; "
+                             + (f"outside the interval: {', '.join(miss)}" if miss else
+                                "no interval" if not r.get("covered") else "every truth inside"))
     several = [r for r in rows if r.get("n_objects", 1) > 1 and r.get("twin_ratio") is not None]
     if several:
         within = [r for r in several if r["twin_ratio"] <= TWIN_RATIO]

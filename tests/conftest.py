@@ -36,6 +36,7 @@ NUMERIC_FILES = frozenset({
     "test_recovery_random.py", "test_predictability.py", "test_objects_stage.py", "test_tracks.py",
     "test_driven.py", "test_partial_targets.py", "test_mixed.py", "test_controls.py", "test_kfield.py",
     "test_user_grad.py", "test_kfield_fit.py", "test_equation_error.py", "test_intervals.py",
+    "test_recovery_oracle.py",
 })
 
 
