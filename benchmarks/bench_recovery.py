@@ -688,6 +688,40 @@ def _read_lines(path, key):
     return out
 
 
+#: The categories of the recovery table (issue 53): (label, test on a row).
+CATEGORIES = (
+    ("one object", lambda r: r.get("n_objects") == 1),
+    ("two objects", lambda r: r.get("n_objects") == 2),
+    ("three objects", lambda r: r.get("n_objects") == 3),
+    ("several objects on a floor (contact)", lambda r: r.get("n_objects", 1) > 1 and " floor" in r["description"]),
+    ("several objects pinned side by side", lambda r: r.get("n_objects", 1) > 1 and " pinned" in r["description"]),
+    ("one object, positions", lambda r: r.get("n_objects") == 1 and r.get("kind") == "positions"),
+    ("one object, clouds", lambda r: r.get("n_objects") == 1 and r.get("kind") == "points"),
+    ("several objects, positions", lambda r: r.get("n_objects", 1) > 1 and r.get("kind") == "positions"),
+    ("several objects, clouds", lambda r: r.get("n_objects", 1) > 1 and r.get("kind") == "points"),
+    ("damping and drag both (judged on their rate)", lambda r: "damping+drag" in r["description"]),
+)
+
+
+def category_table(rows):
+    """Markdown lines: per category, the cases, those the oracle finds determinable, and of those
+    the ones recovered (rows judged by :func:`oracle_verdict`; an oracle-only run has no fits)."""
+    fits = any("judged" in r for r in rows)
+    head = "| category | cases | determinable |" + (" recovered (of the determinable) |" if fits else "")
+    out = ["", head, "|---|---:|---:|" + ("---:|" if fits else "")]
+    for label, test in CATEGORIES:
+        sel = [r for r in rows if test(r)]
+        if not sel:
+            continue
+        det = [r for r in sel if (r.get("judged") in ("recovered", "failed") if fits
+                                  else r.get("case_determinable"))]
+        line = f"| {label} | {len(sel)} | {len(det)} |"
+        if fits:
+            line += f" {sum(r['judged'] == 'recovered' for r in det)} of {len(det)} |"
+        out.append(line)
+    return out + [""]
+
+
 def _oracle_summary(rows, oracles):
     """Lines: the oracle's verdicts, and the fits judged against it (``oracle_verdict``)."""
     lines = []
@@ -699,6 +733,7 @@ def _oracle_summary(rows, oracles):
                  f"({100 * len(excluded) / max(n, 1):.0f}%; at most 10% allowed)")
     for r in excluded:
         lines.append(f"  excluded: case {r['index']} {r['description']}: {r.get('oracle_reason')}")
+    lines += category_table(rows)
     if det:
         lines.append(f"determinable cases recovered: {len(rec)} of {len(det)} ({100 * len(rec) / len(det):.0f}%; "
                      f"the target is at least 95%)")
@@ -758,7 +793,9 @@ def main_oracle(args, cases):
                 with open(args.json, "a") as fh:
                     fh.write(json.dumps(row, default=float) + "\n")
     det = sum(bool(r.get("case_determinable")) for r in rows)
-    print(f"\noracle: {det} of {len(rows)} cases determinable; {len(rows) - det} excluded "
+    for line in category_table(rows):
+        print(line)
+    print(f"oracle: {det} of {len(rows)} cases determinable; {len(rows) - det} excluded "
           f"({100 * (len(rows) - det) / max(len(rows), 1):.0f}%; at most 10% allowed)")
     for r in rows:
         if not r.get("case_determinable"):

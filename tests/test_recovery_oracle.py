@@ -172,3 +172,17 @@ def test_the_twin_ratio_counts_the_frames_within_the_horizon(bench, oracle):
     x = np.array([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
     cloud = type("T", (), dict(positions=None, points=np.array([[[0.2, 0.2, 0.01], [0.1, 0.3, -0.02]]])))()
     assert np.allclose(oracle.frame_rms(x, cloud, faces), [math.sqrt((0.01 ** 2 + 0.02 ** 2) / 2)], rtol=1e-5)
+
+
+def test_the_category_table_counts_determinable_and_recovered_cases(bench):
+    rows = [dict(n_objects=1, kind="positions", description="ball162 pinned dashpot positions", judged="recovered"),
+            dict(n_objects=2, kind="points", description="ball162+bean162 floor drag points", judged="failed"),
+            dict(n_objects=2, kind="points", description="ball162+bean162 floor drag points", judged="excluded")]
+    table = "\n".join(bench.category_table(rows))
+    assert "| one object | 1 | 1 | 1 of 1 |" in table
+    assert "| several objects on a floor (contact) | 2 | 1 | 0 of 1 |" in table
+    assert "| several objects, clouds | 2 | 1 | 0 of 1 |" in table
+    oracle_only = [dict(r, case_determinable=r["judged"] != "excluded") for r in rows]
+    for r in oracle_only:
+        del r["judged"]
+    assert "| two objects | 2 | 1 |" in "\n".join(bench.category_table(oracle_only))
