@@ -223,7 +223,11 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
     dtype = prob.sim.dtype
     starts = np.stack([x0] + [x0 + _pred.perturbation(prob.scene, x0, dtype, seed=seed + 1 + b)
                               for b in range(n_twins)])
-    frames, good, *_ = ev._run_lanes([values] * (n_twins + 1), n, ev.runs, x0=starts, v0=np.zeros_like(starts))
+    # with the contact separation tracked, as the fit's own evaluations run: the same compiled
+    # rollout serves them (its result is not read here); without it the twins compiled a program
+    # of their own, about a quarter of a cold contact fit's compile time (benchmarks/RESULTS.md)
+    frames, good, *_ = ev._run_lanes([values] * (n_twins + 1), n, ev.runs, x0=starts, v0=np.zeros_like(starts),
+                                     separation=True)
     if not good[0] or good[1:].sum() < MIN_TWINS:
         return from_report(report, theta, note="from the residuals, treated as independent noise: the twins did "
                                               "not run")
