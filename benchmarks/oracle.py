@@ -16,17 +16,19 @@ true states**:
   - exact positions: one frame interval each (15-200 steps). The measurement noise of a
     coordinate is the rounding of one frame, per object (what a float32 fit cannot resolve);
   - point clouds (``n_points`` per frame, uniform by area, ``noise`` m per coordinate): as long
-    as the float32 twin stays within half the noise (every object), so that information which
-    builds up over many frames (a drag's, a damping's) counts, but chaos (a stack that settles,
-    where the twin drifts) cannot inflate it. A point measures the surface's displacement along
+    as the float32 twin stays within half the noise (every object) and has grown by at most
+    :data:`GROWTH` times its first frame's distance, so that information which builds up over
+    many frames (a drag's, a damping's) counts, but chaos (a stack that settles, where rounding
+    is amplified, and the sensitivities with it) cannot inflate it. A point measures the surface's displacement along
     its normal only: a frame's information is (n_points / area) sum_v area_v (n_v . J_v)^T
     (n_v . J_v) / (noise² + d²), with the true surface's vertex areas and normals there and d
     the twin's drift at that frame;
 
 * along each segment the sensitivities J = d x / d log(p) are propagated in forward mode in
   float64 (one tangent per fitted parameter of each object), and F = sum of J^T W J over the
-  frames. sd(log p_j) = sqrt((F^-1)_jj); directions of F below :data:`NULL_EIG` of its largest
-  eigenvalue are null (no data move them): a parameter with weight in them has an infinite sd.
+  frames. sd(log p_j) = sqrt((F^-1)_jj); directions of F scaled to a unit diagonal below
+  :data:`NULL_EIG` of its largest eigenvalue are null (no data move them): a parameter with
+  weight in them has an infinite sd (:func:`sds`).
 
 A parameter is **determinable** when its sd is at most half the benchmark's tolerance (1% for
 positions, 3% for clouds). The report's ``damping`` and air ``drag`` of one object decay every
@@ -49,6 +51,11 @@ import numpy as np
 NULL_EIG = 1e-13
 #: A parameter with more than this squared weight in the null directions has an infinite sd.
 NULL_WEIGHT = 1e-10
+#: A cloud's segment also ends where the float32 twin's distance from the truth (its largest over
+#: the objects) has grown this many times over its first frame's: rounding amplified that much is chaos,
+#: which would amplify the sensitivities as much. A motion without it grows its twin's distance
+#: by about the number of frames (20-50x over 50 frames, measured).
+GROWTH = 100.0
 
 
 def _labels(case):
@@ -126,7 +133,8 @@ def _object_rms(d, obj_of_vertex, n_obj):
 
 def twin_segments(scene, case, dt, saved, states, obj_of_vertex, threshold):
     """Segments restarted from the true states, each as long as the float32 twin started there
-    stays within ``threshold`` (RMS m, every object) of the float64 truth (one frame at least).
+    stays within ``threshold`` (RMS m, every object) of the float64 truth and within
+    :data:`GROWTH` times its distance after the segment's first frame (one frame at least).
 
     Returns (segments [(first frame, last frame)], divergence (T, O): the twin's RMS per object at
     every frame > 0 within its segment). Needs ``jax_enable_x64`` off."""
@@ -154,8 +162,10 @@ def twin_segments(scene, case, dt, saved, states, obj_of_vertex, threshold):
         while k < T - 1:
             s = step(s, k + 1)
             d = _object_rms(np.asarray(s.x, np.float64) - states[k + 1][0], obj_of_vertex, n_obj)
-            if k > r and float(d.max()) > threshold:
+            if k > r and (float(d.max()) > threshold or float(d.max()) > GROWTH * first):
                 break
+            if k == r:
+                first = max(float(d.max()), 1e-300)
             div[k + 1] = d
             k += 1
         segments.append((r, k))
@@ -214,13 +224,29 @@ def segment_information(scene, case, dt, saved, states, segments, weight, cloud=
 
 def sds(F, directions):
     """sd of each linear combination g (rows of ``directions``, (K, P)) of the log parameters:
-    sqrt(g^T F^-1 g); infinite when g has weight in F's null directions."""
-    w, Q = np.linalg.eigh(0.5 * (F + F.T))
+    sqrt(g^T F^-1 g); infinite when g has weight in F's null directions.
+
+    F is first scaled to unit diagonal (S F S, S = diag(F)^-1/2), so that a parameter the data
+    fix a million times better than another does not make the other's directions look null: a
+    null direction is one of no information relative to the parameters it mixes, not relative
+    to the best-determined parameter of the scene. A parameter with no information at all (a zero
+    diagonal) has an infinite sd."""
+    F = 0.5 * (F + F.T)
+    d = np.diag(F).copy()
+    dead = ~(d > 0)
+    s = np.where(dead, 0.0, 1.0 / np.sqrt(np.where(dead, 1.0, d)))
+    C = F * s[:, None] * s[None, :]
+    C[dead, dead] = 1.0                     # a placeholder: directions on it are infinite (below)
+    w, Q = np.linalg.eigh(C)
     top = max(float(w[-1]), 1e-300)
     null = w <= NULL_EIG * top
     out = []
     for g in np.atleast_2d(directions):
-        c = Q.T @ g
+        g = np.asarray(g, np.float64)
+        if np.any(g[dead] != 0):
+            out.append(math.inf)
+            continue
+        c = Q.T @ (g * s)                   # g^T F^-1 g = (S g)^T C^-1 (S g)
         if float(np.sum(c[null] ** 2)) > NULL_WEIGHT * float(np.sum(c ** 2)):
             out.append(math.inf)
         else:

@@ -186,3 +186,14 @@ def test_the_category_table_counts_determinable_and_recovered_cases(bench):
     for r in oracle_only:
         del r["judged"]
     assert "| two objects | 2 | 1 |" in "\n".join(bench.category_table(oracle_only))
+
+
+def test_a_well_determined_parameter_does_not_make_another_look_undetermined(oracle):
+    """Scales a million-fold apart (a stack's top object against the one below it): each sd is
+    its own, not infinite because the other's information dwarfs it."""
+    F = np.diag([1e18, 1.0, 4.0])
+    F[1, 2] = F[2, 1] = 1.0
+    sd = oracle.sds(F, np.eye(3))
+    assert sd[0] == pytest.approx(1e-9)
+    assert np.allclose(sd[1:], np.sqrt(np.diag(np.linalg.inv(F[1:, 1:]))))
+    assert oracle.sds(np.diag([1.0, 0.0]), np.eye(2)) == [1.0, math.inf]     # no information at all
