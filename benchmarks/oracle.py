@@ -274,7 +274,7 @@ def judge(case, dt, sd, rate_sd, tolerance):
 
 def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0, tolerance, target=None):
     """The oracle of one case (a dict: labels, sd, rate_sd, rounding, determinable, case
-    determinable, reason, segments, frames; with the ``target`` (:class:`jaxplush.fitting.targets.Target`)
+    determinable, reason, segments, frames, fisher: F as a list of rows; with the ``target`` (:class:`jaxplush.fitting.targets.Target`)
     also ``twin_rms``, :func:`frame_rms` of the float64 truth). The float64 parts run under ``jax.enable_x64(True)``,
     the float32 twin under ``jax.enable_x64(False)``, whatever the caller's precision."""
     import jax
@@ -323,7 +323,7 @@ def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0
     judged, ok, reason = judge(case, dt, sd, rate_sd, tolerance)
     out = dict(labels=labels, sd=sd, rate_sd=rate_sd, rounding=rounding,
                determinable=judged, case_determinable=ok, reason=reason,
-               segments=len(segments), frames=len(saved) - 1)
+               segments=len(segments), frames=len(saved) - 1, fisher=F.tolist())
     if target is not None:
         truth_frames = np.stack([x.T for x, *_ in states[1:]])
         out["twin_rms"] = [float(r) for r in frame_rms(truth_frames, target, np.asarray(scene.faces, np.int64))]
