@@ -54,7 +54,7 @@ NULL_WEIGHT = 1e-10
 #: A cloud's segment also ends where the float32 twin's distance from the truth (its largest over
 #: the objects) has grown this many times over its first frame's: rounding amplified that much is
 #: chaos, which would amplify the sensitivities as much. Over whole trajectories (50 frames), the
-#: first 27 of seed 601's positions cases grew it 20-180x in most cases, and 3,000-100,000x in a
+#: positions cases among seed 601's first 27 grew it 20-180x in most cases, and 3,000-100,000x in a
 #: few (objects on a floor: a stack, a torus with friction).
 GROWTH = 1000.0
 
