@@ -772,6 +772,8 @@ def main_oracle(args, cases):
     """``--oracle-only``: the oracle of every case, one JSON line each; fixed before the fits run."""
     key = _oracle_key(args)
     done = _read_lines(args.json, key) if args.resume else {}
+    if args.resume:
+        print(f"# resumed: {len(done)} of {len(cases)} cases already in {args.json}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory() as d:
         for case in cases:
