@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import io
 import itertools
 import math
@@ -411,8 +412,9 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
     return row
 
 
+@functools.lru_cache(maxsize=None)
 def _oracle_module():
-    """benchmarks/oracle.py (beside this file, whatever sys.path holds)."""
+    """benchmarks/oracle.py (beside this file, whatever sys.path holds), loaded once."""
     import importlib.util
     spec = importlib.util.spec_from_file_location("recovery_oracle", os.path.join(os.path.dirname(
         os.path.abspath(__file__)), "oracle.py"))
@@ -832,14 +834,7 @@ def main_random(args):
     done = {}
     if args.resume and args.json and os.path.exists(args.json):
         # the cases of this draw already in the JSON lines (an earlier, stopped run): kept, not run again
-        with open(args.json) as fh:
-            for ln in fh:
-                try:
-                    r = json.loads(ln)
-                except ValueError:
-                    continue                            # a line cut short when the run was stopped
-                if r.get("draw") == draw:
-                    done[r["index"]] = r
+        done = _read_lines(args.json, draw)
         print(f"# resumed: {len(done)} of {len(cases)} cases already in {args.json}", flush=True)
     with tempfile.TemporaryDirectory() as d:
         for case in cases:

@@ -73,8 +73,8 @@ def saved_steps(steps, every):
 
 def _vertex_normals_areas(x, faces):
     """(V, 3) unit vertex normals (area-weighted) and (V,) vertex areas (a third of each face's)."""
-    a, b, c = x[faces[:, 0]], x[faces[:, 1]], x[faces[:, 2]]
-    cr = np.cross(b - a, c - a)
+    from jaxplush.model.mesh import face_area_normals
+    cr = face_area_normals(x, faces)
     area = 0.5 * np.linalg.norm(cr, axis=1)
     nv = np.zeros_like(x)
     av = np.zeros(len(x))
@@ -163,10 +163,10 @@ def twin_segments(scene, case, dt, saved, states, obj_of_vertex, threshold):
         while k < T - 1:
             s = step(s, k + 1)
             d = _object_rms(np.asarray(s.x, np.float64) - states[k + 1][0], obj_of_vertex, n_obj)
-            if k > r and (float(d.max()) > threshold or float(d.max()) > GROWTH * first):
-                break
             if k == r:
-                first = max(float(d.max()), 1e-300)
+                first = max(float(d.max()), 1e-300)      # the twin's distance after one frame
+            elif float(d.max()) > threshold or float(d.max()) > GROWTH * first:
+                break
             div[k + 1] = d
             k += 1
         segments.append((r, k))
@@ -255,7 +255,7 @@ def sds(F, directions):
     return out
 
 
-def judge(case, dt, sd, rate_sd, tolerance):
+def judge(sd, rate_sd, tolerance):
     """Per-quantity determinability and the case's verdict: (determinable {label: bool},
     case_determinable, reason or None). Damping+drag pairs are judged on their combined rate."""
     half = tolerance / 2
@@ -281,7 +281,6 @@ def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0
     import jax
     saved = saved_steps(steps, every)
     labels = _labels(case)
-    n_obj = len(case["objects"])
     obj_of_vertex = np.zeros(scene.n_vertices, np.int64)
     for j, o in enumerate(scene.objects):
         obj_of_vertex[o.vertex_slice[0]:o.vertex_slice[1]] = j
@@ -312,16 +311,17 @@ def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0
     sd = dict(zip(labels, sds(F, np.eye(P))))
     rate_sd = {}
     if "damping" in case["params"] and "drag" in case["params"]:
+        from jaxplush.fitting.equation_error import damping_rate
         from jaxplush.fitting.scenarios import case_truth
         truth = case_truth(case)
         for j, o in enumerate(case["objects"]):
-            D, g = truth["damping"][j], truth["drag"][j]
-            r = 1.0 / (D * dt) + g
+            rate_d, g = float(damping_rate(truth["damping"][j], dt)), truth["drag"][j]   # 1/(D dt), drag
+            r = rate_d + g
             grad = np.zeros(P)                  # d log r / d log D, d log r / d log drag
-            grad[labels.index(f"damping[{o['name']}]")] = -1.0 / (D * dt) / r
+            grad[labels.index(f"damping[{o['name']}]")] = -rate_d / r
             grad[labels.index(f"drag[{o['name']}]")] = g / r
             rate_sd[f"rate[{o['name']}]"] = sds(F, grad[None])[0]
-    judged, ok, reason = judge(case, dt, sd, rate_sd, tolerance)
+    judged, ok, reason = judge(sd, rate_sd, tolerance)
     out = dict(labels=labels, sd=sd, rate_sd=rate_sd, rounding=rounding,
                determinable=judged, case_determinable=ok, reason=reason,
                segments=len(segments), frames=len(saved) - 1, fisher=F.tolist())

@@ -68,6 +68,21 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))     # stable: file order kept within
 
 
+def load_benchmark(file, name):
+    """A script of benchmarks/ (``file``) loaded as the module ``name``; sys.path is restored after
+    it (a bench puts the checkout's root on it), so conftest's own order holds."""
+    import importlib.util
+    here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", file)
+    path = list(sys.path)
+    try:
+        spec = importlib.util.spec_from_file_location(name, here)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path[:] = path
+    return mod
+
+
 def icosphere_text(subdivisions=1, radius=0.1, *, k=100.0, mass=0.05, nmol=None, dashpot=None, drag=None,
                    damping=None, gravity=(0.0, -9.81, 0.0), floor=None, translate=(0, 0, 0), fixed=(),
                    extra="", name="ball", offset=0, header=True):

@@ -5,40 +5,24 @@ more cloud points, smaller sd by their square root), and the benchmark judges fi
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import os
-import sys
 
 import numpy as np
 import pytest
 
 import jax
-import jaxplush
 from jaxplush.fitting import scenarios as S
 
-_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks")
-
-
-def _load(name, file):
-    path = list(sys.path)            # the bench puts the checkout's root on sys.path: keep conftest's
-    try:
-        spec = importlib.util.spec_from_file_location(name, os.path.join(_DIR, file))
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path[:] = path
-    return mod
-
+from conftest import load_benchmark
 
 @pytest.fixture(scope="module")
 def oracle():
-    return _load("oracle_under_test", "oracle.py")
+    return load_benchmark("oracle.py", "oracle_under_test")
 
 
 @pytest.fixture(scope="module")
 def bench():
-    return _load("bench_recovery_for_oracle", "bench_recovery.py")
+    return load_benchmark("bench_recovery.py", "bench_recovery_for_oracle")
 
 
 def _pinned_ball(kind, damping_model):
@@ -64,10 +48,10 @@ def test_sds_follow_the_information(oracle):
     F = np.array([[1.0, 1.0], [1.0, 1.0]])              # only p0 + p1 is measured
     assert oracle.sds(F, np.eye(2)) == [math.inf, math.inf]
     assert np.isclose(oracle.sds(F, np.array([[0.5, 0.5]]))[0], math.sqrt(0.5 / 2))
-    judged, ok, reason = oracle.judge({}, 1e-3, {"k[a]": 0.001, "damping[a]": math.inf, "drag[a]": math.inf},
+    judged, ok, reason = oracle.judge({"k[a]": 0.001, "damping[a]": math.inf, "drag[a]": math.inf},
                                       {"rate[a]": 0.002}, 0.01)
     assert ok and judged == {"k[a]": True, "rate[a]": True} and reason is None
-    judged, ok, reason = oracle.judge({}, 1e-3, {"k[a]": 0.02}, {}, 0.01)
+    judged, ok, reason = oracle.judge({"k[a]": 0.02}, {}, 0.01)
     assert not ok and "k[a] sd 2% > 0.5%" in reason
 
 

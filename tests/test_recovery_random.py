@@ -20,6 +20,8 @@ from jaxplush.fitting import outcome
 from jaxplush.fitting import scenarios as S
 from jaxplush.fitting.fitter import default_params
 
+from conftest import load_benchmark
+
 _BENCH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
                       "bench_recovery.py")
 N_DRAWS = 200
@@ -27,14 +29,7 @@ N_DRAWS = 200
 
 @pytest.fixture(scope="module")
 def bench():
-    path = list(sys.path)            # the script puts the checkout's root on sys.path: keep conftest's
-    try:
-        spec = importlib.util.spec_from_file_location("bench_recovery_under_test", _BENCH)
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path[:] = path
-    return mod
+    return load_benchmark("bench_recovery.py", "bench_recovery_under_test")
 
 
 @pytest.fixture(scope="module")
