@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxplush.errors import ContactCapacityWarning, warn
 from jaxplush.stepping import batched
 from jaxplush.stepping import diagnostics
 from jaxplush.stepping import stability
@@ -596,8 +597,7 @@ class Evaluator:
         self._single.clear()
         msg = (f"contact candidates overflowed (capacity {max(old)}) at {_values_text(prob.values(theta))}; "
                f"refitting with contact_capacity {max(terms.contact.capacity)} (set it in the scene to skip this)")
-        warnings.warn(msg, stacklevel=4)
-        self.notes.append(msg)
+        self.notes.append(warn(msg, ContactCapacityWarning, stacklevel=4))
         return True
 
 

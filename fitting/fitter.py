@@ -52,7 +52,7 @@ import numpy as np
 from jaxplush.compilestats import compile_clock
 from jaxplush.fitting import intervals as _intervals
 from jaxplush.stepping import diagnostics
-from jaxplush.errors import JaxplushError
+from jaxplush.errors import JaxplushError, TimeStepWarning, VolumeClampWarning
 from jaxplush.types import PARAM_NAMES  # noqa: F401  (jaxplush.fitting.fitter.PARAM_NAMES)
 
 from jaxplush.fitting import identifiability as _ident
@@ -164,8 +164,8 @@ def _problem(scene, target, params, objects, opts):
                              noise_free=opts.noise_free, method=opts.method, force=opts.force,
                              track_weight=opts.track_weight)
     notes = [str(w.message) for w in caught]
-    for msg in notes:
-        warnings.warn(msg, stacklevel=3)
+    for w in caught:
+        warnings.warn(str(w.message), w.category, stacklevel=3)
     return prob, notes
 
 
@@ -449,12 +449,12 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     frames = e.frames[0]
     if e.clamped[0]:
         msg = f"{diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} in the fitted rollout"
-        warnings.warn(msg, stacklevel=3)
+        warnings.warn(msg, VolumeClampWarning, stacklevel=3)
         notes.append(msg)
     if int(e.substeps[0]) > 1:
         msg = (f"the fitted values run stably only with {int(e.substeps[0])} substeps at dt = {prob.target.dt:g} s "
                "(their explicit limit is below dt); simulate them with --substeps")
-        warnings.warn(msg, stacklevel=3)
+        warnings.warn(msg, TimeStepWarning, stacklevel=3)
         notes.append(msg)
     ivals = None
     if want_ident:

@@ -24,7 +24,7 @@ import optax
 import jaxplush
 from jaxplush.compilestats import compile_clock
 from jaxplush.stepping import diagnostics
-from jaxplush.errors import JaxplushError
+from jaxplush.errors import ContactCapacityWarning, JaxplushError, TimeStepWarning, VolumeClampWarning, warn
 from jaxplush.progress import Progress
 
 from jaxplush.fitting import identifiability as _ident
@@ -189,7 +189,7 @@ class _GradientFit:
         if est is not None and prob.target.dt > est.dt_max:
             msg = (f"dt = {prob.target.dt:g} s exceeds the estimated stability limit {est.dt_max:.3g} s at the "
                    "start values; expect rejected steps")
-            warnings.warn(msg, stacklevel=_LOOP_STACKLEVEL["warn_dt"])
+            warnings.warn(msg, TimeStepWarning, stacklevel=_LOOP_STACKLEVEL["warn_dt"])
             self.notes.append(msg)
 
     def loop(self, loop, t_loop):
@@ -280,8 +280,7 @@ class _GradientFit:
         self.step_fn = _make_step(prob, self.opt, self.linesearch)
         msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "
                f"refitting with contact_capacity {need} (set it in the scene to skip this)")
-        warnings.warn(msg, stacklevel=_LOOP_STACKLEVEL["grow_contact_capacity"])
-        self.notes.append(msg)
+        self.notes.append(warn(msg, ContactCapacityWarning, stacklevel=_LOOP_STACKLEVEL["grow_contact_capacity"]))
         self.bar.update(0, extra=f"contact capacity raised to {need}; recompiling")
         return True
 
@@ -426,7 +425,7 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
         t, o = (int(a[0]) for a in np.nonzero(codes == diagnostics.VOLUME_CLAMPED))
         msg = (f"object {prob.scene.object_names[o]!r}: {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
                f"at step {prob.loss.frame_steps[t]} of the fitted rollout")
-        warnings.warn(msg, stacklevel=4)
+        warnings.warn(msg, VolumeClampWarning, stacklevel=4)
         notes.append(msg)
     report = _report(prob, frames, jac) if want_ident else None
     hist = _loop_history(prob, loop)

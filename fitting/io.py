@@ -58,7 +58,7 @@ import os
 import h5py
 import numpy as np
 
-from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.errors import ContactCapacityWarning, JaxplushError, Note, TrajectoryError
 from jaxplush.fitting.options import TUNING
 from jaxplush.fitting.outcome import Status
 from jaxplush.fitting.treeio import read_tree, write_tree
@@ -472,7 +472,7 @@ def fitted_scene_text(result, path=None):
                     floor_model=scene.floor_model if scene.floor_model != "projection" else None,
                     floor_stiffness=scene.floor_stiffness)
     cfg = result.problem.sim.terms.contact
-    grown = any(w.startswith("contact candidates overflowed") for w in result.warnings)
+    grown = any(isinstance(w, Note) and issubclass(w.category, ContactCapacityWarning) for w in result.warnings)
     if cfg is not None and (scene.contact_capacity is not None or grown):
         settings["contact_capacity"] = max(cfg.capacity)
     return format_scene(objects, gravity=scene.gravity, floor=scene.floor, temperature=scene.temperature,

@@ -21,6 +21,7 @@ import jaxplush
 from jaxplush.model import contact
 from jaxplush.model import forces as model
 from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.fitting.errors import ParameterWarning
 from jaxplush.types import PARAM_NAMES, Params
 
 from jaxplush.fitting import identifiability as _ident
@@ -64,7 +65,7 @@ def check_mass_fit(names, force=False):
     if others and not force:
         raise JaxplushError(f"refusing to fit total_weight jointly with {', '.join(others)}: {msg}. "
                             "Fix the mass, or force it (force=True / --force)")
-    warnings.warn(msg, stacklevel=3)
+    warnings.warn(msg, ParameterWarning, stacklevel=3)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -200,14 +201,14 @@ def build_problem(scene, target, params=None, objects=None, *, dt=None,
     weight of its tracks against its scan (default: the target's, 1)."""
     if params is None:
         params, note = default_params(scene, _default_param_objects(scene, objects))
-        warnings.warn(note, stacklevel=3)
+        warnings.warn(note, ParameterWarning, stacklevel=3)
     names = canonical_names(params)
     check_mass_fit(names, force)
     objs = _fit_objects(scene, objects)
     base = _start_values(scene, start, objs)
     _check_start_values(scene, names, objs, base)
     if "damping" in names and "drag" in names:
-        warnings.warn(DAMPING_DRAG_NOTE, stacklevel=3)
+        warnings.warn(DAMPING_DRAG_NOTE, ParameterWarning, stacklevel=3)
     target = _fit_target(scene, target, dt, track_weight)
     scene = scene_with_controls(scene, target)
     fit_scene = scene.replace(params=Params(**base))

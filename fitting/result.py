@@ -18,6 +18,8 @@ import numpy as np
 import jaxplush
 from jaxplush.types import PARAM_NAMES, Params
 
+from jaxplush.fitting.errors import FitWarning, IdentifiabilityWarning
+
 from jaxplush.fitting import identifiability as _ident
 from jaxplush.fitting import losses as _losses
 from jaxplush.fitting.outcome import REPORTED, Status
@@ -176,9 +178,9 @@ def _result(prob, theta, *, frames, history, outcome, report, warn_report, notes
     notes = list(notes)
     if report is not None and warn_report:
         for w in report.warnings:
-            warnings.warn(w, stacklevel=stacklevel + 1)
+            warnings.warn(w, IdentifiabilityWarning, stacklevel=stacklevel + 1)
     if not outcome.converged:
-        warnings.warn(outcome.text, stacklevel=stacklevel + 1)
+        warnings.warn(outcome.text, FitWarning, stacklevel=stacklevel + 1)
         notes.append(outcome.text)
     vals = prob.values(theta)
     full = {n: np.array(getattr(prob.base, n), np.float64) for n in PARAM_NAMES}

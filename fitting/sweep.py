@@ -74,7 +74,7 @@ import numpy as np
 
 from jaxplush.stepping import batched
 from jaxplush.stepping import diagnostics
-from jaxplush.errors import JaxplushError
+from jaxplush.errors import JaxplushError, SimulationWarning, VolumeClampWarning
 from jaxplush.progress import Progress
 from jaxplush.types import PARAM_NAMES, Params
 
@@ -762,16 +762,16 @@ def _warn_failures(res, n_points):
     if res["failed"].any():
         nf = int(res["failed"].sum())
         warnings.warn(f"{nf} of {n_points} sweep point(s) failed (blow-up); see fail_code/fail_step "
-                      f"(their loss is NaN, their final positions the last healthy ones)", stacklevel=3)
+                      f"(their loss is NaN, their final positions the last healthy ones)", SimulationWarning, stacklevel=3)
         over = np.any(res["fail_code"] == diagnostics.CONTACT_OVERFLOW, axis=1)
         if over.any():
             # a sweep reports it per point, as any failure (the fit's Evaluator grows the capacity)
             warnings.warn(f"{int(over.sum())} of them: {diagnostics.MESSAGES[diagnostics.CONTACT_OVERFLOW]}",
-                          stacklevel=3)
+                          SimulationWarning, stacklevel=3)
     clamp = np.any(res["warn_step"] >= 0, axis=1) & ~res["failed"]
     if clamp.any():
         warnings.warn(f"{int(clamp.sum())} sweep point(s): {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
-                      f"(see warn_step)", stacklevel=3)
+                      f"(see warn_step)", VolumeClampWarning, stacklevel=3)
 
 
 def _sweep_result(scene, plan, res, wall):

@@ -4,7 +4,8 @@
 it with the same types. Containers: dataclasses (frozen or not), NamedTuples, lists, tuples and
 dicts (keys str, int, float or bool). Leaves: numpy arrays and jax arrays (datasets, dtype and
 shape kept), numpy scalars, Python bool, int, float and complex, str, None, and enum members
-(:class:`jaxplush.fitting.outcome.Stop`; attributes).
+(:class:`jaxplush.fitting.outcome.Stop`; attributes), and warning notes
+(:class:`jaxplush.errors.Note`: the text, its category recorded as ``note:module:qualname``).
 
 Layout: a container is a group with the attribute ``__node__`` (its kind), ``__type__`` (the
 class, ``module:qualname``, of a dataclass or NamedTuple) and ``__leaves__`` (JSON: child name ->
@@ -24,6 +25,8 @@ import json
 import sys
 
 import numpy as np
+
+from jaxplush.errors import Note
 
 #: Scalar leaf types and the kind each is recorded as.
 _SCALARS = {bool: "bool", int: "int", float: "float", complex: "complex", str: "str"}
@@ -79,6 +82,8 @@ def _leaf_kind(x):
         return "none"
     if isinstance(x, enum.Enum):
         return "enum:" + _type_name(type(x))
+    if isinstance(x, Note):
+        return "note:" + _type_name(x.category)
     if type(x) in _SCALARS:
         return _SCALARS[type(x)]
     if isinstance(x, np.ndarray):
@@ -113,6 +118,8 @@ def write_tree(group, tree):
             group.create_dataset(name, data=np.asarray(value))
         elif leaf.startswith("enum:"):
             group.attrs[name] = value.value
+        elif leaf.startswith("note:"):
+            group.attrs[name] = str(value)
         elif leaf != "none":
             group.attrs[name] = value
     group.attrs["__leaves__"] = json.dumps(leaves)
@@ -129,6 +136,8 @@ def _read_leaf(group, name, kind):
     v = group.attrs[name]
     if kind.startswith("enum:"):
         return _lookup(kind[5:])(v.decode() if isinstance(v, bytes) else v)
+    if kind.startswith("note:"):
+        return Note(v.decode() if isinstance(v, bytes) else str(v), _lookup(kind[5:]))
     if kind.startswith("numpy:"):
         return np.dtype(kind[6:]).type(v)
     if kind == "str":

@@ -25,7 +25,7 @@ from jaxplush import _xla
 _xla.hoist_constants()           # topology as data (before jax is imported, which reads the option)
 _xla.disable_ynn_fusion()        # before anything starts a backend: XLA reads XLA_FLAGS once
 
-from jaxplush.errors import JaxplushError, SceneError, SimulationError, TrajectoryError
+from jaxplush.errors import JaxplushError, JaxplushWarning, SceneError, SimulationError, TrajectoryError
 from jaxplush.io.trajectory import load_trajectory, save_trajectory
 from jaxplush.stepping.rollouts import Health, rollout
 from jaxplush.scene.parse import Scene, load_scene, parse_scene
@@ -44,7 +44,7 @@ if _os.environ.get("JAXPLUSH_CACHE_DIR"):
     _enable_persistent_cache()
 
 __all__ = [
-    "Health", "INTEGRATORS", "JaxplushError", "Params", "Predictability", "Scene", "SceneError", "SimulationError",
+    "Health", "INTEGRATORS", "JaxplushError", "JaxplushWarning", "Params", "Predictability", "Scene", "SceneError", "SimulationError",
     "Simulator", "State", "Trajectory", "TrajectoryError", "contact_capacity_needed", "estimate_stable_dt", "load_scene",
     "load_trajectory", "make_simulator", "parse_scene", "predictability", "rollout", "save_trajectory", "simulate",
 ]

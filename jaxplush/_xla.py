@@ -27,6 +27,8 @@ from __future__ import annotations
 import os
 import warnings
 
+from jaxplush.errors import BackendWarning
+
 FLAG = "--xla_cpu_experimental_ynn_fusion_type="
 #: jaxlib releases that know the flag (older ones abort on an unknown XLA flag).
 FIRST_JAXLIB = (0, 10, 1)
@@ -60,7 +62,7 @@ def disable_ynn_fusion():
     if started:
         warnings.warn("jax started its backends before jaxplush was imported, so XLA:CPU's experimental "
                       "YNNPACK fusions stay on; jaxlib 0.10.2 miscompiles some fused reductions with them. "
-                      f"Import jaxplush first, or set XLA_FLAGS={FLAG}", stacklevel=3)
+                      f"Import jaxplush first, or set XLA_FLAGS={FLAG}", BackendWarning, stacklevel=3)
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {FLAG}".strip()
     return True

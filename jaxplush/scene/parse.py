@@ -72,7 +72,7 @@ import warnings
 import numpy as np
 
 from jaxplush.model import mesh as _mesh
-from jaxplush.errors import SceneError
+from jaxplush.errors import SceneError, SceneWarning
 from jaxplush.types import GAS_CONSTANT, Params
 
 DEFAULTS = dict(k_structural=100.0, damping=0.0, dashpot=0.0, drag=0.0, total_weight=1.0, nmol=0.0)
@@ -908,7 +908,7 @@ class _Parser:
         if unused:
             first = int(vertex_line[int(np.argmax(owner < 0))])
             warnings.warn(f"{self.path}:{first}: {unused} vertex/vertices not used by any face were ignored",
-                          stacklevel=3)
+                          SceneWarning, stacklevel=3)
         first_use = {}
         for i, o in enumerate(objs):
             if o.name in first_use:

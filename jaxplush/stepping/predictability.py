@@ -255,8 +255,7 @@ def _runner(scene, steps, save_every, params):
 
 def _which(e, which):
     """``e`` with the run of the measurement it happened in added to its hint."""
-    head = f"simulation failed at step {e.step}, object {e.object} ({e.object_name!r}): {e.reason}"
-    hint = str(e)[len(head) + 2:] if str(e).startswith(head + ". ") else ""
+    hint = e.hint
     where = f"in the {which} run of the predictability measurement"
     return SimulationError(e.step, e.object, e.object_name, e.reason, hint=f"{hint} ({where})" if hint else where)
 

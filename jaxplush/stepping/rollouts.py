@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxplush.errors import GradientWarning
 from jaxplush.stepping import adjoint
 from jaxplush.stepping import compiled
 from jaxplush.stepping import diagnostics
@@ -433,7 +434,7 @@ def _warn_fallback(sim):
         _WARNED.add(reason)
         warnings.warn(f"jaxplush.rollout: the fused adjoint does not cover {reason}; this rollout's gradient is "
                       "checkpointed autodiff instead (several times slower; gradient='checkpoint' says so "
-                      "without this warning)", stacklevel=4)
+                      "without this warning)", GradientWarning, stacklevel=4)
 
 
 def rerun_from_good(sim, params, health):

@@ -13,7 +13,8 @@ from jaxplush.stepping import compiled
 from jaxplush.stepping import diagnostics
 from jaxplush.stepping import rollouts as _rollout
 from jaxplush.stepping import stability
-from jaxplush.errors import SimulationError
+from jaxplush.errors import (ContactCapacityWarning, SimulationError, TimeStepWarning,
+                             VolumeClampWarning)
 from jaxplush.model.forces import Terms
 from jaxplush.progress import Progress
 from jaxplush.stepping.step import make_simulator
@@ -118,7 +119,7 @@ def _growing_capacity(scene, sim, run, warn):
                    f"{max(sim.terms.contact.capacity)}); reran with contact_capacity {need} "
                    f"(set it in the scene to skip the rerun)")
             if warn:
-                warnings.warn(msg, stacklevel=3)   # the caller of simulate
+                warnings.warn(msg, ContactCapacityWarning, stacklevel=3)   # the caller of simulate
             notes += (msg,)
             terms = contact.with_capacity(sim.terms, need, contact.object_sizes(scene))
             sim = make_simulator(scene, sim.dt, sim.integrator, terms=terms, substeps=sim.substeps)
@@ -180,7 +181,7 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     if check_dt:
         msg = stability.check_dt(sim, p)
         if msg:
-            warnings.warn(msg, stacklevel=2)
+            warnings.warn(msg, TimeStepWarning, stacklevel=2)
             notes.append(msg)
     # explicit arrays, so a default and a given initial state share one compiled init
     x0 = np.asarray(sim.topology.x0 if x0 is None else x0, np.float64)
@@ -254,7 +255,7 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     for o in np.nonzero(warn >= 0)[0]:
         msg = (f"object {scene.objects[o].name!r}: {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
                f"(first seen at step {int(warn[o])})")
-        warnings.warn(msg, stacklevel=2)
+        warnings.warn(msg, VolumeClampWarning, stacklevel=2)
         notes.append(msg)
     volumes_so_far()
     return Trajectory(
