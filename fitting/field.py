@@ -60,6 +60,7 @@ from jaxplush.types import PARAM_NAMES, Params
 
 from jaxplush.fitting import gradfit as _gradfit
 from jaxplush.fitting import options as _options
+from jaxplush.fitting.stages import saving_on_interrupt
 from jaxplush.fitting.outcome import Stop
 from jaxplush.fitting.problem import build_problem, canonical_names, default_params
 
@@ -486,7 +487,15 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
     t_loop = time.perf_counter() - loop.wall
     consistent, last_saved = loop.snapshot(), loop.iteration
     bar = Progress(iterations, f"fit field ({field})", enabled=progress, unit="it", compiles=True)
-    try:
+
+    def save_consistent():
+        # Ctrl-C (or SIGTERM from the command line) may land inside an iteration: the last
+        # consistent state is saved, and --resume continues from it
+        if ck.path is not None:
+            consistent.wall = time.perf_counter() - t_loop
+            _save_checkpoint(fp, consistent, settings, ck.path, "interrupted")
+
+    with saving_on_interrupt(save_consistent):
         with bar:
             bar.update(min(loop.iteration, iterations))
             while not loop.done and loop.iteration < iterations:
@@ -507,13 +516,6 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
                     _save_checkpoint(fp, loop, settings, ck.path)
                     last_saved = loop.iteration
             bar.finish(loop.reason if loop.done else "iteration limit")
-    except KeyboardInterrupt:
-        # Ctrl-C (or SIGTERM from the command line) may land inside an iteration: the last
-        # consistent state is saved, and --resume continues from it
-        if ck.path is not None:
-            consistent.wall = time.perf_counter() - t_loop
-            _save_checkpoint(fp, consistent, settings, ck.path, "interrupted")
-        raise
     if not loop.done:
         loop.reason, loop.stopped = f"reached the iteration limit ({iterations})", Stop.ITERATIONS
     result = _field_result(fp, loop, kind, opts, iterations, time.perf_counter() - t_start,

@@ -59,6 +59,7 @@ from jaxplush.fitting import identifiability as _ident
 from jaxplush.fitting import objects as _objects
 from jaxplush.fitting import losses as _losses
 from jaxplush.fitting import options as _options
+from jaxplush.fitting.stages import saving_on_interrupt
 from jaxplush.fitting.errors import FitError  # noqa: F401  (jaxplush.fitting.fitter.FitError)
 # the pieces of a fit, importable from here as before
 from jaxplush.fitting.gradfit import (DEFAULT_LR, MAX_REJECTIONS, OPTIMIZERS, LoopState,  # noqa: F401
@@ -209,7 +210,7 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
         # its float32 runs on the batched simulator the search runs next (no program of their own)
         prob = measure_predictability(prob, report, batched=True, chunk_frames=_first_horizon(prob, opts))
     full = prob
-    prob = planned = plan_shooting(prob, opts.shooting, report)
+    prob = planned = plan_shooting(prob, opts.shooting, report, opts.multiple_shooting)
     last = [prior]
 
     def write(state, status):
@@ -228,7 +229,11 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
         def user_cb(local):
             b = min(local.states, key=lambda st: st.loss)
             return callback(dict(iteration=local.rounds, loss=b.loss, values=prob.values(b.theta), grad_norm=np.nan))
-    try:
+    def save_last():
+        if last[0] is not None and checkpoint_path is not None:
+            write(last[0], "interrupted")
+
+    with saving_on_interrupt(save_last):
         run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, callback=user_cb)
         replanned = _replan(full, prob, run.best.theta, opts, report)
         if replanned is not None:
@@ -241,18 +246,15 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
             run, ev = lmfit.run(prob, box, local_only, progress=progress, callback=user_cb, start=first.best.theta)
             run.evaluations += first.evaluations
             run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
-    except KeyboardInterrupt:
-        if last[0] is not None and checkpoint_path is not None:
-            write(last[0], "interrupted")
-        raise
-    try:
-        wall = time.perf_counter() - t_start + (prior.wall if prior is not None else 0.0)
-        result = _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, report)
-    except KeyboardInterrupt:
+
+    def save_finished():
         if checkpoint_path is not None:
             # (the checkpoint holds the first fit's state: a resumed fit plans again from it)
             write(last[0] if replanned is not None else lmfit.light_copy(run.state), "interrupted")
-        raise
+
+    with saving_on_interrupt(save_finished):
+        wall = time.perf_counter() - t_start + (prior.wall if prior is not None else 0.0)
+        result = _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, report)
     result = dataclasses.replace(result, timing=clock.stop())
     if checkpoint_path is not None:
         _io.save_fit(result, checkpoint_path)
@@ -272,7 +274,7 @@ def _replan(full, prob, theta, opts, report=None):
     pred = _predictability_at(full, theta, batched=True, chunk_frames=_first_horizon(full, opts))
     if pred is None:
         return None
-    sh, again = _shooting.plan(dataclasses.replace(full, predictability=pred), "auto")
+    sh, again = _shooting.plan(dataclasses.replace(full, predictability=pred), "auto", opts.multiple_shooting)
     new = dataclasses.replace(again, shooting=sh)
     if _shooting.span(new) <= _shooting.span(prob):
         return None

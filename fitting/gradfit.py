@@ -30,6 +30,7 @@ from jaxplush.progress import Progress
 from jaxplush.fitting import identifiability as _ident
 from jaxplush.fitting import losses as _losses
 from jaxplush.fitting.errors import FitError
+from jaxplush.fitting.stages import saving_on_interrupt
 from jaxplush.fitting.outcome import Stop
 from jaxplush.fitting.problem import _common_settings
 from jaxplush.fitting.result import _history, _judge, _motion, _report, _result, measure_predictability
@@ -149,14 +150,11 @@ class _GradientFit:
         if not loop.done:
             loop.reason, loop.stopped = f"reached the iteration limit ({self.iterations})", Stop.ITERATIONS
         loop.wall = time.perf_counter() - t_loop
-        try:
+        # Ctrl-C during the health check or the identifiability report (JVPs through the rollout,
+        # not short): the loop has finished, so save it; --resume goes straight to this step
+        with saving_on_interrupt(lambda: self.save(loop, "interrupted")):
             result = _finish(self.prob, loop, self.settings, self.notes, self.opts.identifiability,
                              time.perf_counter() - t_start + wall_before)
-        except KeyboardInterrupt:
-            # Ctrl-C during the health check or the identifiability report (JVPs through the rollout,
-            # not short): the loop has finished, so save it; --resume goes straight to this step
-            self.save(loop, "interrupted")
-            raise
         result = dataclasses.replace(result, timing=clock.stop())
         if self.opts.checkpoint.path is not None:
             from jaxplush.fitting import io as _io
@@ -197,7 +195,13 @@ class _GradientFit:
         last_saved = loop.iteration
         self.consistent = loop
         every = self.opts.checkpoint.every
-        try:
+
+        def save_consistent():
+            # Ctrl-C may land anywhere, also inside an iteration: save the last consistent state
+            self.consistent.wall = time.perf_counter() - t_loop
+            self.save(self.consistent, "interrupted")
+
+        with saving_on_interrupt(save_consistent):
             with self.bar:
                 while not loop.done and loop.iteration < self.iterations:
                     loop, again = self.attempt(loop)
@@ -209,11 +213,6 @@ class _GradientFit:
                         self.save(loop)
                         last_saved = loop.iteration
                 self.bar.finish(loop.reason if loop.done else "iteration limit")
-        except KeyboardInterrupt:
-            # Ctrl-C may land anywhere, also inside an iteration: save the last consistent state
-            self.consistent.wall = time.perf_counter() - t_loop
-            self.save(self.consistent, "interrupted")
-            raise
         return loop
 
     def attempt(self, loop):

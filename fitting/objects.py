@@ -33,7 +33,7 @@ import numpy as np
 
 from jaxplush.fitting import equation_error as _ee
 from jaxplush.fitting import search as _search
-from jaxplush.fitting.options import LocalOptions
+from jaxplush.fitting.options import DEFAULT_SAMPLES, DEFAULT_STARTS, LocalOptions
 from jaxplush.fitting.outcome import Stop
 
 
@@ -220,11 +220,11 @@ class PerObjectGlobal:
     progress: ``progress(n)`` after each batch of n points (or None).
     """
 
-    samples: int = 64
+    samples: int = DEFAULT_SAMPLES
     per_object: int = 3
     rounds: int = 3
     zoom: float = 0.5
-    starts: int = 5
+    starts: int = DEFAULT_STARTS
     seed: int = 0
     local: LocalOptions = LocalOptions()
     progress: object = None

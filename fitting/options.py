@@ -97,7 +97,10 @@ class LocalOptions:
       scan_points: points of an axis scan, in all (at least 4 per parameter).
       rescue_gain: a scan point must lower the loss by this fraction to restart a search there.
       h_min, h_max: smallest and largest central-difference step of the Jacobian (the step is
-        the trust radius / 4, clipped to them).
+        the trust radius x ``h_fraction``, clipped to them).
+      h_fraction: the central-difference step as a fraction of the trust radius.
+      colour_misses: coloured Jacobian stencils (every object's parameter moved at once) that
+        came near contact, and were run again in full, after which a fit stops trying them.
       radius0, mu0: trust radius and Levenberg-Marquardt damping of a fresh search (a step that
         does better than predicted doubles a smaller radius, up to ``radius0``).
       xtol: a search stops when an accepted step is at most this (max-norm), and stalls when the
@@ -126,6 +129,16 @@ class LocalOptions:
         Broyden secant update, r(x + s) - r(x) = J s, after each accepted step) before it is
         differenced again (2 P rollouts); a stop judged on the Jacobian, or a step that fails, on
         an updated Jacobian differences it first. 0 (the default): every iteration differences.
+      trial_mu: the Levenberg-Marquardt dampings tried at each iteration (one batch), as factors
+        of the search's damping mu; the best of them is the step.
+      ratio_good, ratio_poor: the step's actual over predicted loss decrease above which mu is
+        multiplied by ``mu_good`` (and the radius may grow by ``radius_grow``), below which by
+        ``mu_poor`` (and the radius shrinks to half the step); in between mu is kept.
+      mu_good, mu_poor: those factors.
+      mu_fail, radius_fail: after an iteration where no trial lowers the loss, mu is multiplied
+        by ``mu_fail`` and the trust radius becomes ``radius_fail`` x the failed step.
+      radius_grow: a step that did better than predicted grows the radius by this factor (up to
+        ``radius0``).
     """
 
     keep: int = 2
@@ -148,6 +161,16 @@ class LocalOptions:
     floor_step: float | None = dataclasses.field(default=1e-3, metadata={"flat": "local_floor_step"})
     secant_updates: int = 0
     jacobian: str = "difference"
+    h_fraction: float = 0.25
+    colour_misses: int = 2
+    trial_mu: tuple = (0.1, 1.0, 10.0)
+    ratio_good: float = 0.75
+    ratio_poor: float = 0.25
+    mu_good: float = 1 / 3
+    mu_poor: float = 2.0
+    mu_fail: float = 10.0
+    radius_fail: float = 0.25
+    radius_grow: float = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -204,6 +227,36 @@ class SmoothingOptions:
     grow: float = dataclasses.field(default=8.0, metadata={"flat": "smooth_grow"})
 
 
+#: The fewest frames a segment of multiple shooting can have: its node's next frame refines the
+#: node's velocity, the rest fit.
+MIN_SEGMENT = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class ShootingOptions:
+    """The default fit's multiple shooting (:mod:`jaxplush.fitting.shooting`; ``optimizer="lm"``
+    only). Whether it shoots at all is ``FitOptions.shooting``.
+
+    Attributes:
+      refine: Gauss-Newton refinements of the node velocities against their next frame, per
+        evaluation (``shooting_refine``; 0: central differences of the frames alone).
+      min_segment: the fewest frames per segment the plan chooses (at least :data:`MIN_SEGMENT`).
+      min_horizon_frames: the fewest frames a point-cloud or tracks fit keeps when it is cut at
+        the predictable horizon.
+      resolution_step: the central-difference step (log space) of the Jacobians that compare
+        how well one rollout and segments resolve the parameters, and of the bias estimate on a
+        twin target: wide enough to see past the rough plateau of a sensitive motion's loss.
+      max_bias: the largest bias (log space, any parameter) taken off the fitted values; beyond
+        it the linear estimate is not trusted.
+    """
+
+    refine: int = dataclasses.field(default=1, metadata={"flat": "shooting_refine"})
+    min_segment: int = MIN_SEGMENT
+    min_horizon_frames: int = 4
+    resolution_step: float = 0.02
+    max_bias: float = 0.2
+
+
 @dataclasses.dataclass(frozen=True)
 class CheckpointOptions:
     """Checkpoints: FIT.h5 written atomically every ``every`` iterations, on Ctrl-C and at the end.
@@ -253,7 +306,8 @@ class FitOptions:
         frames per segment (an int >= 2).
       search: :class:`SearchOptions` of the default fit's global stage.
       local: :class:`LocalOptions` of its local searches; continuation: :class:`ContinuationOptions`
-        of its stages in time; smoothing: :class:`SmoothingOptions` of its smoothing stage.
+        of its stages in time; smoothing: :class:`SmoothingOptions` of its smoothing stage;
+        multiple_shooting: :class:`ShootingOptions` of its segments.
       checkpoint: :class:`CheckpointOptions`.
     """
 
@@ -279,6 +333,7 @@ class FitOptions:
     local: LocalOptions = dataclasses.field(default_factory=LocalOptions)
     continuation: ContinuationOptions = dataclasses.field(default_factory=ContinuationOptions)
     smoothing: SmoothingOptions = dataclasses.field(default_factory=SmoothingOptions)
+    multiple_shooting: ShootingOptions = dataclasses.field(default_factory=ShootingOptions)
     checkpoint: CheckpointOptions = dataclasses.field(default_factory=CheckpointOptions)
 
     def replace(self, **changes):
@@ -307,7 +362,8 @@ class FitOptions:
 
 
 #: The groups of the default fit's tuning knobs: FitOptions field -> class.
-TUNING = {"local": LocalOptions, "continuation": ContinuationOptions, "smoothing": SmoothingOptions}
+TUNING = {"local": LocalOptions, "continuation": ContinuationOptions, "smoothing": SmoothingOptions,
+          "multiple_shooting": ShootingOptions}
 
 
 def _tuning_shortcuts():
@@ -418,7 +474,8 @@ def _validate_tuning(opts, optimizer):
                 if not ok or (group == "smoothing" and len(v) != 2):
                     raise JaxplushError(f"{name} must be increasing positive numbers, got {v!r}")
             elif isinstance(f.default, int):
-                low = 0 if name in ("max_rescues", "secant_updates") else 1
+                low = {"max_rescues": 0, "secant_updates": 0, "colour_misses": 0, "shooting_refine": 0,
+                       "min_segment": MIN_SEGMENT}.get(name, 1)
                 if not _is_whole(v) or v < low:
                     raise JaxplushError(f"{name} must be a whole number >= {low}, got {v!r}")
             elif v is None and _optional(f):
@@ -426,6 +483,16 @@ def _validate_tuning(opts, optimizer):
             elif not (_is_positive(v) or (v == 0 and name in ("local_xtol", "local_ftol", "pred_tol", "noise_stop",
                                                              "continuation_noise_stop", "rescue_gain"))):
                 raise JaxplushError(f"{name} must be a number > 0{' or None' if _optional(f) else ''}, got {v!r}")
+    lo = opts.local
+    for what, ok in ((f"ratio_poor ({lo.ratio_poor!r}) < ratio_good ({lo.ratio_good!r}) < 1",
+                      lo.ratio_poor < lo.ratio_good < 1),
+                     (f"mu_good ({lo.mu_good!r}) < 1", lo.mu_good < 1), (f"mu_poor ({lo.mu_poor!r}) >= 1", lo.mu_poor >= 1),
+                     (f"mu_fail ({lo.mu_fail!r}) > 1", lo.mu_fail > 1),
+                     (f"radius_fail ({lo.radius_fail!r}) < 1", lo.radius_fail < 1),
+                     (f"radius_grow ({lo.radius_grow!r}) > 1", lo.radius_grow > 1),
+                     (f"h_fraction ({lo.h_fraction!r}) <= 1", lo.h_fraction <= 1)):
+        if not ok:
+            raise JaxplushError(f"local options: need {what}")
 
 
 def _optional(field):

@@ -44,7 +44,7 @@ import math
 
 import numpy as np
 
-from jaxplush.fitting.options import LocalOptions, SmoothingOptions
+from jaxplush.fitting.options import DEFAULT_ITERATIONS, DEFAULT_SAMPLES, LocalOptions, SmoothingOptions
 from jaxplush.fitting.outcome import Stop
 
 #: The default options (what None stands for).
@@ -107,7 +107,7 @@ def sobol_design(box, n, seed=0):
     return (lo + u * (hi - lo)).reshape((n,) + shape)
 
 
-def global_stage(evaluator, box, start, n=64, seed=0, progress=None, retries=None, extra=()):
+def global_stage(evaluator, box, start, n=DEFAULT_SAMPLES, seed=0, progress=None, retries=None, extra=()):
     """Evaluate the start, the ``extra`` points (clipped into the box) and ``n`` Sobol points of the
     box (a point that blows up retried at most ``retries`` times,
     :class:`jaxplush.fitting.evaluate.Evaluator`). Returns :class:`GlobalResult`."""
@@ -156,10 +156,10 @@ def _separation(ev, i):
 
 
 def fd_step(radius, options=None):
-    """The central-difference step at trust radius ``radius``: radius / 4 clipped to
+    """The central-difference step at trust radius ``radius``: radius x ``h_fraction`` clipped to
     [``h_min``, ``h_max``] of ``options`` (:class:`LocalOptions`)."""
     o = options or _LOCAL
-    return float(min(max(radius / 4.0, o.h_min), o.h_max))
+    return float(min(max(radius * o.h_fraction, o.h_min), o.h_max))
 
 
 def _stencil(box, theta, h):
@@ -176,8 +176,8 @@ def _stencil(box, theta, h):
 
 
 #: Coloured stencils that came near contact (and were run again in full) after which an
-#: evaluator stops trying them.
-COLOUR_MISSES = 2
+#: evaluator stops trying them: the default of :attr:`LocalOptions.colour_misses`.
+COLOUR_MISSES = _LOCAL.colour_misses
 
 
 def _coloured_stencil(box, theta, h):
@@ -213,7 +213,7 @@ def _jacobians(evaluator, box, states, options=None):
     points = colourable is not None and owners is None and colourable()
     rest = list(states)
     misses = getattr(evaluator, "colour_misses", 0)
-    if (owners is not None or points) and misses < COLOUR_MISSES:
+    if (owners is not None or points) and misses < (options or _LOCAL).colour_misses:
         # only states whose own run kept the objects apart: by its separation, measured at every
         # step, where known; else by its frames (positions; a point cloud's are not kept)
         def apart(st):
@@ -457,7 +457,7 @@ def _gn_within_noise(jac, r):
     return float(np.max(np.abs(step) / se))
 
 
-def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=None, floor=None):
+def lm_round(evaluator, box, states, max_iter=DEFAULT_ITERATIONS["lm"], options=None, *, noise_stop=None, floor=None):
     """One Levenberg-Marquardt iteration of every unfinished state (two evaluations in all: the
     Jacobians that are missing, then three trial steps per state). ``options``
     (:class:`LocalOptions`, None: the defaults) hold the stopping rules; a state stops once its
@@ -511,7 +511,7 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
                                 f"Gauss-Newton step is {gn:.2g} (<= {o.floor_step:g}): no step can be told from rounding")
         t = None
         if stop is None:
-            t = _steps(st.jac, st.residual, (st.mu / 10.0, st.mu, st.mu * 10.0), st.radius, box, st.theta)
+            t = _steps(st.jac, st.residual, tuple(st.mu * f for f in o.trial_mu), st.radius, box, st.theta)
             best_pred = max(x[2] for x in t)
             if best_pred <= o.pred_tol * st.loss and st.jac_h <= o.h_min * (1 + 1e-9):
                 stop = (Stop.PREDICTED, f"the Gauss-Newton model predicts a decrease of at most "
@@ -531,7 +531,7 @@ def lm_round(evaluator, box, states, max_iter=40, options=None, *, noise_stop=No
     for i, st in enumerate(active):
         idx = np.nonzero(owner == i)[0]
         if idx.size:
-            _take_step(st, ev, idx, trials, o.xtol, o.ftol, o.radius0, secant=limit > 0)
+            _take_step(st, ev, idx, trials, o, secant=limit > 0)
 
 
 def broyden(jac, step, dr):
@@ -555,19 +555,22 @@ def _floor_step(st, floor, limit):
     return size if size <= limit else None
 
 
-def _take_step(st, ev, idx, trials, xtol, ftol, grow_to=_LOCAL.radius0, secant=False):
+def _take_step(st, ev, idx, trials, options=None, secant=False):
     """Accept the best of a state's evaluated trial steps (rows ``idx`` of ``ev`` and ``trials``) if
     it lowers the loss, adapting mu and the trust radius, else shrink the radius; sets the stops
-    on ``xtol`` (step), ``ftol`` (relative loss change) and a radius below ``xtol`` (stalled).
+    on ``xtol`` (step), ``ftol`` (relative loss change) and a radius below ``xtol`` (stalled), all
+    of ``options`` (:class:`LocalOptions`, whose fields also set how mu and the radius adapt).
 
     With ``secant``, an accepted step updates the Jacobian (:func:`broyden`) instead of dropping
     it. A step taken on an updated Jacobian that fails is not held against the search (its
     radius and mu stay): the Jacobian is differenced and the next round tries again.
 
-    A step that does better than the model promised (ratio above 0.75) also doubles a radius
-    below ``grow_to`` (a fresh search's): the radius sets the Jacobian's difference step too,
+    A step that does better than the model promised (ratio above ``ratio_good``) also grows a
+    radius below ``radius0`` (a fresh search's) by ``radius_grow``: the radius sets the Jacobian's difference step too,
     and a small one (a later horizon starts with one) resolves rounding ripple rather than the
     slope, so the steps it gives stay short while each does better than predicted."""
+    o = options or _LOCAL
+    xtol, ftol = o.xtol, o.ftol
     st.evaluations += len(idx)
     st.iteration += 1
     best = int(idx[np.argmin(np.where(ev.ok[idx], ev.loss[idx], np.inf))])
@@ -587,10 +590,10 @@ def _take_step(st, ev, idx, trials, xtol, ftol, grow_to=_LOCAL.radius0, secant=F
         st.theta, st.loss = trial, new
         st.residual, st.substeps = ev.residuals[best], int(ev.substeps[best])
         st.separation = _separation(ev, best)
-        st.mu = mu * (1 / 3 if rho > 0.75 else (1.0 if rho > 0.25 else 2.0))
-        if rho > 0.75:
-            st.radius = max(st.radius, 2.0 * size, min(2.0 * st.radius, grow_to))
-        elif rho < 0.25:
+        st.mu = mu * (o.mu_good if rho > o.ratio_good else (1.0 if rho > o.ratio_poor else o.mu_poor))
+        if rho > o.ratio_good:
+            st.radius = max(st.radius, o.radius_grow * size, min(o.radius_grow * st.radius, o.radius0))
+        elif rho < o.ratio_poor:
             st.radius = max(size / 2.0, xtol / 2)
         st.history.append((st.loss, st.theta.copy()))
         if size <= xtol:
@@ -602,8 +605,8 @@ def _take_step(st, ev, idx, trials, xtol, ftol, grow_to=_LOCAL.radius0, secant=F
     elif updated:
         st.jac, st.updates = None, 0             # the updated Jacobian failed: difference it, same radius
     else:
-        st.mu = max(mu, st.mu) * 10.0
-        st.radius = (size if size > 0 else st.radius) / 4.0
+        st.mu = max(mu, st.mu) * o.mu_fail
+        st.radius = (size if size > 0 else st.radius) * o.radius_fail
         if st.radius < xtol:
             st.done, st.stopped = True, Stop.STALLED
             st.reason = (f"stalled: no step down to {st.radius:.2g} (log space) lowers the loss "

@@ -53,13 +53,15 @@ import numpy as np
 from jaxplush.errors import JaxplushError
 from jaxplush.fitting import losses as _losses
 from jaxplush.fitting.evaluate import Evaluator, MAX_CAPACITY_GROWTHS, _batchable
+from jaxplush.fitting.options import MIN_SEGMENT, ShootingOptions
 
-#: Default Gauss-Newton refinements of the node velocities per evaluation.
-REFINE = 1
-#: Fewest frames of a segment (the node's next frame refines its velocity, the rest fit).
-MIN_SEGMENT = 2
+#: The default options (:class:`jaxplush.fitting.options.ShootingOptions`): every tuning number of
+#: this module is one of its fields; the names below are aliases of their defaults.
+_DEFAULT = ShootingOptions()
+#: Gauss-Newton refinements of the node velocities per evaluation.
+REFINE = _DEFAULT.refine
 #: Fewest frames a point-cloud fit keeps when it stops at the predictable horizon.
-MIN_HORIZON_FRAMES = 4
+MIN_HORIZON_FRAMES = _DEFAULT.min_horizon_frames
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +90,7 @@ class Shooting:
     resolution: float | None = None
     single_resolution: float | None = None
     bias: np.ndarray | None = None
+    options: ShootingOptions = _DEFAULT
 
     @property
     def on(self):
@@ -299,21 +302,20 @@ def _floor(prob, segment_frames, refine):
     return _losses.rms_metres(float(d.loss[0]), prob.loss.scale2, "positions"), sep
 
 
-#: Central-difference step (log space) of :func:`resolution`'s Jacobian: wide enough to see past
-#: the rough plateau of a sensitive motion's loss.
-RESOLUTION_STEP = 0.02
+#: Central-difference step (log space) of :func:`resolution`'s Jacobian (``ShootingOptions.resolution_step``).
+RESOLUTION_STEP = _DEFAULT.resolution_step
 
 
-def resolution(ev, theta, floor, separation=math.nan):
+def resolution(ev, theta, floor, separation=math.nan, step=RESOLUTION_STEP):
     """The largest standard error of a log-parameter at theta if every residual of ``ev`` carried
     noise of RMS ``floor`` (m): sqrt of the largest diagonal entry of s² (JᵀJ)⁻¹, J the
-    central-difference Jacobian (:data:`RESOLUTION_STEP`; ``separation``: how close the objects came
+    central-difference Jacobian (``step``, log space; ``separation``: how close the objects came
     in the run at theta, as :func:`jaxplush.fitting.search.jacobian` takes it); inf where J is
     singular, None where the stencil does not run."""
     from jaxplush.fitting import search as _search
     theta = np.asarray(theta, np.float64)
     box = _search.Box(theta - 1.0, theta + 1.0)
-    jac = _search.jacobian(ev, box, theta, RESOLUTION_STEP, separation=separation)
+    jac = _search.jacobian(ev, box, theta, step, separation=separation)
     if not np.isfinite(jac).all() or not np.any(jac):
         return None
     prob = ev.prob
@@ -327,11 +329,11 @@ def resolution(ev, theta, floor, separation=math.nan):
     return float(np.sqrt(d.max())) if np.all(d > 0) else math.inf
 
 
-#: Largest bias (log space) :func:`debias` takes off; beyond it the linear estimate is not trusted.
-MAX_BIAS = 0.2
+#: Largest bias (log space) :func:`debias` takes off (``ShootingOptions.max_bias``).
+MAX_BIAS = _DEFAULT.max_bias
 
 
-def debias(prob, theta, ev=None, step=RESOLUTION_STEP):
+def debias(prob, theta, ev=None, step=None):
     """Multiple shooting's own bias at the fitted values ``theta``, estimated and taken off.
 
     Node velocities estimated from the frames carry an error (modes faster than the frame rate
@@ -346,7 +348,7 @@ def debias(prob, theta, ev=None, step=RESOLUTION_STEP):
 
     The step is taken off only where the linear model holds on the twin: the twin's loss at
     ``theta + b`` is below its loss at ``theta``, and every entry of ``b`` is within
-    :data:`MAX_BIAS`.
+    ``max_bias`` of the plan's options (``step`` None: their ``resolution_step``).
 
     Returns:
       (corrected theta, b or None, a line for a person). ``b`` None: nothing taken off, and the
@@ -357,6 +359,8 @@ def debias(prob, theta, ev=None, step=RESOLUTION_STEP):
     theta = np.asarray(theta, np.float64)
     if sh is None or not sh.on:
         return theta, None, "single shooting: nothing to correct"
+    step = sh.options.resolution_step if step is None else step
+    max_bias = sh.options.max_bias
     base = Evaluator(prob, calibration=None if ev is None else ev.calibration(), share=ev)
     e = base(theta[None], keep_frames=True)
     if not e.ok[0]:
@@ -371,8 +375,8 @@ def debias(prob, theta, ev=None, step=RESOLUTION_STEP):
     if not (at.ok[0] and np.isfinite(jac).all() and np.isfinite(r).all() and np.any(jac)):
         return theta, None, "the twin's Jacobian did not run"
     b = -np.linalg.lstsq(jac, r, rcond=None)[0].reshape(theta.shape)
-    if not np.all(np.abs(b) <= MAX_BIAS):
-        return theta, None, (f"the estimate ({_percent(prob, b)}) exceeds {math.expm1(MAX_BIAS):.0%}: "
+    if not np.all(np.abs(b) <= max_bias):
+        return theta, None, (f"the estimate ({_percent(prob, b)}) exceeds {math.expm1(max_bias):.0%}: "
                              "not taken off")
     moved = ms((theta + b)[None], substeps=e.substeps)
     if not (moved.ok[0] and moved.loss[0] < at.loss[0]):
@@ -386,8 +390,8 @@ def _percent(prob, b):
     return ", ".join(f"{label} {math.expm1(v):+.2%}" for label, v in zip(prob.labels, np.ravel(b)))
 
 
-def segment_frames_for(prob):
-    """Frames per segment from the measured horizon (at least :data:`MIN_SEGMENT`), or None when
+def segment_frames_for(prob, min_segment=MIN_SEGMENT):
+    """Frames per segment from the measured horizon (at least ``min_segment``), or None when
     the positions stay predictable over the whole target (or it was not measured)."""
     pred = prob.predictability
     if pred is None or not math.isfinite(pred.horizon_time):
@@ -396,7 +400,7 @@ def segment_frames_for(prob):
     if gap is None:
         return None
     h = gap * prob.target.dt
-    return max(MIN_SEGMENT, int(pred.horizon_time / h))
+    return max(MIN_SEGMENT, int(min_segment), int(pred.horizon_time / h))
 
 
 def check_segments(setting, target, what="shooting (--shooting)"):
@@ -414,14 +418,14 @@ def check_segments(setting, target, what="shooting (--shooting)"):
                             f"after its start; {fix}")
 
 
-def plan(prob, setting="auto", refine=REFINE):
+def plan(prob, setting="auto", options=None):
     """How to shoot a problem (after its predictability was measured).
 
     Args:
       prob: :class:`jaxplush.fitting.fitter.Problem`.
       setting: "off" (single shooting), "auto" (multiple shooting where the horizon is shorter
         than the target and the shooting floor is below single shooting's), or frames per segment.
-      refine: node-velocity refinements per evaluation.
+      options: :class:`jaxplush.fitting.options.ShootingOptions` (None: the defaults).
 
     Returns:
       (:class:`Shooting`, the problem to fit: a point-cloud target cut at the horizon under "auto").
@@ -429,6 +433,8 @@ def plan(prob, setting="auto", refine=REFINE):
     Raises:
       JaxplushError: frames per segment were asked for and multiple shooting cannot run.
     """
+    o = _DEFAULT if options is None else options
+    refine = o.refine
     pred = prob.predictability
     single = None if pred is None else float(pred.floor)
     if setting == "off":
@@ -440,16 +446,16 @@ def plan(prob, setting="auto", refine=REFINE):
         seg = max(MIN_SEGMENT, int(setting))
         floor, _ = _floor(prob, seg, refine)
         return Shooting(seg, floor, single, refine, f"multiple shooting in segments of {seg} frames (asked for)"
-                        + ("" if floor is None else f"; shooting floor {floor * 1e3:.3g} mm")), prob
+                        + ("" if floor is None else f"; shooting floor {floor * 1e3:.3g} mm"), options=o), prob
     if pred is None or not math.isfinite(pred.horizon_time):
         why = "not measured" if pred is None else "the positions stay predictable over the whole target"
         return Shooting(None, single_floor=single, reason=f"single shooting ({why})"), prob
     reason = why_not(prob)
     if reason is not None and prob.target.kind in ("points", "tracks", "mixed"):
-        return _points_within_horizon(prob, single)
+        return _points_within_horizon(prob, single, o.min_horizon_frames)
     if reason is not None:
         return Shooting(None, single_floor=single, reason=f"single shooting ({reason})"), prob
-    seg = segment_frames_for(prob)
+    seg = segment_frames_for(prob, o.min_segment)
     if seg >= prob.target.n_frames:
         return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
     need = _reach(prob)
@@ -462,20 +468,22 @@ def plan(prob, setting="auto", refine=REFINE):
         why = ("the shooting floor could not be measured" if floor is None or single is None else
                f"node states estimated from the frames ({floor * 1e3:.3g} mm) are no better than "
                f"single shooting's floor ({single * 1e3:.3g} mm)")
-        return Shooting(None, floor, single, refine, f"single shooting ({why})"), prob
+        return Shooting(None, floor, single, refine, f"single shooting ({why})", options=o), prob
     ms = ShootingEvaluator(prob, seg, refine)
-    res_ms = resolution(ms, prob.theta0, floor, sep)
-    res_single = resolution(Evaluator(prob, calibration=ms.calibration(), share=ms), prob.theta0, single, sep)
+    res_ms = resolution(ms, prob.theta0, floor, sep, o.resolution_step)
+    res_single = resolution(Evaluator(prob, calibration=ms.calibration(), share=ms), prob.theta0, single, sep,
+                            o.resolution_step)
     floors = f"shooting floor {floor * 1e3:.3g} mm against single shooting's {single * 1e3:.3g} mm"
     if res_ms is None or res_single is None or not res_ms < res_single:
         why = ("the parameters' resolution could not be measured" if res_ms is None or res_single is None else
                f"{floors}, but segments of {seg} frames resolve the parameters less well: a log-parameter "
                f"to {res_ms:.2g} against {res_single:.2g}")
-        return Shooting(None, floor, single, refine, f"single shooting ({why})", res_ms, res_single), prob
+        return Shooting(None, floor, single, refine, f"single shooting ({why})", res_ms, res_single,
+                        options=o), prob
     return Shooting(seg, floor, single, refine,
                     f"multiple shooting in segments of {seg} frames (the horizon is {pred.horizon_time:.3g} s; "
                     f"{floors}; a log-parameter resolved to {res_ms:.2g} against {res_single:.2g})",
-                    res_ms, res_single), prob
+                    res_ms, res_single, options=o), prob
 
 
 def span(prob):
@@ -492,10 +500,10 @@ def restricted(full, prob):
     return span(prob) < (int(full.target.n_frames),) * 2
 
 
-def plan_shooting(prob, setting, report=None):
-    """The problem with :attr:`~jaxplush.fitting.problem.Problem.shooting` planned (:func:`plan`);
-    ``report`` (if given) gets the line that says what was chosen."""
-    sh, prob = plan(prob, setting)
+def plan_shooting(prob, setting, report=None, options=None):
+    """The problem with :attr:`~jaxplush.fitting.problem.Problem.shooting` planned (:func:`plan`,
+    with ``options``); ``report`` (if given) gets the line that says what was chosen."""
+    sh, prob = plan(prob, setting, options)
     if report is not None:
         report("shooting: " + sh.reason)
     return dataclasses.replace(prob, shooting=sh)
@@ -511,13 +519,12 @@ def _reach(prob):
     return outcome.MOTION_FRACTION * _motion(prob)
 
 
-def _points_within_horizon(prob, single):
-    """A point-cloud or tracks target cut at the predictable horizon (at least :data:`MIN_HORIZON_FRAMES`
-    frames)."""
+def _points_within_horizon(prob, single, min_frames=MIN_HORIZON_FRAMES):
+    """A point-cloud or tracks target cut at the predictable horizon (at least ``min_frames`` frames)."""
     t, pred = prob.target, prob.predictability
     keep = int(np.searchsorted(np.asarray(t.times, np.float64), pred.horizon_time, side="right"))
     seen = max(int(np.argmax(part.observed.any(axis=1))) + 1 for part in t.parts)     # each part observes
-    keep = max(min(MIN_HORIZON_FRAMES, t.n_frames), keep, seen)
+    keep = max(min(int(min_frames), t.n_frames), keep, seen)
     if keep >= t.n_frames:
         return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
     reason = (f"single shooting within the predictable horizon: the first {keep} of {t.n_frames} frames "

@@ -29,6 +29,7 @@ docs/fitting.md's "Stages you can recombine" puts a user's Gauss-Newton solver a
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -39,7 +40,8 @@ import numpy as np
 from jaxplush.fitting import equation_error as _ee
 from jaxplush.fitting import search as _search
 from jaxplush.fitting import shooting as _shooting
-from jaxplush.fitting.options import ContinuationOptions, LocalOptions, SmoothingOptions
+from jaxplush.fitting.options import (DEFAULT_ITERATIONS, DEFAULT_SAMPLES, DEFAULT_STARTS, ContinuationOptions,
+                                      LocalOptions, SmoothingOptions)
 from jaxplush.fitting.outcome import Stop
 
 
@@ -189,8 +191,8 @@ class GlobalStage:
     progress: ``progress(n)`` after the design ran (or None).
     """
 
-    samples: int = 64
-    starts: int = 5
+    samples: int = DEFAULT_SAMPLES
+    starts: int = DEFAULT_STARTS
     seed: int = 0
     local: LocalOptions = LocalOptions()
     progress: object = None
@@ -240,7 +242,7 @@ class LocalLM:
       screen: screen down to ``options.keep`` searches (the first stage of the default fit).
     """
 
-    max_iter: int = 40
+    max_iter: int = DEFAULT_ITERATIONS["lm"]
     options: LocalOptions = LocalOptions()
     noise_stop: float | None = None
     screen: bool = False
@@ -545,6 +547,19 @@ class Hooks:
     before: object = None
     after: object = None
     save: object = None
+
+
+@contextlib.contextmanager
+def saving_on_interrupt(save):
+    """Run the block; on Ctrl-C (``KeyboardInterrupt``, which the command line also raises on
+    SIGTERM) call ``save()`` and re-raise. ``save`` is looked up when the interrupt comes, so it
+    sees the last consistent state; it decides itself whether there is anywhere to save to. Every
+    fit family (the default fit, the gradient optimisers, the stiffness field) saves this way."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        save()
+        raise
 
 
 def run_stages(objective, theta, stages, *, hooks=None, state=None):

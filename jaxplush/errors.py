@@ -5,9 +5,14 @@ its message (no traceback) and exits non-zero. Errors carry their fields (a path
 step and object), so code that adds to one builds it from those, never from its text.
 
 Every warning jaxplush issues is a :class:`JaxplushWarning` (a ``UserWarning``) of one of the
-categories below, so a caller filters or matches them by category::
+categories below, so a caller filters or matches them by category:
 
-    warnings.filterwarnings("ignore", category=jaxplush.errors.ContactCapacityWarning)
+>>> import warnings
+>>> from jaxplush.errors import ContactCapacityWarning, JaxplushWarning
+>>> issubclass(ContactCapacityWarning, JaxplushWarning) and issubclass(JaxplushWarning, UserWarning)
+True
+>>> with warnings.catch_warnings():
+...     warnings.filterwarnings("ignore", category=ContactCapacityWarning)
 """
 
 from __future__ import annotations

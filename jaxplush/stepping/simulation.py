@@ -13,8 +13,9 @@ from jaxplush.stepping import compiled
 from jaxplush.stepping import diagnostics
 from jaxplush.stepping import rollouts as _rollout
 from jaxplush.stepping import stability
-from jaxplush.errors import (ContactCapacityWarning, SimulationError, TimeStepWarning,
+from jaxplush.errors import (ContactCapacityWarning, Note, SimulationError, TimeStepWarning,
                              VolumeClampWarning)
+from jaxplush.errors import warn as _warn
 from jaxplush.model.forces import Terms
 from jaxplush.progress import Progress
 from jaxplush.stepping.step import make_simulator
@@ -120,7 +121,7 @@ def _growing_capacity(scene, sim, run, warn):
                    f"(set it in the scene to skip the rerun)")
             if warn:
                 warnings.warn(msg, ContactCapacityWarning, stacklevel=3)   # the caller of simulate
-            notes += (msg,)
+            notes += (Note(msg, ContactCapacityWarning),)
             terms = contact.with_capacity(sim.terms, need, contact.object_sizes(scene))
             sim = make_simulator(scene, sim.dt, sim.integrator, terms=terms, substeps=sim.substeps)
 
@@ -181,8 +182,7 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     if check_dt:
         msg = stability.check_dt(sim, p)
         if msg:
-            warnings.warn(msg, TimeStepWarning, stacklevel=2)
-            notes.append(msg)
+            notes.append(_warn(msg, TimeStepWarning, stacklevel=2))
     # explicit arrays, so a default and a given initial state share one compiled init
     x0 = np.asarray(sim.topology.x0 if x0 is None else x0, np.float64)
     v0 = np.zeros_like(x0) if v0 is None else np.asarray(v0, np.float64)
@@ -255,8 +255,7 @@ def _simulate(scene, steps, save_every, params, x0, v0, progress, check_dt, sim,
     for o in np.nonzero(warn >= 0)[0]:
         msg = (f"object {scene.objects[o].name!r}: {diagnostics.MESSAGES[diagnostics.VOLUME_CLAMPED]} "
                f"(first seen at step {int(warn[o])})")
-        warnings.warn(msg, VolumeClampWarning, stacklevel=2)
-        notes.append(msg)
+        notes.append(_warn(msg, VolumeClampWarning, stacklevel=2))
     volumes_so_far()
     return Trajectory(
         positions=positions, times=saved * sim.dt, faces=scene.faces, object_id=scene.object_id,
