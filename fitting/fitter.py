@@ -76,7 +76,7 @@ from jaxplush.fitting.shooting import plan_shooting
 
 
 def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=None, callback=None, progress=False,
-        report=None, **overrides):
+        report=None, solver=None, **overrides):
     """Fit parameters of ``scene`` to ``target``.
 
     The default (``optimizer="lm"``) is global, then local (:mod:`jaxplush.fitting.search`): a Sobol
@@ -114,6 +114,13 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
       progress: draw a progress bar (loss and parameters) on stderr.
       report: called with a line of text for a person before the fit starts (the
         predictability of the start values; the command line prints it to stderr).
+      solver: a sequence of stages to run instead of the default fit's (``optimizer="lm"``
+        only): each an object with ``init``, ``step``, ``terminate`` and optionally
+        ``postprocess`` (:mod:`jaxplush.fitting.stages`; e.g. :class:`fitting.GlobalStage`,
+        :class:`fitting.LocalLM`, :class:`fitting.Optax`, or one's own). They run on the whole
+        target (no continuation in time, no multiple shooting's re-plan); the last stage's
+        candidate is linearised and judged as the default fit's result is, with checkpoints,
+        Ctrl-C saves, intervals and FIT.h5.
       **overrides: changes to ``options`` by field name, e.g. ``iterations=40``,
         ``noise_free=True``; the group fields by their flat names ``bounds``, ``samples``,
         ``starts``, ``seed``, ``checkpoint_path``, ``checkpoint_every``, ``resume``, and the
@@ -137,16 +144,37 @@ def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=Non
     opts = _options.resolve(options, overrides)
     kind = optimizer_kind(optimizer)
     _options.validate(opts, kind)
+    solver = _check_solver(solver, kind)
     prob, notes = _problem(scene, target, params, objects, opts)
     if kind == "lm":
         result = _fit_lm(prob, opts, notes, t_start, progress=progress, callback=callback, report=report,
-                         clock=clock)
+                         clock=clock, solver=solver)
     else:
         result = _GradientFit(prob, optimizer, opts, notes, progress=progress, callback=callback,
                               report=report).run(t_start, clock)
     if progress:
         say_timing(result.timing)
     return result
+
+
+def _check_solver(solver, kind):
+    """``solver`` as a tuple of stages (None: the default fit's), checked before anything is built."""
+    if solver is None:
+        return None
+    if kind != "lm":
+        raise JaxplushError(f"solver (a sequence of stages) replaces the default fit's stages; it does not go with "
+                            f"optimizer {kind!r} (for an optax transformation as a stage, use fitting.Optax)")
+    if isinstance(solver, (str, bytes)) or not hasattr(solver, "__iter__"):
+        raise JaxplushError(f"solver must be a sequence of stages, got {type(solver).__name__}")
+    stages = tuple(solver)
+    if not stages:
+        raise JaxplushError("solver is empty: give at least one stage (or leave it out for the default fit)")
+    for i, st in enumerate(stages):
+        missing = [m for m in ("init", "step", "terminate") if not callable(getattr(st, m, None))]
+        if missing:
+            raise JaxplushError(f"solver[{i}] ({type(st).__name__}) is not a stage: it has no {', '.join(missing)} "
+                                "method (a stage has init, step and terminate; jaxplush.fitting.stages)")
+    return stages
 
 
 def say_timing(timing, label="fit"):
@@ -194,7 +222,7 @@ def _lm_settings(prob, opts, box):
     return settings
 
 
-def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, clock=None):
+def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, clock=None, solver=None):
     """The default fit (jaxplush.fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome.
     ``clock``: a :class:`jaxplush.compilestats.CompileClock` started with the fit, whose
     :class:`~jaxplush.compilestats.Timing` the result gets (None: one started here)."""
@@ -203,6 +231,8 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
     _shooting.check_segments(opts.shooting, prob.target)
     box = _lm_box(prob, opts.search.bounds)
     settings = _lm_settings(prob, opts, box)
+    if solver is not None:           # a resume must run the same stages
+        settings["solver"] = [f"{type(s).__module__}:{type(s).__qualname__}" for s in solver]
     checkpoint_path, want_ident = opts.checkpoint.path, opts.identifiability
     prior = _io.load_checkpoint(checkpoint_path, prob, settings, conform=_driver_state) \
         if opts.checkpoint.resume else None
@@ -234,8 +264,9 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
             write(last[0], "interrupted")
 
     with saving_on_interrupt(save_last):
-        run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, callback=user_cb)
-        replanned = _replan(full, prob, run.best.theta, opts, report)
+        run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, callback=user_cb,
+                            stages=solver)
+        replanned = None if solver is not None else _replan(full, prob, run.best.theta, opts, report)
         if replanned is not None:
             # the start's horizon cut the fit short; the fitted values predict further: fit again
             # from them over what they predict (locally: the global stage has done its work)

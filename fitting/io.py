@@ -74,7 +74,8 @@ _RESUME_KEYS_ADAM = ("iterations",)
 #: ... and for a stiffness field's fit, the field, its smoothness weight and its unknowns.
 _RESUME_KEYS_FIELD = ("field", "weight", "n_unknowns", "preconditioned", "theta0_hash")
 #: ... and for the default fit, its search box, global design and tuning knobs.
-_RESUME_KEYS_LM = ("box_lo", "box_hi", "samples", "starts", "seed", "local", "continuation", "smoothing")
+_RESUME_KEYS_LM = ("box_lo", "box_hi", "samples", "starts", "seed", "local", "continuation", "smoothing",
+                   "multiple_shooting", "solver")
 #: Settings a checkpoint written before they were recorded ran with (the defaults of the time).
 _RESUME_DEFAULTS = {group: dataclasses.asdict(cls()) for group, cls in TUNING.items()}
 _RESUME_HINTS = {"iterations": "; Adam's learning-rate schedule spans all the iterations",
@@ -360,7 +361,10 @@ def _check_settings(path, g, prob, settings):
     keys = _RESUME_KEYS + (_RESUME_KEYS_ADAM if mine.get("optimizer") == "adam" else ()) + (
         _RESUME_KEYS_LM if mine.get("optimizer") == "lm" else ()) + (_RESUME_KEYS_FIELD if "field" in mine else ())
     for k in keys:
-        if _norm(saved.get(k, _RESUME_DEFAULTS.get(k))) != _norm(mine.get(k)):
+        was = saved.get(k, _RESUME_DEFAULTS.get(k))
+        if isinstance(was, dict) and k in _RESUME_DEFAULTS:
+            was = {**_RESUME_DEFAULTS[k], **was}     # knobs added since: their defaults of the time
+        if _norm(was) != _norm(mine.get(k)):
             raise JaxplushError(f"{path}: the checkpoint is of a different fit ({k}: checkpoint "
                                 f"{saved.get(k)!r}, now {mine.get(k)!r}{_RESUME_HINTS.get(k, '')}); "
                                 "run without --resume to start over")

@@ -116,7 +116,7 @@ def default_stages(prob, opts, progress=None):
     return out
 
 
-def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None, start=None):
+def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None, start=None, stages=None):
     """Global stage, then Levenberg-Marquardt from the best ``starts`` candidates (successive
     halving to ``keep``), over horizons of growing length; then the Jacobian and gradients at
     the best point of the full problem (and, for a noisy target, the smoothing stage):
@@ -135,6 +135,9 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
         ``states`` and ``rounds``); returning True stops the search.
       start: where the global stage starts (log values; None: ``prob.theta0``, which stays the
         start the fit's gradient ratio and start loss refer to).
+      stages: a user's stages to run instead of :func:`default_stages` (``fit(solver=...)``): they
+        run on the whole target, and the last one's candidate is linearised (:class:`Linearise`)
+        for the judge.
 
     Returns:
       (:class:`LMRun`, the :class:`jaxplush.fitting.evaluate.Evaluator` of the full problem, its notes
@@ -142,9 +145,14 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     """
     opts = options or FitOptions()
     show = _Show(prob, opts, progress, callback)
-    show.stages = stages = default_stages(prob, opts, show.feed)
+    user = stages is not None
+    if user:
+        stages = list(stages) + [_stages.Linearise(local=opts.local)]
+    else:
+        stages = default_stages(prob, opts, show.feed)
+    show.stages = stages
     objective = _stages.Objective(prob, box)
-    hs = objective.horizons(horizons(prob.target.n_frames, opts.continuation))
+    hs = None if user else objective.horizons(horizons(prob.target.n_frames, opts.continuation))
     state = resume if resume is not None else _stages.RunState()
     try:
         _stages.run_stages(objective, prob.theta0 if start is None else np.asarray(start, np.float64), stages,
@@ -153,11 +161,49 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     finally:
         show.close()
     n0 = objective.evaluations()
-    out = _result(objective, state, opts)
+    out = _user_result(objective, state, opts) if user else _result(objective, state, opts)
     out.evaluations = state.evaluations + objective.evaluations() - n0
     ev = objective.evaluator
-    ev.notes[:] = hs.notes()
+    if hs is not None:
+        ev.notes[:] = hs.notes()
     return out, ev
+
+
+def _start_gradient(objective, lin, local):
+    """The loss gradient (log space) at the start values, from the :class:`Linearise` state ``lin``
+    (inf where the start did not run)."""
+    th0 = np.asarray(objective.prob.theta0, np.float64)
+    if not lin.start_ok:
+        return np.full(th0.size, np.inf)
+    jac0 = _search.jacobian(objective.evaluator, objective.box, th0, local.h_max, lin.start_substeps, local,
+                            separation=lin.start_separation)
+    return 2.0 * jac0.T @ lin.start_residual
+
+
+def _user_result(objective, state, opts):
+    """The :class:`LMRun` of a user's stages (:func:`run`'s ``stages``), which end in a
+    :class:`Linearise`: the best point and its Jacobian; the global design of the first stage
+    that holds one (else an empty one); the path of every stage's searches."""
+    lin = state.finished[-1]
+    best = dataclasses.replace(lin.best, history=list(lin.best.history))
+    if best.stopped == Stop.NONE:
+        # a point handed on without a stopping rule of its own (a design's best, a candidate): the
+        # stages' budget ended the fit, which the outcome says as an iteration limit
+        best.stopped = Stop.ITERATIONS
+        best.reason = best.reason or "the last stage ended"
+    g = next((s.result for s in state.finished if isinstance(getattr(s, "result", None), _search.GlobalResult)),
+             None)
+    if g is None:
+        shape = (0,) + np.shape(objective.prob.theta0)
+        g = _search.GlobalResult(thetas=np.zeros(shape), loss=np.zeros(0), ok=np.zeros(0, bool),
+                                 substeps=np.zeros(0, np.int64))
+    paths = [[(list(x.history), x.reason) for x in s.states if isinstance(x, _search.LMState) and x.history]
+             for s in state.finished[:-1] if getattr(s, "states", None)]
+    jac, residual = lin.jac, lin.residual
+    return LMRun(best=best, jac=jac, residual=residual, grad=2.0 * jac.T @ np.nan_to_num(residual),
+                 grad0=_start_gradient(objective, lin, opts.local), global_result=g, paths=[p for p in paths if p],
+                 horizons=(int(objective.prob.target.n_frames),), loss0=lin.loss0, wall=state.wall,
+                 smoothed=None, state=state, jac_step=float(opts.local.h_min))
 
 
 def _result(objective, state, opts):
@@ -167,7 +213,7 @@ def _result(objective, state, opts):
     start values."""
     cont, lin = state.finished[0], state.finished[1]
     sm = state.finished[2].result if len(state.finished) > 2 else None
-    ev, box, local = objective.evaluator, objective.box, opts.local
+    ev, local = objective.evaluator, opts.local
     best = dataclasses.replace(lin.best, history=list(lin.best.history))
     paths = [list(p) for p in cont.paths]
     jac, residual, smoothed = lin.jac, lin.residual, None
@@ -185,13 +231,7 @@ def _result(objective, state, opts):
         best.reason = f"{best.reason}; {reason}" if best.reason else reason
         if paths:
             paths[-1].append((history, reason))
-    th0 = np.asarray(objective.prob.theta0, np.float64)
-    if lin.start_ok:
-        jac0 = _search.jacobian(ev, box, th0, local.h_max, lin.start_substeps, local,
-                                separation=lin.start_separation)
-        grad0 = 2.0 * jac0.T @ lin.start_residual
-    else:
-        grad0 = np.full(th0.size, np.inf)
+    grad0 = _start_gradient(objective, lin, local)
     return LMRun(best=best, jac=jac, residual=residual, grad=2.0 * jac.T @ np.nan_to_num(residual), grad0=grad0,
                  global_result=cont.first[0].result, paths=paths, horizons=cont.horizons, loss0=lin.loss0,
                  wall=state.wall, smoothed=smoothed, state=state,
@@ -251,20 +291,24 @@ class _Show:
 
     def _open(self, run, s, inner):
         opts, on = self.opts, self.enabled
+        stage = self.stages[run.index]
         if isinstance(s, _stages.ContinuationState):
             hs = s.horizons
-            label = f"stage {s.index + 1}/{len(hs)} ({hs[s.index]} of {hs[-1]} frames)"
-            if isinstance(inner, _stages.GlobalState):
-                bar = Progress(opts.search.n_samples + 1, f"global search, {label}", enabled=on, unit="points",
-                               compiles=True)
-            elif isinstance(inner, _objects.PerObjectState):
-                total = self.stages[run.index].first[0].evaluations(len(self.prob.objects))
-                bar = Progress(total, f"global search per object, {label}", enabled=on, unit="points",
-                               compiles=True)
-            else:
-                total = self.stages[run.index].stage(s).max_iter
-                bar = Progress(total, f"local search, {label}", enabled=on, unit="it", compiles=True)
-                bar.done = min(inner.rounds, total)
+            label = f", stage {s.index + 1}/{len(hs)} ({hs[s.index]} of {hs[-1]} frames)"
+            first = stage.first[0] if s.index == 0 and s.position < len(stage.first) else None
+            inner_stage = stage.stage(s)
+        else:            # a stage of a user's solver, run on its own
+            label, first, inner_stage = f" (stage {run.index + 1})", stage, stage
+        if isinstance(inner, _stages.GlobalState):
+            bar = Progress(getattr(first, "samples", opts.search.n_samples) + 1, f"global search{label}", enabled=on,
+                           unit="points", compiles=True)
+        elif isinstance(inner, _objects.PerObjectState):
+            total = first.evaluations(len(self.prob.objects))
+            bar = Progress(total, f"global search per object{label}", enabled=on, unit="points", compiles=True)
+        elif isinstance(inner, _stages.LocalState):
+            total = inner_stage.max_iter
+            bar = Progress(total, f"local search{label}", enabled=on, unit="it", compiles=True)
+            bar.done = min(inner.rounds, total)
         elif isinstance(s, _stages.SmoothState):
             bar = Progress(opts.smoothing.iterations, "smoothing (regression designs)", enabled=on, unit="designs",
                            compiles=True)

@@ -319,7 +319,8 @@ def jacobian(evaluator, box, theta, h, substeps=1, options=None, separation=math
     to [``h_min``, ``h_max``] of ``options``). ``separation``: how close the objects came in the run
     at theta (:attr:`jaxplush.fitting.evaluate.Evaluation.separation`; NaN: not known); where they
     came within reach of contact, the coloured stencil is not tried (it would be run again in full)."""
-    st = LMState(theta=np.asarray(theta, np.float64), loss=np.nan, radius=4.0 * h, substeps=substeps,
+    st = LMState(theta=np.asarray(theta, np.float64), loss=np.nan, radius=h / (options or _LOCAL).h_fraction,
+                 substeps=substeps,
                  separation=float(separation))
     _jacobians(evaluator, box, [st], options)
     return st.jac

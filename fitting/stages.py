@@ -9,7 +9,16 @@ its search box: the residuals of the target at log values theta, batched and sta
   first stage): a local stage starts from the previous stage's searches (its ``states``);
 * ``step(objective, stage_state) -> stage_state``: one step (a batch of evaluations);
 * ``terminate(objective, stage_state) -> (bool, Stop)``: whether it is done, and why
-  (:class:`jaxplush.fitting.outcome.Stop`).
+  (:class:`jaxplush.fitting.outcome.Stop`);
+* optionally ``postprocess(objective, stage_state) -> Candidate``: the one point it hands on (a
+  :class:`Candidate`). The next stage's ``init`` gets that candidate instead of the raw state.
+  Without it, the next stage gets the state itself, whose ``states`` (searches, as
+  :class:`jaxplush.fitting.search.LMState`) or ``theta`` it starts from.
+
+``jaxplush.fitting.fit(scene, target, solver=[...])`` runs a user's list of stages and then the
+one judge: the last stage's candidate is linearised (:class:`Linearise`) and judged as the default
+fit's result is (outcome, intervals, identifiability, FIT.h5). :class:`Optax` makes an optax
+transformation a stage like any other.
 
 The stages of the default fit: :class:`GlobalStage` (a Sobol design over the box and the best
 candidates), :class:`LocalLM` (Levenberg-Marquardt from them, with screening and rescues) and
@@ -248,13 +257,13 @@ class LocalLM:
     screen: bool = False
 
     def init(self, objective, theta, state=None):
-        """From the previous stage's searches (``state.states``), or one search at theta."""
+        """From the previous stage's searches (``state.states``), or one search at its point or theta."""
         o = self.options
-        if state is not None and hasattr(state, "states"):
+        if state is not None and getattr(state, "states", None):
             states = list(state.states)
         else:
-            states = [_search.LMState(theta=np.asarray(theta, np.float64).copy(), loss=math.inf, mu=o.mu0,
-                                      radius=o.radius0)]
+            states = [_search.LMState(theta=s.theta, loss=math.inf, mu=o.mu0, radius=o.radius0)
+                      for s in start_points(state, theta)]
         start_residuals(objective.evaluator, states, o)
         return LocalState(states=states)
 
@@ -341,12 +350,16 @@ class Linearise:
     local: LocalOptions = LocalOptions()
 
     def init(self, objective, theta, state=None):
-        states = state.states
+        states = getattr(state, "states", None) or start_points(state, theta)
         return LinearState(best=states[order(states)[0]], start_residual=None)
 
     def step(self, objective, s):
         ev, b = objective.evaluator, s.best
         centre = ev(np.asarray([b.theta, np.asarray(objective.prob.theta0, np.float64)]))
+        if not np.isfinite(b.loss):          # a candidate handed on unevaluated
+            b.loss, b.substeps = float(centre.loss[0]), int(centre.substeps[0])
+        if not b.history:
+            b.history.append((float(b.loss), np.asarray(b.theta, np.float64).copy()))
         s.residual, s.loss0 = centre.residuals[0], float(centre.loss[1])
         s.start_residual, s.start_ok, s.start_substeps = centre.residuals[1], bool(centre.ok[1]), int(centre.substeps[1])
         s.start_separation = _search._separation(centre, 1)
@@ -525,6 +538,110 @@ class Continuation:
 
 # --------------------------------------------------------------------------- the driver
 
+# --------------------------------------------------------------------------- candidates
+
+@dataclasses.dataclass
+class Candidate:
+    """The point a stage hands on (its ``postprocess``): log values ``theta`` (the problem's
+    shape), their ``loss`` if known (inf: not evaluated; the next stage evaluates it) and a
+    ``reason`` for a person. Its ``states`` make it a start for any stage that starts from
+    searches (:class:`LocalLM`, :class:`Linearise`, :class:`Smoothing`)."""
+
+    theta: np.ndarray
+    loss: float = math.inf
+    reason: str = ""
+
+    @property
+    def states(self):
+        return [_search.LMState(theta=np.asarray(self.theta, np.float64).copy(), loss=float(self.loss),
+                                reason=self.reason)]
+
+
+def start_points(state, theta):
+    """The searches (:class:`jaxplush.fitting.search.LMState`) a stage starts from, given the
+    previous stage's handed-on ``state``: its ``states``, or one search at its ``theta``, or (no
+    previous stage) one at ``theta``. Each is a copy the new stage may change."""
+    states = getattr(state, "states", None)
+    if states:
+        return [dataclasses.replace(s, theta=np.asarray(s.theta, np.float64).copy(), history=list(s.history))
+                for s in states]
+    point = getattr(state, "theta", None)
+    point = np.asarray(theta if point is None else point, np.float64).copy()
+    return [_search.LMState(theta=point, loss=math.inf)]
+
+
+# --------------------------------------------------------------------------- an optax transformation
+
+@dataclasses.dataclass
+class OptaxState:
+    """An :class:`Optax` stage's state: the point, the transformation's state, the updates done,
+    and the best point seen (``best_theta``, ``best_loss``); ``done`` and ``reason``."""
+
+    theta: np.ndarray
+    opt_state: object
+    iteration: int = 0
+    best_theta: np.ndarray | None = None
+    best_loss: float = math.inf
+    history: list = dataclasses.field(default_factory=list)
+    done: bool = False
+    reason: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Optax:
+    """An optax ``GradientTransformation`` as a stage: ``steps`` updates of the log-parameters
+    from the previous stage's best point, each with the loss gradient 2 Jᵀr from a
+    central-difference Jacobian (step ``h``, log space) on the objective's batched engine (one
+    batch of 2 P + 1 rollouts); each new point is held in the search box. A point that does not
+    run is stepped back from (the update halved, its state kept). Its candidate is the best point
+    it evaluated.
+
+    Attributes: transformation (e.g. ``optax.adam(0.05)``), steps, h.
+    """
+
+    transformation: object
+    steps: int = 20
+    h: float = 1e-3
+
+    def init(self, objective, theta, state=None):
+        import jax.numpy as jnp
+        best = min(start_points(state, theta), key=lambda s: s.loss)
+        theta = np.asarray(best.theta, np.float64)
+        return OptaxState(theta=theta, opt_state=self.transformation.init(jnp.asarray(theta.ravel())))
+
+    def step(self, objective, s):
+        import jax.numpy as jnp
+        e = objective.evaluator(np.asarray(s.theta)[None])
+        loss = float(e.loss[0]) if e.ok[0] else math.inf
+        if loss < s.best_loss:
+            s.best_theta, s.best_loss = s.theta.copy(), loss
+        s.history.append((loss, s.theta.copy()))
+        if not np.isfinite(loss):
+            # the point does not run: back halfway to the best one, the transformation's state kept
+            s.theta = 0.5 * (s.theta + s.best_theta) if s.best_theta is not None else s.theta
+            s.iteration += 1
+            s.done, s.reason = s.iteration >= self.steps, f"{self.steps} optax updates"
+            return s
+        jac = _search.jacobian(objective.evaluator, objective.box, s.theta, self.h, int(e.substeps[0]),
+                               separation=_search._separation(e, 0))
+        grad = 2.0 * jac.T @ np.nan_to_num(e.residuals[0])
+        updates, s.opt_state = self.transformation.update(jnp.asarray(grad), s.opt_state,
+                                                           jnp.asarray(s.theta.ravel()))
+        box = objective.box
+        s.theta = np.clip(s.theta + np.asarray(updates, np.float64).reshape(s.theta.shape), box.lo, box.hi)
+        s.iteration += 1
+        s.done, s.reason = s.iteration >= self.steps, f"{self.steps} optax updates"
+        return s
+
+    def terminate(self, objective, s):
+        return s.done, Stop.ITERATIONS if s.done else Stop.NONE
+
+    def postprocess(self, objective, s):
+        theta = s.best_theta if s.best_theta is not None else s.theta
+        return Candidate(theta=np.asarray(theta, np.float64), loss=s.best_loss,
+                         reason=f"the best of {s.iteration} optax updates (loss {s.best_loss:.4g})")
+
+
 @dataclasses.dataclass
 class RunState:
     """:func:`run_stages`' state (what the default fit checkpoints): the stage running (``index``
@@ -562,6 +679,16 @@ def saving_on_interrupt(save):
         raise
 
 
+def handed_on(stages, objective, run):
+    """What the last finished stage of ``run`` hands the next one: its ``postprocess`` candidate
+    where it has one, else its final state (None before the first stage)."""
+    if not run.finished:
+        return None
+    stage, last = stages[len(run.finished) - 1], run.finished[-1]
+    post = getattr(stage, "postprocess", None)
+    return post(objective, last) if post is not None else last
+
+
 def run_stages(objective, theta, stages, *, hooks=None, state=None):
     """Run ``stages`` in turn, each from the previous one's final state (the first from theta), and
     return the list of their final states.
@@ -582,7 +709,7 @@ def run_stages(objective, theta, stages, *, hooks=None, state=None):
     while run.index < len(stages):
         stage = stages[run.index]
         if run.state is None:
-            run.state = stage.init(objective, theta, run.finished[-1] if run.finished else None)
+            run.state = stage.init(objective, theta, handed_on(stages, objective, run))
         while not stage.terminate(objective, run.state)[0]:
             if hooks.before is not None:
                 hooks.before(run)

@@ -29,3 +29,19 @@ def test_notebook_executes(path, monkeypatch):
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
               if o.get("output_type") == "error"]
     assert not errors
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_committed_notebooks_show_their_outputs(path):
+    """A reader sees a notebook's results without running it: it is committed executed (every
+    code cell ran, in order, without an error; `python notebooks/execute.py` saves them so), with
+    at least one plot."""
+    import json
+    nb = json.loads(path.read_text())
+    code = [c for c in nb["cells"] if c["cell_type"] == "code" and "".join(c["source"]).strip()]
+    counts = [c.get("execution_count") for c in code]
+    assert all(isinstance(n, int) for n in counts), f"{path.name}: cells not executed: {counts}"
+    assert counts == sorted(counts), f"{path.name}: cells executed out of order: {counts}"
+    outputs = [o for c in code for o in c.get("outputs", [])]
+    assert not [o for o in outputs if o.get("output_type") == "error"], f"{path.name} was saved with an error"
+    assert any("image/png" in o.get("data", {}) for o in outputs), f"{path.name} shows no plot"
