@@ -32,6 +32,7 @@ import importlib
 
 _EXPORTS = {
     "Target": "jaxplush.fitting.targets",
+    "TargetKind": "jaxplush.fitting.kinds",
     "Controls": "jaxplush.fitting.targets",
     "scene_with_controls": "jaxplush.fitting.targets",
     "load_target": "jaxplush.fitting.targets",

@@ -145,7 +145,7 @@ def equation_error(prob, frames=None):
 
     Needs a positions target (every vertex observed in every frame) and the parameters fitted
     among :data:`LINEAR`; raises ValueError otherwise."""
-    if prob.target.kind != "positions":
+    if not prob.target.kind.every_vertex:
         raise ValueError(f"the equation-error estimate needs a positions target, not {prob.target.kind!r}")
     bad = [n for n in prob.names if n not in LINEAR]
     if bad:
@@ -414,7 +414,7 @@ def suits(prob):
     frames, every fitted parameter in :data:`LINEAR`, one spring stiffness per object, and single
     shooting (multiple shooting's evaluator runs segments, not the free run the statistic needs)."""
     sh = getattr(prob, "shooting", None)
-    return (prob.target.kind == "positions" and prob.target.n_frames >= 2 and set(prob.names) <= set(LINEAR)
+    return (prob.target.kind.every_vertex and prob.target.n_frames >= 2 and set(prob.names) <= set(LINEAR)
             and np.shape(prob.base.k_structural) == (prob.sim.topology.n_objects,)
             and not (sh is not None and getattr(sh, "on", False)))
 

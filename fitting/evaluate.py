@@ -282,7 +282,7 @@ class Evaluator:
             from jaxplush.fitting import objects as _objects
             prob = self.prob
             self._owners = (_objects.residual_objects(prob) if len(prob.objects) > 1
-                            and prob.target.kind in ("positions", "tracks") else None)
+                            and prob.target.kind.material_points else None)
         return self._owners
 
     def colourable(self):

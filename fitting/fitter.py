@@ -438,7 +438,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     # the identifiability report (its undetermined parameters set the status), with the rounding
     # noise of a finite-difference Jacobian from the measured reproducibility drift
     # (a mixed target's: its scan's, the tracks' residuals weighing against them as in the loss)
-    factor = (1.0 / float(np.ravel(ev.residual.norm)[0]) if kind == "mixed"
+    factor = (1.0 / float(np.ravel(ev.residual.norm)[0]) if kind.compound
               else math.sqrt(int(prob.target.observed.sum()) * scale2))
     # (the drift was measured at the start values, which can be far less predictable than the
     # fitted ones: a torus from x0.5 drifts 0.086 mm, 0.0003 mm at the truth. A run at the fitted

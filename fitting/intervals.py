@@ -48,6 +48,8 @@ import statistics
 
 import numpy as np
 
+from jaxplush.fitting.kinds import TargetKind
+
 #: Twins per fit (B): the interval's spread is estimated from B draws (with the fit's own lane,
 #: 32 lanes: whole chunks of the batched engine). With 31 the estimated spread is within 0.68-1.33x
 #: the true one 99% of the time; 8 twins were tried first, and gave 0.55x for one parameter of a
@@ -193,7 +195,7 @@ def _resolution(prob, theta, dtype):
 
 def applies(prob, ev):
     """Why twins do not apply to this fit (a phrase), or None when they do."""
-    if prob.target.kind not in ("positions", "tracks", "points"):
+    if TargetKind(prob.target.kind).compound:
         return f"a {prob.target.kind} target mixes residuals of two kinds"
     if prob.shooting is not None and prob.shooting.on:
         return "the fit ran in segments (multiple shooting)"
@@ -233,7 +235,7 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
                                               "not run")
     frames = frames[np.concatenate([[True], good[1:]])]
     rng = np.random.default_rng(seed)
-    points = prob.target.kind == "points"
+    points = not TargetKind(prob.target.kind).sees_vertices
     if prob.noise and not points:
         frames[1:] = frames[1:] + rng.normal(0.0, float(prob.noise), frames[1:].shape)
     res = ev._residuals(frames)

@@ -91,8 +91,8 @@ def fingerprint(prob):
     if t.tracks is not None:          # which points the tracks are
         h.update(np.asarray(t.track_vertices, np.int64).tobytes())
         h.update(np.asarray(t.track_weights, np.float64).tobytes())
-    if t.kind == "mixed":             # and how they weigh against the scan
-        h.update(repr(("mixed", int(t.points.shape[1]), float(t.track_weight))).encode())
+    if t.kind.compound:               # and how they weigh against the scan
+        h.update(repr((t.kind.value, int(t.points.shape[1]), float(t.track_weight))).encode())
     if t.controls is not None:        # the driven vertices' path
         c = t.controls
         h.update(repr(("controls", c.until)).encode())

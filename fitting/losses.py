@@ -51,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.fitting.targets import observed_rows
+from jaxplush.fitting.kinds import KINDS, TargetKind
 
 #: matrix products ask for full float32 precision: a GPU's default (TF32 on NVIDIA) keeps 10 mantissa
 #: bits, which leaves millimetres of error in |x|² + |p|² - 2 x.p
@@ -203,13 +203,19 @@ def point_surface(faces, n_vertices, weight=None):
     return ragged
 
 
+def _kind(target):
+    """The :class:`~jaxplush.fitting.kinds.TargetKind` of a target (or of anything with a ``kind``
+    name: a stand-in)."""
+    return TargetKind(target.kind)
+
+
 def point_weight(target):
     """T / N for a point cloud with NaN padding (N observed points over T frames; see
     :func:`point_surface`), None otherwise; for tracks always T / N."""
-    if target.kind == "mixed":
+    if _kind(target).compound:
         raise ValueError("a mixed target's terms are weighed each on its own (Target.parts)")
-    observed = observed_rows(target.kind, target.data)
-    if target.kind != "tracks" and observed.all():
+    observed = _kind(target).observed(target.data)
+    if _kind(target) is not TargetKind.TRACKS and observed.all():
         return None
     if not observed.any():
         raise ValueError(f"{target.path}: the target's frames hold no observation")
@@ -218,10 +224,8 @@ def point_weight(target):
 
 def frame_distance(kind):
     """The per-frame distance for a target kind: "positions" or "points"."""
-    if kind == "positions":
-        return squared_distance
-    if kind == "points":
-        return chamfer
+    if kind in (TargetKind.POSITIONS, TargetKind.POINTS):
+        return squared_distance if TargetKind(kind).every_vertex else chamfer
     raise ValueError(f"unknown target kind {kind!r}; expected 'positions' or 'points'")
 
 
@@ -251,19 +255,19 @@ class Loss(NamedTuple):
 def _frame_mean_sq(target, faces=None, n_vertices=None):
     """``(x (V, 3), y) -> d_j``: the frame's mean squared distance (m²) for a target (its kind,
     :func:`point_weight`, a tracks target's correspondence)."""
-    kind = target.kind
-    if kind == "positions":
+    kind = _kind(target)
+    if kind.compound:
+        raise ValueError(f"unknown target kind {kind!r}; expected 'positions', 'points' or 'tracks'")
+    if kind.every_vertex:
         return squared_distance
-    if kind == "points":
-        return point_surface(faces, n_vertices, point_weight(target))
-    if kind == "tracks":
+    if kind.material_points:
         return track_distance2(target.track_vertices, target.track_weights, point_weight(target))
-    raise ValueError(f"unknown target kind {kind!r}; expected 'positions', 'points' or 'tracks'")
+    return point_surface(faces, n_vertices, point_weight(target))
 
 
 #: Residual components per residual: positions and tracks give (x, y, z) per vertex or track,
 #: points one distance; a mixed target's s² is per coordinate or point distance alike.
-COMPONENTS = {"positions": 3, "points": 1, "tracks": 3, "mixed": 1}
+COMPONENTS = {k: k.components for k in KINDS}
 
 
 def part_weights(target):
@@ -287,9 +291,9 @@ def rest_distance(target, x_rest, faces=None):
     """Mean over the target's frames of the frame distance (m²) between the rest shape and the
     target (float64); for a mixed target the parts' combined as its normaliser is
     (:func:`combined_scale2`)."""
-    if target.kind == "mixed":
+    if _kind(target).compound:
         return combined_scale2(target, [rest_distance(p, x_rest, faces) for p in target.parts])
-    if target.kind == "positions":       # in numpy: nothing to compile for the commonest kind
+    if _kind(target).every_vertex:         # in numpy: nothing to compile for the commonest kind
         d = np.asarray(target.data, np.float64) - np.asarray(x_rest, np.float64)[None]
         return float(np.mean(np.sum(d * d, axis=-1)))
     with jax.enable_x64(True):
@@ -299,7 +303,7 @@ def rest_distance(target, x_rest, faces=None):
 
 def loss_scale(target, topology, noise=None, noise_free=False):
     """(s², "noise" or "motion", sigma or None): the normaliser of the loss (module docstring)."""
-    if target.kind == "mixed":
+    if _kind(target).compound:
         parts = [loss_scale(p, topology, noise, noise_free) for p in target.parts]
         return combined_scale2(target, [s2 for s2, _, _ in parts]), parts[0][1], parts[0][2]
     sigma = None if noise_free else (target.noise if noise is None else float(noise))
@@ -333,7 +337,7 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
       :class:`Loss`.
     """
     n = target.n_frames
-    if target.kind == "mixed":
+    if _kind(target).compound:
         scales = [loss_scale(p, topology, noise, noise_free) for p in target.parts]
         scale2, how = combined_scale2(target, [s2 for s2, _, _ in scales]), scales[0][1]
         dist, parts = _mixed_distance(target, topology, [s2 for s2, _, _ in scales])
@@ -529,14 +533,14 @@ def make_residual(target, topology, loss):
     vertex (a point's nearest, a track's first)."""
     data = np.asarray(target.data, np.float64)
     t = data.shape[0]
-    if target.kind != "mixed":
-        norm = 1.0 / np.sqrt(observed_rows(target.kind, data).sum() * loss.scale2)   # t m, less a cloud's padding
+    if not _kind(target).compound:
+        norm = 1.0 / np.sqrt(_kind(target).observed(data).sum() * loss.scale2)   # t m, less a cloud's padding
         frame_fn, per_frame, near_fn = _part_residual(target, topology, loss.scale2, loss.normalisation)
     else:
         parts = target.parts
         (f_pts, n_pts, near_pts), (f_trk, n_trk, _) = (
             _part_residual(p, topology, s2, loss.normalisation) for p, (s2, _) in zip(parts, loss.parts))
-        norms = [np.sqrt(c / (observed_rows(p.kind, p.data).sum() * s2)) for p, (s2, c) in zip(parts, loss.parts)]
+        norms = [np.sqrt(c / (_kind(p).observed(p.data).sum() * s2)) for p, (s2, c) in zip(parts, loss.parts)]
         norm = np.tile(np.repeat(norms, [n_pts, n_trk]), t)
         cut = parts[0].points.shape[1]
         track_vertex = np.repeat(np.asarray(parts[1].track_vertices, np.int32)[:, 0], 3)   # (3 M_tracks,)
@@ -565,11 +569,11 @@ def _part_residual(target, topology, scale2, normalisation):
     the normaliser ``scale2`` and ``normalisation``."""
     m = np.shape(target.data)[1]
     near_fn = None
-    if target.kind == "positions":
+    if _kind(target).every_vertex:
         def frame_fn(frames, y):
             return (frames - y).reshape(-1)
         per_frame = 3 * m
-    elif target.kind == "tracks":
+    elif _kind(target).material_points:
         tv, tw = np.asarray(target.track_vertices, np.int32), np.asarray(target.track_weights, np.float64)
 
         def one_track(x, y):

@@ -41,7 +41,7 @@ def suits(prob):
     """Whether :class:`PerObjectGlobal` suits a problem (:class:`jaxplush.fitting.fitter.Problem`):
     more than one fitted object, and a target of vertex positions or tracks (whose residuals belong
     to objects exactly)."""
-    return len(prob.objects) > 1 and prob.target.kind in ("positions", "tracks")
+    return len(prob.objects) > 1 and prob.target.kind.material_points
 
 
 def fitted_index(prob):
@@ -66,17 +66,17 @@ def residual_objects(prob, frames=None):
     vobj = np.asarray(prob.sim.topology.vertex_object, np.int64)
     fitted = fitted_index(prob)
     target = prob.target
-    if target.kind == "positions":
+    if target.kind.every_vertex:
         per_vertex = fitted[vobj]                                        # (V,)
         return np.tile(np.repeat(per_vertex, 3), target.n_frames)
-    if target.kind == "tracks":
+    if target.kind.material_points:
         per_track = fitted[vobj[np.asarray(target.track_vertices, np.int64)[:, 0]]]     # (M,)
         return np.tile(np.repeat(per_track, 3), target.n_frames)
     if frames is None:
         raise ValueError("a point-cloud target needs simulated frames to assign its points to objects")
     per_track = None
     data = np.asarray(target.data, np.float64)
-    if target.kind == "mixed":
+    if target.kind.compound:
         per_track = np.repeat(fitted[vobj[np.asarray(target.track_vertices, np.int64)[:, 0]]], 3)
         data = np.asarray(target.points, np.float64)
     out = []
@@ -243,7 +243,7 @@ class PerObjectGlobal:
 
     def _owner(self, objective, s):
         prob = objective.prob
-        if prob.target.kind in ("positions", "tracks"):
+        if prob.target.kind.material_points:
             return residual_objects(prob)
         e = objective.evaluator(s.theta[None], keep_frames=True)
         if not e.ok[0]:       # no rollout to assign the points by: every block scored by the whole loss

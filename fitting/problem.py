@@ -339,7 +339,7 @@ def _fit_target(scene, target, dt, track_weight=None):
     elif dt is not None:
         target = target.on_grid(dt)
     if track_weight is not None:
-        if target.kind != "mixed":
+        if not target.kind.compound:
             raise JaxplushError(f"{target.path}: a track weight weighs a mixed target's tracks against its scan; "
                                 f"this target is {target.kind} alone")
         w = track_weight
@@ -347,7 +347,7 @@ def _fit_target(scene, target, dt, track_weight=None):
                 np.isfinite(w) and w > 0):
             raise JaxplushError(f"the track weight must be a finite number > 0, got {track_weight!r}")
         target = dataclasses.replace(target, track_weight=float(w))
-    if target.kind == "positions" and target.positions.shape[1] != scene.n_vertices:
+    if target.kind.every_vertex and target.positions.shape[1] != scene.n_vertices:
         raise JaxplushError(f"{target.path}: target has {target.positions.shape[1]} vertices, the scene "
                             f"{scene.n_vertices}")
     if target.tracks is not None:
@@ -358,7 +358,7 @@ def _fit_target(scene, target, dt, track_weight=None):
                             "depend on the parameters")
     for part in target.parts:
         if not part.observed[keep].any():
-            what = f"'{part.kind}' observe" if target.kind == "mixed" else "the target observes"
+            what = f"'{part.kind}' observe" if target.kind.compound else "the target observes"
             raise JaxplushError(f"{target.path}: {what} nothing after the initial frame (t = 0)")
     return target.select(keep)
 

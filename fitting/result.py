@@ -312,12 +312,12 @@ def identifiability_at(prob, theta):
 
 
 def _report(prob, frames, jac):
-    if prob.target.kind == "positions":
+    if prob.target.kind.every_vertex:
         residual = frames - prob.target.positions
-    elif prob.target.kind == "tracks":
-        residual, jac = _track_residual(prob.target, frames, jac)
-    elif prob.target.kind == "mixed":
+    elif prob.target.kind.compound:
         residual, jac = _mixed_residual(prob, frames, jac)
+    elif prob.target.kind.material_points:
+        residual, jac = _track_residual(prob.target, frames, jac)
     else:
         residual = np.concatenate([_nearest_residual(x, p) for x, p in zip(frames, prob.target.points)])
     return _ident.analyse(jac, residual, prob.labels, noise=prob.noise)

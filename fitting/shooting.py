@@ -125,13 +125,10 @@ def even_gap(target):
 
 def why_not(prob):
     """Why multiple shooting cannot run on this problem (a phrase), or None when it can."""
-    if prob.target.kind == "points":
-        return "the target is point clouds (no vertex is observed, so there are no node states)"
-    if prob.target.kind == "tracks":
-        return "the target is tracked points (not every vertex is observed, so there are no node states)"
-    if prob.target.kind == "mixed":
-        return ("the target is a scan with tracked points (not every vertex is observed, so there are no node "
-                "states)")
+    kind = prob.target.kind
+    if not kind.every_vertex:
+        seen = "not every vertex is observed" if kind.sees_vertices else "no vertex is observed"
+        return f"the target is {kind.noun} ({seen}, so there are no node states)"
     if even_gap(prob.target) is None:
         return "the target's frames are not on an even grid"
     if prob.sim.integrator != "verlet":
@@ -299,7 +296,7 @@ def _floor(prob, segment_frames, refine):
     if not d.ok[0]:
         return None, sep
     # the residuals are normalised by the target's scale: back to metres per coordinate
-    return _losses.rms_metres(float(d.loss[0]), prob.loss.scale2, "positions"), sep
+    return _losses.rms_metres(float(d.loss[0]), prob.loss.scale2, prob.target.kind), sep
 
 
 #: Central-difference step (log space) of :func:`resolution`'s Jacobian (``ShootingOptions.resolution_step``).
@@ -451,7 +448,7 @@ def plan(prob, setting="auto", options=None):
         why = "not measured" if pred is None else "the positions stay predictable over the whole target"
         return Shooting(None, single_floor=single, reason=f"single shooting ({why})"), prob
     reason = why_not(prob)
-    if reason is not None and prob.target.kind in ("points", "tracks", "mixed"):
+    if reason is not None and not prob.target.kind.every_vertex:
         return _points_within_horizon(prob, single, o.min_horizon_frames)
     if reason is not None:
         return Shooting(None, single_floor=single, reason=f"single shooting ({reason})"), prob
@@ -529,6 +526,6 @@ def _points_within_horizon(prob, single, min_frames=MIN_HORIZON_FRAMES):
         return Shooting(None, single_floor=single, reason="single shooting (the horizon spans the target)"), prob
     reason = (f"single shooting within the predictable horizon: the first {keep} of {t.n_frames} frames "
               f"(up to {float(t.times[keep - 1]):.3g} s; a "
-              f"{ {'points': 'point-cloud', 'tracks': 'tracks', 'mixed': 'scan-and-tracks'}[t.kind]} "
+              f"{t.kind.adjective} "
               "target has no node states to shoot from)")
     return Shooting(None, single_floor=single, reason=reason), prob.truncated(keep)

@@ -113,7 +113,7 @@ class Objective:
         from jaxplush.fitting import losses as _losses
         from jaxplush.fitting.result import rounding_drift
         prob = self.prob
-        if prob.target.kind not in ("positions", "tracks") or (prob.noise is not None and prob.noise > 0):
+        if not prob.target.kind.material_points or (prob.noise is not None and prob.noise > 0):
             return None
         sh = prob.shooting
         # multiple shooting: the floor of its segments (what the outcome judges it by)

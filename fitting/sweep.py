@@ -75,6 +75,7 @@ import numpy as np
 from jaxplush.stepping import batched
 from jaxplush.stepping import diagnostics
 from jaxplush.errors import JaxplushError, SimulationWarning, VolumeClampWarning
+from jaxplush.fitting.kinds import TargetKind
 from jaxplush.progress import Progress
 from jaxplush.types import PARAM_NAMES, Params
 
@@ -300,18 +301,18 @@ def _target_frames(target, scene, steps):
         if len(cloud) != len(rows):
             raise SweepError(f"target points have {len(cloud)} frames but its tracks {len(rows)}")
         pad = np.zeros(cloud.shape[:2] + (rows.shape[2] - 3,))
-        return "mixed", tsteps, np.concatenate([np.concatenate([cloud, pad], axis=2), rows], axis=1)
+        return TargetKind.MIXED, tsteps, np.concatenate([np.concatenate([cloud, pad], axis=2), rows], axis=1)
     if pos is not None:
-        kind, data = "positions", np.asarray(pos, np.float64)
+        kind, data = TargetKind.POSITIONS, np.asarray(pos, np.float64)
         if data.ndim != 3 or data.shape[1:] != (scene.n_vertices, 3):
             raise SweepError(f"target positions must have shape [T, {scene.n_vertices}, 3] for this scene, "
                              f"got {list(data.shape)}")
     elif pts is not None:
-        kind, data = "points", np.asarray(pts, np.float64)
+        kind, data = TargetKind.POINTS, np.asarray(pts, np.float64)
         if data.ndim != 3 or data.shape[2] != 3 or data.shape[1] < 1:
             raise SweepError(f"target points must have shape [T, M, 3], got {list(data.shape)}")
     elif trk is not None:
-        kind, data = "tracks", np.asarray(trk, np.float64)
+        kind, data = TargetKind.TRACKS, np.asarray(trk, np.float64)
         if data.ndim != 3 or data.shape[2] != 3 or data.shape[1] < 1:
             raise SweepError(f"target tracks must have shape [T, M, 3], got {list(data.shape)}")
     else:
@@ -324,12 +325,12 @@ def _target_frames(target, scene, steps):
     if np.any(tsteps < 0) or tsteps.max() > steps:
         raise SweepError(f"target frames reach step {int(tsteps.max())} but the sweep runs {steps} steps; "
                          f"use steps >= {int(tsteps.max())}")
-    pad = np.isnan(data).all(axis=2) if kind != "positions" else np.zeros(data.shape[:2], bool)
+    pad = np.isnan(data).all(axis=2) if kind.padded else np.zeros(data.shape[:2], bool)
     if not np.all(np.isfinite(data[~pad])):
         raise SweepError("target frames contain non-finite values" + (
-            f" (a {'point cloud' if kind == 'points' else 'track'}'s absent points are rows of NaN in all three "
-            "coordinates)" if kind != "positions" else ""))
-    if kind == "tracks":
+            f" (a {'track' if kind.material_points else 'point cloud'}'s absent points are rows of NaN in all three "
+            "coordinates)" if kind.padded else ""))
+    if kind is TargetKind.TRACKS:
         return kind, tsteps, _track_rows(target, scene, data, ~pad)
     empty = np.flatnonzero(pad.all(axis=1))
     if empty.size:
@@ -402,10 +403,12 @@ def frame_loss(kind, x, y):
     the two kinds' own sweep losses weighed as a fit weighs them."""
     if isinstance(kind, tuple):
         _, cut, w = kind
-        return (frame_loss("points", x, y[:cut, :3]) + w * frame_loss("tracks", x, y[cut:])) / (1.0 + w)
-    if kind == "positions":
+        return (frame_loss(TargetKind.POINTS, x, y[:cut, :3]) + w * frame_loss(TargetKind.TRACKS, x, y[cut:])) / (
+            1.0 + w)
+    kind = TargetKind(kind)
+    if kind.every_vertex:
         return sum((x[c] - y[:, c][:, None]) ** 2 for c in range(3)).mean(axis=0)
-    if kind == "tracks":
+    if kind.material_points:
         idx = y[:, 3:6].astype(jnp.int32)                              # (M, 3)
         d2 = sum((sum(y[:, 6 + k, None] * x[c][idx[:, k]] for k in range(3)) - y[:, c, None]) ** 2
                  for c in range(3))                                    # (M, B)
@@ -702,8 +705,8 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
     frame_steps = np.arange(1, n_full + 1) * period
     aux = None
     # the frame loss's static kind: a mixed target's with where its tracks start and their weight
-    lkind = (("mixed", int(np.shape(tgt.points)[1]), float(getattr(tgt, "track_weight", 1.0)))
-             if tkind == "mixed" else tkind)
+    lkind = ((TargetKind.MIXED.value, int(np.shape(tgt.points)[1]), float(getattr(tgt, "track_weight", 1.0)))
+             if tkind is TargetKind.MIXED else tkind)
     scan_kind = lkind if tkind is not None and np.any(tsteps > 0) else None   # step-0 frames: on the host
     if scan_kind is not None:
         later = tsteps > 0
@@ -783,7 +786,7 @@ def _sweep_result(scene, plan, res, wall):
         params=plan.pparams, final_positions=res["positions"], final_step=res["final_step"], volume=res["volume"],
         centroid_height=res["centroid_height"], max_displacement=res["max_displacement"],
         fail_code=res["fail_code"], fail_step=res["fail_step"], warn_step=res["warn_step"],
-        loss=res["loss"], target_kind=plan.tkind,
+        loss=res["loss"], target_kind=None if plan.tkind is None else TargetKind(plan.tkind).value,
         target_path=None if tgt is None else str(getattr(tgt, "path", "")),
         frames=res["frames"], frame_steps=res["frame_steps"], steps=plan.steps, dt=plan.dt,
         integrator=plan.integrator, save_every=plan.save_every, scene_text=scene.text, scene_path=scene.path,

@@ -50,6 +50,7 @@ import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
 from jaxplush.io.trajectory import atomic_path, open_hdf5
+from jaxplush.fitting.kinds import KINDS, TargetKind
 
 #: Times must lie within this fraction of dt of a multiple of dt (float32-written times included).
 GRID_TOLERANCE = 1e-3
@@ -57,12 +58,8 @@ GRID_TOLERANCE = 1e-3
 TARGET_FAR = 1e3
 #: Barycentric coordinates of a track may be this far below 0, and their sum this far from 1.
 BARYCENTRIC_TOLERANCE = 1e-6
-#: The target kinds, in the order :func:`load_target` prefers them when a file holds several
-#: ("mixed": a file's ``points`` and ``tracks`` together).
-KINDS = ("positions", "mixed", "points", "tracks")
-#: The datasets of each kind's frames.
-KIND_DATASETS = {"positions": ("positions",), "points": ("points",), "tracks": ("tracks",),
-                 "mixed": ("points", "tracks")}
+#: The datasets of each kind's frames (:attr:`jaxplush.fitting.kinds.TargetKind.datasets`).
+KIND_DATASETS = {k: k.datasets for k in KINDS}
 #: The ``source`` of the driven paths :func:`scene_with_controls` adds (whitespace: no scene line
 #: can name such a path file).
 CONTROLS_SOURCE = "<target controls>"
@@ -72,8 +69,7 @@ def observed_rows(kind, data):
     """(T, N) bool: the rows of a target's ``data`` (T, N, 3) that hold an observation: every
     vertex of ``positions``, the finite rows of ``points`` (NaN rows are padding), ``tracks``
     (NaN rows: not seen) and ``mixed`` (both)."""
-    data = np.asarray(data)
-    return np.ones(data.shape[:2], bool) if kind == "positions" else np.isfinite(data).all(axis=2)
+    return TargetKind(kind).observed(data)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -139,26 +135,27 @@ class Target:
 
     @property
     def kind(self):
-        """"positions", "points", "tracks" or "mixed" (points and tracks)."""
+        """Its :class:`jaxplush.fitting.kinds.TargetKind` (equal to "positions", "points", "tracks"
+        or "mixed": points and tracks)."""
         if self.positions is not None:
-            return "positions"
+            return TargetKind.POSITIONS
         if self.tracks is not None:
-            return "mixed" if self.points is not None else "tracks"
-        return "points"
+            return TargetKind.MIXED if self.points is not None else TargetKind.TRACKS
+        return TargetKind.POINTS
 
     @property
     def data(self):
         """(T, V or M, 3) the target's frames, whichever kind (mixed: the points, then the tracks,
         (T, M_points + M_tracks, 3))."""
-        if self.kind == "mixed":
+        if self.kind.compound:
             return np.concatenate([np.asarray(self.points), np.asarray(self.tracks)], axis=1)
-        return {"positions": self.positions, "points": self.points, "tracks": self.tracks}[self.kind]
+        return getattr(self, self.kind.value)
 
     @property
     def parts(self):
         """The single-kind targets this one is made of: (points, tracks) for a mixed target (same
         frames), else (self,)."""
-        if self.kind != "mixed":
+        if not self.kind.compound:
             return (self,)
         return (dataclasses.replace(self, tracks=None, track_vertices=None, track_weights=None),
                 dataclasses.replace(self, points=None))
@@ -170,12 +167,12 @@ class Target:
     @property
     def observed(self):
         """(T, V or M) bool: the rows that hold an observation (False: a point cloud's NaN padding)."""
-        return observed_rows(self.kind, self.data)
+        return self.kind.observed(self.data)
 
     @property
     def ragged(self):
         """True for a point cloud whose frames hold different numbers of points (NaN padding)."""
-        return self.kind == "points" and not bool(self.observed.all())
+        return self.kind is TargetKind.POINTS and not bool(self.observed.all())
 
     def select(self, frames):
         """A target with only the given frames (indices or a boolean mask, in order)."""
@@ -279,20 +276,20 @@ def _dataset(path, fh, name, required=True):
 def _read(path, fh, kind):
     if kind not in (None,) + KINDS:
         raise ValueError(f"kind must be 'positions', 'mixed', 'points' or 'tracks', got {kind!r}")
-    have = [k for k in ("positions", "points", "tracks") if k in fh]
+    have = [k for k in KINDS if not k.compound and k.value in fh]
     if not have:
         raise TrajectoryError(path, "missing dataset 'positions' (or 'points' for a point-cloud target, "
                                     "'tracks' for tracked points)")
-    if kind is None:
-        kind = "mixed" if "positions" not in have and {"points", "tracks"} <= set(have) else have[0]
-    for name in KIND_DATASETS[kind]:
+    kind = TargetKind(kind) if kind is not None else next(
+        k for k in KINDS if set(k.datasets) <= {h.value for h in have})        # the kinds in preference order
+    for name in kind.datasets:
         if name not in have:
             raise TrajectoryError(path, f"missing dataset '{name}'" + (
-                " (a mixed target holds both 'points' and 'tracks')" if kind == "mixed" else ""))
+                " (a mixed target holds both 'points' and 'tracks')" if kind.compound else ""))
     out = {"kind": kind}
     names = [(n, True) for n in KIND_DATASETS[kind]]
     names += [("times", True), ("faces", False), ("object_id", False), ("object_names", False)]
-    if "tracks" in KIND_DATASETS[kind]:
+    if kind.tracked:
         names += [(n, False) for n in TRACK_DATASETS]
     for name, required in names:
         ds = _dataset(path, fh, name, required)
@@ -316,13 +313,13 @@ def _validate(path, raw, scene, dt):
     for name in names:
         frames[name] = np.asarray(raw[name])
         _check_data_shape(path, name, frames[name], scene)
-    if kind == "mixed" and len(frames["points"]) != len(frames["tracks"]):
+    if kind.compound and len(frames["points"]) != len(frames["tracks"]):
         raise TrajectoryError(path, f"'tracks' has {len(frames['tracks'])} frames but 'points' has "
                                     f"{len(frames['points'])}: a mixed target's scan and tracks share the frames "
                                     "of 'times'")
     n_frames = len(frames[names[0]])
     _check_object_names(path, raw.get("object_names"), scene)
-    if kind != "points":
+    if kind.material_points or kind.compound:       # (a scan alone has no vertex numbering to check)
         _check_object_id(path, raw.get("object_id"), scene, scene.n_vertices)
         faces = raw.get("faces")
         if faces is not None and not _same_faces(np.asarray(faces), scene.faces):
@@ -568,15 +565,15 @@ def _track_datasets(vertices, weights):
 
 
 def _check_data_shape(path, kind, data, scene):
+    kind = TargetKind(kind)
     if data.ndim != 3 or data.shape[2] != 3:
-        what = "[T, V, 3]" if kind == "positions" else "[T, M, 3]"
-        raise TrajectoryError(path, f"'{kind}' must have shape {what}, got {list(data.shape)}")
+        raise TrajectoryError(path, f"'{kind}' must have shape {kind.shape_text}, got {list(data.shape)}")
     n_frames, n = data.shape[:2]
     if n_frames == 0:
         raise TrajectoryError(path, f"'{kind}' holds no frames")
     if n == 0:
         raise TrajectoryError(path, f"'{kind}' holds no points")
-    if kind == "positions" and n != scene.n_vertices:
+    if kind.every_vertex and n != scene.n_vertices:
         raise TrajectoryError(path, f"'positions' has {n} vertices but the scene {scene.path} has "
                                     f"{scene.n_vertices}")
 
@@ -651,18 +648,19 @@ def _target_dt(path, dt_attr, dt):
 def _check_data_values(path, kind, data, scene):
     """Finite values (points, tracks: or rows of three NaNs, padding or not seen), within TARGET_FAR
     scene sizes of the scene's centre; every track seen in some frame."""
-    pad = np.isnan(data).all(axis=2) if kind != "positions" else np.zeros(data.shape[:2], bool)
+    kind = TargetKind(kind)
+    pad = np.isnan(data).all(axis=2) if kind.padded else np.zeros(data.shape[:2], bool)
     bad = ~np.isfinite(data).all(axis=2) & ~pad
     if bad.any():
         t, i = (int(a[0]) for a in np.nonzero(bad))
-        what = {"positions": "vertex", "points": "point", "tracks": "track"}[kind]
+        what = kind.unit
         raise TrajectoryError(path, f"'{kind}' has non-finite values (first at frame {t}, {what} {i})"
                               + (f"; a {what} that is absent must be NaN in all three coordinates"
-                                 if kind != "positions" and np.isnan(data[t, i]).any() else ""))
+                                 if kind.padded and np.isnan(data[t, i]).any() else ""))
     if pad.all():
-        raise TrajectoryError(path, "'points' holds no points: every row is NaN padding" if kind == "points" else
-                              "'tracks' holds no points: every row is NaN (no track is ever seen)")
-    if kind == "tracks" and pad.all(axis=0).any():
+        raise TrajectoryError(path, "'tracks' holds no points: every row is NaN (no track is ever seen)"
+                              if kind.material_points else "'points' holds no points: every row is NaN padding")
+    if kind is TargetKind.TRACKS and pad.all(axis=0).any():
         i = int(np.argmax(pad.all(axis=0)))
         raise TrajectoryError(path, f"'tracks' never sees track {i}: it is NaN in every frame (leave it out)")
     extent = float(max(np.max(np.ptp(scene.vertices, axis=0)), 1e-6))

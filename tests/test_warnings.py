@@ -1,6 +1,7 @@
-"""Warnings and errors as types: every warning jaxplush issues has a category a caller can filter
-on, a fit's notes keep theirs (through a checkpoint too), and an error that is added to is rebuilt
-from its fields, not its text."""
+"""Warnings, errors, statuses and target kinds as types: every warning jaxplush issues has a
+category a caller can filter on, a fit's notes keep theirs (through a checkpoint too), an error
+that is added to is rebuilt from its fields, not its text, and no status or target kind is
+compared by its name outside the module that defines it."""
 
 from __future__ import annotations
 
@@ -76,6 +77,33 @@ def test_no_status_string_is_compared_outside_the_outcome_module():
                         assert not (isinstance(c, ast.Constant) and c.value in STATUS_VALUES), (
                             f"{path.name}:{node.lineno}: compares with the status string {c.value!r}; "
                             "use jaxplush.fitting.outcome.Status")
+
+
+KIND_VALUES = ("positions", "points", "tracks", "mixed")
+
+
+def test_no_target_kind_string_is_compared_outside_the_kinds_module():
+    """The kinds of target are one protocol (jaxplush.fitting.kinds.TargetKind): code asks a kind
+    what it is instead of comparing its name."""
+    found = []
+    for path in _sources():
+        if path.name == "kinds.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.Compare):
+                continue
+            # a kind against a name (==, !=), or a kind in a tuple of names; not a name looked up
+            # in a file or a dict ("positions" in f: a dataset of that name)
+            sides = [node.left] + list(node.comparators)
+            if any(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops):
+                sides = node.comparators
+            for side in sides:
+                consts = side.elts if isinstance(side, (ast.Tuple, ast.List, ast.Set)) else [side]
+                if any(isinstance(op, (ast.In, ast.NotIn)) for op in node.ops) and consts == [side]:
+                    continue
+                found += [f"{path.name}:{node.lineno}: {c.value!r}" for c in consts
+                          if isinstance(c, ast.Constant) and c.value in KIND_VALUES]
+    assert not found, "target kind names compared (ask jaxplush.fitting.kinds.TargetKind):\n" + "\n".join(found)
 
 
 def test_a_time_step_above_the_limit_warns_by_category_and_the_trajectory_keeps_the_note():

@@ -27,6 +27,7 @@ import time
 import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
+from jaxplush.io.kinds import KINDS, TargetKind
 from jaxplush.io.trajectory import atomic_path, check_output_path, open_hdf5
 
 __all__ = ["view", "LiveView", "StaticView", "ViewerUnavailable", "TargetMismatch", "INSTALL_HINT", "COLORS",
@@ -217,11 +218,11 @@ def _read_target(path):
     path = os.fspath(path)
     try:
         with open_hdf5(path) as f:
-            have = [k for k in ("positions", "points", "tracks") if k in f]
+            have = [k for k in KINDS if not k.compound and k.value in f]       # in order of preference
             if not have:
                 raise TrajectoryError(path, "no 'positions', 'points' or 'tracks' dataset: not a fit target")
             kind = have[0]
-            ds = f[kind]
+            ds = f[kind.value]
             if not hasattr(ds, "shape") or ds.ndim != 3 or ds.shape[2] != 3 or ds.shape[0] == 0:
                 raise TrajectoryError(path, f"'{kind}' must have shape [T, N, 3]")
             if ds.dtype.kind not in "fiu":
@@ -231,7 +232,7 @@ def _read_target(path):
             rec = dict(names=_read_names(f) or None,
                        faces=_small_dataset(f, "faces", 2), object_id=_small_dataset(f, "object_id", 1),
                        scene=_text_attr(f, "scene"), width=int(data.shape[1]),
-                       correspondence="positions" in have or "tracks" in have)
+                       correspondence=any(k.material_points for k in have))
     except TrajectoryError:
         raise
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
@@ -263,7 +264,7 @@ def _check_target(data, kind, rec, name):
     its scene, and the stored scenes' objects and rest shape where both files hold a scene."""
     what = os.path.basename(data.path) if data.path != "<trajectory>" else "the trajectory"
     n_verts = data.positions.shape[1]
-    if kind == "positions" and rec["width"] != n_verts:
+    if TargetKind(kind).every_vertex and rec["width"] != n_verts:
         raise TargetMismatch(name, f"its 'positions' hold {rec['width']} vertices but {what} has {n_verts}: "
                                    "the target belongs to another scene")
     names = rec["names"]
@@ -364,7 +365,7 @@ def _attach_target(data, target, report):
     else:                                           # a jaxplush.fitting.Target
         kind, times, name = target.kind, np.asarray(target.times, np.float64), getattr(target, "path", "<target>")
         frames = [d[np.isfinite(d).all(axis=1)].astype(np.float32) for d in np.asarray(target.data)]
-        if kind == "positions":
+        if TargetKind(kind).every_vertex:
             _check_target(data, kind, dict(names=None, faces=None, object_id=None, scene=None, correspondence=True,
                                            width=int(np.shape(target.data)[1])), name)
     order = np.argsort(times, kind="stable")

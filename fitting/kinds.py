@@ -1,0 +1,4 @@
+"""The kinds of target (:mod:`jaxplush.io.kinds`, where they are defined: the viewer in the core
+reads targets too); the names the fitting modules use."""
+
+from jaxplush.io.kinds import KINDS, TargetKind, kind  # noqa: F401
