@@ -313,10 +313,33 @@ def analyse(jac, residual, labels, noise=None, jac_noise=None):
     if noise is not None and noise > 0 and sigma > 3 * noise:
         warnings.append(f"the residuals ({sigma:.3g} m RMS per coordinate) are well above the stated noise "
                         f"({noise:.3g} m): the model does not reproduce the target")
+    for pair in shared_regressors(labels):
+        # exactly one regressor for the two (the model's own algebra, whatever a rounded Jacobian
+        # shows): neither value is determined, only their rate (jaxplush.fitting.intervals.combinations)
+        stderr[list(pair)] = np.inf          # (still sensitive: twins step along the pair, which moves the rate)
+        a, b = (labels[i] for i in pair)
+        warnings.append(f"{a} and {b} take the same share of every vertex's velocity off at every step, so the "
+                        f"target determines only their combined rate (reported as damping+drag rate), not the "
+                        "split between them")
     return IdentifiabilityReport(labels=labels, jtj=jtj, eigenvalues=evals, eigenvectors=evecs, condition=cond,
                                  sensitivity=sens, stderr=stderr, sigma=sigma, n_data=n, determined=determined,
                                  weak=weak, weakest=weakest, warnings=warnings,
                                  jac_noise=math.nan if jac_noise is None else float(jac_noise), unresolved=unresolved)
+
+
+def shared_regressors(labels):
+    """Pairs (i, j) of column indices of ``labels`` ("name[object]") that share one regressor in
+    the model, so that no target tells them apart: the report's ``damping`` and air ``drag`` of one
+    object (the Verlet update takes 1/D of the half-step velocity off per step, and drag gamma dt
+    of it; docs/model.md)."""
+    index = {lab: i for i, lab in enumerate(labels)}
+    out = []
+    for lab, i in index.items():
+        if lab.startswith("damping["):
+            j = index.get("drag[" + lab[len("damping["):])
+            if j is not None:
+                out.append((i, j))
+    return out
 
 
 def fd_noise(drift, h):
