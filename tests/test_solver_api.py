@@ -126,3 +126,36 @@ def test_a_solver_that_is_not_a_list_of_stages_is_refused_before_anything_runs(c
             fitting.fit(start, target, NAMES, solver=bad, **KW)
     with pytest.raises(JaxplushError, match="does not go with optimizer 'adam'"):
         fitting.fit(start, target, NAMES, optimizer="adam", solver=[fitting.GlobalStage()], **KW)
+
+
+class _Interrupt:
+    """A stage whose first start is a Ctrl-C (once per test: ``fired``)."""
+
+    def __init__(self):
+        self.fired = False
+
+    def init(self, objective, theta, state):
+        if not self.fired:
+            self.fired = True
+            raise KeyboardInterrupt
+        return state
+
+    def step(self, objective, s):
+        return s
+
+    def terminate(self, objective, s):
+        return True, None
+
+
+def test_an_optax_stage_is_checkpointed_and_resumed(case, tmp_path):
+    """The optax stage's state (the transformation's state included) goes into the checkpoint and
+    comes back: a fit interrupted after it resumes to the uninterrupted fit's values."""
+    truth, start, target = case
+    glob, adam = fitting.GlobalStage(samples=8, starts=2), fitting.Optax(optax.adam(0.01), steps=4)
+    ref = fitting.fit(start, target, NAMES, solver=[glob, adam], **KW)
+    out, stop = tmp_path / "FIT.h5", _Interrupt()
+    with pytest.raises(KeyboardInterrupt):
+        fitting.fit(start, target, NAMES, solver=[glob, adam, stop], checkpoint_path=out, **KW)
+    res = fitting.fit(start, target, NAMES, solver=[glob, adam, stop], checkpoint_path=out, resume=True, **KW)
+    for n in NAMES:
+        np.testing.assert_array_equal(res.values[n], ref.values[n])
