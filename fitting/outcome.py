@@ -47,10 +47,11 @@ motion). It is not converged: the positions are not predictable over the whole t
 from __future__ import annotations
 
 import dataclasses
-import enum
 import math
 
 import numpy as np
+
+from jaxplush.types import StrEnum
 
 #: Residual RMS allowed above the stated noise sigma (a fit at the truth sits at 1.0-1.1).
 NOISE_FACTOR = 1.25
@@ -66,25 +67,7 @@ STEP_TOL = 1e-3
 FLOOR_FACTOR = 2.0
 
 
-class _StrEnum(str, enum.Enum):
-    """A str-valued enum that compares, hashes, prints, formats and shows (repr) as its value (so
-    comparisons with plain strings, dict keys, f-strings, JSON, HDF5 attributes and printed
-    results see the text, as before these were enums)."""
-
-    def __str__(self):
-        return self.value
-
-    def __repr__(self):
-        return repr(self.value)
-
-    def __format__(self, spec):
-        return format(self.value, spec)
-
-    def __hash__(self):
-        return str.__hash__(self)
-
-
-class Status(_StrEnum):
+class Status(StrEnum):
     """How a fit ended (:attr:`Outcome.status`; FIT.h5's ``status`` attribute holds the value)."""
 
     CONVERGED = "converged"
@@ -96,7 +79,7 @@ class Status(_StrEnum):
     UNDETERMINED = "undetermined"
 
 
-class Stop(_StrEnum):
+class Stop(StrEnum):
     """Why a local search or an optimiser stopped (``LMState.stopped``, ``LoopState.stopped``;
     checkpoints hold the value). ``NONE``: it has not stopped (or was restarted)."""
 

@@ -18,6 +18,7 @@ Three kinds of data, kept apart on purpose:
 
 from __future__ import annotations
 
+import enum
 from typing import NamedTuple
 
 import numpy as np
@@ -70,3 +71,21 @@ class State(NamedTuple):
 
     x: object
     v: object
+
+
+class StrEnum(str, enum.Enum):
+    """A str-valued enum that compares, hashes, prints, formats and shows (repr) as its value, so
+    plain strings, dict keys, f-strings, JSON and HDF5 attributes see the text (a fit's status,
+    a target's kind)."""
+
+    def __str__(self):
+        return self.value
+
+    def __repr__(self):
+        return repr(self.value)
+
+    def __format__(self, spec):
+        return format(self.value, spec)
+
+    def __hash__(self):
+        return str.__hash__(self)

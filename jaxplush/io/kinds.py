@@ -19,30 +19,18 @@ FIT.h5 and the command line spell them.
 
 from __future__ import annotations
 
-import enum
-
 import numpy as np
 
+from jaxplush.types import StrEnum
 
-class TargetKind(str, enum.Enum):
+
+class TargetKind(StrEnum):
     """The kind of a target (module docstring); equal to, hashed and printed as its name."""
 
     POSITIONS = "positions"
     POINTS = "points"
     TRACKS = "tracks"
     MIXED = "mixed"
-
-    def __str__(self):
-        return self.value
-
-    def __repr__(self):
-        return repr(self.value)
-
-    def __format__(self, spec):
-        return format(self.value, spec)
-
-    def __hash__(self):
-        return str.__hash__(self)
 
     @property
     def datasets(self):
