@@ -33,6 +33,8 @@ import importlib
 _EXPORTS = {
     "Target": "jaxplush.fitting.targets",
     "TargetKind": "jaxplush.fitting.kinds",
+    "Kind": "jaxplush.fitting.kinds",
+    "Status": "jaxplush.fitting.outcome",
     "Controls": "jaxplush.fitting.targets",
     "scene_with_controls": "jaxplush.fitting.targets",
     "load_target": "jaxplush.fitting.targets",

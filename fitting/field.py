@@ -319,8 +319,7 @@ def default_weight(n_residuals, tau=DEFAULT_TAU, normalisation="noise"):
 def n_residuals(target):
     """N, the number of residuals behind the normalised loss: 3 per observed vertex or track, 1
     per observed point."""
-    from jaxplush.fitting.losses import COMPONENTS
-    return int(target.observed.sum()) * COMPONENTS[target.kind]
+    return int(target.observed.sum()) * target.kind.components
 
 
 def build_field_problem(scene, target, field="regions", params=None, *, weight=None, tau=DEFAULT_TAU,

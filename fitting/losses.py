@@ -4,7 +4,7 @@
   vertices correspond one to one).
 * :func:`point_surface_distance2`: squared distance of every target point to the simulated
   surface, for ``points`` targets (a scan: M points with no correspondence to the V vertices).
-* :func:`chamfer`: the symmetric vertex-to-point Chamfer distance (used by sweeps).
+* :func:`chamfer`: the symmetric vertex-to-point Chamfer distance (a loss of one's own).
 * :func:`track_positions`: the simulated positions of tracked points (vertices, or points on
   faces by barycentric weights), for ``tracks`` targets: each observed track's squared
   distance to its simulated position (rows of NaN, tracks not seen, left out).
@@ -51,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.fitting.kinds import KINDS, TargetKind
+from jaxplush.fitting.kinds import TargetKind
 
 #: matrix products ask for full float32 precision: a GPU's default (TF32 on NVIDIA) keeps 10 mantissa
 #: bits, which leaves millimetres of error in |x|² + |p|² - 2 x.p
@@ -209,24 +209,18 @@ def _kind(target):
     return TargetKind(target.kind)
 
 
-def point_weight(target):
-    """T / N for a point cloud with NaN padding (N observed points over T frames; see
-    :func:`point_surface`), None otherwise; for tracks always T / N."""
+def point_weight(target, always=False):
+    """T / N for a target's rows with NaN padding or rows not seen (N observed over T frames; see
+    :func:`point_surface`), None where every row is observed (unless ``always``: a tracks target's
+    distance is always a sum over its tracks)."""
     if _kind(target).compound:
         raise ValueError("a mixed target's terms are weighed each on its own (Target.parts)")
     observed = _kind(target).observed(target.data)
-    if _kind(target) is not TargetKind.TRACKS and observed.all():
+    if not always and observed.all():
         return None
     if not observed.any():
         raise ValueError(f"{target.path}: the target's frames hold no observation")
     return len(observed) / float(observed.sum())
-
-
-def frame_distance(kind):
-    """The per-frame distance for a target kind: "positions" or "points"."""
-    if kind in (TargetKind.POSITIONS, TargetKind.POINTS):
-        return squared_distance if TargetKind(kind).every_vertex else chamfer
-    raise ValueError(f"unknown target kind {kind!r}; expected 'positions' or 'points'")
 
 
 class Loss(NamedTuple):
@@ -252,22 +246,17 @@ class Loss(NamedTuple):
     parts: tuple = ()
 
 
-def _frame_mean_sq(target, faces=None, n_vertices=None):
-    """``(x (V, 3), y) -> d_j``: the frame's mean squared distance (m²) for a target (its kind,
-    :func:`point_weight`, a tracks target's correspondence)."""
-    kind = _kind(target)
-    if kind.compound:
-        raise ValueError(f"unknown target kind {kind!r}; expected 'positions', 'points' or 'tracks'")
-    if kind.every_vertex:
-        return squared_distance
-    if kind.material_points:
-        return track_distance2(target.track_vertices, target.track_weights, point_weight(target))
-    return point_surface(faces, n_vertices, point_weight(target))
+def _frame_mean_sq(target, topology):
+    """``(x (V, 3), y) -> d_j``: the frame's mean squared distance (m²) for a target: its kind's
+    (:meth:`jaxplush.fitting.kinds.Kind.mean_sq`)."""
+    return _kind(target).mean_sq(target, topology)
 
 
-#: Residual components per residual: positions and tracks give (x, y, z) per vertex or track,
-#: points one distance; a mixed target's s² is per coordinate or point distance alike.
-COMPONENTS = {k: k.components for k in KINDS}
+def components(kind):
+    """Residual components per observation of a kind (:attr:`jaxplush.fitting.kinds.Kind.components`):
+    positions and tracks give (x, y, z) per vertex or track, points one distance; a mixed target's
+    s² is per coordinate or point distance alike."""
+    return TargetKind(kind).components
 
 
 def part_weights(target):
@@ -282,22 +271,23 @@ def part_weights(target):
 def combined_scale2(target, scales):
     """A mixed target's normaliser (per coordinate or point distance) from its parts' ``scales``
     [s²_points, s²_tracks]: 1 / sum_k weight_k C_k / s²_k (module docstring); 0 where a part's is 0."""
-    terms = [c * COMPONENTS[p.kind] / s2 if s2 > 0 else np.inf
+    terms = [c * components(p.kind) / s2 if s2 > 0 else np.inf
              for p, s2, c in zip(target.parts, scales, part_weights(target))]
     return float(1.0 / sum(terms))
 
 
-def rest_distance(target, x_rest, faces=None):
-    """Mean over the target's frames of the frame distance (m²) between the rest shape and the
-    target (float64); for a mixed target the parts' combined as its normaliser is
-    (:func:`combined_scale2`)."""
+def rest_distance(target, topology):
+    """Mean over the target's frames of the frame distance (m²) between the rest shape
+    (``topology.x0``) and the target (float64); for a mixed target the parts' combined as its
+    normaliser is (:func:`combined_scale2`)."""
     if _kind(target).compound:
-        return combined_scale2(target, [rest_distance(p, x_rest, faces) for p in target.parts])
+        return combined_scale2(target, [rest_distance(p, topology) for p in target.parts])
+    x_rest = np.asarray(topology.x0, np.float64)
     if _kind(target).every_vertex:         # in numpy: nothing to compile for the commonest kind
-        d = np.asarray(target.data, np.float64) - np.asarray(x_rest, np.float64)[None]
+        d = np.asarray(target.data, np.float64) - x_rest[None]
         return float(np.mean(np.sum(d * d, axis=-1)))
     with jax.enable_x64(True):
-        f = jax.jit(jax.vmap(_frame_mean_sq(target, faces, len(x_rest)), in_axes=(None, 0)))
+        f = jax.jit(jax.vmap(_frame_mean_sq(target, topology), in_axes=(None, 0)))
         return float(np.mean(np.asarray(f(jnp.asarray(x_rest, jnp.float64), jnp.asarray(target.data, jnp.float64)))))
 
 
@@ -308,8 +298,8 @@ def loss_scale(target, topology, noise=None, noise_free=False):
         return combined_scale2(target, [s2 for s2, _, _ in parts]), parts[0][1], parts[0][2]
     sigma = None if noise_free else (target.noise if noise is None else float(noise))
     if sigma is not None and sigma > 0:
-        return COMPONENTS[target.kind] * sigma * sigma, "noise", sigma
-    scale2 = rest_distance(target, topology.x0, topology.faces)
+        return components(target.kind) * sigma * sigma, "noise", sigma
+    scale2 = rest_distance(target, topology)
     if not scale2 > 0:  # the target is the rest shape itself: any positive scale will do
         scale2 = float(np.mean(np.var(topology.x0, axis=0)))
     return scale2, "motion", None
@@ -318,7 +308,7 @@ def loss_scale(target, topology, noise=None, noise_free=False):
 def rms_metres(loss, scale2, kind):
     """RMS residual in metres of a (normalised) loss: per coordinate for positions and tracks, per
     point distance for points (each comparable with the noise sigma)."""
-    return float(np.sqrt(max(loss, 0.0) * scale2 / COMPONENTS[kind]))
+    return float(np.sqrt(max(loss, 0.0) * scale2 / components(kind)))
 
 
 def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_volume=True):
@@ -344,7 +334,7 @@ def make_loss(target, topology, dtype, *, noise=None, noise_free=False, check_vo
         inv = 1.0 / n
     else:
         scale2, how, _ = loss_scale(target, topology, noise, noise_free)
-        dist, parts = _frame_mean_sq(target, topology.faces, topology.n_vertices), ()
+        dist, parts = _frame_mean_sq(target, topology), ()
         inv = 1.0 / (n * scale2)
     volumes = None
     if check_volume:
@@ -369,7 +359,7 @@ def _mixed_distance(target, topology, scales):
     over its own columns of the frame and normalised by its own ``scales`` s²_k."""
     parts = target.parts
     weights = part_weights(target)
-    dists = [_frame_mean_sq(p, topology.faces, topology.n_vertices) for p in parts]
+    dists = [_frame_mean_sq(p, topology) for p in parts]
     cut = parts[0].points.shape[1]
     cols = (slice(0, cut), slice(cut, None))
     factors = [c / s2 for c, s2 in zip(weights, scales)]
@@ -566,51 +556,119 @@ def make_residual(target, topology, loss):
 
 def _part_residual(target, topology, scale2, normalisation):
     """(frame_fn, per_frame, near_fn) of :class:`Residual` for a single-kind target whose loss has
-    the normaliser ``scale2`` and ``normalisation``."""
+    the normaliser ``scale2`` and ``normalisation``: its kind's
+    (:meth:`jaxplush.fitting.kinds.Kind.residual`)."""
+    return _kind(target).residual(target, topology, scale2, normalisation)
+
+
+def vertex_residual(target):
+    """The residual of a ``positions`` target (:meth:`jaxplush.fitting.kinds.Kind.residual`):
+    every vertex's simulated minus observed position."""
     m = np.shape(target.data)[1]
-    near_fn = None
-    if _kind(target).every_vertex:
-        def frame_fn(frames, y):
-            return (frames - y).reshape(-1)
-        per_frame = 3 * m
-    elif _kind(target).material_points:
-        tv, tw = np.asarray(target.track_vertices, np.int32), np.asarray(target.track_weights, np.float64)
 
-        def one_track(x, y):
-            valid = jnp.all(jnp.isfinite(y), axis=-1)                   # not seen: residual 0
-            d = track_positions(x, tv, jnp.asarray(tw, x.dtype)) - jnp.where(valid[:, None], y, 0.0)
-            return jnp.where(valid[:, None], d, 0.0)
+    def frame_fn(frames, y):
+        return (frames - y).reshape(-1)
+    return frame_fn, 3 * m, None
 
-        def frame_fn(frames, y):
-            return jax.vmap(one_track)(frames, y).reshape(-1)
-        per_frame = 3 * m
-    else:
-        faces = np.asarray(topology.faces, np.int32)
-        vf = vertex_faces(faces, topology.n_vertices)
-        coarse = coarse_vertices(topology.x0, -(-topology.n_vertices // 8))
-        ring = np.asarray(topology.ring, np.int32)
 
-        # isotropic noise of sigma puts a sample of a curved surface outside it by sigma² H on
-        # average (H the mean curvature there): each distance has that expected offset taken off,
-        # with H of the simulated frame at the point's nearest vertex (else a convex shape's fit
-        # leans to whatever inflates it or rounds it off)
-        curv = curvature_tables(faces, topology.n_vertices)
-        sigma2 = float(scale2) if normalisation == "noise" else 0.0
+def track_residual(target):
+    """The residual of a ``tracks`` target: each seen track's simulated minus observed position
+    (0 for a track not seen)."""
+    m = np.shape(target.data)[1]
+    tv, tw = np.asarray(target.track_vertices, np.int32), np.asarray(target.track_weights, np.float64)
 
-        def one(x, p, h):
-            valid, p = observed_points(p)                                # padding: residual 0
-            near = nearest_vertices_walk(x, p, coarse, ring)
-            d = point_surface_signed_distance(x, p, faces, vf, near)
-            d = d if h is None else d - jnp.asarray(sigma2, x.dtype) * h[near]
-            return jnp.where(valid, d, 0.0)
+    def one_track(x, y):
+        valid = jnp.all(jnp.isfinite(y), axis=-1)                   # not seen: residual 0
+        d = track_positions(x, tv, jnp.asarray(tw, x.dtype)) - jnp.where(valid[:, None], y, 0.0)
+        return jnp.where(valid[:, None], d, 0.0)
 
-        def frame_fn(frames, y):
-            if sigma2:
-                return jax.vmap(one)(frames, y, vertex_mean_curvature(frames, curv)).reshape(-1)
-            return jax.vmap(lambda x, p: one(x, p, None))(frames, y).reshape(-1)
-        per_frame = m
+    def frame_fn(frames, y):
+        return jax.vmap(one_track)(frames, y).reshape(-1)
+    return frame_fn, 3 * m, None
 
-        def near_fn(frames, y):
-            return jax.vmap(lambda x, p: nearest_vertices_walk(x, p, coarse, ring))(
-                frames, observed_points(y)[1]).reshape(-1)
-    return frame_fn, per_frame, near_fn
+
+def surface_residual(target, topology, scale2, normalisation):
+    """The residual of a ``points`` target: each point's signed distance to the simulated surface
+    (0 for padding), less the offset a known noise puts it at on a curved surface."""
+    m = np.shape(target.data)[1]
+    faces = np.asarray(topology.faces, np.int32)
+    vf = vertex_faces(faces, topology.n_vertices)
+    coarse = coarse_vertices(topology.x0, -(-topology.n_vertices // 8))
+    ring = np.asarray(topology.ring, np.int32)
+
+    # isotropic noise of sigma puts a sample of a curved surface outside it by sigma² H on
+    # average (H the mean curvature there): each distance has that expected offset taken off,
+    # with H of the simulated frame at the point's nearest vertex (else a convex shape's fit
+    # leans to whatever inflates it or rounds it off)
+    curv = curvature_tables(faces, topology.n_vertices)
+    sigma2 = float(scale2) if normalisation == "noise" else 0.0
+
+    def one(x, p, h):
+        valid, p = observed_points(p)                                # padding: residual 0
+        near = nearest_vertices_walk(x, p, coarse, ring)
+        d = point_surface_signed_distance(x, p, faces, vf, near)
+        d = d if h is None else d - jnp.asarray(sigma2, x.dtype) * h[near]
+        return jnp.where(valid, d, 0.0)
+
+    def frame_fn(frames, y):
+        if sigma2:
+            return jax.vmap(one)(frames, y, vertex_mean_curvature(frames, curv)).reshape(-1)
+        return jax.vmap(lambda x, p: one(x, p, None))(frames, y).reshape(-1)
+
+    def near_fn(frames, y):
+        return jax.vmap(lambda x, p: nearest_vertices_walk(x, p, coarse, ring))(
+            frames, observed_points(y)[1]).reshape(-1)
+    return frame_fn, m, near_fn
+
+
+def nearest_vertex(x, p):
+    """(M,) int64 the nearest vertex of x (V, 3) to each point of p (M, 3) (numpy, chunked; a
+    cloud's NaN padding is measured from the origin, and its residual is 0 anyway)."""
+    p = np.where(np.isfinite(p), p, 0.0)
+    near = np.empty(len(p), np.int64)
+    for a in range(0, len(p), 512):
+        d2 = np.sum((p[a:a + 512, None, :] - x[None, :, :]) ** 2, axis=-1)
+        near[a:a + 512] = np.argmin(d2, axis=1)
+    return near
+
+
+def nearest_point_residual(frames, clouds):
+    """(T V 3,) per frame, the vector from each vertex to its nearest observed point (numpy,
+    chunked; NaN padding left out): a scan's residual for the identifiability report, whose
+    Jacobian is the frames' own."""
+    out = []
+    for x, p in zip(np.asarray(frames, np.float64), np.asarray(clouds, np.float64)):
+        p = p[np.isfinite(p).all(axis=1)]
+        r = np.empty_like(x)
+        for a in range(0, len(x), 512):
+            d2 = ((x[a:a + 512, None, :] - p[None, :, :]) ** 2).sum(-1)
+            r[a:a + 512] = x[a:a + 512] - p[np.argmin(d2, axis=1)]
+        out.append(r.reshape(-1))
+    return np.concatenate(out)
+
+
+def track_linearised(target, frames, jac):
+    """(residual (3 N,), jac (3 N, P)) of a tracks target's N observations: each seen track's
+    simulated minus observed position, and the frames' Jacobian (3 T V, P) mapped to the tracks'
+    positions (linear in the vertices) with the rows of tracks not seen left out."""
+    t, v = frames.shape[:2]
+    tv, tw = np.asarray(target.track_vertices), np.asarray(target.track_weights, np.float64)
+    seen = target.observed                                              # (T, M)
+    sim = np.stack([track_positions(x, tv, tw) for x in np.asarray(frames, np.float64)])   # (T, M, 3)
+    j = np.asarray(jac, np.float64).reshape(t, v, 3, -1)
+    jt = np.stack([track_positions(x, tv, tw[..., None]) for x in j])   # (T, M, 3, P)
+    return (sim - target.tracks)[seen].reshape(-1), jt[seen].reshape(-1, j.shape[-1])
+
+
+def mixed_linearised(target, loss, frames, jac):
+    """(residual, jac) of a mixed target: its scan's rows (each vertex to its nearest point, m, with
+    the frames' Jacobian) and its tracks' (:func:`track_linearised`), the tracks' rows scaled to
+    weigh against the scan's as in the loss: per squared metre, w / (N_tracks s²_tracks) against
+    1 / (T V s²_points) (``loss.parts``), so the report's residual RMS is in the scan's metres."""
+    points, tracks = target.parts
+    (s2_p, c_p), (s2_t, c_t) = loss.parts
+    r_p = nearest_point_residual(frames, points.points)
+    r_t, j_t = track_linearised(tracks, frames, jac)
+    scale = np.sqrt((c_t / (int(tracks.observed.sum()) * s2_t)) / (c_p / (r_p.size / 3 * s2_p)))
+    return (np.concatenate([r_p, r_t * scale]),
+            np.concatenate([np.asarray(jac, np.float64).reshape(r_p.size, -1), j_t * scale]))

@@ -66,30 +66,11 @@ def residual_objects(prob, frames=None):
     vobj = np.asarray(prob.sim.topology.vertex_object, np.int64)
     fitted = fitted_index(prob)
     target = prob.target
-    if target.kind.every_vertex:
-        per_vertex = fitted[vobj]                                        # (V,)
-        return np.tile(np.repeat(per_vertex, 3), target.n_frames)
-    if target.kind.material_points:
-        per_track = fitted[vobj[np.asarray(target.track_vertices, np.int64)[:, 0]]]     # (M,)
-        return np.tile(np.repeat(per_track, 3), target.n_frames)
-    if frames is None:
-        raise ValueError("a point-cloud target needs simulated frames to assign its points to objects")
-    per_track = None
-    data = np.asarray(target.data, np.float64)
-    if target.kind.compound:
-        per_track = np.repeat(fitted[vobj[np.asarray(target.track_vertices, np.int64)[:, 0]]], 3)
-        data = np.asarray(target.points, np.float64)
-    out = []
-    for x, p in zip(np.asarray(frames, np.float64), data):
-        p = np.where(np.isfinite(p), p, 0.0)        # a cloud's NaN padding (its residuals are 0)
-        near = np.empty(len(p), np.int64)
-        for a in range(0, len(p), 512):
-            d2 = np.sum((p[a:a + 512, None, :] - x[None, :, :]) ** 2, axis=-1)
-            near[a:a + 512] = np.argmin(d2, axis=1)
-        out.append(fitted[vobj[near]])
-        if per_track is not None:
-            out.append(per_track)
-    return np.concatenate(out)
+    near = target.kind.residual_vertices(target, prob.sim.topology, frames)
+    if near is None:              # a kind that does not say: every residual belongs to every object
+        return None
+    near = np.asarray(near, np.int64)
+    return np.where(near >= 0, fitted[vobj[np.maximum(near, 0)]], -1)
 
 
 #: Extra clearance, as a fraction of a pair's contact reach, that :func:`clear_of_contact` asks for.

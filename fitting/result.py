@@ -201,8 +201,8 @@ def _motion(prob):
     kind, scale2 = prob.target.kind, prob.loss.scale2
     if prob.loss.normalisation == "motion":
         return _losses.rms_metres(1.0, scale2, kind)
-    rest = _losses.rest_distance(prob.target, prob.sim.topology.x0, prob.sim.topology.faces)
-    return float(np.sqrt(rest / _losses.COMPONENTS[kind]))
+    rest = _losses.rest_distance(prob.target, prob.sim.topology)
+    return float(np.sqrt(rest / _losses.components(kind)))
 
 
 #: Most frames the predictability measurement saves per target frame (a target on an irregular
@@ -312,51 +312,5 @@ def identifiability_at(prob, theta):
 
 
 def _report(prob, frames, jac):
-    if prob.target.kind.every_vertex:
-        residual = frames - prob.target.positions
-    elif prob.target.kind.compound:
-        residual, jac = _mixed_residual(prob, frames, jac)
-    elif prob.target.kind.material_points:
-        residual, jac = _track_residual(prob.target, frames, jac)
-    else:
-        residual = np.concatenate([_nearest_residual(x, p) for x, p in zip(frames, prob.target.points)])
+    residual, jac = prob.target.kind.linearised(prob.target, prob.sim.topology, prob.loss, frames, jac)
     return _ident.analyse(jac, residual, prob.labels, noise=prob.noise)
-
-
-def _mixed_residual(prob, frames, jac):
-    """(residual, jac) of a mixed target: its scan's rows (each vertex to its nearest point, m, with
-    the frames' Jacobian) and its tracks' (:func:`_track_residual`), the tracks' rows scaled to
-    weigh against the scan's as in the loss: per squared metre, w / (N_tracks s²_tracks) against
-    1 / (T V s²_points) (``prob.loss.parts``), so the report's residual RMS is in the scan's metres."""
-    points, tracks = prob.target.parts
-    (s2_p, c_p), (s2_t, c_t) = prob.loss.parts
-    r_p = np.concatenate([_nearest_residual(x, p) for x, p in zip(frames, points.points)]).reshape(-1)
-    r_t, j_t = _track_residual(tracks, frames, jac)
-    scale = math.sqrt((c_t / (int(tracks.observed.sum()) * s2_t)) / (c_p / (r_p.size / 3 * s2_p)))
-    return (np.concatenate([r_p, r_t * scale]),
-            np.concatenate([np.asarray(jac, np.float64).reshape(r_p.size, -1), j_t * scale]))
-
-
-def _track_residual(target, frames, jac):
-    """(residual (3 N,), jac (3 N, P)) of a tracks target's N observations: each seen track's
-    simulated minus observed position, and the frames' Jacobian (3 T V, P) mapped to the tracks'
-    positions (linear in the vertices) with the rows of tracks not seen left out."""
-    from jaxplush.fitting.losses import track_positions
-    t, v = frames.shape[:2]
-    tv, tw = np.asarray(target.track_vertices), np.asarray(target.track_weights, np.float64)
-    seen = target.observed                                              # (T, M)
-    sim = np.stack([track_positions(x, tv, tw) for x in frames])        # (T, M, 3)
-    j = np.asarray(jac, np.float64).reshape(t, v, 3, -1)
-    jt = np.stack([track_positions(x, tv, tw[..., None]) for x in j])   # (T, M, 3, P)
-    return (sim - target.tracks)[seen].reshape(-1), jt[seen].reshape(-1, j.shape[-1])
-
-
-def _nearest_residual(x, p):
-    """(V, 3) vector from each vertex to its nearest target point (numpy, chunked; a cloud's NaN
-    padding left out)."""
-    p = p[np.isfinite(p).all(axis=1)]
-    out = np.empty_like(x)
-    for a in range(0, len(x), 512):
-        d2 = ((x[a:a + 512, None, :] - p[None, :, :]) ** 2).sum(-1)
-        out[a:a + 512] = x[a:a + 512] - p[np.argmin(d2, axis=1)]
-    return out

@@ -317,7 +317,7 @@ def resolution(ev, theta, floor, separation=math.nan, step=RESOLUTION_STEP):
         return None
     prob = ev.prob
     # the floor as a normalised loss, spread evenly over the residual entries
-    s2 = floor ** 2 * _losses.COMPONENTS[prob.target.kind] / prob.loss.scale2 / jac.shape[0]
+    s2 = floor ** 2 * prob.target.kind.components / prob.loss.scale2 / jac.shape[0]
     try:
         cov = s2 * np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:

@@ -120,7 +120,7 @@ class Objective:
         drift = sh.floor if sh is not None and sh.on else rounding_drift(prob)
         if drift is None or not math.isfinite(drift):
             return None
-        return drift * drift * _losses.COMPONENTS[prob.target.kind] / prob.loss.scale2
+        return drift * drift * prob.target.kind.components / prob.loss.scale2
 
     def residuals(self, theta):
         """(n,) residuals at one point (sum of squares: the loss), and whether it ran."""

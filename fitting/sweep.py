@@ -24,10 +24,12 @@ centroid height (y) and largest vertex displacement from the rest shape, the hea
 
     L = (1/T) sum_j d(x(t_j), y_j),
 
-d the mean squared vertex distance for a ``positions`` target or the symmetric Chamfer distance
-(:func:`jaxplush.fitting.losses.chamfer`, over each frame's observed points: rows of NaN are a
-frame's padding) for a ``points`` target, in m² (not normalised); for a ``tracks`` target L is
-the mean over every observed track of its squared distance to its simulated position. A point whose
+d the fit's frame distance (:meth:`jaxplush.fitting.kinds.Kind.mean_sq`): the mean squared vertex
+distance for a ``positions`` target, each observed point's squared distance to the simulated
+surface for a ``points`` target (rows of NaN are a frame's padding), each seen track's squared
+distance to its simulated position for a ``tracks`` target (every observation weighed alike), in
+m²; a ``mixed`` target's two terms are weighed as the fit weighs them. L is the fit's loss times
+its normaliser s², so a sweep's best point is the fit's. A point whose
 rollout blew up keeps its last healthy state as final positions (``final_step`` says which
 step), a NaN loss and summaries, and its failure is listed in ``fail_code``/``fail_step``; it is
 never silently returned as NaN positions.
@@ -300,7 +302,7 @@ def _target_frames(target, scene, steps):
         _, _, rows = _target_frames(dataclasses.replace(target, points=None), scene, steps)
         if len(cloud) != len(rows):
             raise SweepError(f"target points have {len(cloud)} frames but its tracks {len(rows)}")
-        pad = np.zeros(cloud.shape[:2] + (rows.shape[2] - 3,))
+        pad = np.zeros(cloud.shape[:2] + (rows.shape[2] - cloud.shape[2],))
         return TargetKind.MIXED, tsteps, np.concatenate([np.concatenate([cloud, pad], axis=2), rows], axis=1)
     if pos is not None:
         kind, data = TargetKind.POSITIONS, np.asarray(pos, np.float64)
@@ -333,10 +335,15 @@ def _target_frames(target, scene, steps):
     if kind is TargetKind.TRACKS:
         return kind, tsteps, _track_rows(target, scene, data, ~pad)
     empty = np.flatnonzero(pad.all(axis=1))
+    if kind.every_vertex:
+        return kind, tsteps, data
     if empty.size:
         raise SweepError(f"target frame {int(empty[0])} (step {int(tsteps[empty[0]])}) holds no points: "
-                         "a Chamfer distance needs at least one; leave the frame out")
-    return kind, tsteps, data
+                         "a frame's distance to the surface needs at least one; leave the frame out")
+    # a cloud's rows as the fit weighs them: (x, y, z, T / N) per observed point (N over T frames),
+    # NaN padding as (0, 0, 0, 0)
+    rw = np.where(~pad, len(data) / float((~pad).sum()), 0.0)[..., None]
+    return kind, tsteps, np.concatenate([np.where(~pad[..., None], data, 0.0), rw], axis=2)
 
 
 def _track_rows(target, scene, data, seen):
@@ -384,7 +391,8 @@ def _observer(kind, keep_positions):
         if kind is not None:
             j = aux["table"][aux["frame0"] + i]
             b = x[0].shape[1]
-            out["loss"] = jax.lax.cond(j >= 0, lambda: frame_loss(kind, x, aux["data"][jnp.maximum(j, 0)]),
+            out["loss"] = jax.lax.cond(j >= 0, lambda: frame_loss(kind, x, aux["data"][jnp.maximum(j, 0)],
+                                                                  aux.get("surface")),
                                        lambda: jnp.zeros((b,), x[0].dtype))
         if keep_positions:
             out["x"] = batched.positions_observer(params, i, x, aux)
@@ -393,18 +401,20 @@ def _observer(kind, keep_positions):
     return observe
 
 
-def frame_loss(kind, x, y):
-    """(B,) distance of every batch point's positions x (tuple of 3 (V, B)) to a target frame y:
-    mean squared vertex distance (y (V, 3)), symmetric Chamfer distance (y (M, 3)), or for tracks
-    (y (M, 10), :func:`_target_frames`) the sum over the seen tracks of the squared distance to
-    their simulated positions, times T / N (so the sweep's mean over frames is the mean over
-    every observation). A mixed target's kind is ("mixed", M_points, w) and y its points' rows
-    (x, y, z and zeros) then its tracks' (M_points + M_tracks, 10): (Chamfer + w tracks) / (1 + w),
-    the two kinds' own sweep losses weighed as a fit weighs them."""
+def frame_loss(kind, x, y, surface=None):
+    """(B,) the fit's frame distance d_j (m², :meth:`jaxplush.fitting.kinds.Kind.mean_sq`) of every
+    batch point's positions x (tuple of 3 (V, B)) to a target frame y, in the rows
+    :func:`_target_frames` lays out: the mean squared vertex distance (y (V, 3)); for a scan (y
+    (M, 4): a point and its weight T / N) the sum of each point's squared distance to the
+    simulated surface times its weight (``surface``: (faces, vertex_faces) of the scene); for
+    tracks (y (M, 10)) the weighted sum of the seen tracks' squared distances to their simulated
+    positions. A mixed target's kind is ("mixed", M_points, f_points, f_tracks) and y its points'
+    rows then its tracks' (M_points + M_tracks, 10): f_points d_points + f_tracks d_tracks, the
+    fit's weights of its two terms (each over its own normaliser) times the fit's combined
+    normaliser, so a sweep's loss is the fit's loss times its s², in m²."""
     if isinstance(kind, tuple):
-        _, cut, w = kind
-        return (frame_loss(TargetKind.POINTS, x, y[:cut, :3]) + w * frame_loss(TargetKind.TRACKS, x, y[cut:])) / (
-            1.0 + w)
+        _, cut, fp, ft = kind
+        return fp * frame_loss(TargetKind.POINTS, x, y[:cut, :4], surface) + ft * frame_loss(TargetKind.TRACKS, x, y[cut:])
     kind = TargetKind(kind)
     if kind.every_vertex:
         return sum((x[c] - y[:, c][:, None]) ** 2 for c in range(3)).mean(axis=0)
@@ -413,9 +423,10 @@ def frame_loss(kind, x, y):
         d2 = sum((sum(y[:, 6 + k, None] * x[c][idx[:, k]] for k in range(3)) - y[:, c, None]) ** 2
                  for c in range(3))                                    # (M, B)
         return jnp.sum(y[:, 9, None] * d2, axis=0)
-    from jaxplush.fitting.losses import chamfer
+    from jaxplush.fitting.losses import point_surface_distance2
+    faces, vfaces = surface
     pts = jnp.stack(x, axis=-1).transpose(1, 0, 2)                    # (B, V, 3)
-    return jax.lax.map(lambda xb: chamfer(xb, y), pts)
+    return jax.lax.map(lambda xb: jnp.sum(y[:, 3] * point_surface_distance2(xb, y[:, :3], faces, vfaces)), pts)
 
 
 # --------------------------------------------------------------------------- result
@@ -704,9 +715,11 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
     n_full, rem = divmod(steps, period)
     frame_steps = np.arange(1, n_full + 1) * period
     aux = None
-    # the frame loss's static kind: a mixed target's with where its tracks start and their weight
-    lkind = ((TargetKind.MIXED.value, int(np.shape(tgt.points)[1]), float(getattr(tgt, "track_weight", 1.0)))
+    # the frame loss's static kind: a mixed target's with where its tracks start and the fit's
+    # factors of its two terms
+    lkind = ((TargetKind.MIXED.value, int(np.shape(tgt.points)[1])) + _mixed_factors(tgt, bsim.topology)
              if tkind is TargetKind.MIXED else tkind)
+    surface = _surface(bsim.topology) if tkind is not None and not tkind.material_points else None
     scan_kind = lkind if tkind is not None and np.any(tsteps > 0) else None   # step-0 frames: on the host
     if scan_kind is not None:
         later = tsteps > 0
@@ -714,6 +727,8 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
         table[tsteps[later] // period - 1] = np.arange(int(later.sum()), dtype=np.int32)
         aux = dict(table=jnp.asarray(table), data=jnp.asarray(tdata[later], bsim.dtype),
                    frame0=jnp.asarray(0, jnp.int32))
+        if surface is not None:
+            aux["surface"] = tuple(jnp.asarray(a) for a in surface)
     keep = save_every is not None
     observe = _observer(scan_kind, keep) if (scan_kind is not None or keep) else None
     per_call = _frames_per_call(n_full, n_points, batch, progress)
@@ -722,6 +737,22 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
                       tdata=tdata,
                       bsim=bsim, period=period, n_full=n_full, rem=rem, frame_steps=frame_steps, aux=aux,
                       keep=keep, observe=observe, per_call=per_call, integrator=integrator)
+
+
+def _surface(topology):
+    """(faces (F, 3), vertex_faces (V, W)) int32 of a scene: a scan's distance to the surface."""
+    from jaxplush.fitting.losses import vertex_faces
+    faces = np.asarray(topology.faces, np.int32)
+    return faces, vertex_faces(faces, topology.n_vertices)
+
+
+def _mixed_factors(target, topology):
+    """(f_points, f_tracks): a mixed target's terms weighed as the fit weighs them, each over its
+    own normaliser, times the fit's combined normaliser (:func:`jaxplush.fitting.losses.make_loss`)."""
+    from jaxplush.fitting import losses
+    scales = [losses.loss_scale(p, topology)[0] for p in target.parts]
+    s2 = losses.combined_scale2(target, scales)
+    return tuple(float(s2 * c / s) for c, s in zip(losses.part_weights(target), scales))
 
 
 def _run_chunk(plan, c, out, bar):
@@ -756,7 +787,8 @@ def _run_chunk(plan, c, out, bar):
     if plan.tkind is not None and np.any(plan.tsteps == 0):
         x0 = bsim.init_fn(p).x
         for y in plan.tdata[plan.tsteps == 0]:
-            loss += np.asarray(frame_loss(plan.lkind, x0, jnp.asarray(y, bsim.dtype)), np.float64)
+            surface = None if plan.tkind.material_points else tuple(jnp.asarray(a) for a in _surface(bsim.topology))
+            loss += np.asarray(frame_loss(plan.lkind, x0, jnp.asarray(y, bsim.dtype), surface), np.float64)
     return out.part(bsim, p, state, health, loss, kept, live)
 
 

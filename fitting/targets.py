@@ -5,8 +5,8 @@ A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io.trajector
 
 * ``positions`` float [T, V, 3]: the scene's vertices, in the scene's order, at T frames; or
 * ``points`` float [T, M, 3]: a point cloud per frame (a scan; M unrelated to V, no
-  correspondence), fitted by each point's distance to the simulated surface (sweeps: a
-  symmetric Chamfer distance; :mod:`jaxplush.fitting.losses`). Frames may hold different
+  correspondence), fitted (and swept) by each point's distance to the simulated surface
+  (:mod:`jaxplush.fitting.losses`). Frames may hold different
   numbers of points: a row of three NaNs is no point (padding), so a frame with fewer points
   ends in NaN rows (:func:`jaxplush.io.capture.depth_capture` writes captures this way). A row
   with some NaN coordinates, or an infinity, is an error; or
@@ -117,6 +117,8 @@ class Target:
         (L_points + w L_tracks) / (1 + w), each term normalised on its own (default 1: the two
         count alike, however many points each holds; :func:`jaxplush.fitting.losses.make_loss`).
       controls: :class:`Controls` of driven vertices, or None.
+      custom_kind: a target of a kind of one's own (a :class:`jaxplush.fitting.kinds.Kind`
+        subclass; :meth:`of_kind`), else None. custom_data: its (T, M, D) frames.
     """
 
     positions: np.ndarray | None
@@ -132,11 +134,32 @@ class Target:
     track_weights: np.ndarray | None = None
     track_weight: float = 1.0
     controls: Controls | None = None
+    custom_kind: TargetKind | None = None
+    custom_data: np.ndarray | None = None
+
+    @classmethod
+    def of_kind(cls, kind, data, times, dt, *, steps=None, path="<memory>", noise=None, params=None):
+        """A target of a kind of one's own: ``kind`` a :class:`jaxplush.fitting.kinds.Kind`
+        instance, ``data`` (T, M, D) its frames (NaN rows: not observed), ``times`` (T,) s on the
+        grid of ``dt`` (or ``steps``, their step indices)."""
+        times = np.asarray(times, np.float64).reshape(-1)
+        steps = (_grid_steps(path, times, float(dt), times.dtype) if steps is None
+                 else np.asarray(steps, np.int64).reshape(-1))
+        data = np.asarray(data, np.float64)
+        if not isinstance(kind, TargetKind):
+            raise TypeError(f"kind must be a jaxplush.fitting.kinds.Kind, got {type(kind).__name__}")
+        if data.ndim != 3 or len(data) != len(steps):
+            raise ValueError(f"{path}: a target's frames must be [T, M, D] with T = {len(steps)} frames, "
+                             f"got {list(data.shape)}")
+        return cls(None, None, steps, times, float(dt), path, noise=noise, params=dict(params or {}),
+                   custom_kind=kind, custom_data=data)
 
     @property
     def kind(self):
         """Its :class:`jaxplush.fitting.kinds.TargetKind` (equal to "positions", "points", "tracks"
-        or "mixed": points and tracks)."""
+        or "mixed": points and tracks; or the kind of one's own it was made with)."""
+        if self.custom_kind is not None:
+            return self.custom_kind
         if self.positions is not None:
             return TargetKind.POSITIONS
         if self.tracks is not None:
@@ -147,6 +170,8 @@ class Target:
     def data(self):
         """(T, V or M, 3) the target's frames, whichever kind (mixed: the points, then the tracks,
         (T, M_points + M_tracks, 3))."""
+        if self.custom_kind is not None:
+            return self.custom_data
         if self.kind.compound:
             return np.concatenate([np.asarray(self.points), np.asarray(self.tracks)], axis=1)
         return getattr(self, self.kind.value)
@@ -181,7 +206,8 @@ class Target:
             raise ValueError("a target needs at least one frame")
         sel = lambda a: None if a is None else a[idx]  # noqa: E731
         return dataclasses.replace(self, positions=sel(self.positions), points=sel(self.points),
-                                   tracks=sel(self.tracks), steps=self.steps[idx], times=self.times[idx])
+                                   tracks=sel(self.tracks), custom_data=sel(self.custom_data),
+                                   steps=self.steps[idx], times=self.times[idx])
 
     def on_grid(self, dt):
         """This target with its frame steps recomputed for time step ``dt`` (validated)."""
@@ -202,9 +228,10 @@ class Target:
         """
         with atomic_path(path, ".h5") as tmp:
             with h5py.File(tmp, "w") as f:
-                for name in KIND_DATASETS[self.kind]:
-                    f.create_dataset(name, data=np.asarray(getattr(self, name)), compression="gzip",
-                                     compression_opts=1)
+                for name in self.kind.datasets or (self.kind.value,):
+                    f.create_dataset(name, data=np.asarray(self.custom_data if self.custom_kind is not None
+                                                           else getattr(self, name)),
+                                     compression="gzip", compression_opts=1)
                 if self.tracks is not None:
                     for name, val in _track_datasets(self.track_vertices, self.track_weights).items():
                         f.create_dataset(name, data=val)

@@ -302,22 +302,26 @@ def test_residuals_belong_to_their_objects_and_a_coloured_jacobian_is_the_full_o
 
 # --------------------------------------------------------------------------- sweep and command line
 
-def test_a_sweep_against_a_mixed_target_weighs_the_two_sweeps(ball):
-    """A sweep's loss against a mixed target is (Chamfer + w tracks) / (1 + w), the two kinds' own
-    sweep losses (m², not normalised, as every sweep loss): here the 60-point scan's Chamfer
-    distance to the 42-vertex mesh (about 1 mm², most of it the mesh's coarseness, falling as k
-    rises) outweighs the tracks' (zero at the truth) at w = 3, and dominates none at w = 1e4."""
+def test_a_sweep_against_a_mixed_target_weighs_the_two_sweeps_as_the_fit(ball):
+    """A sweep's loss against a mixed target is the fit's loss times its normaliser s² (m²): its
+    scan's and its tracks' sweep losses, each over its own normaliser, weighed 1 / (1 + w) and
+    w / (1 + w), so the weight moves the sweep's landscape exactly as it moves the fit's."""
+    from jaxplush.fitting import losses
     from jaxplush.fitting.sweep import sweep
     scene, target = ball
+    topology = jaxplush.make_simulator(scene, DT).topology
     grid = {"k": [70.0, 85.0, K, 115.0, 130.0]}
     alone = [sweep(scene, grid, steps=STEPS, dt=DT, target=p, progress=False, batch=8).loss for p in target.parts]
-    assert np.argmin(alone[0]) == 4 and np.argmin(alone[1]) == 2
+    assert np.argmin(alone[1]) == 2                                    # the tracks: zero at the truth
+    scales = [losses.loss_scale(p, topology)[0] for p in target.parts]
     for w in (3.0, 1e4):
         t = dataclasses.replace(target, track_weight=w)
         res = sweep(scene, grid, steps=STEPS, dt=DT, target=t, progress=False, batch=8)
         assert res.target_kind == "mixed"
-        np.testing.assert_allclose(res.loss, (alone[0] + w * alone[1]) / (1 + w), rtol=1e-5)
-    assert res.best()["k_structural"] == K
+        fit_loss = sum(c * a / s2 for c, a, s2 in zip(losses.part_weights(t), alone, scales))
+        s2 = losses.make_loss(t, topology, np.float64).scale2
+        np.testing.assert_allclose(res.loss, fit_loss * s2, rtol=1e-5)
+        assert res.best()["k_structural"] == K
 
 
 def test_capture_with_tracks_is_a_mixed_target_and_the_cli_weighs_it(tmp_path):

@@ -1,6 +1,6 @@
 """Point-cloud targets whose frames hold different numbers of points (a depth camera's partial,
 noisy captures): NaN rows are padding. They load, weigh every observed point alike in the loss,
-the residuals and the sweep's Chamfer distance, leave gradients finite, and a fit to one synthetic
+the residuals and the Chamfer distance, leave gradients finite, and a fit to one synthetic
 depth camera's view recovers the ball's parameters."""
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ def test_the_loss_and_residuals_weigh_every_observed_point_alike_whatever_the_pa
         assert np.all(np.isfinite(np.asarray(g))) and float(jnp.abs(g).max()) > 0
 
 
-def test_the_sweeps_chamfer_distance_ignores_the_padding():
+def test_the_chamfer_distance_ignores_the_padding():
     rng = np.random.default_rng(0)
     x = jnp.asarray(rng.normal(size=(40, 3)), jnp.float32)
     p = rng.normal(size=(25, 3))

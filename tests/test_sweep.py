@@ -13,6 +13,7 @@ import dataclasses
 import os
 
 import h5py
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -363,16 +364,17 @@ def test_a_point_cloud_padded_with_nan_rows_gives_the_same_losses(truth_target):
     def run(points):
         return sweep(scene, grid, steps=400, dt=DT, progress=False, target=Target(positions=None, points=points, **kw))
     plain, pad, short = run(cloud), run(padded), run(fewer)
-    # equal up to float32 rounding of |x|² + |p|² - 2 x.p (its floor, about 2e-10 m² here, sets the truth's loss)
+    # equal up to float32 rounding
     np.testing.assert_allclose(pad.loss, plain.loss, rtol=1e-5, atol=1e-6 * plain.loss.max())
     traj = jaxplush.simulate(scene, 400, DT, 200, params=_point_params(scene, nmol=[3e-3], k_structural=[TRUE_K]),
                              check_dt=False)
-    d = []
-    for j, (x, p) in enumerate(zip(traj.positions[1:], cloud)):
-        p = p[:-9] if j == 0 else p
-        d2 = np.sum((x[:, None] - p[None]) ** 2, axis=2)
-        d.append(d2.min(axis=1).mean() + d2.min(axis=0).mean())
-    np.testing.assert_allclose(short.loss[2], np.mean(d), rtol=3e-4)
+    # the fit's loss (every observed point weighs alike) times its normaliser
+    from jaxplush.fitting import losses
+    loss = losses.make_loss(Target(positions=None, points=fewer, **kw), jaxplush.make_simulator(scene, DT).topology,
+                            jnp.float64)
+    d = sum(float(loss.loss_fn(jnp.asarray(x, jnp.float64), jnp.asarray(y, jnp.float64)))
+            for x, y in zip(traj.positions[1:], fewer)) * loss.scale2
+    np.testing.assert_allclose(short.loss[2], d, rtol=3e-4)
     assert abs(short.loss[2] / plain.loss[2] - 1) > 1e-3             # frame 0's 9 points are gone
     bad = padded.copy()
     bad[1, 0, 2] = np.nan
@@ -384,27 +386,32 @@ def test_a_point_cloud_padded_with_nan_rows_gives_the_same_losses(truth_target):
         run(bad)
 
 
-def test_point_cloud_target_uses_the_chamfer_distance(truth_target):
+def test_point_cloud_target_uses_the_fits_distance_to_the_surface(truth_target):
+    """A sweep's loss against a scan is the fit's (each point's squared distance to the simulated
+    surface), times the fit's normaliser: the same numbers, so the sweep's best point is the fit's."""
+    from jaxplush.fitting import losses
     from jaxplush.fitting.targets import Target
     scene, target = truth_target
-    # a correspondence-free cloud: the true vertices, shuffled (Chamfer distance 0 at the truth)
+    # a correspondence-free cloud: the true vertices, shuffled, one frame padded with NaN rows
     rng = np.random.default_rng(0)
     cloud = np.stack([y[rng.permutation(len(y))] for y in target.positions[1:]])
+    cloud[0, -5:] = np.nan
     target = Target(positions=None, points=cloud, steps=target.steps[1:], times=target.times[1:], dt=DT,
                     path="<memory>")
-    res = sweep(scene, {"nmol": [1e-3, TRUE_NMOL, 3e-3], "k": [TRUE_K]}, steps=400, dt=DT, target=target,
-                progress=False)
+    grid = {"nmol": [1e-3, TRUE_NMOL, 3e-3], "k": [TRUE_K]}
+    res = sweep(scene, grid, steps=400, dt=DT, target=target, progress=False)
     assert res.target_kind == "points" and res.best()["nmol"] == TRUE_NMOL
-    # 0 up to float32 rounding (the pairwise distances' |x|²+|p|²-2x·p leaves a floor)
+    # 0 at the truth up to float32 rounding
     assert res.best()["loss"] < 1e-3 * np.sort(res.loss)[1]
-    traj = jaxplush.simulate(scene, 400, DT, 200, params=_point_params(scene, nmol=[1e-3], k_structural=[TRUE_K]),
-                             check_dt=False)
-    d = []
-    for x, p in zip(traj.positions[1:], cloud):
-        d2 = np.sum((x[:, None] - p[None]) ** 2, axis=2)
-        d.append(d2.min(axis=1).mean() + d2.min(axis=0).mean())
-    assert np.mean(d) > 1e-6
-    np.testing.assert_allclose(res.loss[0], np.mean(d), rtol=3e-4)
+    sim = jaxplush.make_simulator(scene, DT)
+    loss = losses.make_loss(target, sim.topology, jnp.float64)
+    for i, n in enumerate(grid["nmol"]):
+        traj = jaxplush.simulate(scene, 400, DT, 200, params=_point_params(scene, nmol=[n], k_structural=[TRUE_K]),
+                                 check_dt=False)
+        fit_loss = sum(float(loss.loss_fn(jnp.asarray(x, jnp.float64), jnp.asarray(y, jnp.float64)))
+                       for x, y in zip(traj.positions[1:], cloud))
+        assert (fit_loss > 0) == (n != TRUE_NMOL)
+        np.testing.assert_allclose(res.loss[i], fit_loss * loss.scale2, rtol=3e-4, atol=1e-3 * np.sort(res.loss)[1])
 
 
 def test_failed_points_are_reported_not_nan(truth_target):
