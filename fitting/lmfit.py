@@ -29,7 +29,6 @@ constant is a field of the :class:`jaxplush.fitting.options.FitOptions` that :fu
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 
@@ -161,7 +160,7 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     finally:
         show.close()
     n0 = objective.evaluations()
-    out = _user_result(objective, state, opts) if user else _result(objective, state, opts)
+    out = _result(objective, state, opts)
     out.evaluations = state.evaluations + objective.evaluations() - n0
     ev = objective.evaluator
     if hs is not None:
@@ -180,42 +179,36 @@ def _start_gradient(objective, lin, local):
     return 2.0 * jac0.T @ lin.start_residual
 
 
-def _user_result(objective, state, opts):
-    """The :class:`LMRun` of a user's stages (:func:`run`'s ``stages``), which end in a
-    :class:`Linearise`: the best point and its Jacobian; the global design of the first stage
-    that holds one (else an empty one); the path of every stage's searches."""
-    lin = state.finished[-1]
+def _result(objective, state, opts):
+    """The :class:`LMRun` of the driver's final ``state`` (left as it is), found by what its stages
+    are, not where they stand: the best point and its Jacobian from the :class:`Linearise` stage
+    (every run ends in one, or in the smoothing stage after it); for a noisy target the smoothing
+    stage's optimum, whose regression slope and intercept (at the last design's centre) stand for
+    the Jacobian and residuals; the global design of the first stage that ran one (else an empty
+    one); the horizons and paths of a continuation, or each stage's searches' paths; then the
+    gradients at the best point and at the start values. A point handed on without a stopping
+    rule of its own (a design's best, a candidate) ended with the stages' budget: an iteration limit."""
+    ev, local, prob = objective.evaluator, opts.local, objective.prob
+    finished = state.finished
+    lin = next(s for s in finished[::-1] if isinstance(s, _stages.LinearState))
+    sm = next((s.result for s in finished if isinstance(s, _stages.SmoothState)), None)
+    cont = next((s for s in finished if isinstance(s, _stages.ContinuationState)), None)
     best = dataclasses.replace(lin.best, history=list(lin.best.history))
     if best.stopped == Stop.NONE:
-        # a point handed on without a stopping rule of its own (a design's best, a candidate): the
-        # stages' budget ended the fit, which the outcome says as an iteration limit
         best.stopped = Stop.ITERATIONS
         best.reason = best.reason or "the last stage ended"
-    g = next((s.result for s in state.finished if isinstance(getattr(s, "result", None), _search.GlobalResult)),
-             None)
+    designs = [x for s in finished for x in ([s] + list(getattr(s, "first", [])))]
+    g = next((s.result for s in designs if isinstance(getattr(s, "result", None), _search.GlobalResult)), None)
     if g is None:
-        shape = (0,) + np.shape(objective.prob.theta0)
+        shape = (0,) + np.shape(prob.theta0)
         g = _search.GlobalResult(thetas=np.zeros(shape), loss=np.zeros(0), ok=np.zeros(0, bool),
                                  substeps=np.zeros(0, np.int64))
-    paths = [[(list(x.history), x.reason) for x in s.states if isinstance(x, _search.LMState) and x.history]
-             for s in state.finished[:-1] if getattr(s, "states", None)]
-    jac, residual = lin.jac, lin.residual
-    return LMRun(best=best, jac=jac, residual=residual, grad=2.0 * jac.T @ np.nan_to_num(residual),
-                 grad0=_start_gradient(objective, lin, opts.local), global_result=g, paths=[p for p in paths if p],
-                 horizons=(int(objective.prob.target.n_frames),), loss0=lin.loss0, wall=state.wall,
-                 smoothed=None, state=state, jac_step=float(opts.local.h_min))
-
-
-def _result(objective, state, opts):
-    """The :class:`LMRun` of the driver's final ``state`` (left as it is): for a noisy target the
-    best search moves to the smoothing stage's optimum, whose regression slope and intercept (at the
-    last design's centre) stand for the Jacobian and residuals; then the gradients at it and at the
-    start values."""
-    cont, lin = state.finished[0], state.finished[1]
-    sm = state.finished[2].result if len(state.finished) > 2 else None
-    ev, local = objective.evaluator, opts.local
-    best = dataclasses.replace(lin.best, history=list(lin.best.history))
-    paths = [list(p) for p in cont.paths]
+    if cont is not None:
+        paths, hz = [list(p) for p in cont.paths], cont.horizons
+    else:
+        paths = [[(list(x.history), x.reason) for x in s.states if isinstance(x, _search.LMState) and x.history]
+                 for s in finished if s is not lin and getattr(s, "states", None)]
+        paths, hz = [p for p in paths if p], (int(prob.target.n_frames),)
     jac, residual, smoothed = lin.jac, lin.residual, None
     e = ev(np.asarray(sm.theta)[None]) if sm is not None else None
     if e is not None and e.ok[0]:
@@ -233,9 +226,8 @@ def _result(objective, state, opts):
             paths[-1].append((history, reason))
     grad0 = _start_gradient(objective, lin, local)
     return LMRun(best=best, jac=jac, residual=residual, grad=2.0 * jac.T @ np.nan_to_num(residual), grad0=grad0,
-                 global_result=cont.first[0].result, paths=paths, horizons=cont.horizons, loss0=lin.loss0,
-                 wall=state.wall, smoothed=smoothed, state=state,
-                 jac_step=None if smoothed is not None else float(local.h_min))
+                 global_result=g, paths=paths, horizons=hz, loss0=lin.loss0, wall=state.wall, smoothed=smoothed,
+                 state=state, jac_step=None if smoothed is not None else float(local.h_min))
 
 
 def best_search(run):
@@ -248,19 +240,23 @@ def best_search(run):
 
 
 def light_copy(run):
-    """A copy of the driver's state that later steps do not change, without the searches' residuals
-    and differenced Jacobians (which a resumed fit recomputes, identically): what a checkpoint
-    holds. A secant-updated Jacobian (``updates`` > 0) cannot be recomputed and is kept."""
+    """The driver's state as a checkpoint holds it: without the searches' residuals and differenced
+    Jacobians (which a resumed fit recomputes, identically) and a continuation's ``stepped``. A
+    secant-updated Jacobian (``updates`` > 0) cannot be recomputed and is kept. Stages return new
+    states and leave old ones as they were, so this shares their arrays: only the containers the
+    driver itself fills (its lists) are new."""
     def strip(x):
         if isinstance(x, _search.LMState):
             return dataclasses.replace(x, residual=None, jac=x.jac if x.updates else None)
+        if isinstance(x, _stages.ContinuationState):
+            x = dataclasses.replace(x, stepped=None)
         if dataclasses.is_dataclass(x) and not isinstance(x, type):
             return dataclasses.replace(x, **{f.name: strip(getattr(x, f.name))
                                              for f in dataclasses.fields(x) if f.init})
         if type(x) in (list, tuple):
             return type(x)(strip(v) for v in x)
         return x
-    return copy.deepcopy(strip(run))
+    return strip(run)
 
 
 class _Show:
@@ -317,7 +313,9 @@ class _Show:
         return bar.__enter__()
 
     def after(self, run):
-        inner, bar = self.inner, self.bar
+        s = run.state               # the state the step returned (stages leave the old one as it was)
+        inner = (s.stepped if s.stepped is not None else s.inner) if isinstance(s, _stages.ContinuationState) else s
+        bar = self.bar
         if bar is None or not self.active:
             return
         if isinstance(inner, _objects.PerObjectState):

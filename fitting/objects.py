@@ -33,6 +33,7 @@ import numpy as np
 
 from jaxplush.fitting import equation_error as _ee
 from jaxplush.fitting import search as _search
+from jaxplush.fitting import stages as _stages
 from jaxplush.fitting.options import DEFAULT_SAMPLES, DEFAULT_STARTS, LocalOptions
 from jaxplush.fitting.outcome import Stop
 
@@ -238,6 +239,7 @@ class PerObjectGlobal:
         return ev
 
     def step(self, objective, s):
+        s = _stages.own(s)
         box = objective.box
         if self.samples <= 0:
             # no design (a fit that continues from a point, e.g. replanned over a longer horizon):
@@ -289,3 +291,6 @@ class PerObjectGlobal:
 
     def terminate(self, objective, s):
         return s.done, Stop.NONE
+
+    def postprocess(self, objective, s):
+        return _stages.searches_candidate(s.states, objective.prob.theta0, "the per-object design's best point")

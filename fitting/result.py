@@ -9,7 +9,6 @@ target's motion (:func:`_motion`), and the identifiability report at a point
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
 
 import jax.numpy as jnp

@@ -7,13 +7,17 @@ its search box: the residuals of the target at log values theta, batched and sta
 * ``init(objective, theta, state) -> stage_state``: start at the log values ``theta`` (the
   problem's start values), or from ``state``, the previous stage's final state (None for the
   first stage): a local stage starts from the previous stage's searches (its ``states``);
-* ``step(objective, stage_state) -> stage_state``: one step (a batch of evaluations);
+* ``step(objective, stage_state) -> stage_state``: one step (a batch of evaluations), returning a
+  new state and leaving the one it was given as it was (the driver's checkpoints and hooks hold
+  states as they were);
 * ``terminate(objective, stage_state) -> (bool, Stop)``: whether it is done, and why
   (:class:`jaxplush.fitting.outcome.Stop`);
 * optionally ``postprocess(objective, stage_state) -> Candidate``: the one point it hands on (a
-  :class:`Candidate`). The next stage's ``init`` gets that candidate instead of the raw state.
-  Without it, the next stage gets the state itself, whose ``states`` (searches, as
-  :class:`jaxplush.fitting.search.LMState`) or ``theta`` it starts from.
+  :class:`Candidate`: every stage here has one; a candidate may carry the searches it comes from,
+  which a local stage starts from, and the Jacobian and residuals at its point). The next stage's
+  ``init`` gets that candidate. A stage of one's own without it hands on its state itself, whose
+  ``states`` (searches, as :class:`jaxplush.fitting.search.LMState`) or ``theta`` the next stage
+  starts from (:func:`start_points`).
 
 ``jaxplush.fitting.fit(scene, target, solver=[...])`` runs a user's list of stages and then the
 one judge: the last stage's candidate is linearised (:class:`Linearise`) and judged as the default
@@ -39,6 +43,7 @@ docs/fitting.md's "Stages you can recombine" puts a user's Gauss-Newton solver a
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import math
 import time
@@ -52,6 +57,12 @@ from jaxplush.fitting import shooting as _shooting
 from jaxplush.fitting.options import (DEFAULT_ITERATIONS, DEFAULT_SAMPLES, DEFAULT_STARTS, ContinuationOptions,
                                       LocalOptions, SmoothingOptions)
 from jaxplush.fitting.outcome import Stop
+
+
+def own(state):
+    """A copy of a stage's state that its ``step`` may change: stages leave the state they are
+    given as it was (module docstring)."""
+    return copy.deepcopy(state)
 
 
 class Stage(Protocol):
@@ -110,7 +121,6 @@ class Objective:
         shooting, the shooting floor of its segments), for a noise-free position or tracks target
         (the drift per coordinate of a vertex, or of a point interpolated between vertices); None
         otherwise, or when it was not measured."""
-        from jaxplush.fitting import losses as _losses
         from jaxplush.fitting.result import rounding_drift
         prob = self.prob
         if not prob.target.kind.material_points or (prob.noise is not None and prob.noise > 0):
@@ -212,6 +222,7 @@ class GlobalStage:
         return GlobalState(theta=np.asarray(theta, np.float64))
 
     def step(self, objective, s):
+        s = own(s)
         box, o = objective.box, self.local
         if self.linear and s.linear is None:
             s.linear = _ee.design_point(objective)
@@ -226,6 +237,9 @@ class GlobalStage:
 
     def terminate(self, objective, s):
         return s.result is not None, Stop.NONE
+
+    def postprocess(self, objective, s):
+        return searches_candidate(s.states, objective.prob.theta0, "the global design's best point")
 
 
 # --------------------------------------------------------------------------- local Levenberg-Marquardt
@@ -259,8 +273,9 @@ class LocalLM:
     def init(self, objective, theta, state=None):
         """From the previous stage's searches (``state.states``), or one search at its point or theta."""
         o = self.options
-        if state is not None and getattr(state, "states", None):
-            states = list(state.states)
+        given = state.searches if isinstance(state, Candidate) else getattr(state, "states", None)
+        if given:                   # searches to continue (a global design's starts, a shorter horizon's)
+            states = start_points(state, theta)
         else:
             states = [_search.LMState(theta=s.theta, loss=math.inf, mu=o.mu0, radius=o.radius0)
                       for s in start_points(state, theta)]
@@ -268,6 +283,7 @@ class LocalLM:
         return LocalState(states=states)
 
     def step(self, objective, s):
+        s = own(s)
         o = self.options
         ev, box, states = objective.evaluator, objective.box, s.states
         start_residuals(ev, states, o)          # those a resumed checkpoint left out (recomputed, identically)
@@ -284,6 +300,9 @@ class LocalLM:
         if any(not st.done for st in s.states):
             return False, Stop.NONE
         return True, s.states[order(s.states)[0]].stopped
+
+    def postprocess(self, objective, s):
+        return searches_candidate(s.states, objective.prob.theta0, "the best search")
 
 
 def start_residuals(ev, states, local):
@@ -350,10 +369,11 @@ class Linearise:
     local: LocalOptions = LocalOptions()
 
     def init(self, objective, theta, state=None):
-        states = getattr(state, "states", None) or start_points(state, theta)
+        states = start_points(state, theta)
         return LinearState(best=states[order(states)[0]], start_residual=None)
 
     def step(self, objective, s):
+        s = own(s)
         ev, b = objective.evaluator, s.best
         centre = ev(np.asarray([b.theta, np.asarray(objective.prob.theta0, np.float64)]))
         if not np.isfinite(b.loss):          # a candidate handed on unevaluated
@@ -371,6 +391,11 @@ class Linearise:
 
     def terminate(self, objective, s):
         return s.ran, Stop.NONE
+
+    def postprocess(self, objective, s):
+        b = s.best
+        return Candidate(theta=np.asarray(b.theta, np.float64), loss=float(b.loss), reason=b.reason, searches=(b,),
+                         jac=s.jac, residual=s.residual, stopped=b.stopped)
 
 
 # --------------------------------------------------------------------------- smoothing
@@ -404,16 +429,18 @@ class Smoothing:
     progress: object = None
 
     def init(self, objective, theta, state=None):
-        if isinstance(state, LinearState):
-            skip = state.best.stopped == Stop.CALLBACK
-            return SmoothState(theta=state.best.theta, jac=state.jac, residual=state.residual, ran=skip)
-        states = getattr(state, "states", None)
-        theta = states[order(states)[0]].theta if states else np.asarray(theta, np.float64)
+        if getattr(state, "jac", None) is not None:          # a linearised candidate (Linearise's)
+            skip = state.stopped == Stop.CALLBACK
+            return SmoothState(theta=np.asarray(state.theta, np.float64), jac=state.jac, residual=state.residual,
+                               ran=skip)
+        states = start_points(state, theta)
+        theta = states[order(states)[0]].theta
         residual, _ = objective.residuals(theta)
         jac = _search.jacobian(objective.evaluator, objective.box, theta, self.local.h_min, options=self.local)
         return SmoothState(theta=theta, jac=jac, residual=residual)
 
     def step(self, objective, s):
+        s = own(s)
         s.result = _search.smooth(objective.evaluator, objective.box, s.theta, s.jac, s.residual, seed=self.seed,
                                   progress=self.progress, options=self.options)
         s.ran = True
@@ -460,7 +487,9 @@ class ContinuationState:
     counts), the horizon running (``index``), on the first horizon which of the ``first`` stages runs
     (``position``; past them, the local stage), the running stage's state (``inner``), the final
     states of the ``first`` stages, and the finished horizons' searches (``paths``: per horizon, the
-    (loss, theta) path of each search and why it ended)."""
+    (loss, theta) path of each search and why it ended); ``stepped``: the state the running stage's
+    last step returned, before the move to the next stage or horizon (what a progress bar or a
+    callback reads; a checkpoint leaves it out)."""
 
     horizons: tuple
     index: int = 0
@@ -469,6 +498,7 @@ class ContinuationState:
     first: list = dataclasses.field(default_factory=list)
     paths: list = dataclasses.field(default_factory=list)
     done: bool = False
+    stepped: object = None
 
     @property
     def states(self):
@@ -510,22 +540,24 @@ class Continuation:
         return objective.horizons(s.horizons)(s.index)
 
     def step(self, objective, s):
+        s = dataclasses.replace(s, first=list(s.first), paths=list(s.paths), stepped=None)
         obj, stage = self.objective(objective, s), self.stage(s)
         if not stage.terminate(obj, s.inner)[0]:      # (a hook may have stopped its searches)
-            s.inner = stage.step(obj, s.inner)
+            s.inner = s.stepped = stage.step(obj, s.inner)
             if not stage.terminate(obj, s.inner)[0]:
                 return s
         theta0 = objective.prob.theta0
         if s.index == 0 and s.position < len(self.first):
             s.first.append(s.inner)
             s.position += 1
-            s.inner = self.stage(s).init(obj, theta0, s.inner)
+            s.inner = self.stage(s).init(obj, theta0, _handed(stage, obj, s.inner))
             return s
         s.paths.append([(list(x.history), x.reason) for x in s.states])
         if s.index + 1 < len(s.horizons) and not any(x.stopped == Stop.CALLBACK for x in s.states):
             carried = carry(s.states, self.local.options.keep, self.options)
             s.index += 1
-            s.inner = self.stage(s).init(self.objective(objective, s), theta0, LocalState(states=carried))
+            s.inner = self.stage(s).init(self.objective(objective, s), theta0,
+                                         searches_candidate(carried, theta0, "carried to a longer horizon"))
         else:
             s.done = True
         return s
@@ -535,26 +567,60 @@ class Continuation:
             return False, Stop.NONE
         return True, s.states[order(s.states)[0]].stopped if s.states else Stop.NONE
 
+    def postprocess(self, objective, s):
+        return searches_candidate(s.states, objective.prob.theta0, "the best search of the last horizon")
+
 
 # --------------------------------------------------------------------------- the driver
 
 # --------------------------------------------------------------------------- candidates
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Candidate:
     """The point a stage hands on (its ``postprocess``): log values ``theta`` (the problem's
     shape), their ``loss`` if known (inf: not evaluated; the next stage evaluates it) and a
     ``reason`` for a person. Its ``states`` make it a start for any stage that starts from
-    searches (:class:`LocalLM`, :class:`Linearise`, :class:`Smoothing`)."""
+    searches (:class:`LocalLM`, :class:`Linearise`, :class:`Smoothing`).
+
+    A stage may say more: ``searches``, the searches (:class:`jaxplush.fitting.search.LMState`)
+    it comes from, best first, which a local stage continues all of (a global design's best
+    starts, say); ``jac`` (n, P) and ``residual`` (n,) at theta, when it linearised there
+    (:class:`Linearise`), which the smoothing stage starts from; ``stopped``: why the search at
+    theta stopped (:class:`jaxplush.fitting.outcome.Stop`)."""
 
     theta: np.ndarray
     loss: float = math.inf
     reason: str = ""
+    searches: tuple = ()
+    jac: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    stopped: Stop = Stop.NONE
 
     @property
     def states(self):
+        """Searches to start from (copies): its ``searches``, or one at theta."""
+        if self.searches:
+            return [dataclasses.replace(s, theta=np.asarray(s.theta, np.float64).copy(), history=list(s.history))
+                    for s in self.searches]
         return [_search.LMState(theta=np.asarray(self.theta, np.float64).copy(), loss=float(self.loss),
-                                reason=self.reason)]
+                                reason=self.reason, stopped=self.stopped)]
+
+
+def searches_candidate(states, theta, reason):
+    """The :class:`Candidate` of a stage that ends in searches ``states``: the best one's point,
+    with every search (in their order) for the next stage to continue; at ``theta`` (log values)
+    when there is none."""
+    if not states:
+        return Candidate(theta=np.asarray(theta, np.float64), reason=reason)
+    b = states[order(states)[0]]
+    return Candidate(theta=np.asarray(b.theta, np.float64), loss=float(b.loss), reason=b.reason or reason,
+                     searches=tuple(states), stopped=b.stopped)
+
+
+def _handed(stage, objective, state):
+    """What a finished ``stage`` hands the next one: its ``postprocess`` candidate, or its state."""
+    post = getattr(stage, "postprocess", None)
+    return post(objective, state) if post is not None else state
 
 
 def start_points(state, theta):
@@ -611,6 +677,7 @@ class Optax:
 
     def step(self, objective, s):
         import jax.numpy as jnp
+        s = own(s)
         e = objective.evaluator(np.asarray(s.theta)[None])
         loss = float(e.loss[0]) if e.ok[0] else math.inf
         if loss < s.best_loss:
@@ -684,9 +751,7 @@ def handed_on(stages, objective, run):
     where it has one, else its final state (None before the first stage)."""
     if not run.finished:
         return None
-    stage, last = stages[len(run.finished) - 1], run.finished[-1]
-    post = getattr(stage, "postprocess", None)
-    return post(objective, last) if post is not None else last
+    return _handed(stages[len(run.finished) - 1], objective, run.finished[-1])
 
 
 def run_stages(objective, theta, stages, *, hooks=None, state=None):

@@ -560,6 +560,24 @@ def test_the_default_fits_stages_recombine_and_reach_its_searches_result(small):
     assert len(glob.states) == 2 and glob.result.loss.shape == (5,)
     assert all(s.iteration <= 2 and s.done for s in local.states)
     assert min(s.loss for s in local.states) <= min(s.loss for s in glob.states)
+    # every stage's step returns a new state and leaves the one it was given as it was (what the
+    # loop's checkpoints and callbacks hold); a stage hands on a candidate with its searches
+    import copy
+    import pickle
+    g = stages.GlobalStage(samples=4, starts=2)
+    s0 = g.init(objective, prob.theta0, None)
+    snap = copy.deepcopy(s0)
+    s1 = g.step(objective, s0)
+    assert s1 is not s0 and pickle.dumps(s0) == pickle.dumps(snap) and s0.result is None
+    cand = g.postprocess(objective, s1)
+    assert isinstance(cand, stages.Candidate) and len(cand.searches) == 2
+    assert cand.loss == min(x.loss for x in s1.states)
+    lm = stages.LocalLM(max_iter=2)
+    l0 = lm.init(objective, prob.theta0, cand)
+    snap = copy.deepcopy(l0)
+    l1 = lm.step(objective, l0)
+    assert l1 is not l0 and pickle.dumps(l0) == pickle.dumps(snap) and (l0.rounds, l1.rounds) == (0, 1)
+    assert all(a is not b for a, b in zip(l0.states, l1.states)) and cand.searches[0].iteration == 0
 
 
 @pytest.mark.heavy
