@@ -53,7 +53,7 @@ def _best(fn, arg, repeats):
 def split(sim, p, frames, target, repeats):
     """(forward, forward + recording, backward, value-and-gradient) wall times in ms."""
     from bench_fit import _sq_loss
-    from jaxplush.fitting import gradients as G
+    from jaxplush.fitting.objective import gradients as G
     from jaxplush.stepping import adjoint as A
 
     x0, u0 = sim.internal.to_internal(sim.init_fn(p))

@@ -4,7 +4,7 @@ fit's Evaluator on a two-ball scene, batched against one point at a time.
 1. Step cost of one 16-point chunk (``jaxplush.stepping.batched.rollout``, one core) of two 162-vertex balls
    pressed together (the batched engine with contact, without it, and with only the transposes
    that contact adds: positions (V, B) components -> (B, 3, V) and a (B, 3, V) force back).
-2. The Evaluator (:class:`jaxplush.fitting.evaluate.Evaluator`) on a fit of both balls' k to a
+2. The Evaluator (:class:`jaxplush.fitting.objective.evaluate.Evaluator`) on a fit of both balls' k to a
    target of ``--steps`` steps (frames every 25): ``--points`` points, batched (its default for
    the scene) and one at a time (``ev.batched = False``, the path such scenes took before),
    best of ``--repeats`` calls after a compiling call, in ms per point.
@@ -29,7 +29,7 @@ import jaxplush  # noqa: E402,F401  (before jax: it sets options jax reads when 
 import jax  # noqa: E402
 from jaxplush.stepping import batched  # noqa: E402
 from jaxplush.fitting import fitter as F  # noqa: E402
-from jaxplush.fitting.evaluate import Evaluator  # noqa: E402
+from jaxplush.fitting.objective.evaluate import Evaluator  # noqa: E402
 from jaxplush.fitting.targets import make_target  # noqa: E402
 from test_contact import two_balls  # noqa: E402
 

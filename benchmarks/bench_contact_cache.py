@@ -31,7 +31,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import jaxplush  # noqa: E402
 from jaxplush.stepping import batched  # noqa: E402
-from jaxplush.fitting.scenarios import case_scene_text, draw_case  # noqa: E402
+from jaxplush.fitting.targets.scenarios import case_scene_text, draw_case  # noqa: E402
 from jaxplush.model import contact  # noqa: E402
 
 DT = 1.25e-4

@@ -1,6 +1,6 @@
 """Driven vertices in the batched engine: what a driven vertex costs a batched rollout.
 
-The ball-drop plush of ``jaxplush.fitting.scenarios.drop_scene_text`` (springs, gas, floor; 642
+The ball-drop plush of ``jaxplush.fitting.targets.scenarios.drop_scene_text`` (springs, gas, floor; 642
 vertices at ``--sub 3``), and the same plush with its top vertex driven up 15 cm over 0.3 s and
 released at 0.5 s. Each runs as one batched chunk of ``--batch`` points and as one scene
 (``jaxplush.rollout``, jitted), ``--steps`` steps of 2.5e-4 s saved every 100. Throughput is
@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 import jaxplush  # noqa: E402
 from jaxplush.stepping import batched  # noqa: E402
-from jaxplush.fitting.scenarios import drop_scene_text  # noqa: E402
+from jaxplush.fitting.targets.scenarios import drop_scene_text  # noqa: E402
 
 DT = 2.5e-4
 

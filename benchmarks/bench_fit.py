@@ -1,4 +1,4 @@
-"""Fitting benchmarks: gradient cost and memory through rollouts (jaxplush.fitting.gradients), and (lead's
+"""Fitting benchmarks: gradient cost and memory through rollouts (jaxplush.fitting.objective.gradients), and (lead's
 section) time to fit and sweep throughput.
 
 Gradient section. The ball-drop plush (springs, gas, gravity, floor; ``--dashpot`` adds the
@@ -15,7 +15,7 @@ time is reported apart; times are the minimum of repeats, wall clock and process
 CPU ratio is steadier on a shared machine; XLA's CPU backend runs these loops on one thread).
 
 Memory section. A 10,000-step horizon at 2562 vertices: XLA's static buffer analysis of the
-compiled value_and_grad (``jaxplush.fitting.gradients.compiled_memory``: temporaries + arguments +
+compiled value_and_grad (``jaxplush.fitting.objective.gradients.compiled_memory``: temporaries + arguments +
 outputs; no run needed), and, for the bounded methods, the measured peak resident memory of a
 fresh process that compiles and runs it once (``ru_maxrss``), next to the same process's
 peak when it only compiles and runs the forward loss.
@@ -42,7 +42,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.dirname(__file__))
 import jaxplush  # noqa: E402
 from bench_step import ball_scene  # noqa: E402
-from jaxplush.fitting import gradients  # noqa: E402
+from jaxplush.fitting.objective import gradients  # noqa: E402
 
 METHODS = ("adjoint", "checkpoint", "plain", "rollout", "rollout-autodiff")
 

@@ -93,7 +93,7 @@ def measure(case, repeats=5, subdivisions=3):
         bs = bsim.init_fn(bp)
         return b * steps / _best(lambda: batched.rollout(bsim, bp, bs, 1, steps), repeats)
     if kind == "gradient":
-        from jaxplush.fitting import gradients
+        from jaxplush.fitting.objective import gradients
         sim = jaxplush.make_simulator(scene, dt)
         p = sim.params()
         steps = 500

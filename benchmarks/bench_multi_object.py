@@ -1,6 +1,6 @@
 """Multi-object fits: the full-dimensional global stage against the per-object one.
 
-Cases (``jaxplush.fitting.scenarios`` placement, the report's per-step damping 2000 on every
+Cases (``jaxplush.fitting.targets.scenarios`` placement, the report's per-step damping 2000 on every
 object, a floor at y = 0, soft-soft contact on):
 
 * ``two``: two 162-vertex balls (0.12 kg), the lower one 5 cm above the floor, the upper one
@@ -17,7 +17,7 @@ on the first quarter of the frames, then a half, then all) through ``stages.run_
 the default fit's options, the first stage being:
 
 * ``global``: :class:`jaxplush.fitting.stages.GlobalStage` (64 Sobol points, 5 starts), as the default fit;
-* ``objects``: :class:`jaxplush.fitting.objects.PerObjectGlobal` (``--rounds`` rounds of 64
+* ``objects``: :class:`jaxplush.fitting.stages.objects.PerObjectGlobal` (``--rounds`` rounds of 64
   points and the combinations of each object's best 3 blocks);
 * ``fit``: ``jaxplush.fitting.fit`` with its defaults, as a user runs it (the predictability
   measurement, the shooting plan, the per-object stage, which it picks for several objects, the
@@ -51,7 +51,7 @@ DT, STEPS, EVERY = 5e-4, 800, 20
 
 def case_dict(shapes, level=2):
     """A ``scenarios`` case of objects stacked on a floor (see the module docstring)."""
-    from jaxplush.fitting import scenarios as S
+    from jaxplush.fitting.targets import scenarios as S
     objs = []
     for i, shape in enumerate(shapes):
         objs.append(dict(name=f"{shape}{i}", shape=shape, level=level, vertices=S.mesh_vertices(shape, level),
@@ -78,7 +78,9 @@ def run_one(case_name, variant, rounds):
     """One fit in this process; returns the table's row (dict)."""
     import warnings
     import jaxplush
-    from jaxplush.fitting import fitter as F, lmfit, objects, scenarios as S, stages
+    from jaxplush.fitting import fitter as F, stages
+    from jaxplush.fitting.stages import lmfit, objects
+    from jaxplush.fitting.targets import scenarios as S
     from jaxplush.fitting.options import FitOptions
     from jaxplush.fitting.targets import make_target
     warnings.simplefilter("ignore")

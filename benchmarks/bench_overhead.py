@@ -34,7 +34,7 @@ DT_AT = {10242: 2e-5}
 
 
 def _scene_text(n):
-    from jaxplush.fitting.scenarios import drop_scene_text
+    from jaxplush.fitting.targets.scenarios import drop_scene_text
     return drop_scene_text("ball", SUBDIVISIONS[n], dashpot=0.1)
 
 

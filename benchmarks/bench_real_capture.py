@@ -1,6 +1,6 @@
 """Acceptance: a stiffness field recovered from one synthetic depth camera (issue 26, items 3-4).
 
-The plush (``jaxplush.fitting.scenarios.panel_scene_text``): a 642-vertex icosphere of radius 0.1 m,
+The plush (``jaxplush.fitting.targets.scenarios.panel_scene_text``): a 642-vertex icosphere of radius 0.1 m,
 0.1 kg, sewn from the 20 panels of its icosahedron (``g panel00`` .. ``g panel19``); the 4 panels
 facing the camera (a contiguous patch, 20% of the surface) have k = 300 N/m, the rest k = 60 N/m
 (edges on the patch's border the mean, 180 N/m); an edge dashpot with damping ratio 0.25 per soft
@@ -14,7 +14,7 @@ The observation is ``jaxplush capture``: one depth camera at (0, 0.3, 0.7) m loo
 (50 degrees, 96 x 72 rays), 2 mm depth noise, 10% dropout (about 300-400 points a frame, the
 side facing the camera only).
 
-Fits (``jaxplush.fitting.field.fit_field``: L-BFGS on the adjoint gradient, float32), each from a
+Fits (``jaxplush.fitting.stages.field.fit_field``: L-BFGS on the adjoint gradient, float32), each from a
 uniform start at the soft value (x1 for 80% of the surface, x0.2 on the patch), the dashpot from
 x0.7 and nmol from x1.3 of the truth:
 
@@ -58,8 +58,8 @@ import numpy as np
 
 import jaxplush
 from jaxplush import fitting
-from jaxplush.fitting import field as F
-from jaxplush.fitting import scenarios
+from jaxplush.fitting.stages import field as F
+from jaxplush.fitting.targets import scenarios
 from jaxplush.fitting.targets import load_target
 
 K_SOFT = 60.0

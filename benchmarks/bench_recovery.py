@@ -1,6 +1,6 @@
 """Parameter recovery of the default fit, case by case, as a user runs it.
 
-Scenes (``jaxplush.fitting.scenarios``), each dropped 0.2 m onto a floor, 0.12 kg, gas at 1800 Pa rest
+Scenes (``jaxplush.fitting.targets.scenarios``), each dropped 0.2 m onto a floor, 0.12 kg, gas at 1800 Pa rest
 pressure, k = 420 N/m:
 
 * ``ball``: a 642-vertex icosphere with the report's per-step damping 2000;
@@ -16,7 +16,7 @@ compilation cache off, as on a user's first fit of a scene); it passes when
 the fit says converged (exit 0) and every parameter is within 1% (positions) or 3% (points) of
 the truth, within 60 s (240 s at 2562 vertices). A failed case is listed, never dropped.
 
-Random scenes (``--random N --seed S``): N cases drawn by ``jaxplush.fitting.scenarios.draw_case``,
+Random scenes (``--random N --seed S``): N cases drawn by ``jaxplush.fitting.targets.scenarios.draw_case``,
 each from its own generator ``numpy.random.default_rng([S, i])`` (case i is the same whatever N):
 ball, torus, bean, cushion or capsule at about 162 or 642 vertices, 1 to 3 objects (stacked and
 dropped onto a floor, or hanging side by side from a pinned vertex; soft-soft contact on with
@@ -103,7 +103,7 @@ def _damp_name(spec):
 def make_case_files(d, name, kind):
     """Write the truth scene and the target of one scene and target kind; return (truth scene, target path)."""
     import jaxplush
-    from jaxplush.fitting.scenarios import drop_scene_text
+    from jaxplush.fitting.targets.scenarios import drop_scene_text
     from jaxplush.fitting.targets import make_target
     spec = dict(SCENES[name])
     text = drop_scene_text(spec.pop("shape"), spec.pop("subdivisions"), **spec)
@@ -215,7 +215,7 @@ def draw_cases(n, seed, **kw):
 def redraw(index, seed, attempt, **kw):
     """Case ``index`` of ``seed``, draw ``attempt`` (0: ``default_rng([seed, index])``; later ones
     ``default_rng([seed, index, attempt])``)."""
-    from jaxplush.fitting.scenarios import draw_case
+    from jaxplush.fitting.targets.scenarios import draw_case
     key = [seed, index] + ([attempt] if attempt else [])
     case = draw_case(np.random.default_rng(key), **kw)
     case.update(index=index, seed=seed, attempt=attempt, draw_kw=kw)
@@ -238,7 +238,7 @@ def random_case_files(d, case, *, dt=None, steps=None):
     ``["contact_capacity"]`` when the truth's contact candidates overflowed the default)."""
     import jaxplush
     from jaxplush.errors import SimulationError
-    from jaxplush.fitting.scenarios import case_scene_text, case_start_text
+    from jaxplush.fitting.targets.scenarios import case_scene_text, case_start_text
     from jaxplush.fitting.targets import make_target
     tag = f"case{case['index']:03d}"
     truth = jaxplush.parse_scene(case_scene_text(case), f"{tag}_truth.obj")
@@ -302,7 +302,7 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
     """Make the case's files, fit it with jaxplush-fit (in this process) and return its record (a dict)."""
     from jaxplush.fitting import cli
     from jaxplush.fitting.io import load_fit
-    from jaxplush.fitting.scenarios import case_truth, describe_case
+    from jaxplush.fitting.targets.scenarios import case_truth, describe_case
     row = dict(index=case.get("index"), seed=case.get("seed"), description=describe_case(case),
                shapes=[o["shape"] for o in case["objects"]], vertices=[o["vertices"] for o in case["objects"]],
                n_objects=case["n_objects"], damping_model=case["damping_model"], setting=case["setting"],
@@ -402,7 +402,7 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
             row["identifiability_warnings"] = [w for w in warns if "determined" in w or "ill-conditioned" in w]
         if "damping" in names and "drag" in names and row.get("dt"):
             # one effect (uniform velocity decay): what a target determines is the combined rate,
-            # 1/(D dt) + drag in the damped Verlet update (jaxplush.fitting.equation_error.damping_rate)
+            # 1/(D dt) + drag in the damped Verlet update (jaxplush.fitting.stages.equation_error.damping_rate)
             rate = lambda d, g: 1.0 / (d * row["dt"]) + g  # noqa: E731
             row["combined_rate_errors"] = [
                 rate(float(fit["params"]["damping"][j]), float(fit["params"]["drag"][j]))
@@ -428,7 +428,7 @@ def run_oracle_case(d, case, *, dt=None, steps=None):
     would be (the same dt, steps and frames; a case drawn again as there), and which of its
     parameters the target determines, computed at the truth. Returns its record (a dict)."""
     from jaxplush.errors import SimulationError
-    from jaxplush.fitting.scenarios import describe_case
+    from jaxplush.fitting.targets.scenarios import describe_case
     oracle = _oracle_module()
     row = dict(index=case.get("index"), seed=case.get("seed"), description=describe_case(case),
                n_objects=case["n_objects"], kind=case["kind"], params=list(case["params"]))
@@ -577,7 +577,7 @@ def _summary(rows):
         told = sum(r.get("status") == "undetermined" for r in pair)
         lines.append(f"damping+drag cases (the pair is one effect, never separately identifiable): {len(pair)}, "
                      f"{told} reported 'undetermined'")
-    # the intervals a fit reports (converged, undetermined: jaxplush.fitting.outcome.REPORTED), and
+    # the intervals a fit reports (converged, undetermined: jaxplush.fitting.judge.outcome.REPORTED), and
     # apart those FIT.h5 keeps for a fit that did not reach the data (not shown)
     for label, want in (("reported", True), ("not reported (the fit did not reach the data)", False)):
         cov = [(r, k, c) for r in rows for k, c in (r.get("covered") or {}).items()
@@ -650,7 +650,7 @@ def _case_in_child(args, case):
     if rows:
         return json.loads(rows[-1])
     tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or [""]
-    from jaxplush.fitting.scenarios import describe_case
+    from jaxplush.fitting.targets.scenarios import describe_case
     if args.oracle_only:
         return dict(index=case["index"], seed=case.get("seed"), description=describe_case(case),
                     n_objects=case["n_objects"], kind=case["kind"], oracle=None, case_determinable=False,

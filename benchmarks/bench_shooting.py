@@ -19,8 +19,9 @@ import jax
 import numpy as np
 
 import jaxplush
-from jaxplush.fitting import fitter, shooting
-from jaxplush.fitting.scenarios import drop_scene_text
+from jaxplush.fitting import fitter
+from jaxplush.fitting.objective import shooting
+from jaxplush.fitting.targets.scenarios import drop_scene_text
 from jaxplush.fitting.targets import make_target
 
 FACTORS = (1.6, 0.7, 1.4)

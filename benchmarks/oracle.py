@@ -1,7 +1,7 @@
 """The recovery benchmark's oracle: which parameters a target determines, computed at the truth,
 independent of the fitter (``bench_recovery.py --random N --seed S --oracle-only``).
 
-For one random case (``jaxplush.fitting.scenarios.draw_case``) and its target (the frames the
+For one random case (``jaxplush.fitting.targets.scenarios.draw_case``) and its target (the frames the
 benchmark fits), the oracle gives the Cramér-Rao standard deviation of each fitted parameter's
 logarithm (a relative error), from a Fisher information built on **segments restarted from the
 true states**:
@@ -311,8 +311,8 @@ def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0
     sd = dict(zip(labels, sds(F, np.eye(P))))
     rate_sd = {}
     if "damping" in case["params"] and "drag" in case["params"]:
-        from jaxplush.fitting.equation_error import damping_rate
-        from jaxplush.fitting.scenarios import case_truth
+        from jaxplush.fitting.stages.equation_error import damping_rate
+        from jaxplush.fitting.targets.scenarios import case_truth
         truth = case_truth(case)
         for j, o in enumerate(case["objects"]):
             rate_d, g = float(damping_rate(truth["damping"][j], dt)), truth["drag"][j]   # 1/(D dt), drag
@@ -342,7 +342,7 @@ def frame_rms(frames, target, faces):
         return np.sqrt(np.mean((frames - np.asarray(target.positions, np.float64)) ** 2, axis=(1, 2)))
     import jax
     import jax.numpy as jnp
-    from jaxplush.fitting.losses import point_surface_distance2, vertex_faces
+    from jaxplush.fitting.objective.losses import point_surface_distance2, vertex_faces
     vf = vertex_faces(faces, frames.shape[1])
     one = jax.jit(lambda x, p: jnp.sqrt(jnp.mean(point_surface_distance2(x, p, faces, vf))))
     return np.array([float(one(x, p)) for x, p in zip(frames, np.asarray(target.points, np.float64))])

@@ -1,6 +1,6 @@
 """How rough is a fitting loss, and why: 1-D scans of a dropped ball's loss at small scales.
 
-For a 642-vertex ball dropped 0.2 m onto a floor (jaxplush.fitting.scenarios; 3000 steps of 2e-4 s, 60
+For a 642-vertex ball dropped 0.2 m onto a floor (jaxplush.fitting.targets.scenarios; 3000 steps of 2e-4 s, 60
 frames), the loss of a positions target made at the true values is scanned along each log-
 parameter, at the truth and at a start x1.9 / x2 / x0.6 away: central differences at relative
 steps 1e-5 ... 1e-2 against the exact directional derivative (autodiff, float64). A smooth loss
@@ -39,7 +39,7 @@ STEPS = (1e-5, 1e-4, 1e-3, 1e-2)
 def scan(damping, floor_model):
     import jaxplush
     from jaxplush.fitting import fitter as F
-    from jaxplush.fitting.scenarios import drop_scene_text
+    from jaxplush.fitting.targets.scenarios import drop_scene_text
     from jaxplush.fitting.targets import make_target
     from jaxplush.gradcheck import roughness_scan
     kw = dict(damping=2000.0) if damping == "damping" else dict(damping=None, dashpot=0.1)

@@ -9,19 +9,19 @@
 
 With ``--field`` the spring stiffness is fitted as a field (one value per edge, or per face group
 of the scene's ``g`` lines) with the global parameters, by gradients through the rollout
-(:mod:`jaxplush.fitting.field`); FIT.h5 gains ``fields/k_structural`` [E], ``--out-scene`` writes the
+(:mod:`jaxplush.fitting.stages.field`); FIT.h5 gains ``fields/k_structural`` [E], ``--out-scene`` writes the
 field (``k_region`` or ``k_edge`` lines), and a picture of the field on the mesh is written next
 to FIT.h5 (``FIT.field.png``, or ``--field-png``), beside the true field of ``--field-true``.
 
 Before fitting it prints the predictability of the start values over the target (stderr): how
 long the positions stay predictable and the model's own reproducibility floor (the result table
 repeats it; a fit whose residual lies at that floor ends ``at_floor``, not ``poor_fit``), and how
-the default fit shoots (``--shooting``, :mod:`jaxplush.fitting.shooting`): one rollout over the
+the default fit shoots (``--shooting``, :mod:`jaxplush.fitting.objective.shooting`): one rollout over the
 target, or segments no longer than the horizon, restarted from the observed positions.
 
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
-exits 3; a fit that finished without reaching the data (jaxplush.fitting.outcome; ``at_floor``
+exits 3; a fit that finished without reaching the data (jaxplush.fitting.judge.outcome; ``at_floor``
 included) writes FIT.h5 with its status and exits 4. One
 that has done what the data allow exits 0: converged, or reproducing the target with some
 parameters undetermined (``undetermined``, said on stderr), its values, and the combinations the
@@ -42,7 +42,7 @@ from jaxplush.io.trajectory import check_output_path
 
 EXIT_USAGE = 2
 EXIT_FAILED = 3
-EXIT_NOT_CONVERGED = 4     # the fit finished but did not converge to the data (jaxplush.fitting.outcome)
+EXIT_NOT_CONVERGED = 4     # the fit finished but did not converge to the data (jaxplush.fitting.judge.outcome)
 EXIT_INTERRUPTED = 130
 
 
@@ -123,7 +123,7 @@ def _parser():
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "sweep":
-        from jaxplush.fitting.sweep_cli import main as sweep_main
+        from jaxplush.fitting.sweep.cli import main as sweep_main
         return sweep_main(argv[1:])
     try:
         args = _parser().parse_args(attach_negative_values(argv))
@@ -163,7 +163,7 @@ def _fit(args):
     options = _options(args, names)
     scene = jaxplush.load_scene(args.scene)
     if args.noise is not None and not args.noise_free:
-        from jaxplush.fitting.problem import check_noise
+        from jaxplush.fitting.objective.problem import check_noise
         check_noise(args.noise, scene, "--noise")
     if args.field:
         return _fit_field(args, scene, names, options)
@@ -179,7 +179,7 @@ def _fit_field(args, scene, names, options):
     """``--field``: the stiffness field's fit, FIT.h5, --out-scene and the picture of the field."""
     import jaxplush
     from jaxplush.errors import JaxplushError
-    from jaxplush.fitting import field as _field
+    from jaxplush.fitting.stages import field as _field
     from jaxplush.fitting.targets import load_target
     truth = None
     if args.field_true is not None:
@@ -364,7 +364,7 @@ def _report(args, result):
     if args.out_scene:
         result.write_scene(args.out_scene)
     print(result.table())
-    from jaxplush.fitting.outcome import DONE, REPORTED, Status
+    from jaxplush.fitting.judge.outcome import DONE, REPORTED, Status
     if result.identifiability is not None:
         print(result.identifiability.summary(standard_errors=result.status in REPORTED))
     print(f"wrote {args.out}" + (f" and {args.out_scene}" if args.out_scene else ""))

@@ -7,36 +7,36 @@ override single fields: ``fit(scene, target, iterations=40)``):
 * the fitted variables are theta = log(p) for the chosen parameters of the chosen objects
   (positivity for free); every other parameter stays at the scene's value. ``params=None``
   fits what the scene switches on (:func:`default_params`);
-* the loss is :func:`jaxplush.fitting.losses.make_loss` over the target's frames (noise- or
+* the loss is :func:`jaxplush.fitting.objective.losses.make_loss` over the target's frames (noise- or
   motion-normalised; positions or point-to-surface distances);
-* the default optimiser, ``"lm"``, is global then local (:mod:`jaxplush.fitting.lmfit`,
-  :mod:`jaxplush.fitting.search`): a Sobol design over a box around the start run through the batched
+* the default optimiser, ``"lm"``, is global then local (:mod:`jaxplush.fitting.stages.lmfit`,
+  :mod:`jaxplush.fitting.stages.search`): a Sobol design over a box around the start run through the batched
   simulator, then Levenberg-Marquardt with central-difference Jacobians from the best
   candidates, over horizons of growing length, every evaluated point stable (substeps where
-  needed, :mod:`jaxplush.fitting.evaluate`);
+  needed, :mod:`jaxplush.fitting.objective.evaluate`);
 * ``"adam"``, ``"lbfgs"`` and any optax transformation the caller passes descend the gradient
-  through the rollout (:func:`jaxplush.fitting.gradients.rollout_loss`) in one loop: a step whose
+  through the rollout (:func:`jaxplush.fitting.objective.gradients.rollout_loss`) in one loop: a step whose
   rollout blows up (non-finite loss or gradient, an inverted object, damping < 1) is rejected
   and the step halved; a start that blows up, or too many rejections in a row, raise
   :class:`FitError`; they stop at ``iterations`` or at ``gtol``/``rtol``/``xtol``/``ftol``;
 * before fitting, the predictability of the start values over the target is measured
   (:func:`jaxplush.predictability`: two runs that differ only by rounding); its reproducibility
   floor is the residual no parameters can go below, which the outcome tells from a poor fit;
-* every fit's outcome is judged by :mod:`jaxplush.fitting.outcome` ("converged" only at the noise level
+* every fit's outcome is judged by :mod:`jaxplush.fitting.judge.outcome` ("converged" only at the noise level
   and an optimum), recorded in the result and FIT.h5 and warned about otherwise;
 * checkpoints (``checkpoint_path``) hold the complete state, so ``resume=True`` continues an
   interrupted (Ctrl-C or killed) fit to the same answer; Ctrl-C saves before it exits;
-* afterwards: the identifiability report (:mod:`jaxplush.fitting.identifiability`) and a health check of
+* afterwards: the identifiability report (:mod:`jaxplush.fitting.judge.identifiability`) and a health check of
   the fitted rollout.
 
 The result is a :class:`FitResult`.
 
 This module holds :func:`fit` and the default fit's wrapper (checkpoints, Ctrl-C saves, the
 result); the pieces live beside it and are importable from here as well: the problem
-(:mod:`jaxplush.fitting.problem`), the gradient optimisers' loop (:mod:`jaxplush.fitting.gradfit`),
-the result and its judgement (:mod:`jaxplush.fitting.result`), synthetic recovery
-(:mod:`jaxplush.fitting.recovery`); the default fit's stages and driver are
-:mod:`jaxplush.fitting.stages` and :mod:`jaxplush.fitting.lmfit`.
+(:mod:`jaxplush.fitting.objective.problem`), the gradient optimisers' loop (:mod:`jaxplush.fitting.stages.gradfit`),
+the result and its judgement (:mod:`jaxplush.fitting.judge.result`), synthetic recovery
+(:mod:`jaxplush.fitting.targets.recovery`); the default fit's stages and driver are
+:mod:`jaxplush.fitting.stages` and :mod:`jaxplush.fitting.stages.lmfit`.
 """
 
 from __future__ import annotations
@@ -50,41 +50,41 @@ import warnings
 import numpy as np
 
 from jaxplush.compilestats import compile_clock
-from jaxplush.fitting import intervals as _intervals
+from jaxplush.fitting.judge import intervals as _intervals
 from jaxplush.stepping import diagnostics
 from jaxplush.errors import JaxplushError, TimeStepWarning, VolumeClampWarning
 from jaxplush.types import PARAM_NAMES  # noqa: F401  (jaxplush.fitting.fitter.PARAM_NAMES)
 
-from jaxplush.fitting import identifiability as _ident
-from jaxplush.fitting import objects as _objects
-from jaxplush.fitting import losses as _losses
+from jaxplush.fitting.judge import identifiability as _ident
+from jaxplush.fitting.stages import objects as _objects
+from jaxplush.fitting.objective import losses as _losses
 from jaxplush.fitting import options as _options
 from jaxplush.fitting.stages import saving_on_interrupt
 from jaxplush.fitting.errors import FitError  # noqa: F401  (jaxplush.fitting.fitter.FitError)
 # the pieces of a fit, importable from here as before
-from jaxplush.fitting.gradfit import (DEFAULT_LR, MAX_REJECTIONS, OPTIMIZERS, LoopState,  # noqa: F401
+from jaxplush.fitting.stages.gradfit import (DEFAULT_LR, MAX_REJECTIONS, OPTIMIZERS, LoopState,  # noqa: F401
                                       _GradientFit, make_optimizer, optimizer_kind, uses_linesearch)
 from jaxplush.fitting.options import CheckpointOptions, FitOptions, SearchOptions  # noqa: F401
-from jaxplush.fitting.problem import (ALIASES, Problem, _common_settings, build_problem,  # noqa: F401
+from jaxplush.fitting.objective.problem import (ALIASES, Problem, _common_settings, build_problem,  # noqa: F401
                                       canonical_names, check_mass_fit, default_params, parse_bounds)
-from jaxplush.fitting.recovery import RECOVERY_TRUTH, recovery_scene_text, synthetic_recovery  # noqa: F401
-from jaxplush.fitting.result import (FitResult, _history, _judge, _motion, _predictability_at, _result,  # noqa: F401
+from jaxplush.fitting.targets.recovery import RECOVERY_TRUTH, recovery_scene_text, synthetic_recovery  # noqa: F401
+from jaxplush.fitting.judge.result import (FitResult, _history, _judge, _motion, _predictability_at, _result,  # noqa: F401
                                      identifiability_at, measure_predictability, rounding_drift)
-from jaxplush.fitting import shooting as _shooting
-from jaxplush.fitting.outcome import REPORTED as _REPORTED, Status
-from jaxplush.fitting.shooting import plan_shooting
+from jaxplush.fitting.objective import shooting as _shooting
+from jaxplush.fitting.judge.outcome import REPORTED as _REPORTED, Status
+from jaxplush.fitting.objective.shooting import plan_shooting
 
 
 def fit(scene, target, params=None, objects=None, *, optimizer="lm", options=None, callback=None, progress=False,
         report=None, solver=None, **overrides):
     """Fit parameters of ``scene`` to ``target``.
 
-    The default (``optimizer="lm"``) is global, then local (:mod:`jaxplush.fitting.search`): a Sobol
+    The default (``optimizer="lm"``) is global, then local (:mod:`jaxplush.fitting.stages.search`): a Sobol
     design over a box around the start (each parameter from start/4 to start*4 in log space,
     or ``bounds``), run in compiled batches with every point stable (substeps where a point's
     explicit limit is below dt), then Levenberg-Marquardt with finite-difference Jacobians from
     the best candidates, keeping the best. The outcome is judged honestly
-    (:mod:`jaxplush.fitting.outcome`): ``converged`` only when the residual is at the noise level (or
+    (:mod:`jaxplush.fitting.judge.outcome`): ``converged`` only when the residual is at the noise level (or
     small against the target's motion) and the gradient is small against the start's.
 
     Args:
@@ -199,7 +199,7 @@ def _problem(scene, target, params, objects, opts):
 
 
 def _lm_box(prob, bounds):
-    from jaxplush.fitting import lmfit
+    from jaxplush.fitting.stages import lmfit
     box = lmfit.default_box(prob, parse_bounds(bounds, prob.names))
     th0 = np.asarray(prob.theta0, np.float64)
     if not box.contains(th0):
@@ -223,10 +223,11 @@ def _lm_settings(prob, opts, box):
 
 
 def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, clock=None, solver=None):
-    """The default fit (jaxplush.fitting.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome.
+    """The default fit (jaxplush.fitting.stages.lmfit.run) with checkpoints, Ctrl-C saves and the honest outcome.
     ``clock``: a :class:`jaxplush.compilestats.CompileClock` started with the fit, whose
     :class:`~jaxplush.compilestats.Timing` the result gets (None: one started here)."""
-    from jaxplush.fitting import io as _io, lmfit
+    from jaxplush.fitting import io as _io
+    from jaxplush.fitting.stages import lmfit
     clock = compile_clock() if clock is None else clock
     _shooting.check_segments(opts.shooting, prob.target)
     box = _lm_box(prob, opts.search.bounds)
@@ -352,7 +353,7 @@ def _resolve_again(prob, box, run, ev, local, report, drift, factor, notes):
     parameter within 0.2% of the truth: all six combinations unresolved at steps 0.001 and 0.01
     (sensitivities 0.02-0.04 m per e-fold, mostly noise), two resolved at 0.05 (sensitivities
     0.008-0.017 m per e-fold against a noise of 0.0052 m)."""
-    from jaxplush.fitting.search import fd_step, jacobian
+    from jaxplush.fitting.stages.search import fd_step, jacobian
     if drift is None:
         return report
     best, h_prev, radius = run.best, float(run.jac_step), float(local.resolve_h)
@@ -420,8 +421,8 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability. A fit in
     segments returns its values with multiple shooting's own bias taken off (:func:`jaxplush.fitting.
     shooting.debias`; ``say`` gets the line that says so); its loss and outcome are the fit's own."""
-    from jaxplush.fitting import lmfit
-    from jaxplush.fitting.search import gauss_newton
+    from jaxplush.fitting.stages import lmfit
+    from jaxplush.fitting.stages.search import gauss_newton
     notes = list(notes) + list(ev.notes)
     prob = dataclasses.replace(prob, sim=ev.prob.sim)       # with a grown contact capacity, if any
     best = run.best
@@ -491,7 +492,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
         notes.append(msg)
     ivals = None
     if want_ident:
-        # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.intervals)
+        # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.judge.intervals)
         ivals = _intervals.twins(prob, ev, theta, run.jac, report, residual=run.residual)
     else:
         report = None

@@ -54,12 +54,12 @@ class SearchOptions:
       seed: the Sobol scrambling seed.
       retries: a design point that blows up at the substeps its stability limit predicts is run
         again with twice as many at most this many times (``global_retries``; None: up to
-        :data:`jaxplush.fitting.evaluate.MAX_SUBSTEPS`, as a local search's points are). The
+        :data:`jaxplush.fitting.objective.evaluate.MAX_SUBSTEPS`, as a local search's points are). The
         design does not need every point, and each further substep count is one more compiled
         simulator (5-20 s with soft-soft contact) for a point or two at the box's wild corners.
       linear: add the start that needs no start values to the design (``linear_start``): indirect
         inference on the equation-error estimate of the model's linear force balance
-        (:mod:`jaxplush.fitting.equation_error`), where the target is vertex positions and every
+        (:mod:`jaxplush.fitting.stages.equation_error`), where the target is vertex positions and every
         fitted parameter enters the forces linearly (k, dashpot, nmol, drag, damping); a dozen
         rollouts or so. The design keeps whichever point fits best.
     """
@@ -84,7 +84,7 @@ class SearchOptions:
 
 @dataclasses.dataclass(frozen=True)
 class LocalOptions:
-    """The default fit's local Levenberg-Marquardt searches (:func:`jaxplush.fitting.search.lm_round`),
+    """The default fit's local Levenberg-Marquardt searches (:func:`jaxplush.fitting.stages.search.lm_round`),
     their screening and their rescue (``optimizer="lm"`` only). Everything is in log space.
 
     Attributes:
@@ -93,7 +93,7 @@ class LocalOptions:
       drop_factor: a search whose loss exceeds this many times the best one's is set aside.
       start_distance: the global stage's candidates that start searches lie at least this
         fraction of the box's widest side apart (max-norm).
-      max_rescues: restarts from an axis scan (:func:`jaxplush.fitting.search.rescue`) per search and stage.
+      max_rescues: restarts from an axis scan (:func:`jaxplush.fitting.stages.search.rescue`) per search and stage.
       scan_points: points of an axis scan, in all (at least 4 per parameter).
       rescue_gain: a scan point must lower the loss by this fraction to restart a search there.
       h_min, h_max: smallest and largest central-difference step of the Jacobian (the step is
@@ -175,7 +175,7 @@ class LocalOptions:
 
 @dataclasses.dataclass(frozen=True)
 class ContinuationOptions:
-    """The default fit's continuation in time (:mod:`jaxplush.fitting.lmfit`): stages over the
+    """The default fit's continuation in time (:mod:`jaxplush.fitting.stages.lmfit`): stages over the
     target's first frames, each starting from the previous stage's best points (``optimizer="lm"`` only).
 
     Attributes:
@@ -205,7 +205,7 @@ class ContinuationOptions:
 
 @dataclasses.dataclass(frozen=True)
 class SmoothingOptions:
-    """The default fit's smoothing stage for a noisy target (:func:`jaxplush.fitting.search.smooth`):
+    """The default fit's smoothing stage for a noisy target (:func:`jaxplush.fitting.stages.search.smooth`):
     Gauss-Newton on a regression model of the residuals over Sobol designs (``optimizer="lm"`` only).
 
     Attributes:
@@ -234,7 +234,7 @@ MIN_SEGMENT = 2
 
 @dataclasses.dataclass(frozen=True)
 class ShootingOptions:
-    """The default fit's multiple shooting (:mod:`jaxplush.fitting.shooting`; ``optimizer="lm"``
+    """The default fit's multiple shooting (:mod:`jaxplush.fitting.objective.shooting`; ``optimizer="lm"``
     only). Whether it shoots at all is ``FitOptions.shooting``.
 
     Attributes:
@@ -292,7 +292,7 @@ class FitOptions:
       gtol, rtol, xtol, ftol, patience: when a gradient optimiser stops (max-norm of the
         gradient; relative loss change for ``patience`` accepted iterations; max-norm of the
         log-space step; the loss itself).
-      method: gradient method of :func:`jaxplush.fitting.gradients.rollout_loss`.
+      method: gradient method of :func:`jaxplush.fitting.objective.gradients.rollout_loss`.
       force: allow fitting ``total_weight`` jointly with k/dashpot/nmol.
       identifiability: compute the identifiability report at the optimum.
       check_dt: warn when dt exceeds the estimated stability limit at the start values
@@ -300,7 +300,7 @@ class FitOptions:
       predictability: measure the predictability of the start values over the target before
         fitting (:func:`jaxplush.predictability`, two or three rollouts), reported in the result
         and FIT.h5; its reproducibility floor lets the outcome say ``at_floor``.
-      shooting: how the default fit runs a position target (:mod:`jaxplush.fitting.shooting`):
+      shooting: how the default fit runs a position target (:mod:`jaxplush.fitting.objective.shooting`):
         "auto" (multiple shooting where the measured horizon is shorter than the target and
         shooting measures better than one rollout), "off" (one rollout over the target), or the
         frames per segment (an int >= 2).

@@ -32,7 +32,7 @@ def collect():
                bad_step=np.asarray(health.bad_step), good=batched.positions(health.good_state),
                sep=np.asarray(sep))
     # 2. the fit's Evaluator on a pressed pair (the global stage's batched path)
-    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.objective.evaluate import Evaluator
     prob = _pressed_problem()
     thetas = np.asarray(prob.theta0)[None] + np.linspace(-0.4, 0.4, 9)[:, None, None] * np.array([[[1.0, -0.5]]])
     e = Evaluator(prob, calibrate=False)(thetas, keep_frames=True)

@@ -15,7 +15,7 @@ import pytest
 from jax.extend import core
 
 import jaxplush
-from jaxplush.fitting import gradients, losses
+from jaxplush.fitting.objective import gradients, losses
 from jaxplush.stepping import diagnostics
 from conftest import icosphere_text
 

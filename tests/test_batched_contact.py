@@ -193,7 +193,7 @@ def _pressed_problem(capacity=None, sub=1):
 
 
 def test_evaluator_runs_contact_scenes_batched_with_the_single_paths_losses():
-    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.objective.evaluate import Evaluator
     prob = _pressed_problem()
     thetas = np.asarray(prob.theta0)[None] + np.array([0.3, -0.3, 0.5])[:, None, None] * np.array([[[1.0, -0.5]]])
     ev = Evaluator(prob, calibrate=False)
@@ -211,7 +211,7 @@ def test_evaluator_runs_contact_scenes_batched_with_the_single_paths_losses():
 
 @pytest.mark.heavy
 def test_evaluator_grows_the_capacity_of_overflowing_batched_points():
-    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.objective.evaluate import Evaluator
     prob = _pressed_problem(capacity=4)
     ev = Evaluator(prob, calibrate=False)
     # the fit's headroom: twice the scene's capacity (still too few here)

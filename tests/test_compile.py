@@ -17,7 +17,7 @@ import pytest
 import jaxplush
 from jaxplush.stepping import compiled
 from conftest import compiles
-from jaxplush.fitting.scenarios import drop_scene_text
+from jaxplush.fitting.targets.scenarios import drop_scene_text
 
 DT = 2e-4
 

@@ -514,7 +514,7 @@ def test_status_fn_reports_a_state_whose_candidates_overflow():
 def test_gradients_through_an_overflowing_rollout_are_finite():
     """No NaN leaks from an overflow into values or gradients of a rollout; fitting's rollout loss
     is NaN (the fit's signal to raise the capacity), its gradient finite."""
-    from jaxplush.fitting.gradients import rollout_loss
+    from jaxplush.fitting.objective.gradients import rollout_loss
     scene, n, sim = _overflowing()
     p = sim.params()
 
@@ -587,7 +587,7 @@ def test_an_overflow_between_saved_frames_is_not_lost(coherent):
     np.testing.assert_array_equal(np.asarray(health.code), [diagnostics.CONTACT_OVERFLOW] * 2)
     np.testing.assert_array_equal(np.asarray(health.bad_step), [300, 300])
     if not coherent:
-        from jaxplush.fitting.identifiability import frames_at_steps
+        from jaxplush.fitting.judge.identifiability import frames_at_steps
         fr, codes = jax.jit(lambda q: frames_at_steps(sim, q, sim.init_fn(q, None, v0), (0, 300)))(p)
         np.testing.assert_array_equal(np.asarray(codes), [[diagnostics.OK] * 2, [diagnostics.CONTACT_OVERFLOW] * 2])
         assert np.linalg.norm(np.asarray(fr[-1] - final.x)) <= 1e-4 * np.linalg.norm(np.asarray(final.x))

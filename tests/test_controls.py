@@ -16,7 +16,7 @@ import pytest
 import jaxplush
 from jaxplush.errors import JaxplushError, TrajectoryError
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting.identifiability import frames_at_steps
+from jaxplush.fitting.judge.identifiability import frames_at_steps
 from jaxplush.fitting.targets import Controls, controls_of_scene, load_target, make_target, scene_with_controls
 from test_driven import _squeezed
 

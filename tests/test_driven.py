@@ -17,7 +17,7 @@ import jaxplush
 from conftest import assert_gradient_matches_fd, icosphere_text
 from jaxplush import SceneError
 from jaxplush.stepping import batched
-from jaxplush.fitting import gradients as G
+from jaxplush.fitting.objective import gradients as G
 from jaxplush.stepping import constraints
 from jaxplush.stepping.integrators import INTEGRATORS
 
@@ -416,7 +416,7 @@ def test_batched_lanes_at_their_own_steps(tmp_path):
 
 
 def test_the_batched_engine_takes_driven_scenes(tmp_path):
-    from jaxplush.fitting.evaluate import _batchable
+    from jaxplush.fitting.objective.evaluate import _batchable
     s = _scene(tmp_path, [0.0], [[0, 0, 0]])
     terms = jaxplush.make_simulator(s, DT).terms
     batched.check_terms(terms)
@@ -470,7 +470,7 @@ def test_multiple_shooting_of_a_driven_scene(tmp_path):
     its minimum at the truth, where the segments land on the target."""
     import warnings
     from jaxplush.fitting import fitter as F
-    from jaxplush.fitting import shooting as S
+    from jaxplush.fitting.objective import shooting as S
     from jaxplush.fitting.targets import make_target
     truth = _squeezed(tmp_path, 120.0)
     target = make_target(truth, 90, DT, 5)
@@ -485,7 +485,7 @@ def test_multiple_shooting_of_a_driven_scene(tmp_path):
     # at the truth only the node velocities (estimated from the frames) are off: the residual is a
     # few % of the motion (segments that read the path from t = 0 instead of their node's step: 60%)
     motion = np.sqrt(np.mean((target.positions - truth.vertices) ** 2))
-    from jaxplush.fitting import losses
+    from jaxplush.fitting.objective import losses
     assert losses.rms_metres(loss[1], prob.loss.scale2, "positions") < 0.1 * motion
 
 

@@ -18,8 +18,8 @@ import pytest
 
 import jaxplush
 from jaxplush import fitting
-from jaxplush.fitting import equation_error as EE
-from jaxplush.fitting import problem as P
+from jaxplush.fitting.stages import equation_error as EE
+from jaxplush.fitting.objective import problem as P
 from conftest import icosphere_text
 
 DT = 5e-4
@@ -137,7 +137,8 @@ def test_refuses_what_it_cannot_estimate(hung):
 def test_the_default_fits_design_holds_the_linear_start(hung):
     """The default fit's global stage evaluates the linear start beside its Sobol points (the design's
     second point), and from a start 3x off that point is the design's best."""
-    from jaxplush.fitting import lmfit, options, stages
+    from jaxplush.fitting import options, stages
+    from jaxplush.fitting.stages import lmfit
     prob = _problem(hung, 10, factor=3.0)
     box = lmfit.default_box(prob)
     obj = stages.Objective(prob, box)

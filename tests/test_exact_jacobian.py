@@ -9,8 +9,8 @@ import pytest
 import jaxplush
 from jaxplush.errors import JaxplushError
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting import search
-from jaxplush.fitting.evaluate import Evaluator
+from jaxplush.fitting.stages import search
+from jaxplush.fitting.objective.evaluate import Evaluator
 from jaxplush.fitting.options import FitOptions, LocalOptions
 from jaxplush.fitting.targets import make_target
 

@@ -1,4 +1,4 @@
-"""Fitting (fitting.fit, jaxplush.fitting.identifiability, jaxplush.fitting.io): synthetic recovery, finite-difference
+"""Fitting (fitting.fit, jaxplush.fitting.judge.identifiability, jaxplush.fitting.io): synthetic recovery, finite-difference
 check of the fit's loss, identifiability flags, blow-up handling, Ctrl-C save and resume."""
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ def test_fit_loss_gradient_matches_finite_differences(x64, kind):
     assert np.all(g != 0)
     assert_gradient_matches_fd(loss, np.asarray(theta), g, h=1e-4, rtol=1e-6)
     if kind == "positions":
-        # the loss is what jaxplush.fitting.losses says: the mean squared vertex distance over the frames / s²
+        # the loss is what jaxplush.fitting.objective.losses says: the mean squared vertex distance over the frames / s²
         frames, _ = jax.jit(prob.frames)(theta)
         d = np.asarray(frames) - target.data
         assert float(value) == pytest.approx(np.mean(np.sum(d ** 2, -1)) / prob.loss.scale2, rel=1e-10)
@@ -129,7 +129,7 @@ def test_static_target_flags_damping_and_the_k_nmol_tradeoff():
 
 
 def test_identifiability_wording():
-    from jaxplush.fitting.identifiability import analyse
+    from jaxplush.fitting.judge.identifiability import analyse
     rng = np.random.default_rng(0)
     a = rng.normal(size=200)
     b = rng.normal(size=200)
@@ -154,7 +154,7 @@ def test_the_reports_damping_and_drag_of_one_object_are_never_told_apart():
     two well-separated columns, as seed 601 case 5's float32 fit on a floor did, converged 87% off
     in damping with a 0.06% standard error), the report calls each undetermined and says that
     their rate is what the target determines; another object's pair and other parameters stay."""
-    from jaxplush.fitting.identifiability import analyse, shared_regressors
+    from jaxplush.fitting.judge.identifiability import analyse, shared_regressors
     rng = np.random.default_rng(3)
     jac = rng.normal(size=(300, 5))                  # independent columns: every stderr finite
     labels = ["k_structural[a]", "damping[a]", "drag[a]", "damping[b]", "nmol[a]"]
@@ -170,7 +170,7 @@ def test_identifiability_sees_a_degenerate_pair_through_rounding_noise():
     """Two exactly collinear columns plus float32-like noise of known size: the condition number
     stays below the warning level (the noise breaks the degeneracy), the residual-based standard
     errors look tiny, and only the Jacobian's noise tells that the pair is not determined."""
-    from jaxplush.fitting.identifiability import COND_WARN, analyse, fd_noise
+    from jaxplush.fitting.judge.identifiability import COND_WARN, analyse, fd_noise
     rng = np.random.default_rng(1)
     n = 4000
     g, k = rng.normal(size=n), rng.normal(size=n)
@@ -200,8 +200,8 @@ def test_damping_and_drag_fitted_together_end_undetermined():
     determines only their combined rate: the default fit says so before it starts, reproduces
     the target, recovers that rate and the other parameters, and ends ``undetermined`` (not
     ``converged``) with the pair named, their standard errors infinite."""
-    from jaxplush.fitting.outcome import Status
-    from jaxplush.fitting.problem import DAMPING_DRAG_NOTE
+    from jaxplush.fitting.judge.outcome import Status
+    from jaxplush.fitting.objective.problem import DAMPING_DRAG_NOTE
 
     def scene(drag, **kw):
         return jaxplush.parse_scene(F.recovery_scene_text(1, **kw).replace("damping", f"drag {drag}\ndamping", 1),
@@ -298,8 +298,8 @@ def test_evaluator_grows_the_contact_capacity_on_an_overflow_code():
     """The default fit's evaluator (batched, with contact) reads the health code
     CONTACT_OVERFLOW of its rollout, raises the capacity (a warning names it) and runs the point
     again; the frames it returns are those of the grown capacity."""
-    from jaxplush.fitting.evaluate import Evaluator
-    from jaxplush.fitting.identifiability import frames_at_steps
+    from jaxplush.fitting.objective.evaluate import Evaluator
+    from jaxplush.fitting.judge.identifiability import frames_at_steps
     dt = 2e-4
     target = make_target(_pressed_pair(150.0), 100, dt, 25)
     small = _pressed_pair(300.0, capacity=2)
@@ -540,7 +540,8 @@ def test_the_default_fits_stages_recombine_and_reach_its_searches_result(small):
     then Levenberg-Marquardt over horizons of growing length) reach lmfit.run's best point bit for
     bit; a global stage alone gives its candidates, and a local stage after it goes on from them."""
     import warnings
-    from jaxplush.fitting import FitOptions, lmfit, stages
+    from jaxplush.fitting import FitOptions, stages
+    from jaxplush.fitting.stages import lmfit
     _, start, target = small
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -615,7 +616,7 @@ def test_a_start_far_less_predictable_than_the_result_leaves_a_determined_fit_co
     fitted values reproduces the target to the residual the fit reached, so that bounds the
     yardstick: a noise-free fit of k and nmol that reaches the target stays converged."""
     import dataclasses
-    from jaxplush.fitting.outcome import Status
+    from jaxplush.fitting.judge.outcome import Status
     truth = _hanging()
     p = truth.params
     target = make_target(truth, 200, 1e-3, 20)
@@ -656,7 +657,7 @@ class _RoundingModel:
         return np.ones(len(points), np.int64)
 
     def __call__(self, points, substeps=None):
-        from jaxplush.fitting.evaluate import Evaluation
+        from jaxplush.fitting.objective.evaluate import Evaluation
         pts = np.asarray(points, np.float64).reshape(len(points), -1)
         res = []
         for t in pts:
@@ -680,7 +681,9 @@ def test_a_combination_the_search_step_cannot_resolve_is_measured_again_at_a_lar
     measured effect asks for (within h_max), and resolved there; an exactly degenerate pair (two
     equal columns) stays unresolved at any step."""
     from types import SimpleNamespace
-    from jaxplush.fitting import identifiability as I, options as O, search as S
+    from jaxplush.fitting import options as O
+    from jaxplush.fitting.judge import identifiability as I
+    from jaxplush.fitting.stages import search as S
     rng = np.random.default_rng(3)
     n = 4000
     q, _ = np.linalg.qr(rng.standard_normal((n, 3)))
@@ -726,7 +729,9 @@ def test_a_larger_step_that_measures_another_slope_does_not_resolve_a_combinatio
     it unresolved and says why. Without the cubic term the same pair stays unresolved by the
     ladder (the parametrised test above): here only the check keeps it."""
     from types import SimpleNamespace
-    from jaxplush.fitting import identifiability as I, options as O, search as S
+    from jaxplush.fitting import options as O
+    from jaxplush.fitting.judge import identifiability as I
+    from jaxplush.fitting.stages import search as S
     rng = np.random.default_rng(3)
     n = 4000
     q, _ = np.linalg.qr(rng.standard_normal((n, 3)))

@@ -69,7 +69,7 @@ def test_fit_end_to_end(files, tmp_path, capsys):
         ig = f["identifiability"]
         assert ig["jtj"].shape == (3, 3) and ig["stderr"].shape == (3,) and ig.attrs["condition"] > 1
         assert f["fitted"]["positions"].shape == (10, 42, 3)
-        # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.intervals)
+        # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.judge.intervals)
         iv = f["intervals"]
         assert iv.attrs["method"] == "twins" and iv["lower"].shape == (3,) and np.all(iv["lower"][()] < iv["upper"][()])
         assert "95% interval" in text.out
@@ -261,8 +261,8 @@ def test_an_output_through_a_symlink_must_not_overwrite_an_input(files, tmp_path
 
 def test_sweep_is_dispatched(monkeypatch):
     seen = []
-    fake = types.ModuleType("jaxplush.fitting.sweep_cli")
+    fake = types.ModuleType("jaxplush.fitting.sweep.cli")
     fake.main = lambda argv: seen.append(argv) or 7
-    monkeypatch.setitem(sys.modules, "jaxplush.fitting.sweep_cli", fake)
+    monkeypatch.setitem(sys.modules, "jaxplush.fitting.sweep.cli", fake)
     assert cli.main(["sweep", "scene.obj", "--steps", "3"]) == 7
     assert seen == [["scene.obj", "--steps", "3"]]

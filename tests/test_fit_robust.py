@@ -1,4 +1,4 @@
-"""The default fit (jaxplush.fitting.search, jaxplush.fitting.lmfit, jaxplush.fitting.evaluate, jaxplush.fitting.outcome): recovery from
+"""The default fit (jaxplush.fitting.stages.search, jaxplush.fitting.stages.lmfit, jaxplush.fitting.objective.evaluate, jaxplush.fitting.judge.outcome): recovery from
 far starts on floor-contact scenes, honest outcomes, every evaluated point stable, defaults that
 follow the scene, resume. Small versions of benchmarks/bench_recovery.py (162-vertex drops)."""
 
@@ -12,10 +12,10 @@ import pytest
 
 import jaxplush
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting import outcome
-from jaxplush.fitting.evaluate import Evaluator
+from jaxplush.fitting.judge import outcome
+from jaxplush.fitting.objective.evaluate import Evaluator
 from jaxplush.fitting.io import load_fit
-from jaxplush.fitting.scenarios import drop_scene_text
+from jaxplush.fitting.targets.scenarios import drop_scene_text
 from jaxplush.fitting.targets import make_target
 from jaxplush.errors import JaxplushError
 
@@ -62,7 +62,7 @@ def test_default_fit_recovers_a_dropped_ball_from_a_far_start(drop, kind):
         # reached is rms <= 1% of the motion; a fit from the exact target's model lies far below that
         assert res.outcome.reference_kind == "motion" and res.outcome.rms < 1e-3 * res.outcome.reference
     # the search ran over horizons of growing length and sampled the default box (start/4 .. start x4):
-    # the start, the linear start (positions only: jaxplush.fitting.equation_error) and 64 Sobol points
+    # the start, the linear start (positions only: jaxplush.fitting.stages.equation_error) and 64 Sobol points
     s = res.search
     assert s["horizons"][-1] == target.n_frames and len(s["horizons"]) == 3
     assert np.allclose(np.exp(s["box_hi"] - s["box_lo"]), 16.0)
@@ -145,7 +145,7 @@ def test_a_volume_that_inverts_no_later_with_more_substeps_is_not_retried_again(
     volume that twice the substeps did not delay: that object was crushed, not unstable, and each
     retry of a large contact scene costs seconds. A blow-up (not an inversion), or an inversion
     that more substeps delayed, is retried on, up to MAX_SUBSTEPS."""
-    from jaxplush.fitting import evaluate
+    from jaxplush.fitting.objective import evaluate
     truth = _drop()
     with pytest.warns(UserWarning):
         prob = F.build_problem(truth, make_target(truth, 100, DT, 25))
@@ -272,7 +272,7 @@ class _OneParameterLoss:
         return np.ones(len(thetas), int)
 
     def __call__(self, thetas, substeps=None):
-        from jaxplush.fitting.evaluate import Evaluation
+        from jaxplush.fitting.objective.evaluate import Evaluation
         r = self.r(np.asarray(thetas, np.float64).reshape(len(thetas), -1)[:, :1])
         n = len(thetas)
         return Evaluation(r, np.sum(r ** 2, axis=1), np.ones(n, bool), np.ones(n, int), np.zeros(n, bool))
@@ -287,7 +287,7 @@ class _SteppedLoss(_OneParameterLoss):
 
 
 def test_a_search_stalled_on_a_jump_restarts_from_an_axis_scan():
-    from jaxplush.fitting import search as S
+    from jaxplush.fitting.stages import search as S
     ev, box = _SteppedLoss(), S.Box(np.array([[-2.0]]), np.array([[2.0]]))
     states = S.start_states(ev, np.array([[[0.2 - 1e-5]]]))
     while not all(st.done for st in states):
@@ -315,7 +315,7 @@ class _RippledResiduals:
         n = 4000
 
     def __init__(self, sigma=0.01, amp=0.2, seed=0):
-        from jaxplush.fitting import search as S
+        from jaxplush.fitting.stages import search as S
         rng = np.random.default_rng(seed)
         n = self.residual.n
         self.e = rng.normal(0.0, 1.0 / np.sqrt(n), n)
@@ -332,7 +332,7 @@ class _RippledResiduals:
         return np.ones(len(thetas), int)
 
     def __call__(self, thetas, substeps=None):
-        from jaxplush.fitting.evaluate import Evaluation
+        from jaxplush.fitting.objective.evaluate import Evaluation
         t = np.asarray(thetas, np.float64).reshape(len(thetas), -1)
         ripple = np.sin(2 * np.pi * t[:, :1] / self.lam) * np.cos(2 * np.pi * t[:, 1:2] / self.lam)
         r = (t - self.t) @ self.a.T + self.e + ripple * self.q
@@ -350,7 +350,7 @@ def test_the_smoothing_stage_averages_a_ripple_out(offset, narrow, amp):
     where its step would already be within the standard errors (half a standard error off). From
     90 and 70 standard errors off (further than its designs at +-6 could walk in its 10 designs),
     its designs grow while the step reaches past them, and it still ends within one."""
-    from jaxplush.fitting import search as S
+    from jaxplush.fitting.stages import search as S
     ev = _RippledResiduals(amp=amp)
     box = S.Box(np.full((2, 1), -2.0), np.full((2, 1), 2.0))
     th = (ev.opt + np.array(offset) * ev.sigma)[:, None]
@@ -407,7 +407,7 @@ def test_point_residuals_are_signed_distances_to_the_surface():
     nearest vertex that brute force finds."""
     import jax.numpy as jnp
     import trimesh
-    from jaxplush.fitting import losses as L
+    from jaxplush.fitting.objective import losses as L
     m = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
     x = jnp.asarray(m.vertices, jnp.float32)
     faces = np.asarray(m.faces)
@@ -438,8 +438,8 @@ def test_mean_curvature_of_a_sphere_and_a_torus_converges_to_the_analytic():
     rim, closer at the finer mesh."""
     import jax.numpy as jnp
     import trimesh
-    from jaxplush.fitting import losses as L
-    from jaxplush.fitting.scenarios import shape_mesh
+    from jaxplush.fitting.objective import losses as L
+    from jaxplush.fitting.targets.scenarios import shape_mesh
     m = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
     h = np.asarray(L.vertex_mean_curvature(jnp.asarray(m.vertices), L.curvature_tables(m.faces, len(m.vertices))))
     assert np.mean(h) == pytest.approx(20.0, rel=0.01) and np.std(h) < 0.03 * 20.0
@@ -462,7 +462,7 @@ def test_noisy_samples_of_a_curved_surface_leave_the_cloud_residual_unbiased():
     import types
     import jax.numpy as jnp
     from conftest import icosphere_scene
-    from jaxplush.fitting import losses as L
+    from jaxplush.fitting.objective import losses as L
     radius, sigma, n = 0.05, 0.002, 60000
     scene = icosphere_scene(subdivisions=4, radius=radius)
     topo = jaxplush.make_simulator(scene, 1e-4).topology
@@ -511,7 +511,7 @@ def test_a_step_that_beats_its_prediction_widens_a_small_trust_radius():
     radius, up to a fresh search's ``radius0``, so the difference step grows out of the ripple and the
     search reaches the optimum; one whose radius may not grow this way (``radius0`` = 0.05) stalls
     in the ripple short of it (or gets there later)."""
-    from jaxplush.fitting import search as S
+    from jaxplush.fitting.stages import search as S
     from jaxplush.fitting.options import LocalOptions
     ev, box = _RippledSlope(), S.Box(np.array([[-2.0]]), np.array([[2.0]]))
 
@@ -532,7 +532,7 @@ def test_a_noise_free_search_stops_at_the_reproducibility_floor():
     """A search whose loss is at the model's reproducibility floor and whose Gauss-Newton step is
     negligible stops there (Stop.FLOOR), in fewer evaluations than without the floor and as close
     to the optimum; a loss below the floor with a large step does not stop; floor_step None never does."""
-    from jaxplush.fitting import search as S
+    from jaxplush.fitting.stages import search as S
     from jaxplush.fitting.options import LocalOptions
     ev, box = _RoundedLoss(), S.Box(np.array([[-2.0]]), np.array([[2.0]]))
     floor = 2.0 * ev.n * ev.eps ** 2
@@ -579,7 +579,7 @@ class _DampedWaves:
         return np.ones(len(thetas), int)
 
     def __call__(self, thetas, substeps=None):
-        from jaxplush.fitting.evaluate import Evaluation
+        from jaxplush.fitting.objective.evaluate import Evaluation
         thetas = np.asarray(thetas, np.float64).reshape((-1,) + self.truth.shape)
         self.calls += len(thetas)
         r = np.asarray([np.concatenate([self.wave(th[:, o]) for o in range(th.shape[1])]) - self.data
@@ -589,7 +589,7 @@ class _DampedWaves:
 
 
 def test_a_secant_update_maps_the_step_to_the_change_and_leaves_the_rest():
-    from jaxplush.fitting import search as S
+    from jaxplush.fitting.stages import search as S
     rng = np.random.default_rng(0)
     jac, step, dr = rng.normal(size=(30, 4)), rng.normal(size=4), rng.normal(size=30)
     new = S.broyden(jac, step, dr)
@@ -606,7 +606,7 @@ def test_secant_updated_jacobians_reach_the_same_optimum_in_fewer_evaluations(no
     iterations, with secant updates in between, reaches the same optimum of a nonlinear least-squares
     problem of 12 parameters as one that differences it every iteration, in fewer evaluations;
     every stop judged on the Jacobian was judged on a differenced one."""
-    from jaxplush.fitting import search as S
+    from jaxplush.fitting.stages import search as S
     from jaxplush.fitting.options import LocalOptions
     out = {}
     for updates in (0, 3):
@@ -633,7 +633,8 @@ def test_secant_updated_jacobians_reach_the_same_optimum_in_fewer_evaluations(no
 def test_a_checkpoint_keeps_a_secant_updated_jacobian_and_drops_a_differenced_one():
     """A resumed fit recomputes residuals and differenced Jacobians (deterministic), but not a
     Jacobian built from secant updates: the checkpoint's copy of the driver state keeps that one."""
-    from jaxplush.fitting import lmfit, search as S, stages
+    from jaxplush.fitting import stages
+    from jaxplush.fitting.stages import lmfit, search as S
     jac = np.arange(6.0).reshape(3, 2)
     fresh = S.LMState(theta=np.zeros((2, 1)), loss=1.0, jac=jac, residual=np.ones(3))
     updated = S.LMState(theta=np.zeros((2, 1)), loss=1.0, jac=jac, residual=np.ones(3), updates=2)

@@ -440,7 +440,7 @@ def test_noise_values_build_or_are_refused(fit_case, noise):
 
 
 # --------------------------------------------------------------------------- the sweep's options
-# `jaxplush-fit sweep`'s checks (fitting/sweep_cli.py `_check`) run before JAX starts, anything is
+# `jaxplush-fit sweep`'s checks (fitting/sweep/cli.py `_check`) run before JAX starts, anything is
 # written or a coordinator is contacted: every combination of grid specs, distributed options,
 # checkpoint paths and step options is accepted or a JaxplushError, and leaves no file behind.
 
@@ -460,7 +460,7 @@ DISTRIBUTED = st.one_of(st.just([]), st.builds(
 
 def _sweep_case(fit_case, tmp_path, grids, distributed, checkpoint, steps, dt):
     from jaxplush.errors import JaxplushError
-    from jaxplush.fitting import sweep_cli
+    from jaxplush.fitting.sweep import cli as sweep_cli
     _, _, d = fit_case
     (tmp_path / "afile").write_text("x")
     out = tmp_path / "S.h5"

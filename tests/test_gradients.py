@@ -1,4 +1,4 @@
-"""Gradients through rollouts (jaxplush.fitting.gradients): every method gives the same value and gradient,
+"""Gradients through rollouts (jaxplush.fitting.objective.gradients): every method gives the same value and gradient,
 and that gradient matches central finite differences (float64)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 import jaxplush
 from jaxplush.model import contact
 from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
-from jaxplush.fitting import gradients as G
+from jaxplush.fitting.objective import gradients as G
 
 DT = 2e-4
 FRAMES = (0, 5, 17, 30)

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from conftest import icosphere_text
-from jaxplush.fitting.sweep_cli import DEFAULT_CONNECT_TIMEOUT, main as sweep_main
+from jaxplush.fitting.sweep.cli import DEFAULT_CONNECT_TIMEOUT, main as sweep_main
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PREFIX = "jaxplush-fit sweep: error: "

@@ -1,4 +1,4 @@
-"""The fitted values' 95% intervals from twins (jaxplush.fitting.intervals), and the exit code of a
+"""The fitted values' 95% intervals from twins (jaxplush.fitting.judge.intervals), and the exit code of a
 fit at the reproducibility floor (0: it has done what the data allow)."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import pytest
 import jaxplush
 from jaxplush.fitting import cli
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting import intervals as I
-from jaxplush.fitting import outcome
+from jaxplush.fitting.judge import intervals as I
+from jaxplush.fitting.judge import outcome
 from jaxplush.fitting.targets import make_target
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")

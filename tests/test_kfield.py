@@ -16,7 +16,7 @@ import trimesh
 import jaxplush
 from jaxplush import SceneError
 from jaxplush.stepping import batched
-from jaxplush.fitting import gradients as G
+from jaxplush.fitting.objective import gradients as G
 from jaxplush.model import forces as model
 from jaxplush.model import layout
 from jaxplush.scene.write import format_scene, stiffness_keys

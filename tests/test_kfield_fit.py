@@ -1,4 +1,4 @@
-"""Fitting a stiffness field (jaxplush.fitting.field): the smoothness graph and its regulariser
+"""Fitting a stiffness field (jaxplush.fitting.stages.field): the smoothness graph and its regulariser
 against finite differences, a two-region field recovered from exact positions and from a
 partial point cloud, the command line's ``--field``, the rendering, and the acceptance bench at
 its small size."""
@@ -17,8 +17,8 @@ import pytest
 
 import jaxplush
 from jaxplush.errors import JaxplushError
-from jaxplush.fitting import field as F
-from jaxplush.fitting import scenarios
+from jaxplush.fitting.stages import field as F
+from jaxplush.fitting.targets import scenarios
 from jaxplush.fitting.targets import Target
 from jaxplush.model.mesh import unique_edges
 
@@ -208,7 +208,7 @@ def test_field_identifiability_jacobian_matches_differences_and_the_report_is_sa
     mode, metres per unit log) agree with central differences of the residuals, the smoothness
     prior adds one row per adjacent pair, and a short fit's report (finite standard errors for
     both regions and the globals) reaches FIT.h5."""
-    from jaxplush.fitting import losses as L
+    from jaxplush.fitting.objective import losses as L
     truth, start = two_regions
     target = fitting_target(truth)
     with jax.enable_x64(True):
@@ -225,7 +225,7 @@ def test_field_identifiability_jacobian_matches_differences_and_the_report_is_sa
 
         def residual_m(c):
             p = fp.prob.to_params(c[2:].reshape(glob.shape))._replace(k_structural=fp.k_edges(jnp.asarray(c[:2])))
-            from jaxplush.fitting import identifiability as I
+            from jaxplush.fitting.judge import identifiability as I
             frames, _ = I.frames_at_steps(fp.sim, p, fp.sim.init_fn(p), fp.prob.loss.frame_steps)
             return np.asarray(res.fn(frames), np.float64) / res.norm
         assert np.allclose(resid[:n], residual_m(coords), rtol=1e-9, atol=1e-12)

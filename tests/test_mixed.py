@@ -21,8 +21,8 @@ import jaxplush
 from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 from jaxplush.errors import JaxplushError, TrajectoryError
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting import losses
-from jaxplush.fitting.identifiability import frames_at_steps
+from jaxplush.fitting.objective import losses
+from jaxplush.fitting.judge.identifiability import frames_at_steps
 from jaxplush.fitting.targets import load_target, make_target
 
 DT, STEPS, EVERY = 1e-3, 60, 10
@@ -233,7 +233,7 @@ def test_track_weight_applies_to_mixed_targets_only(ball):
 # --------------------------------------------------------------------------- fit, report, objects
 
 def test_a_default_fit_to_a_scan_with_tracks_recovers_k_and_nmol(ball):
-    from jaxplush.fitting import shooting
+    from jaxplush.fitting.objective import shooting
     scene, target = ball
     names = ("k_structural", "nmol")
     p = scene.params
@@ -249,7 +249,7 @@ def test_a_default_fit_to_a_scan_with_tracks_recovers_k_and_nmol(ball):
 
 
 def test_the_identifiability_report_counts_the_scan_and_each_seen_track_coordinate(ball):
-    from jaxplush.fitting.result import identifiability_at
+    from jaxplush.fitting.judge.result import identifiability_at
     scene, target = ball
     t = _hide(target, [(0, 1), (3, 5)])
     with warnings.catch_warnings():
@@ -270,8 +270,8 @@ def test_residuals_belong_to_their_objects_and_a_coloured_jacobian_is_the_full_o
     """Each scan point's residual belongs to the object of its nearest vertex, each track's to its
     own object (per frame: the points, then the tracks); the evaluator reads the same owners off
     each run, so a coloured stencil gives the full stencil's Jacobian."""
-    from jaxplush.fitting import lmfit, objects, search
-    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.stages import lmfit, objects, search
+    from jaxplush.fitting.objective.evaluate import Evaluator
     scene = _two_balls()
     t = make_target(scene, 20, DT, 10, point_cloud=True, n_points=50, tracks=12, seed=1)
     with warnings.catch_warnings():
@@ -306,7 +306,7 @@ def test_a_sweep_against_a_mixed_target_weighs_the_two_sweeps_as_the_fit(ball):
     """A sweep's loss against a mixed target is the fit's loss times its normaliser s² (m²): its
     scan's and its tracks' sweep losses, each over its own normaliser, weighed 1 / (1 + w) and
     w / (1 + w), so the weight moves the sweep's landscape exactly as it moves the fit's."""
-    from jaxplush.fitting import losses
+    from jaxplush.fitting.objective import losses
     from jaxplush.fitting.sweep import sweep
     scene, target = ball
     topology = jaxplush.make_simulator(scene, DT).topology

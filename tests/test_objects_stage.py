@@ -1,4 +1,4 @@
-"""The per-object global stage (jaxplush.fitting.objects): residual blocks belong to the right
+"""The per-object global stage (jaxplush.fitting.stages.objects): residual blocks belong to the right
 objects, scoring each object's parameters by its own residuals finds better candidates than the
 full-dimensional Sobol design with as many runs, and the stage hands its candidates to
 Levenberg-Marquardt through run_stages."""
@@ -14,7 +14,8 @@ import trimesh
 
 import jaxplush
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting import lmfit, objects, stages
+from jaxplush.fitting import stages
+from jaxplush.fitting.stages import lmfit, objects
 from jaxplush.fitting.targets import make_target
 from jaxplush.types import GAS_CONSTANT
 
@@ -87,8 +88,8 @@ def test_coloured_jacobian_equals_the_full_stencil_and_costs_a_fraction(two_ball
     one stencil that moves a parameter of every object at once gives every object's column (2 P_n
     runs instead of 2 P_n O_f). It must equal the full stencil's Jacobian; a stencil that is not
     clear of contact is run again in full, and after COLOUR_MISSES such misses no longer tried."""
-    from jaxplush.fitting import search
-    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.stages import search
+    from jaxplush.fitting.objective.evaluate import Evaluator
     prob, objective, truth = two_balls
     box = objective.box
     theta = truth + np.array([[0.05, -0.03], [0.02, 0.04]])
@@ -132,8 +133,8 @@ def test_coloured_jacobian_of_a_point_cloud_reads_each_point_off_its_own_object(
     vertex (its nearest), so it moves with that vertex's object alone: a coloured stencil gives
     every object's column from the points each run measures from that object, and must equal the
     full stencil. A stencil in which a point changes object is run again in full."""
-    from jaxplush.fitting import search
-    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.stages import search
+    from jaxplush.fitting.objective.evaluate import Evaluator
     prob0, _, truth = two_balls
     target = make_target(_scene(TRUE_K, [_nmol(k) for k in TRUE_K]), STEPS, DT, EVERY, point_cloud=True, n_points=60,
                          noise=0.002, seed=3)
@@ -198,7 +199,7 @@ def test_objects_clear_of_contact_move_with_their_own_parameters_alone(two_balls
     """The physics behind the clearance test: two balls hanging 4 contact thicknesses apart, closer
     than the contact's thickness plus an edge length of their coarse meshes, each move with their
     own parameters only (ball a's frames do not change when ball b's stiffness does)."""
-    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.objective.evaluate import Evaluator
     prob0, _, truth = two_balls
     sc = prob0.scene
     delta = prob0.sim.terms.contact.thickness[0]
@@ -341,7 +342,7 @@ def test_first_inversion_names_the_inverted_objects_step_in_a_lane_with_a_health
     """An inversion in one object of a lane whose other objects stay healthy is reported at its
     step, whatever the integer type the health carries (int32 from the engine): the int64
     sentinel for the healthy object must not wrap to -1 or overflow."""
-    from jaxplush.fitting.evaluate import first_inversion
+    from jaxplush.fitting.objective.evaluate import first_inversion
     from jaxplush.stepping import diagnostics as D
     bad = np.array([[7, -1, 12, 5], [-1, -1, 9, -1]], np.int32)           # (O=2, B=4)
     code = np.array([[D.INVERTED, 0, D.INVERTED, D.INVERTED], [0, 0, D.INVERTED, 0]], np.int32)

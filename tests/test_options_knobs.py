@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from jaxplush.errors import JaxplushError
-from jaxplush.fitting import objects, options as O, search, shooting, stages
+from jaxplush.fitting import options as O, stages
+from jaxplush.fitting.stages import objects, search
+from jaxplush.fitting.objective import shooting
 
 
 @pytest.mark.parametrize("cls", list(O.TUNING.values()) + [O.SearchOptions, O.CheckpointOptions])

@@ -17,8 +17,8 @@ import pytest
 import jaxplush
 from jaxplush.errors import TrajectoryError
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting import losses
-from jaxplush.fitting.scenarios import drop_scene_text
+from jaxplush.fitting.objective import losses
+from jaxplush.fitting.targets.scenarios import drop_scene_text
 from jaxplush.fitting.targets import Target, load_target, make_target
 from jaxplush.io.capture import Camera, depth_capture
 

@@ -23,9 +23,9 @@ from conftest import compiles, icosphere_scene
 from jaxplush import cli
 from jaxplush.fitting import fitter as F
 from jaxplush.fitting import cli as fit_cli
-from jaxplush.fitting import outcome
+from jaxplush.fitting.judge import outcome
 from jaxplush.fitting.io import load_fit
-from jaxplush.fitting.scenarios import drop_scene_text
+from jaxplush.fitting.targets.scenarios import drop_scene_text
 from jaxplush.fitting.targets import make_target
 from jaxplush.stepping import predictability as P
 
@@ -269,7 +269,7 @@ def test_the_fits_measurement_runs_its_float32_twins_on_the_batched_simulator():
     single-scene rollout of its own). The measurement agrees with the one made by ``simulate``:
     the same motion to float32 rounding, both predictable, both floors at rounding level. A
     42-vertex ball with a dashpot falling onto a floor, 0.1 s."""
-    from jaxplush.fitting import result as R
+    from jaxplush.fitting.judge import result as R
     scene = icosphere_scene(dashpot=0.4, k=157.0, floor=-0.15)
     # the target from the ball 1 mm higher: another program, so this one's is not compiled yet
     target = make_target(icosphere_scene(dashpot=0.4, k=157.0, floor=-0.15, translate=(0, 1e-3, 0)), 200, 5e-4, 10)

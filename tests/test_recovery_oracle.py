@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jax
-from jaxplush.fitting import scenarios as S
+from jaxplush.fitting.targets import scenarios as S
 
 from conftest import load_benchmark
 

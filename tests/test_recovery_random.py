@@ -1,5 +1,5 @@
 """The random-scene recovery benchmark (benchmarks/bench_recovery.py --random N; the generator
-jaxplush.fitting.scenarios.draw_case): the draws are deterministic, cover every shape, damping
+jaxplush.fitting.targets.scenarios.draw_case): the draws are deterministic, cover every shape, damping
 model, object count, setting and target kind, and give valid scenes whose objects start apart;
 and one tiny case run through the benchmark's case runner gives an honest record."""
 
@@ -16,8 +16,8 @@ import pytest
 
 import jax
 import jaxplush
-from jaxplush.fitting import outcome
-from jaxplush.fitting import scenarios as S
+from jaxplush.fitting.judge import outcome
+from jaxplush.fitting.targets import scenarios as S
 from jaxplush.fitting.fitter import default_params
 
 from conftest import load_benchmark

@@ -200,7 +200,7 @@ def test_a_checkpoint_resumes_only_its_own_sweep(tmp_path, monkeypatch):
 
 
 def test_distributed_options_are_checked_before_anything_runs(tmp_path):
-    from jaxplush.fitting.sweep_cli import main
+    from jaxplush.fitting.sweep.cli import main
     out = tmp_path / "s.h5"
     assert main([*SWEEP, "--steps", "10", "--out", str(out), "--distributed", "--coordinator", "127.0.0.1:1"]) == 2
     assert main([*SWEEP, "--steps", "10", "--out", str(out), "--distributed", "--coordinator", "127.0.0.1:1",

@@ -1,4 +1,4 @@
-"""Multiple shooting (jaxplush.fitting.shooting): segments restarted from the observed positions,
+"""Multiple shooting (jaxplush.fitting.objective.shooting): segments restarted from the observed positions,
 node velocities from the neighbouring frames and refined, the plan that chooses it, and the
 command line's --shooting.
 
@@ -22,10 +22,10 @@ from conftest import icosphere_scene
 from jaxplush.errors import JaxplushError
 from jaxplush.fitting import cli as fit_cli
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting import losses
-from jaxplush.fitting import shooting as S
-from jaxplush.fitting.evaluate import Evaluator
-from jaxplush.fitting.scenarios import drop_scene_text
+from jaxplush.fitting.objective import losses
+from jaxplush.fitting.objective import shooting as S
+from jaxplush.fitting.objective.evaluate import Evaluator
+from jaxplush.fitting.targets.scenarios import drop_scene_text
 from jaxplush.fitting.targets import make_target
 
 pytestmark = pytest.mark.numeric
@@ -214,7 +214,7 @@ def test_resolution_is_the_standard_error_of_a_linear_model(free_fall):
             return np.ones(len(thetas), np.int64)
 
         def __call__(self, thetas, substeps=None, keep_frames=False):
-            from jaxplush.fitting.evaluate import Evaluation
+            from jaxplush.fitting.objective.evaluate import Evaluation
             t = np.asarray(thetas).reshape(len(thetas), -1)
             a = np.linspace(1.0, 2.0, 50)[:, None] * self.gain
             r = t @ a.T

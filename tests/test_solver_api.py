@@ -15,8 +15,8 @@ import jaxplush
 from jaxplush import fitting
 from jaxplush.errors import JaxplushError
 from jaxplush.fitting.io import load_fit
-from jaxplush.fitting.recovery import recovery_scene_text
-from jaxplush.fitting.outcome import STATUSES, Status
+from jaxplush.fitting.targets.recovery import recovery_scene_text
+from jaxplush.fitting.judge.outcome import STATUSES, Status
 
 NAMES = ("k_structural", "nmol")
 

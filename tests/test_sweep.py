@@ -24,7 +24,7 @@ from conftest import icosphere_scene, icosphere_text
 
 from jaxplush.fitting import sweep as sweep_mod
 from jaxplush.fitting.sweep import SweepError, load_sweep, sweep
-from jaxplush.fitting.sweep_cli import main as sweep_main, parse_grid_spec
+from jaxplush.fitting.sweep.cli import main as sweep_main, parse_grid_spec
 
 DT = 2e-4
 TRUE_K, TRUE_NMOL = 300.0, 2e-3
@@ -253,7 +253,7 @@ def test_batching_is_chosen_by_backend(monkeypatch):
     # the chunks, thread pool and XLA:CPU options are CPU tuning: on another backend a batch runs
     # in one call with default options, and a sweep's default batch is wider; a CPU keeps its
     # tuning (whichever backend runs this test)
-    from jaxplush.fitting import evaluate
+    from jaxplush.fitting.objective import evaluate
     scene = _ball(subdivisions=0)
     monkeypatch.setattr(batched.jax, "default_backend", lambda: "cpu")
     assert batched.on_cpu() and sweep_mod.default_batch() == 64
@@ -369,7 +369,7 @@ def test_a_point_cloud_padded_with_nan_rows_gives_the_same_losses(truth_target):
     traj = jaxplush.simulate(scene, 400, DT, 200, params=_point_params(scene, nmol=[3e-3], k_structural=[TRUE_K]),
                              check_dt=False)
     # the fit's loss (every observed point weighs alike) times its normaliser
-    from jaxplush.fitting import losses
+    from jaxplush.fitting.objective import losses
     loss = losses.make_loss(Target(positions=None, points=fewer, **kw), jaxplush.make_simulator(scene, DT).topology,
                             jnp.float64)
     d = sum(float(loss.loss_fn(jnp.asarray(x, jnp.float64), jnp.asarray(y, jnp.float64)))
@@ -389,7 +389,7 @@ def test_a_point_cloud_padded_with_nan_rows_gives_the_same_losses(truth_target):
 def test_point_cloud_target_uses_the_fits_distance_to_the_surface(truth_target):
     """A sweep's loss against a scan is the fit's (each point's squared distance to the simulated
     surface), times the fit's normaliser: the same numbers, so the sweep's best point is the fit's."""
-    from jaxplush.fitting import losses
+    from jaxplush.fitting.objective import losses
     from jaxplush.fitting.targets import Target
     scene, target = truth_target
     # a correspondence-free cloud: the true vertices, shuffled, one frame padded with NaN rows

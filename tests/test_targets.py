@@ -10,7 +10,7 @@ import pytest
 
 import jaxplush
 from conftest import icosphere_scene, icosphere_text
-from jaxplush.fitting.losses import chamfer as _chamfer, squared_distance as _squared_distance
+from jaxplush.fitting.objective.losses import chamfer as _chamfer, squared_distance as _squared_distance
 from jaxplush.fitting.targets import Target, load_target, make_target, sample_surface
 from jaxplush.errors import TrajectoryError
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush.fitting import gradients as G
+from jaxplush.fitting.objective import gradients as G
 from jaxplush.model import contact
 from conftest import icosphere_text
 

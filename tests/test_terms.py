@@ -14,7 +14,7 @@ import pytest
 
 import jaxplush
 from jaxplush.stepping import batched
-from jaxplush.fitting import gradients as G
+from jaxplush.fitting.objective import gradients as G
 from jaxplush.model import contact
 from jaxplush.model import forces as model
 from jaxplush.model import terms as T

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaxplush
-from jaxplush.fitting import scenarios
+from jaxplush.fitting.targets import scenarios
 from jaxplush.stepping import batched, compiled
 
 try:                                   # jax versions that can hoist constants into arguments

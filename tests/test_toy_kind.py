@@ -10,7 +10,7 @@ import pytest
 
 import jaxplush
 from jaxplush import fitting
-from jaxplush.fitting.recovery import recovery_scene_text
+from jaxplush.fitting.targets.recovery import recovery_scene_text
 
 #: The camera's image plane: x and y (an orthographic camera on the z axis; gravity along -y).
 VIEW = (0, 1)

@@ -20,8 +20,8 @@ import jaxplush
 from conftest import assert_gradient_matches_fd, icosphere_scene, icosphere_text
 from jaxplush.errors import TrajectoryError
 from jaxplush.fitting import fitter as F
-from jaxplush.fitting import losses
-from jaxplush.fitting.identifiability import frames_at_steps
+from jaxplush.fitting.objective import losses
+from jaxplush.fitting.judge.identifiability import frames_at_steps
 from jaxplush.fitting.sweep import sweep
 from jaxplush.fitting.targets import Target, load_target, make_target
 
@@ -322,7 +322,8 @@ def test_tracks_belong_to_their_objects_and_have_no_node_states_to_shoot_from():
     """The per-object global stage scores each object by its own tracks; multiple shooting falls
     back as for point clouds (no node states)."""
     from conftest import icosphere_text
-    from jaxplush.fitting import objects, shooting
+    from jaxplush.fitting.stages import objects
+    from jaxplush.fitting.objective import shooting
     two = icosphere_text(name="a", translate=(-1, 0, 0), nmol=1e-4, fixed=(0,)) + icosphere_text(
         name="b", translate=(1, 0, 0), nmol=1e-4, k=80.0, offset=42, header=False, fixed=(0,))
     scene = jaxplush.parse_scene(two, "<two>")
@@ -338,7 +339,7 @@ def test_tracks_belong_to_their_objects_and_have_no_node_states_to_shoot_from():
 
 
 def test_the_identifiability_report_counts_each_seen_track_coordinate(ball):
-    from jaxplush.fitting.result import identifiability_at
+    from jaxplush.fitting.judge.result import identifiability_at
     scene, target = ball
     t = _hide(target, [(0, 1), (3, 7), (5, 19)])
     with warnings.catch_warnings():

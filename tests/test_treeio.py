@@ -1,4 +1,4 @@
-"""The checkpoint's state pytree (fitting/treeio.py): every supported leaf and container round-trips
+"""The checkpoint's state pytree (fitting/io/treeio.py): every supported leaf and container round-trips
 through an HDF5 group with its type; a checkpoint of the older format is refused with a message."""
 
 import dataclasses
@@ -11,9 +11,9 @@ import pytest
 
 from jaxplush.errors import JaxplushError
 from jaxplush.fitting import io as _io
-from jaxplush.fitting.outcome import Stop
-from jaxplush.fitting.search import LMState
-from jaxplush.fitting.treeio import TreeError, conform, read_tree, write_tree
+from jaxplush.fitting.judge.outcome import Stop
+from jaxplush.fitting.stages.search import LMState
+from jaxplush.fitting.io.treeio import TreeError, conform, read_tree, write_tree
 
 
 class Pair(typing.NamedTuple):

@@ -76,14 +76,14 @@ def test_no_status_string_is_compared_outside_the_outcome_module():
                     for c in consts:
                         assert not (isinstance(c, ast.Constant) and c.value in STATUS_VALUES), (
                             f"{path.name}:{node.lineno}: compares with the status string {c.value!r}; "
-                            "use jaxplush.fitting.outcome.Status")
+                            "use jaxplush.fitting.judge.outcome.Status")
 
 
 KIND_VALUES = ("positions", "points", "tracks", "mixed")
 
 
 def test_no_target_kind_string_is_compared_outside_the_kinds_module():
-    """The kinds of target are one protocol (jaxplush.fitting.kinds.TargetKind): code asks a kind
+    """The kinds of target are one protocol (jaxplush.fitting.targets.kinds.TargetKind): code asks a kind
     what it is instead of comparing its name."""
     found = []
     for path in _sources():
@@ -103,7 +103,7 @@ def test_no_target_kind_string_is_compared_outside_the_kinds_module():
                     continue
                 found += [f"{path.name}:{node.lineno}: {c.value!r}" for c in consts
                           if isinstance(c, ast.Constant) and c.value in KIND_VALUES]
-    assert not found, "target kind names compared (ask jaxplush.fitting.kinds.TargetKind):\n" + "\n".join(found)
+    assert not found, "target kind names compared (ask jaxplush.fitting.targets.kinds.TargetKind):\n" + "\n".join(found)
 
 
 def test_a_time_step_above_the_limit_warns_by_category_and_the_trajectory_keeps_the_note():
@@ -130,7 +130,7 @@ def test_a_scene_with_unused_vertices_warns_a_scene_warning(tmp_path):
 def test_a_notes_category_survives_pickling_and_a_checkpoint(tmp_path):
     import copy
     import pickle
-    from jaxplush.fitting.treeio import read_tree, write_tree
+    from jaxplush.fitting.io.treeio import read_tree, write_tree
     note = errors.Note("contact candidates overflowed", errors.ContactCapacityWarning)
     assert note == "contact candidates overflowed" and isinstance(note, str)
     for back in (pickle.loads(pickle.dumps(note)), copy.deepcopy(note)):
@@ -147,7 +147,7 @@ def test_a_notes_category_survives_pickling_and_a_checkpoint(tmp_path):
 
 
 def test_the_damping_drag_note_of_a_fit_is_a_parameter_warning():
-    from jaxplush.fitting.problem import build_problem
+    from jaxplush.fitting.objective.problem import build_problem
     from jaxplush.fitting.targets import make_target
     scene = icosphere_scene(subdivisions=1, nmol=1e-3, damping=200.0, drag=0.5)
     target = make_target(scene, 20, 1e-3, 10)

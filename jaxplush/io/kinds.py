@@ -19,8 +19,8 @@ silhouettes, 2-D outlines, defined outside the package). Kinds are strings equal
 names (``TargetKind.POSITIONS == "positions"``), as the HDF5 files, FIT.h5 and the command line
 spell them; ``Kind("positions")`` is the one instance of a kind of that name.
 
-The fit's methods of the built-in kinds are written in :mod:`jaxplush.fitting.losses` (JAX code
-the viewer, which reads targets too, does not load) and reached from here on first use.
+The geometry of the built-in kinds' residuals is in :mod:`jaxplush.io.observe` (JAX code the
+viewer, which reads targets too, does not load), reached from here on first use.
 """
 
 from __future__ import annotations
@@ -166,9 +166,24 @@ class Kind(str):
             return np.asarray(r, np.float64), np.asarray(cols, np.float64)
 
 
-def _losses():
-    from jaxplush.fitting import losses
-    return losses
+def row_weight(target, always=False):
+    """T / N for a target's rows with NaN padding or rows not seen (N observed over T frames: every
+    observation weighs alike in a frame's sum), None where every row is observed (unless
+    ``always``: a tracks target's distance is always a sum over its tracks)."""
+    kind = Kind(target.kind)
+    if kind.compound:
+        raise ValueError("a mixed target's terms are weighed each on its own (Target.parts)")
+    observed = kind.observed(target.data)
+    if not always and observed.all():
+        return None
+    if not observed.any():
+        raise ValueError(f"{target.path}: the target's frames hold no observation")
+    return len(observed) / float(observed.sum())
+
+
+def _observe():
+    from jaxplush.io import observe
+    return observe
 
 
 class Positions(Kind):
@@ -187,10 +202,10 @@ class Positions(Kind):
     shape_text = "[T, V, 3]"
 
     def residual(self, target, topology, scale2, normalisation):
-        return _losses().vertex_residual(target)
+        return _observe().vertex_residual(target)
 
     def mean_sq(self, target, topology):
-        return _losses().squared_distance
+        return _observe().squared_distance
 
     def residual_vertices(self, target, topology, frames=None):
         v = np.shape(target.data)[1]
@@ -211,20 +226,20 @@ class Points(Kind):
     shape_text = "[T, M, 3]"
 
     def residual(self, target, topology, scale2, normalisation):
-        return _losses().surface_residual(target, topology, scale2, normalisation)
+        return _observe().surface_residual(target, topology, scale2, normalisation)
 
     def mean_sq(self, target, topology):
-        losses = _losses()
-        return losses.point_surface(topology.faces, topology.n_vertices, losses.point_weight(target))
+        losses = _observe()
+        return losses.point_surface(topology.faces, topology.n_vertices, row_weight(target))
 
     def residual_vertices(self, target, topology, frames=None):
         if frames is None:
             raise ValueError("a point-cloud target needs simulated frames to assign its points to vertices")
-        return np.concatenate([_losses().nearest_vertex(x, p) for x, p in
+        return np.concatenate([_observe().nearest_vertex(x, p) for x, p in
                                zip(np.asarray(frames, np.float64), np.asarray(target.data, np.float64))])
 
     def linearised(self, target, topology, loss, frames, jac):
-        return _losses().nearest_point_residual(frames, target.data), jac
+        return _observe().nearest_point_residual(frames, target.data), jac
 
 
 class Tracks(Kind):
@@ -243,18 +258,18 @@ class Tracks(Kind):
     shape_text = "[T, M, 3]"
 
     def residual(self, target, topology, scale2, normalisation):
-        return _losses().track_residual(target)
+        return _observe().track_residual(target)
 
     def mean_sq(self, target, topology):
-        losses = _losses()
-        return losses.track_distance2(target.track_vertices, target.track_weights, losses.point_weight(target, always=True))
+        losses = _observe()
+        return losses.track_distance2(target.track_vertices, target.track_weights, row_weight(target, always=True))
 
     def residual_vertices(self, target, topology, frames=None):
         first = np.asarray(target.track_vertices, np.int64)[:, 0]
         return np.tile(np.repeat(first, 3), target.n_frames)
 
     def linearised(self, target, topology, loss, frames, jac):
-        return _losses().track_linearised(target, frames, jac)
+        return _observe().track_linearised(target, frames, jac)
 
 
 class Mixed(Kind):
@@ -271,7 +286,7 @@ class Mixed(Kind):
     shape_text = "[T, M, 3]"
 
     def residual(self, target, topology, scale2, normalisation):
-        raise ValueError("a mixed target's residuals are its parts' (jaxplush.fitting.losses.make_residual)")
+        raise ValueError("a mixed target's residuals are its parts' (jaxplush.fitting.objective.losses.make_residual)")
 
     def mean_sq(self, target, topology):
         raise ValueError("a mixed target's terms are weighed each on its own (Target.parts)")
@@ -281,12 +296,12 @@ class Mixed(Kind):
         if frames is None:
             raise ValueError("a point-cloud target needs simulated frames to assign its points to vertices")
         per_track = np.repeat(np.asarray(tracks.track_vertices, np.int64)[:, 0], 3)
-        losses = _losses()
+        losses = _observe()
         return np.concatenate([np.concatenate([losses.nearest_vertex(x, p), per_track]) for x, p in
                                zip(np.asarray(frames, np.float64), np.asarray(points.points, np.float64))])
 
     def linearised(self, target, topology, loss, frames, jac):
-        return _losses().mixed_linearised(target, loss, frames, jac)
+        return _observe().mixed_linearised(target, loss, frames, jac)
 
 
 #: Every built-in kind, in the order :func:`jaxplush.fitting.targets.load_target` prefers them when

@@ -1000,7 +1000,7 @@ def make_overflow_check(topo, cfg):
     only, O(V) per pair: no distance table), or None when ``cfg`` has no object pairs.
 
     For the paths that carry no :class:`ContactCache`: ``Simulator.status_fn``, rollouts built with
-    ``coherent_contact=False`` and :func:`jaxplush.fitting.identifiability.frames_at_steps`."""
+    ``coherent_contact=False`` and :func:`jaxplush.fitting.judge.identifiability.frames_at_steps`."""
     if not cfg or not cfg.pairs:
         return None
     slices = topo.vertex_slices

@@ -1,7 +1,7 @@
 """The fused adjoint of the damped Verlet step: the reverse sweep of a rollout within a memory budget.
 
 The gradient of :func:`jaxplush.rollout` (:mod:`jaxplush.stepping.rollouts`) and of
-``jaxplush.fitting.gradients.rollout_loss`` both run on this module: a forward pass that records
+``jaxplush.fitting.objective.gradients.rollout_loss`` both run on this module: a forward pass that records
 the states (:func:`plan`, :func:`recorder`: every step's if they fit in the memory budget, else a
 checkpoint every ``seg`` steps), then :func:`backward`, one fused backward kernel per step
 (:func:`_make_step_dens_vjp`, assembled from the terms' ``*_vjp`` functions in

@@ -53,7 +53,7 @@ healthy state of every point; :func:`locate_failures` then finds the exact faili
 failed point. One point blowing up never touches the others (nothing is reduced across B). A
 point whose contact candidates overflow their capacity gets the code ``CONTACT_OVERFLOW`` for
 that object at the next saved frame (its cache's sticky flag), as in a single-scene rollout;
-:class:`jaxplush.fitting.evaluate.Evaluator` then grows the capacity and runs it again, and a
+:class:`jaxplush.fitting.objective.evaluate.Evaluator` then grows the capacity and runs it again, and a
 sweep reports it per point.
 """
 

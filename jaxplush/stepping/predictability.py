@@ -15,10 +15,10 @@ parameters, so :func:`predictability` measures it before fitting:
   of the two twins'. A float64 working dtype has no float64 twin: the perturbed run alone;
 * the **drift** of a saved frame is the RMS over vertices, per coordinate, of the distance
   between the two runs (m; the measure of the fit's residual RMS,
-  :func:`jaxplush.fitting.losses.rms_metres`);
+  :func:`jaxplush.fitting.objective.losses.rms_metres`);
 * the **threshold** is the noise sigma when given, else :data:`MOTION_FRACTION` of the motion
   (the RMS distance of the frames after the start from the start shape, the measure
-  :mod:`jaxplush.fitting.outcome` calls the motion);
+  :mod:`jaxplush.fitting.judge.outcome` calls the motion);
 * the **horizon** is the first saved frame whose drift exceeds the threshold (none: the whole
   run is predictable);
 * the **floor** is the RMS of the drift over the saved frames after the start: the residual RMS

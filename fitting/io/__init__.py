@@ -3,7 +3,7 @@
 Layout:
 
 * attributes: ``status`` ("running" while checkpointing, "interrupted" after Ctrl-C, and once
-  the fit ends its outcome, one of :data:`jaxplush.fitting.outcome.STATUSES`), ``outcome_*`` (its fields),
+  the fit ends its outcome, one of :data:`jaxplush.fitting.judge.outcome.STATUSES`), ``outcome_*`` (its fields),
   ``loss``, ``loss_start``, ``iterations``, ``rejected``, ``converged``, ``reason``,
   ``optimizer``, ``lr`` (NaN: default), ``dt``, ``normalisation``, ``scale2``, ``noise`` (NaN:
   unknown), ``wall_time``, ``scene`` (the scene text, start values), ``scene_path``,
@@ -18,7 +18,7 @@ Layout:
   ``determined`` datasets; attributes ``labels``, ``condition``, ``sigma``, ``n_data``,
   ``warnings`` (JSON), ``weakest``, ``summary``, ``jac_noise`` (the Jacobian's rounding noise,
   m; NaN: not known), ``undetermined`` (JSON list of the labels the target does not determine);
-* ``intervals/`` (the default fit, :mod:`jaxplush.fitting.intervals`): ``theta`` (log values),
+* ``intervals/`` (the default fit, :mod:`jaxplush.fitting.judge.intervals`): ``theta`` (log values),
   ``sd`` (the spread of each log value: its relative error; inf: undetermined), ``lower``,
   ``upper`` (the 95% interval in parameter units) datasets; attributes ``labels``, ``method``
   (``twins`` or ``residuals``), ``level``, ``quantile``, ``n_twins``, ``note``;
@@ -34,14 +34,14 @@ Layout:
   ``times``, ``steps``, ``drift_rms``, ``motion_rms`` datasets; attributes ``horizon_time``
   (inf: never), ``horizon_frame`` (-1: never), ``floor_rms``, ``threshold``, ``threshold_kind``,
   ``motion``, ``perturbation``, ``method``, ``dtype``, ``duration``, ``text``;
-* ``shooting/`` (the default fit, :mod:`jaxplush.fitting.shooting`): attributes ``segment_frames``
+* ``shooting/`` (the default fit, :mod:`jaxplush.fitting.objective.shooting`): attributes ``segment_frames``
   (0: one rollout), ``floor_rms``, ``single_floor_rms``, ``refine``, ``text``;
 * ``timing/`` (a finished fit): attributes ``wall_s``, ``compile_s``, ``trace_s``, ``programs``,
   ``cache_hits``: the whole fit call in the process that finished it, its XLA compiles (and loads
   from the persistent cache) apart from the rest (:class:`jaxplush.compilestats.Timing`);
 * ``checkpoint/``: the fit's complete state (the gradient loop's log values, optimiser state,
   history and counters; the default fit's stage driver and its stage's searches), a pytree as
-  :mod:`jaxplush.fitting.treeio` writes it, with attributes ``format`` and ``settings``: enough
+  :mod:`jaxplush.fitting.io.treeio` writes it, with attributes ``format`` and ``settings``: enough
   for ``--resume`` to continue to the same answer.
 
 Format: docs/formats.md §5.
@@ -60,8 +60,8 @@ import numpy as np
 
 from jaxplush.errors import ContactCapacityWarning, JaxplushError, Note, TrajectoryError
 from jaxplush.fitting.options import TUNING
-from jaxplush.fitting.outcome import Status
-from jaxplush.fitting.treeio import read_tree, write_tree
+from jaxplush.fitting.judge.outcome import Status
+from jaxplush.fitting.io.treeio import read_tree, write_tree
 from jaxplush.io.trajectory import atomic_path, open_hdf5
 from jaxplush.types import PARAM_NAMES
 
@@ -140,7 +140,7 @@ def _common_attrs(f, prob, settings, status):
 
 
 def save_checkpoint(path, prob, state, settings, status="running", *, theta=None, history=None, **attrs):
-    """Write a fit's ``state`` (a pytree, :func:`jaxplush.fitting.treeio.write_tree`) to ``path`` atomically,
+    """Write a fit's ``state`` (a pytree, :func:`jaxplush.fitting.io.treeio.write_tree`) to ``path`` atomically,
     with what a person reads of it: the best values so far (log values ``theta``), ``history``
     (name -> array) and ``attrs`` (loss, iterations, rejected)."""
     with atomic_path(path, ".h5") as tmp:
@@ -161,7 +161,7 @@ def save_checkpoint(path, prob, state, settings, status="running", *, theta=None
 
 def write_identifiability(f, rep):
     """The ``identifiability`` group of FIT.h5 (module docstring) from an
-    :class:`jaxplush.fitting.identifiability.IdentifiabilityReport`, in the open file ``f``."""
+    :class:`jaxplush.fitting.judge.identifiability.IdentifiabilityReport`, in the open file ``f``."""
     ig = f.create_group("identifiability")
     for k in ("jtj", "eigenvalues", "eigenvectors", "sensitivity", "stderr"):
         ig.create_dataset(k, data=np.asarray(getattr(rep, k), np.float64))
@@ -179,7 +179,7 @@ def write_identifiability(f, rep):
 
 def write_intervals(f, iv):
     """The ``intervals`` group of FIT.h5 (module docstring) from an
-    :class:`jaxplush.fitting.intervals.Intervals`, in the open file ``f``."""
+    :class:`jaxplush.fitting.judge.intervals.Intervals`, in the open file ``f``."""
     g = f.create_group("intervals")
     for k in ("theta", "sd", "lower", "upper"):
         g.create_dataset(k, data=np.asarray(getattr(iv, k), np.float64))
@@ -192,8 +192,8 @@ def write_intervals(f, iv):
 
 
 def save_fit(result, path):
-    """Write a :class:`jaxplush.fitting.result.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
-    fit's outcome (jaxplush.fitting.outcome: "converged", "poor_fit", "stalled", ...)."""
+    """Write a :class:`jaxplush.fitting.judge.result.FitResult` as FIT.h5 atomically; its ``status`` attribute is the
+    fit's outcome (jaxplush.fitting.judge.outcome: "converged", "poor_fit", "stalled", ...)."""
     loop = result.loop
     prob = result.problem
     with atomic_path(path, ".h5") as tmp:
@@ -296,10 +296,10 @@ def _write_predictability(g, pred):
 
 
 def _write_shooting(g, sh):
-    """The ``shooting`` group of FIT.h5 (a :class:`jaxplush.fitting.shooting.Shooting`): attributes
+    """The ``shooting`` group of FIT.h5 (a :class:`jaxplush.fitting.objective.shooting.Shooting`): attributes
     ``segment_frames`` (0: single shooting), ``floor_rms`` and ``single_floor_rms`` (m; NaN: not
     measured), ``refine`` and ``text``; where multiple shooting's own bias was taken off the fitted
-    values (:func:`jaxplush.fitting.shooting.debias`), ``bias``: the relative bias per fitted
+    values (:func:`jaxplush.fitting.objective.shooting.debias`), ``bias``: the relative bias per fitted
     parameter (rows) and object (columns), as the values' layout."""
     g.attrs["segment_frames"] = int(sh.segment_frames or 0)
     g.attrs["floor_rms"] = float("nan") if sh.floor is None else float(sh.floor)
@@ -312,7 +312,7 @@ def _write_shooting(g, sh):
 
 # --------------------------------------------------------------------------- the checkpoint
 
-#: The checkpoint's format: the state pytree of :mod:`jaxplush.fitting.treeio` (a file without it
+#: The checkpoint's format: the state pytree of :mod:`jaxplush.fitting.io.treeio` (a file without it
 #: was written by an older jaxplush, in a format of its own).
 CHECKPOINT_FORMAT = "tree-1"
 #: The checkpoint group's own attributes (a state's fields must not take these names).

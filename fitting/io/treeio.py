@@ -4,7 +4,7 @@
 it with the same types. Containers: dataclasses (frozen or not), NamedTuples, lists, tuples and
 dicts (keys str, int, float or bool). Leaves: numpy arrays and jax arrays (datasets, dtype and
 shape kept), numpy scalars, Python bool, int, float and complex, str, None, and enum members
-(:class:`jaxplush.fitting.outcome.Stop`; attributes), and warning notes
+(:class:`jaxplush.fitting.judge.outcome.Stop`; attributes), and warning notes
 (:class:`jaxplush.errors.Note`: the text, its category recorded as ``note:module:qualname``).
 
 Layout: a container is a group with the attribute ``__node__`` (its kind), ``__type__`` (the
@@ -40,9 +40,21 @@ def _type_name(cls):
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
+#: Modules of jaxplush.fitting that moved into its subpackages, by their old names: a file
+#: written before names its classes there (a checkpoint resumed across the move).
+MOVED = {f"jaxplush.fitting.{old}": f"jaxplush.fitting.{new}" for old, new in (
+    ("kinds", "targets.kinds"), ("losses", "objective.losses"), ("problem", "objective.problem"),
+    ("evaluate", "objective.evaluate"), ("shooting", "objective.shooting"), ("search", "stages.search"),
+    ("lmfit", "stages.lmfit"), ("objects", "stages.objects"), ("equation_error", "stages.equation_error"),
+    ("gradfit", "stages.gradfit"), ("field", "stages.field"), ("outcome", "judge.outcome"),
+    ("intervals", "judge.intervals"), ("identifiability", "judge.identifiability"), ("result", "judge.result"),
+    ("treeio", "io.treeio"))}
+
+
 def _lookup(name):
     """The class ``module:qualname`` from a module already imported (or one of jaxplush's)."""
     module, _, qual = name.partition(":")
+    module = MOVED.get(module, module)
     mod = sys.modules.get(module)
     if mod is None and module.split(".")[0] == "jaxplush":
         mod = importlib.import_module(module)

@@ -1,6 +1,6 @@
 """The default fit's driver: continuation in time, a global stage, local Levenberg-Marquardt.
 
-:func:`run` takes a built :class:`jaxplush.fitting.problem.Problem` and its search box and returns a
+:func:`run` takes a built :class:`jaxplush.fitting.objective.problem.Problem` and its search box and returns a
 :class:`LMRun`: the global samples, every local search, the best point, its residuals and
 finite-difference Jacobian, and the gradients the outcome is judged by.
 
@@ -36,26 +36,26 @@ import numpy as np
 
 from jaxplush.progress import Progress
 
-from jaxplush.fitting import objects as _objects
-from jaxplush.fitting import search as _search
+from jaxplush.fitting.stages import objects as _objects
+from jaxplush.fitting.stages import search as _search
 from jaxplush.fitting import stages as _stages
 from jaxplush.fitting.options import FitOptions
-from jaxplush.fitting.outcome import Stop
-from jaxplush.fitting.stages import horizons  # noqa: F401  (jaxplush.fitting.lmfit.horizons)
+from jaxplush.fitting.judge.outcome import Stop
+from jaxplush.fitting.stages import horizons  # noqa: F401  (jaxplush.fitting.stages.lmfit.horizons)
 
 @dataclasses.dataclass
 class LMRun:
     """The result of a default fit, read off the driver's final state.
 
     Attributes:
-      best: the best search (:class:`jaxplush.fitting.search.LMState`; for a noisy target at the
+      best: the best search (:class:`jaxplush.fitting.stages.search.LMState`; for a noisy target at the
       smoothed optimum); jac (n, P) its Jacobian (at step ``h_min``, or the smoothing's slope);
       residual (n,); grad, grad0: loss gradients (log space) at the best point and at the start values;
-      global_result: :class:`jaxplush.fitting.search.GlobalResult`;
+      global_result: :class:`jaxplush.fitting.stages.search.GlobalResult`;
       paths: per finished horizon, the (loss, theta) paths of its searches and why each ended;
       horizons: the frame counts of the horizons; loss0: the loss of the start values on the whole target;
       wall: seconds spent; evaluations: points simulated;
-      smoothed: the :class:`jaxplush.fitting.search.Smoothed` stage of a noisy target's fit (else None);
+      smoothed: the :class:`jaxplush.fitting.stages.search.Smoothed` stage of a noisy target's fit (else None);
       state: the driver's final :class:`jaxplush.fitting.stages.RunState` (as a checkpoint holds it);
       jac_step: the central-difference step (log space) of ``jac``, None for the smoothing's slope.
     """
@@ -122,7 +122,7 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     :func:`jaxplush.fitting.stages.run_stages` of :func:`default_stages`.
 
     Args:
-      prob: :class:`jaxplush.fitting.problem.Problem`; box: :class:`jaxplush.fitting.search.Box`.
+      prob: :class:`jaxplush.fitting.objective.problem.Problem`; box: :class:`jaxplush.fitting.stages.search.Box`.
       options: :class:`jaxplush.fitting.options.FitOptions` (None: the defaults): ``search``
         (Sobol points of the global stage, plus the start itself; local starts; the seed),
         ``iterations`` (Levenberg-Marquardt iterations per start and stage), ``local``,
@@ -139,7 +139,7 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
         for the judge.
 
     Returns:
-      (:class:`LMRun`, the :class:`jaxplush.fitting.evaluate.Evaluator` of the full problem, its notes
+      (:class:`LMRun`, the :class:`jaxplush.fitting.objective.evaluate.Evaluator` of the full problem, its notes
       those of every horizon).
     """
     opts = options or FitOptions()
@@ -231,7 +231,7 @@ def _result(objective, state, opts):
 
 
 def best_search(run):
-    """The best search (:class:`jaxplush.fitting.search.LMState`) of a driver state so far, or None."""
+    """The best search (:class:`jaxplush.fitting.stages.search.LMState`) of a driver state so far, or None."""
     for st in [run.state] + run.finished[::-1]:
         states = getattr(st, "states", None)
         if states:

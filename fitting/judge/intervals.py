@@ -1,6 +1,6 @@
 """95% intervals of the fitted values from twins: a linearised parametric bootstrap.
 
-The standard errors of the identifiability report (:mod:`jaxplush.fitting.identifiability`) treat
+The standard errors of the identifiability report (:mod:`jaxplush.fitting.judge.identifiability`) treat
 the residuals at the optimum as independent noise of their RMS. That is right for a target with
 measurement noise that the model reproduces, and wrong where what is left is the model's own
 rounding drift: that drift is correlated over frames and vertices, and a noise-free fit that
@@ -48,7 +48,7 @@ import statistics
 
 import numpy as np
 
-from jaxplush.fitting.kinds import TargetKind
+from jaxplush.fitting.targets.kinds import TargetKind
 
 #: Twins per fit (B): the interval's spread is estimated from B draws (with the fit's own lane,
 #: 32 lanes: whole chunks of the batched engine). With 31 the estimated spread is within 0.68-1.33x
@@ -302,10 +302,10 @@ def combinations(prob, theta, iv, substeps=1):
     """The determined combinations of a fit ending at log values ``theta`` ((P_n, O_f)), with their
     twin intervals from ``iv`` (:class:`Intervals`; NaN intervals without twins): for every fitted
     object whose report's ``damping`` and air ``drag`` are both fitted, their combined rate
-    :func:`jaxplush.fitting.equation_error.damping_rate` + drag (at the ``substeps`` the fitted values ran with), which is all a
+    :func:`jaxplush.fitting.stages.equation_error.damping_rate` + drag (at the ``substeps`` the fitted values ran with), which is all a
     target determines of the two: both take the same share of every vertex's velocity off at every
     step. A tuple of :class:`Combination`."""
-    from jaxplush.fitting.equation_error import damping_rate
+    from jaxplush.fitting.stages.equation_error import damping_rate
     names = tuple(prob.names)
     if "damping" not in names or "drag" not in names:
         return ()

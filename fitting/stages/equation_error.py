@@ -327,7 +327,7 @@ def indirect_inference(prob, iterations=8, tol=1e-3, seed=0, frames_fn=None, fd_
 
     ``frames_fn(thetas (N, P_n, O_f)) -> (frames (N, T, V, 3), ok (N,))``: how frames are simulated
     on the target's steps (default: the problem's own rollout,
-    :meth:`jaxplush.fitting.problem.Problem.frames`, one point at a time; a fit passes its batched
+    :meth:`jaxplush.fitting.objective.problem.Problem.frames`, one point at a time; a fit passes its batched
     evaluator, :func:`evaluator_frames`)."""
     if frames_fn is None:
         def frames_fn(thetas):
@@ -421,7 +421,7 @@ def suits(prob):
 
 def evaluator_frames(evaluator):
     """``frames_fn`` of :func:`indirect_inference` on a fit's batched evaluator
-    (:class:`jaxplush.fitting.evaluate.Evaluator`): the points' frames on its target's steps, each
+    (:class:`jaxplush.fitting.objective.evaluate.Evaluator`): the points' frames on its target's steps, each
     point run once at its predicted substeps (no retries)."""
     def frames_fn(thetas):
         e = evaluator(np.asarray(thetas, np.float64), keep_frames=True, retries=0)

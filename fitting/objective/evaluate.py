@@ -1,7 +1,7 @@
 """Residuals of a fit at many parameter points at once, every point simulated stably.
 
-:class:`Evaluator` runs a :class:`jaxplush.fitting.problem.Problem` at N points theta (log-parameters)
-and returns each point's residual vector (:func:`jaxplush.fitting.losses.make_residual`: sum(r²) is the
+:class:`Evaluator` runs a :class:`jaxplush.fitting.objective.problem.Problem` at N points theta (log-parameters)
+and returns each point's residual vector (:func:`jaxplush.fitting.objective.losses.make_residual`: sum(r²) is the
 fit's loss), its loss and whether it ran. Points run in compiled batches of the batched
 simulator (:mod:`jaxplush.stepping.batched`, one compile per batch width and substep count) where the
 scene allows it (Verlet, at most 8 runs of equally spaced target frames; soft-soft contact
@@ -33,7 +33,7 @@ from jaxplush.stepping import diagnostics
 from jaxplush.stepping import stability
 from jaxplush.types import Params
 
-from jaxplush.fitting import losses as _losses
+from jaxplush.fitting.objective import losses as _losses
 
 #: Largest substep count a point may be run with.
 MAX_SUBSTEPS = 16
@@ -61,7 +61,7 @@ class Evaluation(NamedTuple):
         simulator: the closest the bounding boxes of any contact pair came over every step of the
         run, in units of that pair's contact reach (2 thicknesses); NaN where not measured (a
         point run one at a time), None without such pairs. Above 1 + CLEARANCE_SAFETY
-        (:mod:`jaxplush.fitting.objects`), no object felt another.
+        (:mod:`jaxplush.fitting.stages.objects`), no object felt another.
     """
 
     residuals: np.ndarray
@@ -104,7 +104,7 @@ class Evaluator:
     """Evaluate a problem's residuals at many points (see the module docstring).
 
     Args:
-      prob: :class:`jaxplush.fitting.problem.Problem`.
+      prob: :class:`jaxplush.fitting.objective.problem.Problem`.
       batch: points per batched call (static; default :data:`DEFAULT_BATCH`, half that above
         :data:`LARGE_MESH` vertices).
       calibrate: calibrate the closed-form stability bound against the power-iteration estimate
@@ -277,16 +277,16 @@ class Evaluator:
     def owners(self):
         """(n,) the fitted object each residual belongs to (-1: an object not fitted), when the
         residuals are vertex or track positions of more than one fitted object; else None. What a coloured
-        finite-difference Jacobian (:func:`jaxplush.fitting.search.jacobian`) needs."""
+        finite-difference Jacobian (:func:`jaxplush.fitting.stages.search.jacobian`) needs."""
         if self._owners is False:
-            from jaxplush.fitting import objects as _objects
+            from jaxplush.fitting.objective import objects as _objects
             prob = self.prob
             self._owners = (_objects.residual_objects(prob) if len(prob.objects) > 1
                             and prob.target.kind.material_points else None)
         return self._owners
 
     def colourable(self):
-        """Whether coloured Jacobian stencils (:func:`jaxplush.fitting.search.jacobian`) can serve this
+        """Whether coloured Jacobian stencils (:func:`jaxplush.fitting.stages.search.jacobian`) can serve this
         problem: several fitted objects, and residuals that each belong to one of them, fixed for
         a position target (:meth:`owners`), or read off each run's frames for a point cloud
         (:meth:`point_owners`)."""
@@ -297,7 +297,7 @@ class Evaluator:
         object not fitted) of the vertex each point's residual is measured from, in N runs' frames
         ((N, T, V, 3), as :meth:`__call__` keeps them). A point's residual depends on that object's
         motion alone."""
-        from jaxplush.fitting import objects as _objects
+        from jaxplush.fitting.objective import objects as _objects
         res = self.residual
         vobj = np.asarray(self.prob.sim.topology.vertex_object, np.int64)
         fitted = _objects.fitted_index(self.prob)
@@ -321,15 +321,15 @@ class Evaluator:
 
     def clear_by_separation(self, separation):
         """(N,) bool: runs that stayed clear of contact by their measured ``separation``
-        (:func:`jaxplush.fitting.objects.clear_by_separation`; NaN: not clear)."""
-        from jaxplush.fitting import objects as _objects
+        (:func:`jaxplush.fitting.stages.objects.clear_by_separation`; NaN: not clear)."""
+        from jaxplush.fitting.objective import objects as _objects
         return _objects.clear_by_separation(separation)
 
     def clear_frames(self, frames, ok, separation=None):
         """(N,) whether N runs ((N, T, V, 3) frames; ``ok``: which ran) stayed clear of contact: by
         their measured ``separation`` where every run that ran has one, else by the frames
-        (:func:`jaxplush.fitting.objects.clear_of_contact`). Runs that did not run are not clear."""
-        from jaxplush.fitting import objects as _objects
+        (:func:`jaxplush.fitting.stages.objects.clear_of_contact`). Runs that did not run are not clear."""
+        from jaxplush.fitting.objective import objects as _objects
         ok = np.asarray(ok, bool)
         if not ok.any():
             return ok.copy()
@@ -339,9 +339,9 @@ class Evaluator:
     def clear(self, residuals, separation=None):
         """(N,) whether, in the runs behind N rows of position residuals, no two objects came within
         reach of contact: from the ``separation`` measured at every step where given and finite
-        (:class:`Evaluation`), else from the frames (:func:`jaxplush.fitting.objects.clear_of_contact`;
+        (:class:`Evaluation`), else from the frames (:func:`jaxplush.fitting.stages.objects.clear_of_contact`;
         rebuilt from the residuals and the target). Failed rows (NaN) are not clear."""
-        from jaxplush.fitting import objects as _objects
+        from jaxplush.fitting.objective import objects as _objects
         prob = self.prob
         r = np.asarray(residuals, np.float64)
         measured = _clear_measured(np.isfinite(r).all(axis=1), separation)
@@ -542,7 +542,7 @@ class Evaluator:
     def _single_fn(self, n):
         if n not in self._single:
             import jaxplush
-            from jaxplush.fitting.identifiability import frames_at_steps
+            from jaxplush.fitting.judge.identifiability import frames_at_steps
             prob = self.prob
             sim = prob.sim if n == 1 else jaxplush.make_simulator(prob.scene, prob.target.dt, prob.sim.integrator,
                                                                    terms=prob.sim.terms, substeps=n)
@@ -580,7 +580,7 @@ class Evaluator:
         (run it again); False when there is no soft-soft contact or the capacity is already that
         of whole objects (which cannot overflow). Doubling
         needs no run to measure the need (a single-scene simulation and its compiles), and the
-        problem starts with headroom (:func:`jaxplush.fitting.problem.build_problem`), so this is rare."""
+        problem starts with headroom (:func:`jaxplush.fitting.objective.problem.build_problem`), so this is rare."""
         import dataclasses
         import warnings
         import jaxplush
@@ -614,7 +614,7 @@ def first_inversion(seen, code, bad_step):
 def _clear_measured(ok, separation):
     """``ok & clear_by_separation(separation)`` when every run that ran (``ok``) has a measured
     separation; else None (the frames must tell)."""
-    from jaxplush.fitting import objects as _objects
+    from jaxplush.fitting.objective import objects as _objects
     if separation is None or not np.isfinite(np.asarray(separation)[ok]).all():
         return None
     return ok & _objects.clear_by_separation(separation)

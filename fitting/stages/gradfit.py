@@ -6,7 +6,7 @@ blows up (non-finite loss or gradient, an inverted object, damping < 1) is rejec
 halved (:func:`_reject`); the loop stops at the iteration limit or a tolerance
 (:func:`_check_convergence`). Its complete state is a :class:`LoopState`, which checkpoints hold
 (:func:`jaxplush.fitting.io.save_checkpoint`), so a resumed fit continues to the same answer;
-:func:`_finish` makes the :class:`jaxplush.fitting.result.FitResult` at the best accepted point.
+:func:`_finish` makes the :class:`jaxplush.fitting.judge.result.FitResult` at the best accepted point.
 """
 
 from __future__ import annotations
@@ -27,13 +27,13 @@ from jaxplush.stepping import diagnostics
 from jaxplush.errors import ContactCapacityWarning, JaxplushError, TimeStepWarning, VolumeClampWarning, warn
 from jaxplush.progress import Progress
 
-from jaxplush.fitting import identifiability as _ident
-from jaxplush.fitting import losses as _losses
+from jaxplush.fitting.judge import identifiability as _ident
+from jaxplush.fitting.objective import losses as _losses
 from jaxplush.fitting.errors import FitError
 from jaxplush.fitting.stages import saving_on_interrupt
-from jaxplush.fitting.outcome import Stop
-from jaxplush.fitting.problem import _common_settings
-from jaxplush.fitting.result import _history, _judge, _motion, _report, _result, measure_predictability
+from jaxplush.fitting.judge.outcome import Stop
+from jaxplush.fitting.objective.problem import _common_settings
+from jaxplush.fitting.judge.result import _history, _judge, _motion, _report, _result, measure_predictability
 
 
 OPTIMIZERS = ("lm", "adam", "lbfgs")
@@ -90,7 +90,7 @@ class LoopState:
     best_loss: float = math.inf
     done: bool = False
     reason: str = ""             # why it stopped, in words for a person
-    stopped: Stop = Stop.NONE    # ... and as a :class:`jaxplush.fitting.outcome.Stop`
+    stopped: Stop = Stop.NONE    # ... and as a :class:`jaxplush.fitting.judge.outcome.Stop`
     h_iter: list = dataclasses.field(default_factory=list)
     h_loss: list = dataclasses.field(default_factory=list)
     h_theta: list = dataclasses.field(default_factory=list)
@@ -165,7 +165,7 @@ class _GradientFit:
         """The :class:`LoopState` to start from: the checkpoint's (resume), or the start values."""
         if self.opts.checkpoint.resume:
             from jaxplush.fitting import io as _io
-            from jaxplush.fitting.treeio import conform
+            from jaxplush.fitting.io.treeio import conform
 
             def check(loop):      # this optimiser's state, with its dtypes and array kinds
                 template = jax.jit(self.opt.init)(jnp.asarray(loop.theta))
@@ -255,7 +255,7 @@ class _GradientFit:
 
     def grow_contact_capacity(self, theta):
         """After a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
-        loss is NaN: :func:`jaxplush.fitting.gradients.rollout_loss`), rebuild the problem with a capacity
+        loss is NaN: :func:`jaxplush.fitting.objective.gradients.rollout_loss`), rebuild the problem with a capacity
         that fits (warning) and return True."""
         prob = self.prob
         if prob.sim.terms.contact is None:
@@ -446,7 +446,7 @@ def _loop_history(prob, loop):
 
 def _judge_loop(prob, loop):
     """The outcome of an Adam or L-BFGS loop: residual at the best point, exact gradients."""
-    from jaxplush.fitting import outcome as _outcome
+    from jaxplush.fitting.judge import outcome as _outcome
     if not loop.h_loss:
         return _outcome.judge(rms=np.inf, noise=prob.noise, motion=_motion(prob), grad=np.inf, grad0=1.0,
                               stopped=Stop.ITERATIONS)

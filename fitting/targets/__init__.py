@@ -6,7 +6,7 @@ A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io.trajector
 * ``positions`` float [T, V, 3]: the scene's vertices, in the scene's order, at T frames; or
 * ``points`` float [T, M, 3]: a point cloud per frame (a scan; M unrelated to V, no
   correspondence), fitted (and swept) by each point's distance to the simulated surface
-  (:mod:`jaxplush.fitting.losses`). Frames may hold different
+  (:mod:`jaxplush.fitting.objective.losses`). Frames may hold different
   numbers of points: a row of three NaNs is no point (padding), so a frame with fewer points
   ends in NaN rows (:func:`jaxplush.io.capture.depth_capture` writes captures this way). A row
   with some NaN coordinates, or an infinity, is an error; or
@@ -19,7 +19,7 @@ A target is an HDF5 file in the trajectory schema of :mod:`jaxplush.io.trajector
   points). A row of three NaNs is a track not seen in that frame (occluded); a frame may see
   none, but every track must be seen in some frame; or
 * ``points`` and ``tracks`` together (kind "mixed"): a scan with tracked points on the same
-  frames, fitted by the two losses together (:func:`jaxplush.fitting.losses.make_loss`; the
+  frames, fitted by the two losses together (:func:`jaxplush.fitting.objective.losses.make_loss`; the
   tracks' share set by :attr:`Target.track_weight`),
 
 and ``times`` float [T] (s, increasing). The frames may be any subset of the rollout (only the
@@ -50,7 +50,7 @@ import numpy as np
 
 from jaxplush.errors import JaxplushError, TrajectoryError
 from jaxplush.io.trajectory import atomic_path, open_hdf5
-from jaxplush.fitting.kinds import KINDS, TargetKind
+from jaxplush.fitting.targets.kinds import KINDS, TargetKind
 
 #: Times must lie within this fraction of dt of a multiple of dt (float32-written times included).
 GRID_TOLERANCE = 1e-3
@@ -58,7 +58,7 @@ GRID_TOLERANCE = 1e-3
 TARGET_FAR = 1e3
 #: Barycentric coordinates of a track may be this far below 0, and their sum this far from 1.
 BARYCENTRIC_TOLERANCE = 1e-6
-#: The datasets of each kind's frames (:attr:`jaxplush.fitting.kinds.TargetKind.datasets`).
+#: The datasets of each kind's frames (:attr:`jaxplush.fitting.targets.kinds.TargetKind.datasets`).
 KIND_DATASETS = {k: k.datasets for k in KINDS}
 #: The ``source`` of the driven paths :func:`scene_with_controls` adds (whitespace: no scene line
 #: can name such a path file).
@@ -115,9 +115,9 @@ class Target:
       track_weights: (M, 3) float64 their weights (barycentric; a vertex track: [1, 0, 0]).
       track_weight: a mixed target's weight w of its tracks against its scan: the loss is
         (L_points + w L_tracks) / (1 + w), each term normalised on its own (default 1: the two
-        count alike, however many points each holds; :func:`jaxplush.fitting.losses.make_loss`).
+        count alike, however many points each holds; :func:`jaxplush.fitting.objective.losses.make_loss`).
       controls: :class:`Controls` of driven vertices, or None.
-      custom_kind: a target of a kind of one's own (a :class:`jaxplush.fitting.kinds.Kind`
+      custom_kind: a target of a kind of one's own (a :class:`jaxplush.fitting.targets.kinds.Kind`
         subclass; :meth:`of_kind`), else None. custom_data: its (T, M, D) frames.
     """
 
@@ -139,7 +139,7 @@ class Target:
 
     @classmethod
     def of_kind(cls, kind, data, times, dt, *, steps=None, path="<memory>", noise=None, params=None):
-        """A target of a kind of one's own: ``kind`` a :class:`jaxplush.fitting.kinds.Kind`
+        """A target of a kind of one's own: ``kind`` a :class:`jaxplush.fitting.targets.kinds.Kind`
         instance, ``data`` (T, M, D) its frames (NaN rows: not observed), ``times`` (T,) s on the
         grid of ``dt`` (or ``steps``, their step indices)."""
         times = np.asarray(times, np.float64).reshape(-1)
@@ -147,7 +147,7 @@ class Target:
                  else np.asarray(steps, np.int64).reshape(-1))
         data = np.asarray(data, np.float64)
         if not isinstance(kind, TargetKind):
-            raise TypeError(f"kind must be a jaxplush.fitting.kinds.Kind, got {type(kind).__name__}")
+            raise TypeError(f"kind must be a jaxplush.fitting.targets.kinds.Kind, got {type(kind).__name__}")
         if data.ndim != 3 or len(data) != len(steps):
             raise ValueError(f"{path}: a target's frames must be [T, M, D] with T = {len(steps)} frames, "
                              f"got {list(data.shape)}")
@@ -156,7 +156,7 @@ class Target:
 
     @property
     def kind(self):
-        """Its :class:`jaxplush.fitting.kinds.TargetKind` (equal to "positions", "points", "tracks"
+        """Its :class:`jaxplush.fitting.targets.kinds.TargetKind` (equal to "positions", "points", "tracks"
         or "mixed": points and tracks; or the kind of one's own it was made with)."""
         if self.custom_kind is not None:
             return self.custom_kind
@@ -768,7 +768,7 @@ def make_target(scene, steps, dt, save_every, *, params=None, frames=None, noise
     import jaxplush
     from jaxplush.stepping import diagnostics
     from jaxplush.errors import SimulationError
-    from jaxplush.fitting.identifiability import frames_at_steps
+    from jaxplush.fitting.judge.identifiability import frames_at_steps
     steps, save_every = int(steps), int(save_every)
     if controls and not scene.driven:
         raise ValueError(f"controls=True: the scene {scene.path} drives no vertices (no 'driven' line)")

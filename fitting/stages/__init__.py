@@ -1,8 +1,8 @@
 """The default fit's stages as pieces to recombine: one protocol, a few stages, a driver.
 
-An :class:`Objective` is built from a problem (:func:`jaxplush.fitting.problem.build_problem`) and
+An :class:`Objective` is built from a problem (:func:`jaxplush.fitting.objective.problem.build_problem`) and
 its search box: the residuals of the target at log values theta, batched and stable
-(:class:`jaxplush.fitting.evaluate.Evaluator`). A *stage* is any object with three methods:
+(:class:`jaxplush.fitting.objective.evaluate.Evaluator`). A *stage* is any object with three methods:
 
 * ``init(objective, theta, state) -> stage_state``: start at the log values ``theta`` (the
   problem's start values), or from ``state``, the previous stage's final state (None for the
@@ -11,12 +11,12 @@ its search box: the residuals of the target at log values theta, batched and sta
   new state and leaving the one it was given as it was (the driver's checkpoints and hooks hold
   states as they were);
 * ``terminate(objective, stage_state) -> (bool, Stop)``: whether it is done, and why
-  (:class:`jaxplush.fitting.outcome.Stop`);
+  (:class:`jaxplush.fitting.judge.outcome.Stop`);
 * optionally ``postprocess(objective, stage_state) -> Candidate``: the one point it hands on (a
   :class:`Candidate`: every stage here has one; a candidate may carry the searches it comes from,
   which a local stage starts from, and the Jacobian and residuals at its point). The next stage's
   ``init`` gets that candidate. A stage of one's own without it hands on its state itself, whose
-  ``states`` (searches, as :class:`jaxplush.fitting.search.LMState`) or ``theta`` the next stage
+  ``states`` (searches, as :class:`jaxplush.fitting.stages.search.LMState`) or ``theta`` the next stage
   starts from (:func:`start_points`).
 
 ``jaxplush.fitting.fit(scene, target, solver=[...])`` runs a user's list of stages and then the
@@ -31,8 +31,8 @@ over horizons of growing length (the target's first frames, then more); :class:`
 takes the best point's residuals and Jacobian. :func:`run_stages` runs a list of stages in turn,
 each from the last one's state, calling :class:`Hooks` around every step; its state
 (:class:`RunState`: the stage running, its state, those finished) is plain data, which a
-checkpoint holds (:mod:`jaxplush.fitting.treeio`) and ``run_stages`` resumes from.
-:func:`jaxplush.fitting.lmfit.run` is the default fit: ``run_stages`` of these stages, with
+checkpoint holds (:mod:`jaxplush.fitting.io.treeio`) and ``run_stages`` resumes from.
+:func:`jaxplush.fitting.stages.lmfit.run` is the default fit: ``run_stages`` of these stages, with
 progress, the callback and checkpoints as hooks. Every tuning knob comes from the options
 (:mod:`jaxplush.fitting.options`).
 
@@ -51,12 +51,12 @@ from typing import Protocol
 
 import numpy as np
 
-from jaxplush.fitting import equation_error as _ee
-from jaxplush.fitting import search as _search
-from jaxplush.fitting import shooting as _shooting
+from jaxplush.fitting.stages import equation_error as _ee
+from jaxplush.fitting.stages import search as _search
+from jaxplush.fitting.objective import shooting as _shooting
 from jaxplush.fitting.options import (DEFAULT_ITERATIONS, DEFAULT_SAMPLES, DEFAULT_STARTS, ContinuationOptions,
                                       LocalOptions, SmoothingOptions)
-from jaxplush.fitting.outcome import Stop
+from jaxplush.fitting.judge.outcome import Stop
 
 
 def own(state):
@@ -82,8 +82,8 @@ class Objective:
     """The residuals of a problem's target at log values theta, over a search box.
 
     Attributes:
-      prob: :class:`jaxplush.fitting.problem.Problem`; box: :class:`jaxplush.fitting.search.Box`;
-      evaluator: its :class:`jaxplush.fitting.evaluate.Evaluator` (made on first use, or given).
+      prob: :class:`jaxplush.fitting.objective.problem.Problem`; box: :class:`jaxplush.fitting.stages.search.Box`;
+      evaluator: its :class:`jaxplush.fitting.objective.evaluate.Evaluator` (made on first use, or given).
     """
 
     def __init__(self, prob, box, evaluator=None):
@@ -117,11 +117,11 @@ class Objective:
 
     def floor(self):
         """The model's reproducibility floor over this objective's frames as a normalised loss
-        (:func:`jaxplush.fitting.result.rounding_drift`, measured at the start values; with multiple
+        (:func:`jaxplush.fitting.judge.result.rounding_drift`, measured at the start values; with multiple
         shooting, the shooting floor of its segments), for a noise-free position or tracks target
         (the drift per coordinate of a vertex, or of a point interpolated between vertices); None
         otherwise, or when it was not measured."""
-        from jaxplush.fitting.result import rounding_drift
+        from jaxplush.fitting.judge.result import rounding_drift
         prob = self.prob
         if not prob.target.kind.material_points or (prob.noise is not None and prob.noise > 0):
             return None
@@ -179,7 +179,7 @@ class Horizons:
 
 
 def order(states):
-    """Indices of ``states`` (:class:`jaxplush.fitting.search.LMState`) by increasing loss."""
+    """Indices of ``states`` (:class:`jaxplush.fitting.stages.search.LMState`) by increasing loss."""
     return sorted(range(len(states)), key=lambda i: states[i].loss)
 
 
@@ -197,13 +197,13 @@ class GlobalState:
 
 @dataclasses.dataclass(frozen=True)
 class GlobalStage:
-    """The start and ``samples`` Sobol points of the box (:func:`jaxplush.fitting.search.global_stage`),
-    in one step; its ``states`` are :class:`jaxplush.fitting.search.LMState` s at the best
+    """The start and ``samples`` Sobol points of the box (:func:`jaxplush.fitting.stages.search.global_stage`),
+    in one step; its ``states`` are :class:`jaxplush.fitting.stages.search.LMState` s at the best
     ``starts`` of them, each ``local.start_distance`` of the box's width from those before.
 
-    With ``linear`` (and a problem it suits, :func:`jaxplush.fitting.equation_error.suits`), the
+    With ``linear`` (and a problem it suits, :func:`jaxplush.fitting.stages.equation_error.suits`), the
     design also holds the start that needs no start values: indirect inference on the
-    equation-error estimate (:func:`jaxplush.fitting.equation_error.design_point`; ``GlobalState.linear``).
+    equation-error estimate (:func:`jaxplush.fitting.stages.equation_error.design_point`; ``GlobalState.linear``).
 
     Attributes: samples, starts, seed, retries, linear (:class:`jaxplush.fitting.options.SearchOptions`);
     local: :class:`jaxplush.fitting.options.LocalOptions` (the spacing, and the searches' radius and mu);
@@ -255,8 +255,8 @@ class LocalState:
 @dataclasses.dataclass(frozen=True)
 class LocalLM:
     """Levenberg-Marquardt searches, one round of all of them per step
-    (:func:`jaxplush.fitting.search.lm_round`), then rescues of stalled ones
-    (:func:`jaxplush.fitting.search.rescue`) and screening (all but the best ``keep`` set aside after
+    (:func:`jaxplush.fitting.stages.search.lm_round`), then rescues of stalled ones
+    (:func:`jaxplush.fitting.stages.search.rescue`) and screening (all but the best ``keep`` set aside after
     ``screen_rounds`` when ``screen``; any far above the best, always).
 
     Attributes:
@@ -341,7 +341,7 @@ def screen(states, rounds, screening, local):
 @dataclasses.dataclass
 class LinearState:
     """A :class:`Linearise` stage's state: the best search (``best``, a
-    :class:`jaxplush.fitting.search.LMState`), the residuals and Jacobian at its point, and the
+    :class:`jaxplush.fitting.stages.search.LMState`), the residuals and Jacobian at its point, and the
     residuals (``start_residual``; ``start_ok``: it ran; ``start_substeps``; ``start_separation``:
     how close its objects came) and loss ``loss0`` of the start values; ``ran``: stepped."""
 
@@ -403,7 +403,7 @@ class Linearise:
 @dataclasses.dataclass
 class SmoothState:
     """A :class:`Smoothing` stage's state: its start, Jacobian and residuals there, and its result
-    (:class:`jaxplush.fitting.search.Smoothed`, or None: singular Jacobian, or skipped); ``ran``:
+    (:class:`jaxplush.fitting.stages.search.Smoothed`, or None: singular Jacobian, or skipped); ``ran``:
     stepped (or skipped: a search the callback stopped is not smoothed)."""
 
     theta: np.ndarray
@@ -415,7 +415,7 @@ class SmoothState:
 
 @dataclasses.dataclass(frozen=True)
 class Smoothing:
-    """The smoothing stage of a noisy target (:func:`jaxplush.fitting.search.smooth`), in one step,
+    """The smoothing stage of a noisy target (:func:`jaxplush.fitting.stages.search.smooth`), in one step,
     from the previous stage's best point: a :class:`Linearise` state's (its Jacobian and residuals),
     or the best search's (its Jacobian taken at ``local.h_min``), or theta.
 
@@ -582,11 +582,11 @@ class Candidate:
     ``reason`` for a person. Its ``states`` make it a start for any stage that starts from
     searches (:class:`LocalLM`, :class:`Linearise`, :class:`Smoothing`).
 
-    A stage may say more: ``searches``, the searches (:class:`jaxplush.fitting.search.LMState`)
+    A stage may say more: ``searches``, the searches (:class:`jaxplush.fitting.stages.search.LMState`)
     it comes from, best first, which a local stage continues all of (a global design's best
     starts, say); ``jac`` (n, P) and ``residual`` (n,) at theta, when it linearised there
     (:class:`Linearise`), which the smoothing stage starts from; ``stopped``: why the search at
-    theta stopped (:class:`jaxplush.fitting.outcome.Stop`)."""
+    theta stopped (:class:`jaxplush.fitting.judge.outcome.Stop`)."""
 
     theta: np.ndarray
     loss: float = math.inf
@@ -624,7 +624,7 @@ def _handed(stage, objective, state):
 
 
 def start_points(state, theta):
-    """The searches (:class:`jaxplush.fitting.search.LMState`) a stage starts from, given the
+    """The searches (:class:`jaxplush.fitting.stages.search.LMState`) a stage starts from, given the
     previous stage's handed-on ``state``: its ``states``, or one search at its ``theta``, or (no
     previous stage) one at ``theta``. Each is a copy the new stage may change."""
     states = getattr(state, "states", None)

@@ -1,7 +1,7 @@
 """The default fit: a global stage over a box, Levenberg-Marquardt from the best candidates, smoothing.
 
 Both stages work in theta = log(parameters) and only ever *simulate* (batched forward runs,
-:class:`jaxplush.fitting.evaluate.Evaluator`); neither differentiates through the rollout.
+:class:`jaxplush.fitting.objective.evaluate.Evaluator`); neither differentiates through the rollout.
 
 Why no autodiff here: a dropped plush excites vertex-level modes that ring for the whole target
 (hundreds to thousands of radians of phase), so the loss carries a ripple whose wavelength in
@@ -14,7 +14,7 @@ as the steps shrink near the optimum, so does the difference step, where the los
 
 Global stage (:func:`global_stage`): a scrambled Sobol design (scipy.stats.qmc) of ``n``
 points in the box, plus the start itself, all run in compiled batches; failed points (which
-even :data:`jaxplush.fitting.evaluate.MAX_SUBSTEPS` substeps cannot run) are kept with an infinite loss.
+even :data:`jaxplush.fitting.objective.evaluate.MAX_SUBSTEPS` substeps cannot run) are kept with an infinite loss.
 
 Local stage (:func:`lm_round`): a box-constrained Levenberg-Marquardt on the residual
 vector r (sum(r²) = loss) with a trust radius in log space:
@@ -45,7 +45,7 @@ import math
 import numpy as np
 
 from jaxplush.fitting.options import DEFAULT_ITERATIONS, DEFAULT_SAMPLES, LocalOptions, SmoothingOptions
-from jaxplush.fitting.outcome import Stop
+from jaxplush.fitting.judge.outcome import Stop
 
 #: The default options (what None stands for).
 _LOCAL, _SMOOTHING = LocalOptions(), SmoothingOptions()
@@ -110,7 +110,7 @@ def sobol_design(box, n, seed=0):
 def global_stage(evaluator, box, start, n=DEFAULT_SAMPLES, seed=0, progress=None, retries=None, extra=()):
     """Evaluate the start, the ``extra`` points (clipped into the box) and ``n`` Sobol points of the
     box (a point that blows up retried at most ``retries`` times,
-    :class:`jaxplush.fitting.evaluate.Evaluator`). Returns :class:`GlobalResult`."""
+    :class:`jaxplush.fitting.objective.evaluate.Evaluator`). Returns :class:`GlobalResult`."""
     extra = [box.clip(np.asarray(t, np.float64)) for t in extra]
     thetas = np.concatenate([np.asarray(start, np.float64)[None]] + [t[None] for t in extra] + [sobol_design(box, n, seed)])
     ev = evaluator(thetas) if retries is None else evaluator(thetas, retries=retries)
@@ -125,7 +125,7 @@ class LMState:
 
     theta: current point (shape of theta); loss: its loss; mu: damping; radius: trust radius;
     iteration: iterations done; done, reason: whether and why it stopped (``reason`` in words for
-    a person, ``stopped`` a :class:`jaxplush.fitting.outcome.Stop`); history: list of
+    a person, ``stopped`` a :class:`jaxplush.fitting.judge.outcome.Stop`); history: list of
     (loss, theta) of accepted points (the first is the start); evaluations: simulated points.
     """
 
@@ -136,7 +136,7 @@ class LMState:
     iteration: int = 0
     done: bool = False
     reason: str = ""
-    stopped: Stop = Stop.NONE     # why it stopped (:class:`jaxplush.fitting.outcome.Stop`)
+    stopped: Stop = Stop.NONE     # why it stopped (:class:`jaxplush.fitting.judge.outcome.Stop`)
     history: list = dataclasses.field(default_factory=list)
     jac: np.ndarray | None = None     # (n, P) at theta, if computed there
     jac_h: float = _LOCAL.h_max
@@ -243,7 +243,7 @@ def _jacobians(evaluator, box, states, options=None):
 
 
 def _forward_jacobians(evaluator, states, options):
-    """Set the exact Jacobian (:meth:`jaxplush.fitting.evaluate.Evaluator.forward_jacobian`) of
+    """Set the exact Jacobian (:meth:`jaxplush.fitting.objective.evaluate.Evaluator.forward_jacobian`) of
     every state it serves, with ``jac_h`` the smallest difference step (the stopping rules read
     it as a local Jacobian); return the states left for differences. A forward pass costs about
     P rollouts, counted as P evaluations."""
@@ -317,7 +317,7 @@ def _coloured_jacobians(evaluator, box, states, owners, options=None):
 def jacobian(evaluator, box, theta, h, substeps=1, options=None, separation=math.nan):
     """(n, P) central-difference Jacobian of the residuals at theta with step h (log space; clipped
     to [``h_min``, ``h_max``] of ``options``). ``separation``: how close the objects came in the run
-    at theta (:attr:`jaxplush.fitting.evaluate.Evaluation.separation`; NaN: not known); where they
+    at theta (:attr:`jaxplush.fitting.objective.evaluate.Evaluation.separation`; NaN: not known); where they
     came within reach of contact, the coloured stencil is not tried (it would be run again in full)."""
     st = LMState(theta=np.asarray(theta, np.float64), loss=np.nan, radius=h / (options or _LOCAL).h_fraction,
                  substeps=substeps,
@@ -666,7 +666,7 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=
     ``iterations`` designs.
 
     Args:
-      evaluator: :class:`jaxplush.fitting.evaluate.Evaluator` of the full target; box: :class:`Box`;
+      evaluator: :class:`jaxplush.fitting.objective.evaluate.Evaluator` of the full target; box: :class:`Box`;
       theta: the start (the local search's result); jac, residual: its Jacobian and residuals,
         which size the first design; progress: ``progress(1, extra=text)`` after each design;
       options: :class:`SmoothingOptions` (None: the defaults).

@@ -24,7 +24,7 @@ centroid height (y) and largest vertex displacement from the rest shape, the hea
 
     L = (1/T) sum_j d(x(t_j), y_j),
 
-d the fit's frame distance (:meth:`jaxplush.fitting.kinds.Kind.mean_sq`): the mean squared vertex
+d the fit's frame distance (:meth:`jaxplush.fitting.targets.kinds.Kind.mean_sq`): the mean squared vertex
 distance for a ``positions`` target, each observed point's squared distance to the simulated
 surface for a ``points`` target (rows of NaN are a frame's padding), each seen track's squared
 distance to its simulated position for a ``tracks`` target (every observation weighed alike), in
@@ -77,7 +77,7 @@ import numpy as np
 from jaxplush.stepping import batched
 from jaxplush.stepping import diagnostics
 from jaxplush.errors import JaxplushError, SimulationWarning, VolumeClampWarning
-from jaxplush.fitting.kinds import TargetKind
+from jaxplush.fitting.targets.kinds import TargetKind
 from jaxplush.progress import Progress
 from jaxplush.types import PARAM_NAMES, Params
 
@@ -402,7 +402,7 @@ def _observer(kind, keep_positions):
 
 
 def frame_loss(kind, x, y, surface=None):
-    """(B,) the fit's frame distance d_j (m², :meth:`jaxplush.fitting.kinds.Kind.mean_sq`) of every
+    """(B,) the fit's frame distance d_j (m², :meth:`jaxplush.fitting.targets.kinds.Kind.mean_sq`) of every
     batch point's positions x (tuple of 3 (V, B)) to a target frame y, in the rows
     :func:`_target_frames` lays out: the mean squared vertex distance (y (V, 3)); for a scan (y
     (M, 4): a point and its weight T / N) the sum of each point's squared distance to the
@@ -423,7 +423,7 @@ def frame_loss(kind, x, y, surface=None):
         d2 = sum((sum(y[:, 6 + k, None] * x[c][idx[:, k]] for k in range(3)) - y[:, c, None]) ** 2
                  for c in range(3))                                    # (M, B)
         return jnp.sum(y[:, 9, None] * d2, axis=0)
-    from jaxplush.fitting.losses import point_surface_distance2
+    from jaxplush.fitting.objective.losses import point_surface_distance2
     faces, vfaces = surface
     pts = jnp.stack(x, axis=-1).transpose(1, 0, 2)                    # (B, V, 3)
     return jax.lax.map(lambda xb: jnp.sum(y[:, 3] * point_surface_distance2(xb, y[:, :3], faces, vfaces)), pts)
@@ -741,15 +741,15 @@ def _plan_sweep(scene, grid, points, steps, dt, save_every, target, integrator, 
 
 def _surface(topology):
     """(faces (F, 3), vertex_faces (V, W)) int32 of a scene: a scan's distance to the surface."""
-    from jaxplush.fitting.losses import vertex_faces
+    from jaxplush.fitting.objective.losses import vertex_faces
     faces = np.asarray(topology.faces, np.int32)
     return faces, vertex_faces(faces, topology.n_vertices)
 
 
 def _mixed_factors(target, topology):
     """(f_points, f_tracks): a mixed target's terms weighed as the fit weighs them, each over its
-    own normaliser, times the fit's combined normaliser (:func:`jaxplush.fitting.losses.make_loss`)."""
-    from jaxplush.fitting import losses
+    own normaliser, times the fit's combined normaliser (:func:`jaxplush.fitting.objective.losses.make_loss`)."""
+    from jaxplush.fitting.objective import losses
     scales = [losses.loss_scale(p, topology)[0] for p in target.parts]
     s2 = losses.combined_scale2(target, scales)
     return tuple(float(s2 * c / s) for c, s in zip(losses.part_weights(target), scales))

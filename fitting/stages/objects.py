@@ -31,11 +31,13 @@ import itertools
 
 import numpy as np
 
-from jaxplush.fitting import equation_error as _ee
-from jaxplush.fitting import search as _search
+from jaxplush.fitting.stages import equation_error as _ee
+from jaxplush.fitting.stages import search as _search
+from jaxplush.fitting.objective.objects import (  # noqa: F401  (named here too)
+    CLEARANCE_SAFETY, clear_by_separation, clear_of_contact, fitted_index, residual_objects)
 from jaxplush.fitting import stages as _stages
 from jaxplush.fitting.options import DEFAULT_SAMPLES, DEFAULT_STARTS, LocalOptions
-from jaxplush.fitting.outcome import Stop
+from jaxplush.fitting.judge.outcome import Stop
 
 
 def suits(prob):
@@ -43,92 +45,6 @@ def suits(prob):
     more than one fitted object, and a target of vertex positions or tracks (whose residuals belong
     to objects exactly)."""
     return len(prob.objects) > 1 and prob.target.kind.material_points
-
-
-def fitted_index(prob):
-    """(O,) each scene object's index among the fitted objects (``prob.objects``), -1 if not fitted."""
-    n = int(np.max(np.asarray(prob.sim.topology.vertex_object))) + 1
-    fitted = np.full(n, -1, np.int64)
-    fitted[list(prob.objects)] = np.arange(len(prob.objects))
-    return fitted
-
-
-def residual_objects(prob, frames=None):
-    """(n,) the fitted object (an index into ``prob.objects``) that each residual belongs to, -1 for
-    residuals of objects that are not fitted.
-
-    Positions: the residuals are (frame, vertex, xyz) flattened (:func:`jaxplush.fitting.losses.make_residual`),
-    and each vertex belongs to its object (the topology's ``vertex_object``). Tracks: (frame,
-    track, xyz), each track to the object of its vertices. Points: (frame,
-    point), each point assigned to the object of its nearest vertex in ``frames`` ((T, V, 3), the
-    simulated frames at the target's steps, e.g. the rollout at the start values; required).
-    Mixed (a scan and tracks): per frame, its points' then its tracks' (frames required).
-    """
-    vobj = np.asarray(prob.sim.topology.vertex_object, np.int64)
-    fitted = fitted_index(prob)
-    target = prob.target
-    near = target.kind.residual_vertices(target, prob.sim.topology, frames)
-    if near is None:              # a kind that does not say: every residual belongs to every object
-        return None
-    near = np.asarray(near, np.int64)
-    return np.where(near >= 0, fitted[vobj[np.maximum(near, 0)]], -1)
-
-
-#: Extra clearance, as a fraction of a pair's contact reach, that :func:`clear_of_contact` asks for.
-CLEARANCE_SAFETY = 0.5
-
-
-def clear_by_separation(separation):
-    """(N,) bool: runs whose contact pairs never came within 1 + :data:`CLEARANCE_SAFETY` of their
-    reach, from the separation the batched simulator measures at every step
-    (:class:`jaxplush.fitting.evaluate.Evaluation`: the closest approach of two objects' bounding
-    boxes, in units of the pair's reach, 2 thicknesses); NaN (not measured) is not clear."""
-    s = np.asarray(separation, np.float64)
-    return np.isfinite(s) & (s > 1.0 + CLEARANCE_SAFETY)
-
-
-def clear_of_contact(prob, frames):
-    """Whether no two objects came within reach of soft-soft contact in ``frames`` ((T, V, 3)
-    positions at the target's frames, or (N, T, V, 3) for N runs: (N,) bools).
-
-    The reach of a pair is 2 delta (its contact thickness): a vertex farther than that from the
-    other object's surface feels a contact force below about 2e-10 of the force at touching
-    (:mod:`jaxplush.model.contact`: the ramp softplus(beta (delta - s)) / beta, beta = 10 / delta),
-    and at 1 + :data:`CLEARANCE_SAFETY` times the reach below 1e-17 of it, far below float32
-    rounding. The other object's surface (its triangles) lies inside the bounding box of its
-    vertices, so a vertex outside that box inflated by a margin is farther than the margin from
-    the surface, however coarse its triangles. A pair is clear when, at every frame, every vertex
-    of each object lies outside the other's bounding box inflated by (1 + CLEARANCE_SAFETY) x
-    the reach plus how far the two objects' vertices move (the largest chord, each object's own)
-    over the frame intervals on either side: the frames do not show the steps between them. In
-    a run where every pair is clear, each object moves with its own parameters only. A scene
-    without soft-soft contact between objects is always clear."""
-    x = np.asarray(frames, np.float64)
-    single = x.ndim == 3
-    x = x[None] if single else x
-    cfg = prob.sim.terms.contact
-    out = np.ones(len(x), bool)
-    if cfg is None or not cfg.pairs:
-        return bool(out[0]) if single else out
-    vobj = np.asarray(prob.sim.topology.vertex_object, np.int64)
-
-    def moves(xo):
-        """(N, T) the object's largest vertex move over the frame intervals next to each frame."""
-        chord = np.abs(np.diff(xo, axis=1)).max(axis=(2, 3)) if xo.shape[1] > 1 else np.zeros((len(xo), 0))
-        pad = np.zeros((len(xo), 1))
-        return np.maximum(np.concatenate([pad, chord], 1), np.concatenate([chord, pad], 1))
-
-    for (a, b), delta in zip(cfg.pairs, cfg.thickness):
-        reach = 2.0 * float(delta)
-        xa, xb = x[:, :, vobj == a], x[:, :, vobj == b]
-        margin = (1.0 + CLEARANCE_SAFETY) * reach + moves(xa) + moves(xb)          # (N, T)
-
-        def outside(p, q):
-            m = margin[:, :, None, None]
-            lo, hi = q.min(axis=2, keepdims=True) - m, q.max(axis=2, keepdims=True) + m
-            return np.any((p < lo) | (p > hi), axis=-1).all(axis=(1, 2))
-        out &= outside(xa, xb) & outside(xb, xa)
-    return bool(out[0]) if single else out
 
 
 def block_losses(residuals, owner, n_objects):
@@ -165,10 +81,10 @@ class PerObjectState:
 
     Attributes:
       theta: the start; owner: :func:`residual_objects` (None until the first step);
-      result: :class:`jaxplush.fitting.search.GlobalResult` of every point evaluated so far
+      result: :class:`jaxplush.fitting.stages.search.GlobalResult` of every point evaluated so far
         (designs and composed candidates); rounds: designs run; composed: the composed candidates'
         rows in ``result``; states: the local searches it starts (after the last round); linear:
-        the design point of :func:`jaxplush.fitting.equation_error.design_point` (NaN: none).
+        the design point of :func:`jaxplush.fitting.stages.equation_error.design_point` (NaN: none).
     """
 
     theta: np.ndarray
@@ -191,7 +107,7 @@ class PerObjectGlobal:
     the search box), one batch; then each object's parameter blocks are ranked by the loss of its
     own residuals (:func:`block_losses`), and the combinations of the best ``per_object`` blocks
     of every object (:func:`compose`) run as a second batch. After ``rounds`` rounds its
-    ``states`` are :class:`jaxplush.fitting.search.LMState` s at the best ``starts`` of all the
+    ``states`` are :class:`jaxplush.fitting.stages.search.LMState` s at the best ``starts`` of all the
     points evaluated, each ``local.start_distance`` of the box's width from those before (as a
     :class:`~jaxplush.fitting.stages.GlobalStage`'s).
 

@@ -1,5 +1,5 @@
 """The batched engine moved to :mod:`jaxplush.stepping.batched` (the core); this name stays so
-that code written against ``jaxplush.fitting.batched`` keeps working: it is that module."""
+that code written against ``jaxplush.fitting.objective.batched`` keeps working: it is that module."""
 
 import sys
 

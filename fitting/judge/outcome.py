@@ -3,7 +3,7 @@
 A fit is *converged* only when both hold:
 
 * **it reached the data**: the residual RMS (per coordinate for positions, per point distance
-  for point clouds, in metres; :func:`jaxplush.fitting.losses.rms_metres`) is at the noise level, at most
+  for point clouds, in metres; :func:`jaxplush.fitting.objective.losses.rms_metres`) is at the noise level, at most
   :data:`NOISE_FACTOR` times the stated noise sigma, or, for a noise-free target (no sigma), at
   most :data:`MOTION_FRACTION` of the target's RMS motion from the rest shape;
 * **first-order optimality**: the gradient of the loss in log space, taken at the scale of the
@@ -16,12 +16,12 @@ A fit is *converged* only when both hold:
   float32 rollout's rounding leaves a noise-free loss a floor of its own: near it, the loss of
   a body in hard floor contact is rough, and the gradient need not fall far below the start's.)
 
-For a noisy target the default fit ends with a smoothing stage (:func:`jaxplush.fitting.search.smooth`):
+For a noisy target the default fit ends with a smoothing stage (:func:`jaxplush.fitting.stages.search.smooth`):
 its regression model's slope and intercept stand for the Jacobian and the residuals, so the
 gradient, the Gauss-Newton step and the standard errors above are the model's.
 
 A fit that reached the data at an optimum but whose identifiability report
-(:mod:`jaxplush.fitting.identifiability`) finds parameters the target does not determine (a
+(:mod:`jaxplush.fitting.judge.identifiability`) finds parameters the target does not determine (a
 parameter the frames do not depend on, a combination the Jacobian does not resolve above its
 rounding noise, a standard error above 50%) is ``undetermined``: the frames are reproduced, but
 those values are not measured by this target (the report's ``damping`` and air ``drag`` fitted

@@ -24,8 +24,8 @@ from jaxplush.errors import JaxplushError, TrajectoryError
 from jaxplush.fitting.errors import ParameterWarning
 from jaxplush.types import PARAM_NAMES, Params
 
-from jaxplush.fitting import identifiability as _ident
-from jaxplush.fitting import losses as _losses
+from jaxplush.fitting.judge import identifiability as _ident
+from jaxplush.fitting.objective import losses as _losses
 from jaxplush.fitting.targets import Target, load_target, scene_with_controls
 
 
@@ -77,12 +77,12 @@ class Problem:
       names: fitted parameter names (P_n,); objects: fitted object indices (O_f,).
       base: :class:`Params` (numpy float64) holding the start values (fitted) and fixed values.
       theta0: (P_n, O_f) float64 log start values.
-      loss: :class:`jaxplush.fitting.losses.Loss`.
-      method: gradient method of :func:`jaxplush.fitting.gradients.rollout_loss`.
+      loss: :class:`jaxplush.fitting.objective.losses.Loss`.
+      method: gradient method of :func:`jaxplush.fitting.objective.gradients.rollout_loss`.
       noise: the noise sigma of the normalisation (m), or None.
       predictability: :class:`jaxplush.Predictability` of the start values over the target
         (:func:`measure_predictability`), or None (not measured, or the start run blew up).
-      shooting: :class:`jaxplush.fitting.shooting.Shooting` of the default fit, or None (single shooting).
+      shooting: :class:`jaxplush.fitting.objective.shooting.Shooting` of the default fit, or None (single shooting).
     """
 
     scene: object
@@ -114,7 +114,7 @@ class Problem:
 
     def loss_fn(self, theta):
         """Normalised loss at log values theta (jax; differentiable)."""
-        from jaxplush.fitting.gradients import rollout_loss
+        from jaxplush.fitting.objective.gradients import rollout_loss
         p = self.to_params(theta)
         lo = self.loss
         return rollout_loss(self.sim, p, self.sim.init_fn(p), lo.frame_steps, lo.loss_fn, lo.aux,
@@ -379,7 +379,7 @@ def _check_tracks(scene, target):
 
 def _fit_simulator(scene, fit_scene, target, method):
     """The simulator of the fit (the terms ``fit_scene`` switches on), the gradient ``method`` checked."""
-    from jaxplush.fitting.gradients import METHODS, adjoint_supported
+    from jaxplush.fitting.objective.gradients import METHODS, adjoint_supported
     if method not in METHODS:
         raise JaxplushError(f"unknown gradient method {method!r}; expected one of {', '.join(METHODS)}")
     # soft-soft contact with headroom: the fit's parameters squash objects into each other far more

@@ -315,7 +315,7 @@ def analyse(jac, residual, labels, noise=None, jac_noise=None):
                         f"({noise:.3g} m): the model does not reproduce the target")
     for pair in shared_regressors(labels):
         # exactly one regressor for the two (the model's own algebra, whatever a rounded Jacobian
-        # shows): neither value is determined, only their rate (jaxplush.fitting.intervals.combinations)
+        # shows): neither value is determined, only their rate (jaxplush.fitting.judge.intervals.combinations)
         stderr[list(pair)] = np.inf          # (still sensitive: twins step along the pair, which moves the rate)
         a, b = (labels[i] for i in pair)
         warnings.append(f"{a} and {b} take the same share of every vertex's velocity off at every step, so the "

@@ -51,8 +51,8 @@ import math
 import numpy as np
 
 from jaxplush.errors import JaxplushError
-from jaxplush.fitting import losses as _losses
-from jaxplush.fitting.evaluate import Evaluator, MAX_CAPACITY_GROWTHS, _batchable
+from jaxplush.fitting.objective import losses as _losses
+from jaxplush.fitting.objective.evaluate import Evaluator, MAX_CAPACITY_GROWTHS, _batchable
 from jaxplush.fitting.options import MIN_SEGMENT, ShootingOptions
 
 #: The default options (:class:`jaxplush.fitting.options.ShootingOptions`): every tuning number of
@@ -139,7 +139,7 @@ def why_not(prob):
 
 
 class ShootingEvaluator(Evaluator):
-    """An :class:`jaxplush.fitting.evaluate.Evaluator` whose points run as segments of
+    """An :class:`jaxplush.fitting.objective.evaluate.Evaluator` whose points run as segments of
     ``segment_frames`` frames (module docstring); the residuals have the layout of the single
     shooting's (every target frame, each simulated by its segment).
 
@@ -273,7 +273,7 @@ class ShootingEvaluator(Evaluator):
 
 def evaluator(prob, **kw):
     """The evaluator of a problem: :class:`ShootingEvaluator` where its :attr:`shooting` is on,
-    else :class:`jaxplush.fitting.evaluate.Evaluator`."""
+    else :class:`jaxplush.fitting.objective.evaluate.Evaluator`."""
     sh = getattr(prob, "shooting", None)
     if sh is not None and sh.on:
         return ShootingEvaluator(prob, sh.segment_frames, sh.refine, **kw)
@@ -283,7 +283,7 @@ def evaluator(prob, **kw):
 def _floor(prob, segment_frames, refine):
     """(the shooting floor (module docstring) of ``segment_frames`` frames at the start values, m,
     or None when the start's own rollout does not run; how close the objects came in that rollout,
-    :attr:`jaxplush.fitting.evaluate.Evaluation.separation`, NaN where not measured)."""
+    :attr:`jaxplush.fitting.objective.evaluate.Evaluation.separation`, NaN where not measured)."""
     ev = Evaluator(prob)
     e = ev(prob.theta0[None], keep_frames=True)
     sep = math.nan if e.separation is None else float(e.separation[0])
@@ -307,9 +307,9 @@ def resolution(ev, theta, floor, separation=math.nan, step=RESOLUTION_STEP):
     """The largest standard error of a log-parameter at theta if every residual of ``ev`` carried
     noise of RMS ``floor`` (m): sqrt of the largest diagonal entry of s² (JᵀJ)⁻¹, J the
     central-difference Jacobian (``step``, log space; ``separation``: how close the objects came
-    in the run at theta, as :func:`jaxplush.fitting.search.jacobian` takes it); inf where J is
+    in the run at theta, as :func:`jaxplush.fitting.stages.search.jacobian` takes it); inf where J is
     singular, None where the stencil does not run."""
-    from jaxplush.fitting import search as _search
+    from jaxplush.fitting.stages import search as _search
     theta = np.asarray(theta, np.float64)
     box = _search.Box(theta - 1.0, theta + 1.0)
     jac = _search.jacobian(ev, box, theta, step, separation=separation)
@@ -351,7 +351,7 @@ def debias(prob, theta, ev=None, step=None):
       (corrected theta, b or None, a line for a person). ``b`` None: nothing taken off, and the
       line says why.
     """
-    from jaxplush.fitting import search as _search
+    from jaxplush.fitting.stages import search as _search
     sh = prob.shooting
     theta = np.asarray(theta, np.float64)
     if sh is None or not sh.on:
@@ -498,7 +498,7 @@ def restricted(full, prob):
 
 
 def plan_shooting(prob, setting, report=None, options=None):
-    """The problem with :attr:`~jaxplush.fitting.problem.Problem.shooting` planned (:func:`plan`,
+    """The problem with :attr:`~jaxplush.fitting.objective.problem.Problem.shooting` planned (:func:`plan`,
     with ``options``); ``report`` (if given) gets the line that says what was chosen."""
     sh, prob = plan(prob, setting, options)
     if report is not None:
@@ -507,10 +507,10 @@ def plan_shooting(prob, setting, report=None, options=None):
 
 
 def _reach(prob):
-    """The residual RMS (m) a converged fit must reach (:func:`jaxplush.fitting.outcome.judge`):
+    """The residual RMS (m) a converged fit must reach (:func:`jaxplush.fitting.judge.outcome.judge`):
     ``NOISE_FACTOR`` x the noise, or ``MOTION_FRACTION`` x the target's motion."""
-    from jaxplush.fitting import outcome
-    from jaxplush.fitting.result import _motion
+    from jaxplush.fitting.judge import outcome
+    from jaxplush.fitting.judge.result import _motion
     if prob.noise:
         return outcome.NOISE_FACTOR * float(prob.noise)
     return outcome.MOTION_FRACTION * _motion(prob)

@@ -1,7 +1,7 @@
 """A fit's result: :class:`FitResult`, made by :func:`_result` for every optimiser.
 
 Also what a result is judged with: the reproducibility floor of the start values
-(:func:`measure_predictability`), the outcome (:func:`_judge`, :mod:`jaxplush.fitting.outcome`), the
+(:func:`measure_predictability`), the outcome (:func:`_judge`, :mod:`jaxplush.fitting.judge.outcome`), the
 target's motion (:func:`_motion`), and the identifiability report at a point
 (:func:`identifiability_at`).
 """
@@ -19,9 +19,9 @@ from jaxplush.types import PARAM_NAMES, Params
 
 from jaxplush.fitting.errors import FitWarning, IdentifiabilityWarning
 
-from jaxplush.fitting import identifiability as _ident
-from jaxplush.fitting import losses as _losses
-from jaxplush.fitting.outcome import REPORTED, Status
+from jaxplush.fitting.judge import identifiability as _ident
+from jaxplush.fitting.objective import losses as _losses
+from jaxplush.fitting.judge.outcome import REPORTED, Status
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -32,13 +32,13 @@ class FitResult:
       params: full :class:`jaxplush.types.Params` (numpy float64) with the fitted values.
       names: fitted parameter names; objects: fitted object names.
       values: dict name -> (O_f,) fitted values; start: dict name -> (O_f,) start values.
-      loss: normalised loss at the fitted values (see :mod:`jaxplush.fitting.losses`); loss_start.
+      loss: normalised loss at the fitted values (see :mod:`jaxplush.fitting.objective.losses`); loss_start.
       history: dict of arrays over accepted iterations: "iteration", "loss", "grad_norm",
         "time" (s), each fitted name (n, O_f); and "rejected" (iterations whose step was rejected).
       iterations: evaluations done; rejected: steps rejected (blow-ups).
       converged: the fit reached the data at an optimum (``status == "converged"``).
       reason: how it ended, in words (:attr:`outcome`'s message).
-      identifiability: :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` (or None); its
+      identifiability: :class:`jaxplush.fitting.judge.identifiability.IdentifiabilityReport` (or None); its
         standard errors mean something only for a converged fit (:meth:`table` hides them otherwise).
       frames: (T, V, 3) simulated positions at the target frames with the fitted values.
       steps: (T,) their steps; dt.
@@ -48,11 +48,11 @@ class FitResult:
         measured before fitting (None: not measured), or of the first fit's values where the fit
         was planned again from them (its ``warnings`` say so); the outcome's ``floor`` is the
         reproducibility floor it was judged against.
-      intervals: :class:`jaxplush.fitting.intervals.Intervals`, the fitted values' 95% intervals
+      intervals: :class:`jaxplush.fitting.judge.intervals.Intervals`, the fitted values' 95% intervals
         (the default fit: from twins of the fitted values where they apply, else from the
         residuals; ``intervals.method`` says which), or None (not measured). Shown by
-        :meth:`table` for a fit that reached the data or the floor (:data:`jaxplush.fitting.outcome.REPORTED`).
-      combinations: :class:`jaxplush.fitting.intervals.Combination` records of what the target
+        :meth:`table` for a fit that reached the data or the floor (:data:`jaxplush.fitting.judge.outcome.REPORTED`).
+      combinations: :class:`jaxplush.fitting.judge.intervals.Combination` records of what the target
         determines where its parts are not (the report's ``damping`` fitted with ``drag``: their
         combined velocity decay rate), with their intervals; () when there are none.
       timing: :class:`jaxplush.compilestats.Timing` of the whole :func:`fit` call in this process
@@ -91,16 +91,16 @@ class FitResult:
     loop: object = None     # the final LoopState / LMRun, whose .state a checkpoint holds (for a resumable file)
     problem: object = None  # the Problem that was solved
     settings: dict = dataclasses.field(default_factory=dict)
-    outcome: object = None  # jaxplush.fitting.outcome.Outcome
+    outcome: object = None  # jaxplush.fitting.judge.outcome.Outcome
     search: dict = dataclasses.field(default_factory=dict)   # the default fit's samples and paths
     predictability: object = None  # jaxplush.Predictability of the start values
     timing: object = None  # jaxplush.compilestats.Timing: compile time apart from the rest
-    intervals: object = None  # jaxplush.fitting.intervals.Intervals: the values' 95% intervals
-    combinations: tuple = ()  # jaxplush.fitting.intervals.Combination: determined combinations of undetermined parts
+    intervals: object = None  # jaxplush.fitting.judge.intervals.Intervals: the values' 95% intervals
+    combinations: tuple = ()  # jaxplush.fitting.judge.intervals.Combination: determined combinations of undetermined parts
 
     @property
     def status(self):
-        """The :class:`jaxplush.fitting.outcome.Status`: "converged", "poor_fit", "stalled", "iteration_limit",
+        """The :class:`jaxplush.fitting.judge.outcome.Status`: "converged", "poor_fit", "stalled", "iteration_limit",
         "at_bound", "at_floor" or "undetermined" (equal to those strings)."""
         if self.outcome is not None:
             return self.outcome.status
@@ -108,7 +108,7 @@ class FitResult:
 
     def table(self):
         """The fitted values as a text table: start, fitted value and, for a fit that reached the
-        data or the floor (:data:`jaxplush.fitting.outcome.REPORTED`), the approximate standard
+        data or the floor (:data:`jaxplush.fitting.judge.outcome.REPORTED`), the approximate standard
         error and the 95% interval; then the predictability and the outcome."""
         rep = self.identifiability
         se = {} if rep is None else dict(zip(rep.labels, rep.stderr))
@@ -240,11 +240,11 @@ def _predictability_at(prob, theta=None, batched=False, chunk_frames=None):
 
 def _batched_lanes(prob, steps, every, chunk_frames=None):
     """``lanes`` for :func:`jaxplush.predictability`: its runs as lanes of the batched simulator
-    that the fit's evaluators share (:class:`jaxplush.fitting.evaluate.Evaluator`, the full
+    that the fit's evaluators share (:class:`jaxplush.fitting.objective.evaluate.Evaluator`, the full
     batch width, the frames in pieces of ``chunk_frames``), so that the measurement compiles no
     float32 program of its own; None where the evaluator would not run the target batched, or
     its frames are not the measurement's grid (every ``every`` steps up to ``steps``)."""
-    from jaxplush.fitting.evaluate import Evaluator
+    from jaxplush.fitting.objective.evaluate import Evaluator
     ev = Evaluator(prob, calibrate=False, chunk_frames=chunk_frames)
     grid = every * np.arange(1, steps // every + 1, dtype=np.int64)
     if not ev.batched or not np.array_equal(ev.steps, grid):
@@ -270,11 +270,11 @@ def measure_predictability(prob, report=None, batched=False, chunk_frames=None):
 
 
 def _judge(prob, theta, batched=False, chunk_frames=None, **kw):
-    """:func:`jaxplush.fitting.outcome.judge` of a fit ending at log values theta, with the
+    """:func:`jaxplush.fitting.judge.outcome.judge` of a fit ending at log values theta, with the
     reproducibility floor of :attr:`Problem.predictability`; for a fit that does not reach the
     data the floor is measured again at theta (the start's may be far from the result's;
     ``batched``, ``chunk_frames``: as :func:`_predictability_at`)."""
-    from jaxplush.fitting import outcome as _outcome
+    from jaxplush.fitting.judge import outcome as _outcome
     pred = prob.predictability
     start = (None, None) if pred is None else (pred.floor, pred.horizon_time)
     if prob.shooting is not None and prob.shooting.on:
@@ -305,7 +305,7 @@ def rounding_drift(prob):
 
 
 def identifiability_at(prob, theta):
-    """The :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` of a problem at log values theta."""
+    """The :class:`jaxplush.fitting.judge.identifiability.IdentifiabilityReport` of a problem at log values theta."""
     frames, _, jac = _ident.frames_and_jacobian(prob.frames, jnp.asarray(theta, prob.sim.dtype))
     return _report(prob, frames, jac)
 

@@ -10,7 +10,7 @@ with the material parameters that stay global (the damping model the scene uses 
   the mean of its two faces' regions, :meth:`jaxplush.scene.parse.Scene.region_edges`; an
   object's faces outside every group form one more region of that object), then each global
   per object;
-* the objective is the data loss of :func:`jaxplush.fitting.losses.make_loss` (the same
+* the objective is the data loss of :func:`jaxplush.fitting.objective.losses.make_loss` (the same
   normalised loss every fit uses) plus a smoothness regulariser on the log field,
 
       R(theta) = weight * sum over adjacent pairs (log k_a - log k_b)²,
@@ -18,13 +18,13 @@ with the material parameters that stay global (the damping model the scene uses 
   adjacent being edges that share a triangle (``edges``) or regions that share an edge
   (``regions``): :func:`edge_pairs`, :func:`region_pairs`. Its gradient is 2 weight L log k,
   L the graph Laplacian (:func:`laplacian`);
-* gradients come from :func:`jaxplush.fitting.gradients.rollout_loss` (the fused adjoint where the
+* gradients come from :func:`jaxplush.fitting.objective.gradients.rollout_loss` (the fused adjoint where the
   simulator supports it, else checkpointed reverse mode), the optimiser is optax's L-BFGS with
-  its zoom line search (default) or Adam, in the loop of :mod:`jaxplush.fitting.gradfit` (a step whose
+  its zoom line search (default) or Adam, in the loop of :mod:`jaxplush.fitting.stages.gradfit` (a step whose
   rollout blows up is rejected and halved; the same stopping rules), float32 unless x64 is on.
 
 The default weight (:func:`default_weight`) reads the regulariser as a prior: with a known noise
-the loss is L = chi² / N (N residuals; L ~ 1 at the noise level, :mod:`jaxplush.fitting.losses`), so a
+the loss is L = chi² / N (N residuals; L ~ 1 at the noise level, :mod:`jaxplush.fitting.objective.losses`), so a
 Gaussian prior of standard deviation tau on each neighbour difference of log k adds
 sum (Δ log k)² / (N tau²): weight = 1 / (N tau²), with tau = :data:`DEFAULT_TAU`. A noise-free
 target's loss is normalised by the target's motion instead (L = 1: no better than standing
@@ -58,11 +58,11 @@ from jaxplush.errors import JaxplushError
 from jaxplush.progress import Progress
 from jaxplush.types import PARAM_NAMES, Params
 
-from jaxplush.fitting import gradfit as _gradfit
+from jaxplush.fitting.stages import gradfit as _gradfit
 from jaxplush.fitting import options as _options
 from jaxplush.fitting.stages import saving_on_interrupt
-from jaxplush.fitting.outcome import Stop
-from jaxplush.fitting.problem import build_problem, canonical_names, default_params
+from jaxplush.fitting.judge.outcome import Stop
+from jaxplush.fitting.objective.problem import build_problem, canonical_names, default_params
 
 #: The kinds of field: one value per edge, or per face group (region).
 FIELD_KINDS = ("edges", "regions")
@@ -179,7 +179,7 @@ class FieldProblem:
     """A stiffness-field fit, built and validated before anything is traced.
 
     Attributes:
-      prob: the :class:`jaxplush.fitting.problem.Problem` of the global parameters (its scene,
+      prob: the :class:`jaxplush.fitting.objective.problem.Problem` of the global parameters (its scene,
         target, simulator and loss; its ``base`` holds the start field as ``k_structural``).
       kind: "edges" or "regions".
       matrix: (E, R) float64 region -> edge averaging matrix (``regions``), None for ``edges``.
@@ -240,7 +240,7 @@ class FieldProblem:
 
     def data_loss(self, theta):
         """The normalised data loss at theta (jax; differentiable)."""
-        from jaxplush.fitting.gradients import rollout_loss
+        from jaxplush.fitting.objective.gradients import rollout_loss
         p = self.to_params(theta)
         lo = self.prob.loss
         return rollout_loss(self.sim, p, self.sim.init_fn(p), lo.frame_steps, lo.loss_fn, lo.aux,
@@ -276,7 +276,7 @@ class FieldProblem:
 
     def frames(self, theta):
         """(T, V, 3) simulated positions at the target's steps and (T, O) health codes (jax)."""
-        from jaxplush.fitting import identifiability as _ident
+        from jaxplush.fitting.judge import identifiability as _ident
         p = self.to_params(theta)
         return _ident.frames_at_steps(self.sim, p, self.sim.init_fn(p), self.prob.loss.frame_steps)
 
@@ -331,7 +331,7 @@ def build_field_problem(scene, target, field="regions", params=None, *, weight=N
       target: :class:`jaxplush.fitting.targets.Target` or a path.
       field: "edges" or "regions".
       params: the global parameters fitted with the field (default: the damping the scene uses and
-        nmol where there is gas, :func:`jaxplush.fitting.problem.default_params` without k); () none.
+        nmol where there is gas, :func:`jaxplush.fitting.objective.problem.default_params` without k); () none.
       weight: the smoothness weight (default :func:`default_weight` with ``tau``).
       precondition: beta of the smoothing preconditioner S = (I + beta L)^-1 (module docstring;
         default :data:`DEFAULT_PRECONDITION`; 0: none). It changes the path, not the optimum.
@@ -543,7 +543,7 @@ def _field_settings(fp, kind, opts, iterations):
 
 def _save_checkpoint(fp, loop, settings, path, status="running"):
     """A field fit's checkpoint: FIT.h5's attributes, the globals at the best point so far, the
-    field there, and the loop's state (:class:`jaxplush.fitting.gradfit.LoopState`), written
+    field there, and the loop's state (:class:`jaxplush.fitting.stages.gradfit.LoopState`), written
     atomically by :func:`jaxplush.fitting.io.save_checkpoint`."""
     from jaxplush.fitting import io as _io
     best = loop.best_theta if loop.h_loss else np.asarray(fp.theta0)
@@ -555,7 +555,7 @@ def _save_checkpoint(fp, loop, settings, path, status="running"):
 
 
 def _resumed(fp, settings, path):
-    """The :class:`jaxplush.fitting.gradfit.LoopState` checkpointed in ``path`` for this fit (its
+    """The :class:`jaxplush.fitting.stages.gradfit.LoopState` checkpointed in ``path`` for this fit (its
     settings checked by :func:`jaxplush.fitting.io.load_checkpoint`)."""
     from jaxplush.fitting import io as _io
 
@@ -587,19 +587,19 @@ class FieldResult:
         each global's values (n, O_f), and "rejected".
       iterations, rejected: evaluations done and rejected (blow-ups).
       reason: why the optimiser stopped, in words; stopped: the same as a
-        :class:`jaxplush.fitting.outcome.Stop`; wall_time: s.
+        :class:`jaxplush.fitting.judge.outcome.Stop`; wall_time: s.
       frames: (T, V, 3) the fitted rollout at the target's frames; steps, dt.
       problem: the :class:`FieldProblem`; optimizer: its name.
       identifiability: for a fit per region, the
-        :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` at the fit
+        :class:`jaxplush.fitting.judge.identifiability.IdentifiabilityReport` at the fit
         (:func:`field_identifiability`: each region's and global's standard error, the data and
         the smoothness prior together); None per edge (a tangent per edge costs too much) or
         when switched off (``identifiability=False``).
-      loop: the optimiser's final :class:`jaxplush.fitting.gradfit.LoopState`, written to FIT.h5
+      loop: the optimiser's final :class:`jaxplush.fitting.stages.gradfit.LoopState`, written to FIT.h5
         as its checkpoint (a ``--resume`` on a finished FIT.h5 returns this result).
       timing: :class:`jaxplush.compilestats.Timing` of the whole :func:`fit_field` call in this
         process: its wall time, XLA compiles and programs apart from the rest (as
-        :attr:`jaxplush.fitting.result.FitResult.timing`); None when not measured.
+        :attr:`jaxplush.fitting.judge.result.FitResult.timing`); None when not measured.
     """
 
     kind: str
@@ -638,7 +638,7 @@ class FieldResult:
     @property
     def rms(self):
         """The data loss as an RMS residual, m (per coordinate, or per point distance)."""
-        from jaxplush.fitting.losses import rms_metres
+        from jaxplush.fitting.objective.losses import rms_metres
         lo = self.problem.prob.loss
         return rms_metres(self.data_loss, lo.scale2, lo.kind)
 
@@ -734,12 +734,12 @@ def field_jacobian(fp, theta):
     """(jac (n, P) m per unit log, residual (n,) m, labels (P,)) of a fit per region at the
     optimiser's variables ``theta``, in the coordinates log k per region, then the log globals.
 
-    The rows are the data's residuals (:func:`jaxplush.fitting.losses.make_residual`, in metres),
+    The rows are the data's residuals (:func:`jaxplush.fitting.objective.losses.make_residual`, in metres),
     by forward mode (one rollout with a tangent per unknown), then the smoothness prior as
     pseudo-residuals: sqrt(weight) (log k_a - log k_b) per adjacent pair, in the data's metres,
     so that the sum of squares of all rows, scaled back, is the fit's objective."""
-    from jaxplush.fitting import identifiability as _ident
-    from jaxplush.fitting import losses as _losses
+    from jaxplush.fitting.judge import identifiability as _ident
+    from jaxplush.fitting.objective import losses as _losses
     if fp.kind != "regions":
         raise ValueError("field_jacobian serves a fit per region (a tangent per unknown)")
     prob = fp.prob
@@ -778,12 +778,12 @@ def field_jacobian(fp, theta):
 
 
 def field_identifiability(fp, theta):
-    """The :class:`jaxplush.fitting.identifiability.IdentifiabilityReport` of a fit per region at
+    """The :class:`jaxplush.fitting.judge.identifiability.IdentifiabilityReport` of a fit per region at
     ``theta`` (:func:`field_jacobian`): each region's and global's approximate standard error
     (relative), the condition of JᵀJ and its weakest combination. The smoothness prior counts as
     data: a region the target barely sees is held by its neighbours, and its standard error says
     how much."""
-    from jaxplush.fitting import identifiability as _ident
+    from jaxplush.fitting.judge import identifiability as _ident
     jac, resid, labels = field_jacobian(fp, theta)
     return _ident.analyse(jac, resid, labels, noise=fp.prob.noise)
 
@@ -791,10 +791,10 @@ def field_identifiability(fp, theta):
 # --------------------------------------------------------------------------- FIT.h5 and the fitted scene
 
 def _outcome(result):
-    """The :class:`jaxplush.fitting.outcome.Outcome` of a field fit: its data residual against the noise
+    """The :class:`jaxplush.fitting.judge.outcome.Outcome` of a field fit: its data residual against the noise
     (or the target's motion) and its gradient against the start's."""
-    from jaxplush.fitting import outcome as _out
-    from jaxplush.fitting.result import _motion
+    from jaxplush.fitting.judge import outcome as _out
+    from jaxplush.fitting.judge.result import _motion
     prob = result.problem.prob
     h = result.history
     if not len(h["loss"]):
