@@ -632,7 +632,8 @@ def test_secant_updated_jacobians_reach_the_same_optimum_in_fewer_evaluations(no
 
 def test_a_checkpoint_keeps_a_secant_updated_jacobian_and_drops_a_differenced_one():
     """A resumed fit recomputes residuals and differenced Jacobians (deterministic), but not a
-    Jacobian built from secant updates: the checkpoint's copy of the driver state keeps that one."""
+    Jacobian built from secant updates: the checkpoint's copy of the driver state keeps that one,
+    and leaves the driver's state as it was."""
     from jaxplush.fitting import stages
     from jaxplush.fitting.stages import lmfit, search as S
     jac = np.arange(6.0).reshape(3, 2)
@@ -642,4 +643,6 @@ def test_a_checkpoint_keeps_a_secant_updated_jacobian_and_drops_a_differenced_on
     copy = lmfit.light_copy(run)
     a, b = copy.state.states
     assert a.jac is None and a.residual is None
-    assert b.residual is None and b.updates == 2 and np.array_equal(b.jac, jac) and b.jac is not jac
+    assert b.residual is None and b.updates == 2 and np.array_equal(b.jac, jac)
+    # the driver's own state is left as it was (stages return new states: the copy may share arrays)
+    assert run.state.states[0].jac is jac and run.state.states[1].residual is not None
