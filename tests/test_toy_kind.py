@@ -88,3 +88,10 @@ def test_a_kind_without_a_residual_is_refused():
         Nothing().residual(None, None, 0.0, "motion")
     with pytest.raises(ValueError, match="unknown target kind"):
         fitting.Kind("no such kind")
+
+    class Points(fitting.Kind):
+        name = "points"
+
+    with pytest.raises(TypeError, match="built in"):
+        Points()
+    assert fitting.Kind("points") is fitting.TargetKind.POINTS

@@ -61,6 +61,7 @@ from jaxplush.types import PARAM_NAMES, Params
 from jaxplush.fitting.stages import gradfit as _gradfit
 from jaxplush.fitting import options as _options
 from jaxplush.fitting.stages import saving_on_interrupt
+from jaxplush.fitting.errors import FitWarning
 from jaxplush.fitting.judge.outcome import Stop
 from jaxplush.fitting.objective.problem import build_problem, canonical_names, default_params
 
@@ -600,6 +601,9 @@ class FieldResult:
       timing: :class:`jaxplush.compilestats.Timing` of the whole :func:`fit_field` call in this
         process: its wall time, XLA compiles and programs apart from the rest (as
         :attr:`jaxplush.fitting.judge.result.FitResult.timing`); None when not measured.
+      outcome: the judge's :class:`jaxplush.fitting.judge.outcome.Outcome` (its data residual
+        against the noise or the target's motion, its gradient against the start's; ``status``),
+        as every fit family's.
     """
 
     kind: str
@@ -630,6 +634,12 @@ class FieldResult:
     identifiability: object = None
     loop: object = None
     timing: object = None
+    outcome: object = None
+
+    @property
+    def status(self):
+        """How the fit ended (:class:`jaxplush.fitting.judge.outcome.Status`), as the judge says."""
+        return (self.outcome or _outcome(self)).status
 
     @property
     def normalisation(self):
@@ -663,6 +673,8 @@ class FieldResult:
         if self.timing is not None:
             rows.append(f"time: {self.timing.text()}")
         rows.append(f"stopped: {self.reason}")
+        if self.outcome is not None:
+            rows.append(f"outcome: {self.outcome.text}")
         return "\n".join(rows)
 
     def save(self, path):
@@ -715,17 +727,22 @@ def _field_result(fp, loop, kind, opts, iterations, wall, report=False):
         hist[n] = np.exp(thetas[:, fp.n_field:].reshape(len(thetas), len(prob.names), -1)[:, i]) if len(thetas) \
             else np.zeros((0, len(prob.objects)))
     settings = _field_settings(fp, kind, opts, iterations)
-    return FieldResult(kind=fp.kind, k_structural=k_edge, k_regions=k_reg, region_names=fp.region_names,
-                       k_start=k0, values=vals, start=fp.values(fp.theta0), params=Params(**full),
-                       loss=float(parts[0] + parts[1]), data_loss=float(parts[0]), smoothness=float(parts[1]),
-                       loss_start=float(loop.h_loss[0]) if loop.h_loss else math.nan, weight=fp.weight,
-                       history=hist, iterations=int(loop.iteration), rejected=int(loop.rejected), reason=loop.reason,
-                       stopped=loop.stopped,
-                       wall_time=float(wall), frames=np.asarray(frames, np.float64),
-                       steps=np.asarray(prob.loss.frame_steps, np.int64), dt=float(prob.target.dt), problem=fp,
-                       optimizer=kind, settings=settings,
-                       identifiability=field_identifiability(fp, best) if report and fp.kind == "regions" else None,
-                       loop=loop)
+    result = FieldResult(kind=fp.kind, k_structural=k_edge, k_regions=k_reg, region_names=fp.region_names,
+                         k_start=k0, values=vals, start=fp.values(fp.theta0), params=Params(**full),
+                         loss=float(parts[0] + parts[1]), data_loss=float(parts[0]), smoothness=float(parts[1]),
+                         loss_start=float(loop.h_loss[0]) if loop.h_loss else math.nan, weight=fp.weight,
+                         history=hist, iterations=int(loop.iteration), rejected=int(loop.rejected), reason=loop.reason,
+                         stopped=loop.stopped,
+                         wall_time=float(wall), frames=np.asarray(frames, np.float64),
+                         steps=np.asarray(prob.loss.frame_steps, np.int64), dt=float(prob.target.dt), problem=fp,
+                         optimizer=kind, settings=settings,
+                         identifiability=field_identifiability(fp, best) if report and fp.kind == "regions" else None,
+                         loop=loop)
+    # the judge, as every fit family's: the outcome, warned unless converged
+    out = _outcome(result)
+    if not out.converged:
+        warnings.warn(out.text, FitWarning, stacklevel=3)
+    return dataclasses.replace(result, outcome=out)
 
 
 # --------------------------------------------------------------------------- identifiability (regions)
@@ -819,7 +836,7 @@ def save_field_fit(result, path):
     fp = result.problem
     prob = fp.prob
     topo = prob.sim.topology
-    out = _outcome(result)
+    out = result.outcome or _outcome(result)
     with atomic_path(path, ".h5") as tmp:
         with h5py.File(tmp, "w") as f:
             _io._common_attrs(f, prob, result.settings, out.status.value)

@@ -28,6 +28,7 @@ from jaxplush.errors import ContactCapacityWarning, JaxplushError, TimeStepWarni
 from jaxplush.progress import Progress
 
 from jaxplush.fitting.judge import identifiability as _ident
+from jaxplush.fitting.judge import intervals as _intervals
 from jaxplush.fitting.objective import losses as _losses
 from jaxplush.fitting.errors import FitError
 from jaxplush.fitting.stages import saving_on_interrupt
@@ -429,12 +430,18 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
     report = _report(prob, frames, jac) if want_ident else None
     hist = _loop_history(prob, loop)
     out = _judge_loop(prob, loop)
+    # the judge's intervals: from the exact Jacobian's report (a gradient fit runs no batched twins)
+    ivals = None if report is None else _intervals.from_report(
+        report, np.asarray(best, np.float64), note="from the residuals at the optimum, treated as independent noise "
+                                                   "(a gradient fit's exact Jacobian; the default fit's come from twins)")
+    combos = _intervals.combinations(prob, best, ivals)
     return _result(prob, best, frames=frames, history=hist, outcome=out, report=report, warn_report=True,
                    notes=notes, settings=settings, loop=loop, wall=wall, stacklevel=4,
                    loss=float(loop.best_loss if loop.h_loss else np.nan),
                    loss_start=float(loop.h_loss[0]) if loop.h_loss else float("nan"),
                    iterations=loop.iteration, rejected=loop.rejected,
-                   reason=f"{out.text} (the optimiser stopped: {loop.reason})", lr=settings["lr"])
+                   reason=f"{out.text} (the optimiser stopped: {loop.reason})", lr=settings["lr"], intervals=ivals,
+                   combinations=combos)
 
 
 def _loop_history(prob, loop):

@@ -77,6 +77,8 @@ class Kind(str):
         own = _KINDS.get(cls.name)
         if type(own) is cls:
             return own
+        if own is not None and own in KINDS:
+            raise TypeError(f"{cls.__name__}: the target kind {cls.name!r} is built in; give yours another name")
         self = str.__new__(cls, cls.name)
         _KINDS[cls.name] = self
         return self
