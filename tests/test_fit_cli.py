@@ -92,7 +92,8 @@ def test_a_fit_that_did_not_converge_says_so_and_exits_4(files, tmp_path, capsys
     assert rc == cli.EXIT_NOT_CONVERGED == 4
     # the captured stderr is no terminal: the progress bar leaves plain lines, no redraws
     assert "\r" not in text.err and 1 <= text.err.count("fit [") <= 2, text.err
-    assert "outcome: iteration limit: " in text.out and "n/a" in text.out and "%" not in text.out.split("loss")[0]
+    rows = text.out.split("loss")[0].split("\n", 1)[1]           # the table's rows, below its header
+    assert "outcome: iteration limit: " in text.out and "n/a" in rows and "%" not in rows
     assert "standard errors: not meaningful" in text.out and "converged:" not in text.out
     assert "the fit did not reach the data (iteration_limit)" in text.err
     assert "Traceback" not in text.err
