@@ -575,7 +575,7 @@ class Continuation:
 
 # --------------------------------------------------------------------------- candidates
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Candidate:
     """The point a stage hands on (its ``postprocess``): log values ``theta`` (the problem's
     shape), their ``loss`` if known (inf: not evaluated; the next stage evaluates it) and a
