@@ -73,9 +73,9 @@ class State(NamedTuple):
     v: object
 
 
-class StrEnum(str, enum.Enum):
-    """A str-valued enum that compares, hashes, prints, formats and shows (repr) as its value, so
-    plain strings, dict keys, f-strings, JSON and HDF5 attributes see the text (a fit's status,
+class ShowsValue:
+    """For a str subclass with a ``value``: prints, formats, shows (repr) and hashes as that value,
+    so plain strings, dict keys, f-strings, JSON and HDF5 attributes see the text (a fit's status,
     a target's kind)."""
 
     def __str__(self):
@@ -89,3 +89,8 @@ class StrEnum(str, enum.Enum):
 
     def __hash__(self):
         return str.__hash__(self)
+
+
+class StrEnum(ShowsValue, str, enum.Enum):
+    """A str-valued enum that compares, hashes, prints, formats and shows as its value
+    (:class:`ShowsValue`)."""

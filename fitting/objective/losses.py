@@ -51,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxplush.fitting.targets.kinds import TargetKind, row_weight
+from jaxplush.fitting.targets.kinds import TargetKind
 # the geometry of the kinds' residuals and loss terms lives in the core (the kinds own it); named here too
 from jaxplush.io.observe import (  # noqa: F401
     HIGHEST, WALK_STEPS, _candidate_faces, chamfer,
@@ -285,13 +285,6 @@ def _kind(target):
     """The :class:`~jaxplush.fitting.targets.kinds.TargetKind` of a target (or of anything with a
     ``kind`` name: a stand-in)."""
     return TargetKind(target.kind)
-
-
-def point_weight(target, always=False):
-    """T / N for a target's rows with NaN padding or rows not seen (N observed over T frames; see
-    :func:`point_surface`), None where every row is observed (unless ``always``):
-    :func:`jaxplush.fitting.targets.kinds.row_weight`."""
-    return row_weight(target, always)
 
 
 def _part_residual(target, topology, scale2, normalisation):

@@ -229,10 +229,7 @@ class GlobalStage:
         extra = () if s.linear is None or not np.all(np.isfinite(s.linear)) else (s.linear,)
         s.result = _search.global_stage(objective.evaluator, box, s.theta, self.samples, self.seed,
                                         progress=self.progress, retries=self.retries, extra=extra)
-        width = float(np.max(box.hi - box.lo))
-        chosen = s.result.best(self.starts, o.start_distance * width)
-        s.states = [_search.LMState(theta=s.result.thetas[i].copy(), loss=float(s.result.loss[i]), mu=o.mu0,
-                                    radius=o.radius0) for i in chosen]
+        s.states = design_starts(s.result, self.starts, box, o)
         return s
 
     def terminate(self, objective, s):
@@ -240,6 +237,15 @@ class GlobalStage:
 
     def postprocess(self, objective, s):
         return searches_candidate(s.states, objective.prob.theta0, "the global design's best point")
+
+
+def design_starts(result, starts, box, local):
+    """The local searches a global design starts (:class:`jaxplush.fitting.stages.search.LMState`):
+    at its best ``starts`` points, each ``local.start_distance`` of the box's width from those
+    before, with ``local``'s damping and trust radius."""
+    chosen = result.best(starts, local.start_distance * float(np.max(box.hi - box.lo)))
+    return [_search.LMState(theta=result.thetas[i].copy(), loss=float(result.loss[i]), mu=local.mu0,
+                            radius=local.radius0) for i in chosen]
 
 
 # --------------------------------------------------------------------------- local Levenberg-Marquardt

@@ -197,11 +197,7 @@ class PerObjectGlobal:
 
     def _finish(self, objective, s):
         """The searches' starts: the best ``starts`` points, spaced (as GlobalStage's)."""
-        box, o = objective.box, self.local
-        width = float(np.max(box.hi - box.lo))
-        chosen = s.result.best(self.starts, o.start_distance * width)
-        s.states = [_search.LMState(theta=s.result.thetas[i].copy(), loss=float(s.result.loss[i]), mu=o.mu0,
-                                    radius=o.radius0) for i in chosen]
+        s.states = _stages.design_starts(s.result, self.starts, objective.box, self.local)
         s.done = True
         return s
 

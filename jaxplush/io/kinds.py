@@ -27,11 +27,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxplush.types import ShowsValue
+
 #: name -> the one instance of every kind defined (built-in or a user's subclass).
 _KINDS = {}
 
 
-class Kind(str):
+class Kind(ShowsValue, str):
     """A kind of target (module docstring): a subclass sets :attr:`name` and the attributes that
     differ from these defaults, and implements :meth:`residual` (the rest has defaults).
 
@@ -87,18 +89,6 @@ class Kind(str):
     def value(self):
         """Its name, as a plain str."""
         return str.__str__(self)
-
-    def __str__(self):
-        return self.value
-
-    def __repr__(self):
-        return repr(self.value)
-
-    def __format__(self, spec):
-        return format(self.value, spec)
-
-    def __hash__(self):
-        return str.__hash__(self)
 
     def __reduce__(self):                 # pickled by name: the one instance comes back
         return (Kind, (self.value,))
@@ -294,13 +284,10 @@ class Mixed(Kind):
         raise ValueError("a mixed target's terms are weighed each on its own (Target.parts)")
 
     def residual_vertices(self, target, topology, frames=None):
-        points, tracks = target.parts
-        if frames is None:
-            raise ValueError("a point-cloud target needs simulated frames to assign its points to vertices")
-        per_track = np.repeat(np.asarray(tracks.track_vertices, np.int64)[:, 0], 3)
-        losses = _observe()
-        return np.concatenate([np.concatenate([losses.nearest_vertex(x, p), per_track]) for x, p in
-                               zip(np.asarray(frames, np.float64), np.asarray(points.points, np.float64))])
+        # per frame, its points' rows then its tracks' (as its residuals are laid out)
+        rows = [Kind(p.kind).residual_vertices(p, topology, frames).reshape(target.n_frames, -1)
+                for p in target.parts]
+        return np.concatenate(rows, axis=1).ravel()
 
     def linearised(self, target, topology, loss, frames, jac):
         return _observe().mixed_linearised(target, loss, frames, jac)
