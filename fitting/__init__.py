@@ -52,6 +52,7 @@ _EXPORTS = {
     "LocalLM": "jaxplush.fitting.stages",
     "Smoothing": "jaxplush.fitting.stages",
     "Optax": "jaxplush.fitting.stages",
+    "Gradient": "jaxplush.fitting.stages.gradfit",
     "Candidate": "jaxplush.fitting.stages",
     "LMState": "jaxplush.fitting.stages.search",
     "FitWarning": "jaxplush.fitting.errors",

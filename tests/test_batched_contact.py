@@ -18,6 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxplush.errors import ContactCapacityWarning
+
 import jaxplush
 from jaxplush.stepping import batched
 from jaxplush.model import contact
@@ -239,3 +241,22 @@ def test_sweep_of_a_contact_scene_matches_simulate():
         ref = traj.positions[-1]
         assert np.linalg.norm(res.final_positions[i] - ref) <= 1e-4 * np.linalg.norm(ref)
         assert np.abs(ref - scene.vertices).max() > 1e-3                 # contact pushed them apart
+
+
+@pytest.mark.heavy
+def test_a_gradient_fit_grows_the_capacity_and_evaluates_the_point_again():
+    # the gradient fit's stage (jaxplush.fitting.stages.gradfit.Gradient) asks its objective to grow
+    # the capacity after an overflow, and evaluates the same point again: no step is lost to it
+    from jaxplush.fitting import fitter as F
+    from jaxplush.fitting.targets import make_target
+    scene, _ = two_balls(sub=1, gap=-0.006, extra_scene="contact_capacity 4\n")
+    truth, _ = two_balls(sub=1, gap=-0.006)
+    target = make_target(truth, 200, DT, 25)
+    with pytest.warns(UserWarning, match=r"contact candidates overflowed \(capacity 8\).*contact_capacity") as rec:
+        res = F.fit(scene, target, ("k_structural",), objects=["a", "b"], optimizer="adam", iterations=3,
+                    predictability=False, identifiability=False)
+    grown = [w for w in rec if "overflowed" in str(w.message)]
+    assert grown and all(w.filename == __file__ for w in grown)       # pointed at the caller
+    assert any(w.category is ContactCapacityWarning for w in res.warnings if hasattr(w, "category"))
+    assert max(res.problem.sim.terms.contact.capacity) > 8
+    assert res.iterations == 3 and res.rejected == 0 and np.isfinite(res.loss)

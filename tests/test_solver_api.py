@@ -92,6 +92,23 @@ def test_an_optax_stage_and_a_users_own_stage_after_the_global_stage(case):
     assert lm.status == Status.CONVERGED and _err(lm, truth) < 1e-3
 
 
+def test_the_gradient_optimisers_stage_after_the_global_stage(case, tmp_path):
+    """The gradient fit's own stage (exact gradients through the rollout) composes as any stage:
+    after the global design, judged, checkpointed with its optimiser state and resumed."""
+    truth, start, target = case
+    glob = fitting.GlobalStage(samples=8, starts=2)
+    alone = fitting.fit(start, target, NAMES, solver=[glob], **KW)
+    grad = fitting.Gradient(optax.adam(0.02), iterations=6)
+    ref = fitting.fit(start, target, NAMES, solver=[glob, grad], **KW)
+    assert ref.loss <= alone.loss and ref.intervals is not None
+    out, stop = tmp_path / "FIT.h5", _Interrupt()
+    with pytest.raises(KeyboardInterrupt):
+        fitting.fit(start, target, NAMES, solver=[glob, grad, stop], checkpoint_path=out, **KW)
+    res = fitting.fit(start, target, NAMES, solver=[glob, grad, stop], checkpoint_path=out, resume=True, **KW)
+    for n in NAMES:
+        np.testing.assert_array_equal(res.values[n], ref.values[n])
+
+
 def test_a_fit_of_ones_own_stages_resumes_from_its_checkpoint(case, tmp_path, ctrl_c):
     truth, start, target = case
     solver = [fitting.GlobalStage(samples=8, starts=2), fitting.LocalLM(max_iter=6)]

@@ -732,11 +732,14 @@ class RunState:
 class Hooks:
     """What :func:`run_stages` calls around each step (each optional): ``before(run)`` before it
     (e.g. to open a progress bar), ``after(run)`` after it (progress; a callback, which may stop the
-    running stage's searches), then ``save(run)`` (a checkpoint); ``run`` is the :class:`RunState`."""
+    running stage's searches), then ``save(run)`` (a checkpoint); on Ctrl-C, ``interrupted(run)``
+    (a checkpoint of the last finished step: ``run.state`` is never half-way through one), before
+    the ``KeyboardInterrupt`` goes on. ``run`` is the :class:`RunState`."""
 
     before: object = None
     after: object = None
     save: object = None
+    interrupted: object = None
 
 
 @contextlib.contextmanager
@@ -777,21 +780,22 @@ def run_stages(objective, theta, stages, *, hooks=None, state=None):
     count = getattr(objective, "evaluations", None)
     t0, wall0, evals0 = time.perf_counter(), run.wall, run.evaluations
     n0 = count() if count is not None else 0
-    while run.index < len(stages):
-        stage = stages[run.index]
-        if run.state is None:
-            run.state = stage.init(objective, theta, handed_on(stages, objective, run))
-        while not stage.terminate(objective, run.state)[0]:
-            if hooks.before is not None:
-                hooks.before(run)
-            run.state = stage.step(objective, run.state)
-            run.wall = wall0 + time.perf_counter() - t0
-            if count is not None:
-                run.evaluations = evals0 + count() - n0
-            if hooks.after is not None:
-                hooks.after(run)
-            if hooks.save is not None:
-                hooks.save(run)
-        run.finished.append(run.state)
-        run.index, run.state = run.index + 1, None
+    with saving_on_interrupt(lambda: hooks.interrupted(run) if hooks.interrupted is not None else None):
+        while run.index < len(stages):
+            stage = stages[run.index]
+            if run.state is None:
+                run.state = stage.init(objective, theta, handed_on(stages, objective, run))
+            while not stage.terminate(objective, run.state)[0]:
+                if hooks.before is not None:
+                    hooks.before(run)
+                run.state = stage.step(objective, run.state)
+                run.wall = wall0 + time.perf_counter() - t0
+                if count is not None:
+                    run.evaluations = evals0 + count() - n0
+                if hooks.after is not None:
+                    hooks.after(run)
+                if hooks.save is not None:
+                    hooks.save(run)
+            run.finished.append(run.state)
+            run.index, run.state = run.index + 1, None
     return list(run.finished)

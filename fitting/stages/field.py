@@ -46,6 +46,7 @@ import json
 import math
 import os
 import time
+import types
 import warnings
 
 import jax
@@ -60,7 +61,6 @@ from jaxplush.types import PARAM_NAMES, Params
 
 from jaxplush.fitting.stages import gradfit as _gradfit
 from jaxplush.fitting import options as _options
-from jaxplush.fitting.stages import saving_on_interrupt
 from jaxplush.fitting.errors import FitWarning
 from jaxplush.fitting.judge.outcome import Stop
 from jaxplush.fitting.objective.problem import build_problem, canonical_names, default_params
@@ -472,52 +472,25 @@ def fit_field(scene, target, field="regions", params=None, *, optimizer="lbfgs",
     else:
         opt = optimizer if kind == "optax" else _gradfit.make_optimizer(kind, opts.lr, iterations)
     shape = jax.eval_shape(opt.init, jax.ShapeDtypeStruct(np.shape(fp.theta0), fp.sim.dtype))
-    linesearch = _gradfit.uses_linesearch(shape)
-    step_fn = _gradfit._make_step(fp, opt, linesearch)
+    stage = _gradfit.Gradient.from_options(opt, opts, iterations)
+    objective = types.SimpleNamespace(prob=fp)
     settings = _field_settings(fp, kind, opts, iterations)
     if kind == "optax":            # what a resume can check of a user's transformation: its state's structure
         settings["optax_state"] = str(jax.tree_util.tree_structure(shape))
     ck = opts.checkpoint
-    if ck.resume:
-        loop = _resumed(fp, settings, ck.path)
-    else:
-        th0 = jnp.asarray(fp.theta0, fp.sim.dtype)
-        loop = _gradfit.LoopState(theta=np.asarray(th0), opt_state=jax.jit(opt.init)(th0))
-        loop.best_theta = np.asarray(th0)
-    t_loop = time.perf_counter() - loop.wall
-    consistent, last_saved = loop.snapshot(), loop.iteration
+    loop = _resumed(fp, settings, ck.path) if ck.resume else stage.init(objective, fp.theta0)
     bar = Progress(iterations, f"fit field ({field})", enabled=progress, unit="it", compiles=True)
 
-    def save_consistent():
-        # Ctrl-C (or SIGTERM from the command line) may land inside an iteration: the last
-        # consistent state is saved, and --resume continues from it
+    def save(state, status):
+        # Ctrl-C (or SIGTERM from the command line) saves the state before the step it landed in,
+        # and --resume continues from it
         if ck.path is not None:
-            consistent.wall = time.perf_counter() - t_loop
-            _save_checkpoint(fp, consistent, settings, ck.path, "interrupted")
+            _save_checkpoint(fp, state, settings, ck.path, status)
 
-    with saving_on_interrupt(save_consistent):
-        with bar:
-            bar.update(min(loop.iteration, iterations))
-            while not loop.done and loop.iteration < iterations:
-                consistent = loop.snapshot()
-                _gradfit._iterate(fp, opt, linesearch, step_fn, loop, opts)
-                loop.wall = time.perf_counter() - t_loop
-                if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
-                    vals = fp.values(loop.h_theta[-1])
-                    bar.update(1, extra=_gradfit._progress_text(loop.h_loss[-1], vals))
-                    if callback is not None and callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1],
-                                                              values=vals, grad_norm=loop.h_gnorm[-1])) is True:
-                        loop.done, loop.reason, loop.stopped = True, "stopped by the callback", Stop.CALLBACK
-                else:
-                    bar.update(1, extra="step rejected (rollout blew up); halving the step")
-                consistent = loop
-                if ck.path is not None and ck.every and loop.iteration - last_saved >= int(ck.every) \
-                        and not loop.done:
-                    _save_checkpoint(fp, loop, settings, ck.path)
-                    last_saved = loop.iteration
-            bar.finish(loop.reason if loop.done else "iteration limit")
-    if not loop.done:
-        loop.reason, loop.stopped = f"reached the iteration limit ({iterations})", Stop.ITERATIONS
+    with bar:
+        bar.update(min(loop.iteration, iterations))
+        loop = _gradfit.drive(objective, stage, loop, bar=bar, callback=callback, save=save, every=ck.every)
+        bar.finish(loop.reason if loop.done else "iteration limit")
     result = _field_result(fp, loop, kind, opts, iterations, time.perf_counter() - t_start,
                            report=opts.identifiability)
     result = dataclasses.replace(result, timing=clock.stop())

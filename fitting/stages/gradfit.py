@@ -1,11 +1,15 @@
 """The gradient optimisers' fit: "adam", "lbfgs" or a user's optax transformation.
 
-One loop on the log-parameters (:class:`_GradientFit`): each iteration evaluates the loss and its
-gradient through the rollout (:func:`_make_step`) and steps (:func:`_iterate`); a step whose rollout
-blows up (non-finite loss or gradient, an inverted object, damping < 1) is rejected and the step
-halved (:func:`_reject`); the loop stops at the iteration limit or a tolerance
-(:func:`_check_convergence`). Its complete state is a :class:`LoopState`, which checkpoints hold
-(:func:`jaxplush.fitting.io.save_checkpoint`), so a resumed fit continues to the same answer;
+The optimiser is a stage (:class:`Gradient`, the protocol of :mod:`jaxplush.fitting.stages`) on
+the log-parameters: each step evaluates the loss and its exact gradient through the rollout
+(:func:`_make_step`) and steps (:func:`_iterate`); a step whose rollout blows up (non-finite loss or
+gradient, an inverted object, damping < 1) is rejected and the step halved (:func:`_reject`); it
+stops at its iteration limit or a tolerance (:func:`_check_convergence`). Its state is a
+:class:`LoopState`, a new one per step, which checkpoints hold
+(:func:`jaxplush.fitting.io.save_checkpoint`), so a resumed fit continues to the same answer.
+:func:`drive` runs it with :func:`jaxplush.fitting.stages.run_stages` (the loop every fit family
+shares: progress, callback, checkpoints and Ctrl-C as its hooks), for the gradient fit
+(:class:`_GradientFit`) and the stiffness field's (:func:`jaxplush.fitting.stages.field.fit_field`);
 :func:`_finish` makes the :class:`jaxplush.fitting.judge.result.FitResult` at the best accepted point.
 """
 
@@ -31,7 +35,7 @@ from jaxplush.fitting.judge import identifiability as _ident
 from jaxplush.fitting.judge import intervals as _intervals
 from jaxplush.fitting.objective import losses as _losses
 from jaxplush.fitting.errors import FitError
-from jaxplush.fitting.stages import saving_on_interrupt
+from jaxplush.fitting.stages import Candidate, Hooks, RunState, run_stages, saving_on_interrupt
 from jaxplush.fitting.judge.outcome import Stop
 from jaxplush.fitting.objective.problem import _common_settings
 from jaxplush.fitting.judge.result import _history, _judge, _motion, _report, _result, measure_predictability
@@ -106,33 +110,173 @@ class LoopState:
                                             if f.name.startswith("h_")})
 
 
+@dataclasses.dataclass(frozen=True)
+class Gradient:
+    """A gradient optimiser as a stage: an optax ``transformation`` on the log-parameters, each
+    step one evaluation of the loss and its exact gradient through the rollout (the fused adjoint
+    or checkpointed reverse mode, as the problem's ``method`` says). A step whose rollout blows up
+    is rejected and the step halved (a line search's state restarted); a point whose soft-soft
+    contact candidates overflow is evaluated again with a grown capacity, where the objective can
+    grow it. It stops at ``iterations`` evaluations or a tolerance:
+
+    * ``ftol``: the loss at or below it; ``gtol``: the gradient's max-norm at or below it;
+    * ``rtol``: the relative loss change at or below it for ``patience`` accepted steps in a row;
+    * ``xtol``: a step's max-norm (log space) at or below it.
+
+    Its candidate is the best accepted point. The objective is anything with ``prob`` (a problem
+    with ``loss_fn``, ``theta0``, ``sim``, ``valid`` and ``values``: the gradient fit's, a stiffness
+    field's, or the default fit's :class:`jaxplush.fitting.stages.Objective`), and optionally
+    ``grow_contact(theta) -> bool``, which rebuilds ``prob`` with room for contact.
+
+    Attributes: transformation (an ``optax.GradientTransformation``), iterations, ftol, gtol,
+    rtol, xtol, patience (defaults: :class:`jaxplush.fitting.FitOptions`'s).
+    """
+
+    transformation: object
+    iterations: int = 100
+    ftol: float = 0.0
+    gtol: float = 1e-9
+    rtol: float = 1e-7
+    xtol: float = 1e-7
+    patience: int = 5
+
+    @classmethod
+    def from_options(cls, transformation, opts, iterations):
+        """The stage with the tolerances of :class:`jaxplush.fitting.FitOptions` ``opts``."""
+        return cls(transformation, int(iterations), ftol=opts.ftol, gtol=opts.gtol, rtol=opts.rtol,
+                   xtol=opts.xtol, patience=int(opts.patience))
+
+    def init(self, objective, theta, state=None):
+        """Start at the previous stage's candidate (or state) point, else at ``theta``."""
+        prob = objective.prob
+        point = getattr(state, "theta", None)
+        th0 = jnp.asarray(np.asarray(theta if point is None else point).reshape(np.shape(prob.theta0)),
+                          prob.sim.dtype)
+        return LoopState(theta=np.asarray(th0), opt_state=jax.jit(self.transformation.init)(th0),
+                         best_theta=np.asarray(th0))
+
+    def step(self, objective, s):
+        """One evaluation and update, on a copy of ``s``; ``s`` itself where the point is to be
+        evaluated again because the contact capacity was grown."""
+        prob = objective.prob
+        fn, linesearch = stepper(objective, self.transformation)
+        new = s.snapshot()
+        grow = getattr(objective, "grow_contact", None)
+        try:
+            _iterate(prob, self.transformation, linesearch, fn, new, self)
+        except FitError:
+            if grow is None or not grow(s.theta):
+                raise
+            return s
+        if new.h_rejected and new.h_rejected[-1] == s.iteration and grow is not None and grow(s.theta):
+            return s
+        return new
+
+    def terminate(self, objective, s):
+        if s.done:
+            return True, s.stopped
+        if s.iteration >= self.iterations:
+            return True, Stop.ITERATIONS
+        return False, Stop.NONE
+
+    def postprocess(self, objective, s):
+        best = s.best_theta if s.best_theta is not None else s.theta
+        return Candidate(theta=np.asarray(best, np.float64), loss=float(s.best_loss),
+                         reason=f"the best of {s.iteration} gradient steps ({s.reason or 'iteration limit'})",
+                         stopped=s.stopped or Stop.ITERATIONS)
+
+    def finished(self, s):
+        """``s`` with the iteration limit said as its reason where nothing else stopped it."""
+        if s.done:
+            return s
+        return dataclasses.replace(s.snapshot(), reason=f"reached the iteration limit ({self.iterations})",
+                                   stopped=Stop.ITERATIONS)
+
+
+def stepper(objective, transformation):
+    """(the jitted update of :func:`_make_step`, whether the transformation holds a line search)
+    for the objective's current problem, made once per problem and kept on the objective."""
+    prob = objective.prob
+    cache = objective.__dict__.setdefault("_gradient_steps", {})
+    key = (id(prob), id(transformation))
+    if key not in cache:
+        shape = jax.eval_shape(transformation.init, jax.ShapeDtypeStruct(np.shape(prob.theta0), prob.sim.dtype))
+        linesearch = uses_linesearch(shape)
+        cache[key] = (prob, _make_step(prob, transformation, linesearch), linesearch)
+    return cache[key][1:]
+
+
+def drive(objective, stage, loop, *, bar=None, callback=None, save=None, every=None):
+    """Run one :class:`Gradient` ``stage`` from ``loop`` (a fresh :class:`LoopState` or a
+    checkpoint's) by :func:`jaxplush.fitting.stages.run_stages`, with its hooks: after each
+    step the progress ``bar`` and the ``callback`` (a dict of iteration, loss, values and
+    grad_norm; True stops the fit); ``save(state, status)`` every ``every`` evaluations and, with
+    status "interrupted", on Ctrl-C (the state before the step that was interrupted). Returns the
+    final state, its reason set (:meth:`Gradient.finished`)."""
+    prob_values = lambda th: objective.prob.values(th)  # noqa: E731  (the problem may be rebuilt)
+    t_loop = time.perf_counter() - loop.wall
+    seen, saved = [loop.iteration], [loop.iteration]
+
+    def after(run):
+        s = run.state
+        s.wall = time.perf_counter() - t_loop
+        if s.iteration == seen[0]:
+            return                          # the same point again, with a grown contact capacity
+        seen[0] = s.iteration
+        if s.h_iter and s.h_iter[-1] == s.iteration - 1:
+            vals = prob_values(s.h_theta[-1])
+            if bar is not None:
+                bar.update(1, extra=_progress_text(s.h_loss[-1], vals))
+            if callback is not None and not s.done:
+                stop = callback(dict(iteration=s.iteration - 1, loss=s.h_loss[-1], values=vals,
+                                     grad_norm=s.h_gnorm[-1]))
+                if stop is True:
+                    s.done, s.reason, s.stopped = True, "stopped by the callback", Stop.CALLBACK
+        elif bar is not None:
+            bar.update(1, extra="step rejected (rollout blew up); halving the step")
+
+    def checkpoint(run):
+        s = run.state
+        if save is not None and every and s.iteration - saved[0] >= int(every) and not s.done:
+            save(s, "running")
+            saved[0] = s.iteration
+
+    def interrupted(run):
+        if save is not None and run.state is not None:
+            run.state.wall = time.perf_counter() - t_loop
+            save(run.state, "interrupted")
+
+    run = RunState(index=0, state=loop, wall=loop.wall)
+    (final,) = run_stages(objective, loop.theta, [stage], state=run,
+                          hooks=Hooks(after=after, save=checkpoint, interrupted=interrupted))
+    final.wall = time.perf_counter() - t_loop
+    return stage.finished(final)
+
+
 #: Depth from :class:`_GradientFit`'s methods to the caller of :func:`fit`, for warnings.
-_LOOP_STACKLEVEL = {"warn_dt": 4, "grow_contact_capacity": 6}
+_LOOP_STACKLEVEL = {"warn_dt": 4, "grow_contact_capacity": 8}
 
 
 class _GradientFit:
-    """The gradient optimisers' loop ("adam", "lbfgs" or a user's optax transformation) on
-    log-parameters: a step whose rollout blows up is rejected and the step halved (:func:`_iterate`);
-    a contact-candidate overflow grows the capacity and evaluates the point again; checkpoints,
-    Ctrl-C saves, callbacks and the progress bar; then :func:`_finish`."""
+    """The gradient fit: its problem, the optimiser as a :class:`Gradient` stage, run by
+    :func:`drive` (progress, callback, checkpoints, Ctrl-C), then :func:`_finish`. It is the
+    stage's objective: ``prob``, and ``grow_contact`` after a contact-candidate overflow."""
 
     def __init__(self, prob, optimizer, opts, notes, *, progress, callback, report=None):
         self.kind = optimizer_kind(optimizer)
         self.iterations = opts.iteration_limit(self.kind)
         self.opt = optimizer if self.kind == "optax" else make_optimizer(self.kind, opts.lr, self.iterations)
+        self.stage = Gradient.from_options(self.opt, opts, self.iterations)
         self.prob, self.opts, self.notes = prob, opts, notes
         self.progress, self.callback, self.note = progress, callback, report
         shape = jax.eval_shape(self.opt.init, jax.ShapeDtypeStruct(np.shape(prob.theta0), prob.sim.dtype))
-        self.linesearch = uses_linesearch(shape)
         self.settings = _common_settings(prob, opts, self.kind, self.iterations, opts.lr)
         self.settings.update(gtol=opts.gtol, rtol=opts.rtol, xtol=opts.xtol, ftol=opts.ftol,
                              patience=int(opts.patience), frame_steps=list(prob.loss.frame_steps),
                              target_kind=prob.target.kind)
         if self.kind == "optax":     # what a resume can check of a user's transformation: its state's structure
             self.settings["optax_state"] = str(jax.tree_util.tree_structure(shape))
-        self.step_fn = _make_step(prob, self.opt, self.linesearch)
         self.bar = None
-        self.consistent = None      # the last loop state that is not half-way through an iteration
 
     def run(self, t_start, clock=None):
         """The whole fit: the loop (from a checkpoint with ``resume``), its result, FIT.h5.
@@ -146,11 +290,10 @@ class _GradientFit:
         wall_before = loop.wall
         self.bar = Progress(self.iterations, "fit", enabled=self.progress, unit="it", compiles=True)
         self.bar.done = min(loop.iteration, self.iterations)
-        t_loop = time.perf_counter() - loop.wall
-        loop = self.loop(loop, t_loop)
-        if not loop.done:
-            loop.reason, loop.stopped = f"reached the iteration limit ({self.iterations})", Stop.ITERATIONS
-        loop.wall = time.perf_counter() - t_loop
+        with self.bar:
+            loop = drive(self, self.stage, loop, bar=self.bar, callback=self.callback, save=self.save,
+                         every=self.opts.checkpoint.every)
+            self.bar.finish(loop.reason if loop.done else "iteration limit")
         # Ctrl-C during the health check or the identifiability report (JVPs through the rollout,
         # not short): the loop has finished, so save it; --resume goes straight to this step
         with saving_on_interrupt(lambda: self.save(loop, "interrupted")):
@@ -163,7 +306,7 @@ class _GradientFit:
         return result
 
     def initial_loop(self):
-        """The :class:`LoopState` to start from: the checkpoint's (resume), or the start values."""
+        """The :class:`LoopState` to start from: the checkpoint's (resume), or the stage's start."""
         if self.opts.checkpoint.resume:
             from jaxplush.fitting import io as _io
             from jaxplush.fitting.io.treeio import conform
@@ -174,10 +317,7 @@ class _GradientFit:
                     raise TypeError(f"the checkpoint holds a {type(loop).__name__}, not a gradient fit's LoopState")
                 return dataclasses.replace(loop, opt_state=conform(loop.opt_state, template))
             return _io.load_checkpoint(self.opts.checkpoint.path, self.prob, self.settings, conform=check)
-        th0 = jnp.asarray(self.prob.theta0, self.prob.sim.dtype)
-        loop = LoopState(theta=np.asarray(th0), opt_state=jax.jit(self.opt.init)(th0))
-        loop.best_theta = np.asarray(th0)
-        return loop
+        return self.stage.init(self, self.prob.theta0)
 
     def warn_dt(self, loop):
         """Warn (and note) when dt exceeds the estimated stability limit at the loop's point."""
@@ -191,61 +331,6 @@ class _GradientFit:
             warnings.warn(msg, TimeStepWarning, stacklevel=_LOOP_STACKLEVEL["warn_dt"])
             self.notes.append(msg)
 
-    def loop(self, loop, t_loop):
-        """Iterate to the limit or a stop; Ctrl-C saves the last consistent state and re-raises."""
-        last_saved = loop.iteration
-        self.consistent = loop
-        every = self.opts.checkpoint.every
-
-        def save_consistent():
-            # Ctrl-C may land anywhere, also inside an iteration: save the last consistent state
-            self.consistent.wall = time.perf_counter() - t_loop
-            self.save(self.consistent, "interrupted")
-
-        with saving_on_interrupt(save_consistent):
-            with self.bar:
-                while not loop.done and loop.iteration < self.iterations:
-                    loop, again = self.attempt(loop)
-                    if again:
-                        continue
-                    loop.wall = time.perf_counter() - t_loop
-                    self.report(loop)
-                    if every and loop.iteration - last_saved >= int(every) and not loop.done:
-                        self.save(loop)
-                        last_saved = loop.iteration
-                self.bar.finish(loop.reason if loop.done else "iteration limit")
-        return loop
-
-    def attempt(self, loop):
-        """One :func:`_iterate`. Returns (the loop state to go on from, whether the point is to be
-        evaluated again because the contact capacity was grown)."""
-        before = loop.snapshot()
-        self.consistent = before
-        try:
-            _iterate(self.prob, self.opt, self.linesearch, self.step_fn, loop, self.opts)
-        except FitError:
-            if not self.grow_contact_capacity(before.theta):
-                raise
-            return before, True             # evaluate the same point again, with room for contact
-        if loop.h_rejected and loop.h_rejected[-1] == before.iteration \
-                and self.grow_contact_capacity(before.theta):
-            return before, True
-        self.consistent = loop
-        return loop, False
-
-    def report(self, loop):
-        """The progress bar and the callback after an iteration (a True return stops the fit)."""
-        if loop.h_iter and loop.h_iter[-1] == loop.iteration - 1:
-            vals = self.prob.values(loop.h_theta[-1])
-            self.bar.update(1, extra=_progress_text(loop.h_loss[-1], vals))
-            if self.callback is not None:
-                stop = self.callback(dict(iteration=loop.iteration - 1, loss=loop.h_loss[-1], values=vals,
-                                          grad_norm=loop.h_gnorm[-1]))
-                if stop is True and not loop.done:
-                    loop.done, loop.reason, loop.stopped = True, "stopped by the callback", Stop.CALLBACK
-        else:
-            self.bar.update(1, extra="step rejected (rollout blew up); halving the step")
-
     def save(self, state, status="running"):
         if self.opts.checkpoint.path is not None:
             from jaxplush.fitting import io as _io
@@ -253,6 +338,10 @@ class _GradientFit:
                                 theta=state.best_theta, history=_loop_history(self.prob, state),
                                 loss=float(state.best_loss), iterations=int(state.iteration),
                                 rejected=int(state.rejected))
+
+    def grow_contact(self, theta):
+        """The stage's hook: :meth:`grow_contact_capacity`."""
+        return self.grow_contact_capacity(theta)
 
     def grow_contact_capacity(self, theta):
         """After a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
@@ -277,7 +366,6 @@ class _GradientFit:
         terms = contact.with_capacity(prob.sim.terms, need, contact.object_sizes(prob.scene))
         sim = jaxplush.make_simulator(prob.scene, prob.target.dt, terms=terms)
         self.prob = prob = dataclasses.replace(prob, sim=sim)
-        self.step_fn = _make_step(prob, self.opt, self.linesearch)
         msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "
                f"refitting with contact_capacity {need} (set it in the scene to skip this)")
         self.notes.append(warn(msg, ContactCapacityWarning, stacklevel=_LOOP_STACKLEVEL["grow_contact_capacity"]))
