@@ -244,41 +244,55 @@ class Residual(NamedTuple):
 def make_residual(target, topology, loss):
     """The :class:`Residual` of a :class:`Loss` built by :func:`make_loss` for the same target.
 
-    A mixed target's residuals are, per frame, its points' and then its tracks' (per_frame =
-    M_points + 3 M_tracks), and ``norm`` is (n,): each residual's own normalisation (the points'
-    and the tracks' differ), so sum(r²) is the weighted loss; ``near_fn`` gives each residual's
-    vertex (a point's nearest, a track's first)."""
+    A single kind's residuals are its kind's (:meth:`jaxplush.fitting.targets.kinds.Kind.residual`).
+    A compound kind's (``Target.parts``, as a mixed target's scan and tracks) are its parts', per
+    frame one part's after the other's (per_frame = the sum of the parts'), and ``norm`` is (n,):
+    each residual's own normalisation (the parts' differ), so sum(r²) is the weighted loss;
+    ``near_fn`` gives each residual's vertex (from a part's own ``near_fn``, else its fixed
+    :meth:`~jaxplush.fitting.targets.kinds.Kind.residual_vertices`)."""
     data = np.asarray(target.data, np.float64)
     t = data.shape[0]
     if not _kind(target).compound:
         norm = 1.0 / np.sqrt(_kind(target).observed(data).sum() * loss.scale2)   # t m, less a cloud's padding
         frame_fn, per_frame, near_fn = _part_residual(target, topology, loss.scale2, loss.normalisation)
     else:
-        parts = target.parts
-        (f_pts, n_pts, near_pts), (f_trk, n_trk, _) = (
-            _part_residual(p, topology, s2, loss.normalisation) for p, (s2, _) in zip(parts, loss.parts))
-        norms = [np.sqrt(c / (_kind(p).observed(p.data).sum() * s2)) for p, (s2, c) in zip(parts, loss.parts)]
-        norm = np.tile(np.repeat(norms, [n_pts, n_trk]), t)
-        cut = parts[0].points.shape[1]
-        track_vertex = np.repeat(np.asarray(parts[1].track_vertices, np.int32)[:, 0], 3)   # (3 M_tracks,)
-
-        def frame_fn(frames, y):
-            c = frames.shape[0]
-            rp = f_pts(frames, y[:, :cut]).reshape(c, n_pts)
-            rt = f_trk(frames, y[:, cut:]).reshape(c, n_trk)
-            return jnp.concatenate([rp, rt], axis=1).reshape(-1)
-
-        def near_fn(frames, y):
-            c = frames.shape[0]
-            near = near_pts(frames, y[:, :cut]).reshape(c, n_pts)
-            own = jnp.broadcast_to(jnp.asarray(track_vertex, near.dtype), (c, n_trk))
-            return jnp.concatenate([near, own], axis=1).reshape(-1)
-        per_frame = n_pts + n_trk
+        frame_fn, per_frame, near_fn, norm = _compound_residual(target, topology, loss)
 
     def fn(frames):
         return frame_fn(frames, jnp.asarray(data, frames.dtype)) * jnp.asarray(norm, frames.dtype)
     return Residual(jax.jit(fn), t * per_frame, target.kind, loss.scale2, loss.normalisation, per_frame,
                     frame_fn=frame_fn, norm=float(norm) if np.ndim(norm) == 0 else norm, data=data, near_fn=near_fn)
+
+
+def _compound_residual(target, topology, loss):
+    """(frame_fn, per_frame, near_fn, norm (n,)) of a compound target: its parts' residuals, each
+    part's data a slice of the target's rows (in the parts' order), each weighed as the loss
+    weighs that part (``loss.parts``: its normaliser and factor)."""
+    parts = target.parts
+    made = [_part_residual(p, topology, s2, loss.normalisation) for p, (s2, _) in zip(parts, loss.parts)]
+    sizes = [n for _, n, _ in made]
+    norms = [np.sqrt(c / (_kind(p).observed(p.data).sum() * s2)) for p, (s2, c) in zip(parts, loss.parts)]
+    norm = np.tile(np.repeat(norms, sizes), target.n_frames)
+    cuts = np.cumsum([0] + [np.shape(p.data)[1] for p in parts])
+    fixed = []
+    for p, (_, n, near) in zip(parts, made):        # a part whose residuals' vertices do not move
+        rows = None if near is not None else _kind(p).residual_vertices(p, topology)
+        fixed.append(None if near is not None else
+                     (np.full(n, -1, np.int32) if rows is None else np.asarray(rows[:n], np.int32)))
+
+    def frame_fn(frames, y):
+        c = frames.shape[0]
+        return jnp.concatenate([f(frames, y[:, a:b]).reshape(c, n) for (f, n, _), a, b
+                                in zip(made, cuts[:-1], cuts[1:])], axis=1).reshape(-1)
+
+    def near_fn(frames, y):
+        c = frames.shape[0]
+        cols = []
+        for (_, n, near), own, a, b in zip(made, fixed, cuts[:-1], cuts[1:]):
+            cols.append(near(frames, y[:, a:b]).reshape(c, n) if near is not None else
+                        jnp.broadcast_to(jnp.asarray(own), (c, n)))
+        return jnp.concatenate(cols, axis=1).reshape(-1)
+    return frame_fn, int(sum(sizes)), near_fn, norm
 
 
 def _kind(target):
