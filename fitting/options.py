@@ -304,6 +304,13 @@ class FitOptions:
         "auto" (multiple shooting where the measured horizon is shorter than the target and
         shooting measures better than one rollout), "off" (one rollout over the target), or the
         frames per segment (an int >= 2).
+      polish: "off" (default) or "float64": after the default fit, one more local search from
+        its best point on the problem rebuilt in float64, whose result is judged (outcome,
+        intervals, identifiability) in float64 (:func:`jaxplush.fitting.fitter._polish`). Where
+        the motion amplifies rounding, the float32 loss is rough at the scale of the drift and a
+        fit can stop short of the optimum within it (benchmarks/RESULTS.md, 2026-11-30: 6.8% and
+        1.5% off in float32, 1.06% and 0.23% after float64). It costs a float64 compile and
+        about 1.4-2x the float32 search's time per iteration. Nothing to do in a float64 fit.
       search: :class:`SearchOptions` of the default fit's global stage.
       local: :class:`LocalOptions` of its local searches; continuation: :class:`ContinuationOptions`
         of its stages in time; smoothing: :class:`SmoothingOptions` of its smoothing stage;
@@ -329,6 +336,7 @@ class FitOptions:
     check_dt: bool = True
     predictability: bool = True
     shooting: object = "auto"
+    polish: str = "off"
     search: SearchOptions = dataclasses.field(default_factory=SearchOptions)
     local: LocalOptions = dataclasses.field(default_factory=LocalOptions)
     continuation: ContinuationOptions = dataclasses.field(default_factory=ContinuationOptions)
@@ -443,11 +451,18 @@ def validate(opts, optimizer):
     if opts.shooting not in ("auto", "off") and not (_is_whole(opts.shooting) and int(opts.shooting) >= 2):
         raise JaxplushError(f"shooting must be 'auto', 'off' or frames per segment (an integer >= 2), "
                             f"got {opts.shooting!r}")
+    if opts.polish not in POLISHES:
+        raise JaxplushError(f"polish must be one of {', '.join(map(repr, POLISHES))}, got {opts.polish!r}")
+    if optimizer != "lm" and opts.polish != "off":
+        raise JaxplushError(f"polish is part of the default fit (optimizer 'lm'), not of {optimizer}")
     if optimizer != "lm" and opts.shooting not in ("auto", "off"):
         raise JaxplushError(f"multiple shooting is part of the default fit (optimizer 'lm'), not of {optimizer}")
     if not _is_whole(opts.patience) or opts.patience < 1:
         raise JaxplushError(f"patience must be an integer >= 1, got {opts.patience!r}")
 
+
+#: What the default fit may polish its result in (:attr:`FitOptions.polish`).
+POLISHES = ("off", "float64")
 
 #: How a search may take its Jacobian (:attr:`LocalOptions.jacobian`).
 JACOBIANS = ("difference", "forward")

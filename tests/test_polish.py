@@ -1,0 +1,63 @@
+"""The default fit's float64 polish (``FitOptions.polish``, ``jaxplush-fit --polish float64``): one
+more local search from the float32 fit's best point on the problem rebuilt in float64, judged in
+float64; refused where it does not apply."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import jaxplush
+from jaxplush import fitting
+from jaxplush.errors import JaxplushError
+from jaxplush.fitting.io import load_fit
+from jaxplush.fitting.targets.recovery import recovery_scene_text
+
+NAMES = ("k_structural", "nmol")
+
+
+def _hanging(**kw):
+    return jaxplush.parse_scene(recovery_scene_text(1, **kw), "<hanging>")
+
+
+@pytest.fixture(scope="module")
+def case():
+    """42-vertex hanging ball, noise-free target, a start k x1.4 and nmol x0.8."""
+    truth = _hanging()
+    p = truth.params
+    start = _hanging(k_structural=1.4 * p.k_structural[0], nmol=0.8 * p.nmol[0])
+    target = fitting.make_target(truth, 200, 1e-3, 20)
+    return truth, start, target
+
+
+def test_the_float64_polish_starts_from_the_float32_fit_and_is_judged_in_float64(case, tmp_path):
+    truth, start, target = case
+    kw = dict(noise_free=True, predictability=False, samples=8, starts=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = fitting.fit(start, target, NAMES, **kw)
+        res = fitting.fit(start, target, NAMES, polish="float64", checkpoint_path=tmp_path / "FIT.h5", **kw)
+    assert np.dtype(plain.problem.sim.dtype) == np.float32
+    assert np.dtype(res.problem.sim.dtype) == np.float64          # the judged problem is the float64 one
+    assert any("polished in float64" in str(w) for w in res.warnings)
+    assert res.intervals.method == "twins" and "twins in float32" in res.intervals.note
+    assert res.status == "converged"
+    for n in NAMES:                                                # a float64 fit's accuracy, or better
+        err = abs(float(res.values[n][0] / getattr(truth.params, n)[0]) - 1)
+        assert err <= max(1e-4, abs(float(plain.values[n][0] / getattr(truth.params, n)[0]) - 1)), (n, err)
+        assert res.intervals.contains(f"{n}[{truth.object_names[0]}]", float(getattr(truth.params, n)[0]))
+    # the float64 search went on from the float32 fit's best point: its evaluations add to them
+    assert res.search["global_thetas"].shape == plain.search["global_thetas"].shape
+    saved = load_fit(tmp_path / "FIT.h5")
+    assert '"polish": "float64"' in saved["attrs"]["settings"]
+    assert saved["attrs"]["status"] == "converged"
+
+
+def test_a_polish_that_does_not_apply_is_refused_before_anything_runs(case):
+    _, start, target = case
+    with pytest.raises(JaxplushError, match="polish must be one of 'off', 'float64'"):
+        fitting.fit(start, target, NAMES, polish="float128")
+    with pytest.raises(JaxplushError, match="polish is part of the default fit"):
+        fitting.fit(start, target, NAMES, optimizer="adam", polish="float64")
