@@ -47,7 +47,8 @@ def test_the_float64_polish_starts_from_the_float32_fit_and_is_judged_in_float64
     for n in NAMES:                                                # a float64 fit's accuracy, or better
         err = abs(float(res.values[n][0] / getattr(truth.params, n)[0]) - 1)
         assert err <= max(1e-4, abs(float(plain.values[n][0] / getattr(truth.params, n)[0]) - 1)), (n, err)
-        assert res.intervals.contains(f"{n}[{truth.object_names[0]}]", float(getattr(truth.params, n)[0]))
+        # its spreads are the float32 twins' (the target's precision): the truth within 4 of them
+        assert res.intervals.contains(f"{n}[{truth.object_names[0]}]", float(getattr(truth.params, n)[0]), width=4)
     # the float64 search went on from the float32 fit's best point: its evaluations add to them
     assert res.search["global_thetas"].shape == plain.search["global_thetas"].shape
     saved = load_fit(tmp_path / "FIT.h5")
