@@ -117,9 +117,9 @@ def _parser():
     p.add_argument("--method", default="auto", help="gradient method: auto, checkpoint, plain, adjoint")
     p.add_argument("--x64", action="store_true", help="fit in float64")
     p.add_argument("--polish", choices=("off", "float64"), default="off",
-                   help="float64: after the default fit, a local search in float64 from its best point, "
-                        "judged in float64 (where float32 rounding leaves the loss rough; about 1.4-2x the "
-                        "search's time per iteration)")
+                   help="float64: after the default fit, its local stages again in float64 from its best "
+                        "point, judged in float64 (where float32 rounding leaves the loss rough; about 1.4-2x "
+                        "the search's time per iteration)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 

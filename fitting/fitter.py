@@ -318,17 +318,20 @@ def _x64(on):
 
 
 def _polish(prob64, prob, box, opts, first, *, progress, callback):
-    """The float64 polish (``FitOptions.polish``), inside ``jax.enable_x64``: one local search
-    (:class:`jaxplush.fitting.stages.LocalLM`, then the linearisation) over the whole target from
-    the float32 fit's best point, on ``prob64``, the problem rebuilt in float64 with the float32
-    fit's predictability and shooting plan. Returns (the float64 problem, its run, whose global
-    design, paths and evaluations include the float32 fit's, its evaluator, a line for a person)."""
-    from jaxplush.fitting import stages as _stages
+    """The float64 polish (``FitOptions.polish``), inside ``jax.enable_x64``: the default fit's
+    local stages again from the float32 fit's best point (no global design: it is the only start;
+    Levenberg-Marquardt over horizons of growing length, then the linearisation; no smoothing
+    stage, the float64 loss is not rough), on ``prob64``, the problem rebuilt in float64 with the
+    float32 fit's predictability and shooting plan. The horizons matter: on seed 601's case 0
+    (three pinned objects, a cloud) Levenberg-Marquardt on the whole target alone stalled in
+    float64 too, where the same stages over growing horizons reached the truth. Returns (the
+    float64 problem, its run, whose global design, paths and evaluations include the float32
+    fit's, its evaluator, a line for a person)."""
     from jaxplush.fitting.stages import lmfit
     prob64 = dataclasses.replace(prob64, predictability=prob.predictability, shooting=prob.shooting)
-    local = _stages.LocalLM(max_iter=opts.iteration_limit("lm"), options=opts.local)
-    run, ev = lmfit.run(prob64, box, opts, progress=progress, callback=callback, start=first.best.theta,
-                        stages=[local])
+    local_only = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
+    run, ev = lmfit.run(prob64, box, local_only, progress=progress, callback=callback, start=first.best.theta,
+                        smooth=False)
     run.evaluations += first.evaluations
     run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
     line = (f"polished in float64 from the float32 fit's best point (loss {first.best.loss:.4g} in float32, "

@@ -304,9 +304,10 @@ class FitOptions:
         "auto" (multiple shooting where the measured horizon is shorter than the target and
         shooting measures better than one rollout), "off" (one rollout over the target), or the
         frames per segment (an int >= 2).
-      polish: "off" (default) or "float64": after the default fit, one more local search from
-        its best point on the problem rebuilt in float64, whose result is judged (outcome,
-        intervals, identifiability) in float64 (:func:`jaxplush.fitting.fitter._polish`). Where
+      polish: "off" (default) or "float64": after the default fit, its local stages again from
+        its best point on the problem rebuilt in float64 (no global design, no smoothing), whose
+        result is judged (outcome, identifiability, the intervals' Jacobian) in float64, its
+        twins run in float32 (:func:`jaxplush.fitting.fitter._polish`). Where
         the motion amplifies rounding, the float32 loss is rough at the scale of the drift and a
         fit can stop short of the optimum within it (benchmarks/RESULTS.md, 2026-11-30: 6.8% and
         1.5% off in float32, 1.06% and 0.23% after float64). It costs a float64 compile and

@@ -97,11 +97,12 @@ def _noisy(prob):
     return prob.noise is not None and prob.noise > 0
 
 
-def default_stages(prob, opts, progress=None):
+def default_stages(prob, opts, progress=None, smooth=True):
     """The default fit's stages under ``opts`` (:class:`jaxplush.fitting.options.FitOptions`):
     the global stage and local Levenberg-Marquardt over horizons of growing length, the best point
-    linearised, and for a noisy target the smoothing stage. ``progress(n, extra=...)``: what the
-    global and smoothing stages report their progress to."""
+    linearised, and for a noisy target the smoothing stage (unless ``smooth`` is False: a float64
+    polish, whose loss is not rough). ``progress(n, extra=...)``: what the global and smoothing
+    stages report their progress to."""
     local = opts.local
     # several fitted objects, positions observed: each object's parameters scored by its own residuals
     kind = _objects.PerObjectGlobal if _objects.suits(prob) else _stages.GlobalStage
@@ -110,12 +111,13 @@ def default_stages(prob, opts, progress=None):
     out = [_stages.Continuation(local=_stages.LocalLM(max_iter=opts.iteration_limit("lm"), options=local),
                                 first=(first,), options=opts.continuation, noisy=_noisy(prob)),
            _stages.Linearise(local=local)]
-    if _noisy(prob):
+    if smooth and _noisy(prob):
         out.append(_stages.Smoothing(options=opts.smoothing, local=local, progress=progress))
     return out
 
 
-def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None, start=None, stages=None):
+def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None, start=None, stages=None,
+        smooth=True):
     """Global stage, then Levenberg-Marquardt from the best ``starts`` candidates (successive
     halving to ``keep``), over horizons of growing length; then the Jacobian and gradients at
     the best point of the full problem (and, for a noisy target, the smoothing stage):
@@ -137,6 +139,8 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
       stages: a user's stages to run instead of :func:`default_stages` (``fit(solver=...)``): they
         run on the whole target, and the last one's candidate is linearised (:class:`Linearise`)
         for the judge.
+      smooth: the default stages end with the smoothing stage for a noisy target (False: they do
+        not; :func:`default_stages`).
 
     Returns:
       (:class:`LMRun`, the :class:`jaxplush.fitting.objective.evaluate.Evaluator` of the full problem, its notes
@@ -148,7 +152,7 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     if user:
         stages = list(stages) + [_stages.Linearise(local=opts.local)]
     else:
-        stages = default_stages(prob, opts, show.feed)
+        stages = default_stages(prob, opts, show.feed, smooth=smooth)
     show.stages = stages
     objective = _stages.Objective(prob, box)
     hs = None if user else objective.horizons(horizons(prob.target.n_frames, opts.continuation))
