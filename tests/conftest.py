@@ -143,6 +143,24 @@ def ctrl_c():
     signal.signal(signal.SIGINT, old)
 
 
+def hanging_ball(**kw):
+    """The 42-vertex hanging ball of the recovery scenes (values as keywords)."""
+    from jaxplush.fitting.targets.recovery import recovery_scene_text
+    return jaxplush.parse_scene(recovery_scene_text(1, **kw), "<hanging>")
+
+
+@pytest.fixture(scope="session")
+def hanging_case():
+    """(truth, start, target) of the 42-vertex hanging ball: a noise-free target of 200 steps of
+    1 ms every 20th saved, a start k x1.4 and nmol x0.8. Shared by the stage and polish tests,
+    which then share their compiled programs."""
+    from jaxplush.fitting.targets import make_target
+    truth = hanging_ball()
+    p = truth.params
+    start = hanging_ball(k_structural=1.4 * p.k_structural[0], nmol=0.8 * p.nmol[0])
+    return truth, start, make_target(truth, 200, 1e-3, 20)
+
+
 @pytest.fixture
 def x64():
     with jax.enable_x64(True):

@@ -10,27 +10,17 @@ import warnings
 import numpy as np
 import pytest
 
-import jaxplush
 from jaxplush import fitting
 from jaxplush.errors import JaxplushError
 from jaxplush.fitting.io import load_fit
-from jaxplush.fitting.targets.recovery import recovery_scene_text
 
 NAMES = ("k_structural", "nmol")
 
 
-def _hanging(**kw):
-    return jaxplush.parse_scene(recovery_scene_text(1, **kw), "<hanging>")
-
-
 @pytest.fixture(scope="module")
-def case():
-    """42-vertex hanging ball, noise-free target, a start k x1.4 and nmol x0.8."""
-    truth = _hanging()
-    p = truth.params
-    start = _hanging(k_structural=1.4 * p.k_structural[0], nmol=0.8 * p.nmol[0])
-    target = fitting.make_target(truth, 200, 1e-3, 20)
-    return truth, start, target
+def case(hanging_case):
+    """42-vertex hanging ball, noise-free target, a start k x1.4 and nmol x0.8 (conftest)."""
+    return hanging_case
 
 
 def test_the_float64_polish_starts_from_the_float32_fit_and_is_judged_in_float64(case, tmp_path):

@@ -11,28 +11,18 @@ import numpy as np
 import optax
 import pytest
 
-import jaxplush
 from jaxplush import fitting
 from jaxplush.errors import JaxplushError
 from jaxplush.fitting.io import load_fit
-from jaxplush.fitting.targets.recovery import recovery_scene_text
 from jaxplush.fitting.judge.outcome import STATUSES, Status
 
 NAMES = ("k_structural", "nmol")
 
 
-def _hanging(**kw):
-    return jaxplush.parse_scene(recovery_scene_text(1, **kw), "<hanging>")
-
-
 @pytest.fixture(scope="module")
-def case():
-    """42-vertex hanging ball, noise-free target, a start k x1.4 and nmol x0.8."""
-    truth = _hanging()
-    p = truth.params
-    start = _hanging(k_structural=1.4 * p.k_structural[0], nmol=0.8 * p.nmol[0])
-    target = fitting.make_target(truth, 200, 1e-3, 20)
-    return truth, start, target
+def case(hanging_case):
+    """42-vertex hanging ball, noise-free target, a start k x1.4 and nmol x0.8 (conftest)."""
+    return hanging_case
 
 
 KW = dict(noise_free=True, predictability=False)
@@ -84,29 +74,15 @@ def test_an_optax_stage_and_a_users_own_stage_after_the_global_stage(case):
     adam = fitting.fit(start, target, NAMES, solver=[glob, fitting.Optax(optax.adam(0.01), steps=6)], **KW)
     assert adam.loss <= alone.loss                   # it keeps the best point it evaluated
     assert adam.intervals is not None and adam.identifiability is not None
+    # the gradient optimisers' own stage (exact gradients through the rollout) composes as well
+    grad = fitting.fit(start, target, NAMES, solver=[glob, fitting.Gradient(optax.adam(0.02), iterations=6)], **KW)
+    assert grad.loss <= alone.loss and grad.intervals is not None
     gn = fitting.fit(start, target, NAMES, solver=[glob, GaussNewton()], **KW)
     assert gn.status == Status.CONVERGED and _err(gn, truth) < 1e-3, (gn.status, _err(gn, truth))
     assert gn.loss < 1e-3 * alone.loss
     # the same stages as the default fit's local search give a converged fit too
     lm = fitting.fit(start, target, NAMES, solver=[glob, fitting.LocalLM(max_iter=20)], **KW)
     assert lm.status == Status.CONVERGED and _err(lm, truth) < 1e-3
-
-
-def test_the_gradient_optimisers_stage_after_the_global_stage(case, tmp_path):
-    """The gradient fit's own stage (exact gradients through the rollout) composes as any stage:
-    after the global design, judged, checkpointed with its optimiser state and resumed."""
-    truth, start, target = case
-    glob = fitting.GlobalStage(samples=8, starts=2)
-    alone = fitting.fit(start, target, NAMES, solver=[glob], **KW)
-    grad = fitting.Gradient(optax.adam(0.02), iterations=6)
-    ref = fitting.fit(start, target, NAMES, solver=[glob, grad], **KW)
-    assert ref.loss <= alone.loss and ref.intervals is not None
-    out, stop = tmp_path / "FIT.h5", _Interrupt()
-    with pytest.raises(KeyboardInterrupt):
-        fitting.fit(start, target, NAMES, solver=[glob, grad, stop], checkpoint_path=out, **KW)
-    res = fitting.fit(start, target, NAMES, solver=[glob, grad, stop], checkpoint_path=out, resume=True, **KW)
-    for n in NAMES:
-        np.testing.assert_array_equal(res.values[n], ref.values[n])
 
 
 def test_a_fit_of_ones_own_stages_resumes_from_its_checkpoint(case, tmp_path, ctrl_c):
@@ -164,11 +140,15 @@ class _Interrupt:
         return True, None
 
 
-def test_an_optax_stage_is_checkpointed_and_resumed(case, tmp_path):
-    """The optax stage's state (the transformation's state included) goes into the checkpoint and
-    comes back: a fit interrupted after it resumes to the uninterrupted fit's values."""
+@pytest.mark.parametrize("make", [lambda: fitting.Optax(optax.adam(0.01), steps=4),
+                                  lambda: fitting.Gradient(optax.adam(0.02), iterations=6)],
+                         ids=["optax", "gradient"])
+def test_an_optax_stage_is_checkpointed_and_resumed(case, tmp_path, make):
+    """The optax stage's state, or the gradient optimisers' (the transformation's state included),
+    goes into the checkpoint and comes back: a fit interrupted after it resumes to the
+    uninterrupted fit's values."""
     truth, start, target = case
-    glob, adam = fitting.GlobalStage(samples=8, starts=2), fitting.Optax(optax.adam(0.01), steps=4)
+    glob, adam = fitting.GlobalStage(samples=8, starts=2), make()
     ref = fitting.fit(start, target, NAMES, solver=[glob, adam], **KW)
     out, stop = tmp_path / "FIT.h5", _Interrupt()
     with pytest.raises(KeyboardInterrupt):

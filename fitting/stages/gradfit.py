@@ -227,10 +227,10 @@ def drive(objective, stage, loop, *, bar=None, callback=None, save=None, every=N
             vals = prob_values(s.h_theta[-1])
             if bar is not None:
                 bar.update(1, extra=_progress_text(s.h_loss[-1], vals))
-            if callback is not None and not s.done:
+            if callback is not None:       # every accepted iteration, the last one too
                 stop = callback(dict(iteration=s.iteration - 1, loss=s.h_loss[-1], values=vals,
                                      grad_norm=s.h_gnorm[-1]))
-                if stop is True:
+                if stop is True and not s.done:
                     s.done, s.reason, s.stopped = True, "stopped by the callback", Stop.CALLBACK
         elif bar is not None:
             bar.update(1, extra="step rejected (rollout blew up); halving the step")
@@ -254,7 +254,7 @@ def drive(objective, stage, loop, *, bar=None, callback=None, save=None, every=N
 
 
 #: Depth from :class:`_GradientFit`'s methods to the caller of :func:`fit`, for warnings.
-_LOOP_STACKLEVEL = {"warn_dt": 4, "grow_contact_capacity": 8}
+_LOOP_STACKLEVEL = {"warn_dt": 4, "grow_contact": 7}
 
 
 class _GradientFit:
@@ -340,11 +340,7 @@ class _GradientFit:
                                 rejected=int(state.rejected))
 
     def grow_contact(self, theta):
-        """The stage's hook: :meth:`grow_contact_capacity`."""
-        return self.grow_contact_capacity(theta)
-
-    def grow_contact_capacity(self, theta):
-        """After a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
+        """The stage's hook after a failed evaluation at theta: if soft-soft contact candidates overflowed there (its
         loss is NaN: :func:`jaxplush.fitting.objective.gradients.rollout_loss`), rebuild the problem with a capacity
         that fits (warning) and return True."""
         prob = self.prob
@@ -368,7 +364,7 @@ class _GradientFit:
         self.prob = prob = dataclasses.replace(prob, sim=sim)
         msg = (f"contact candidates overflowed (capacity {old}) at {_values_text(prob.values(theta))}; "
                f"refitting with contact_capacity {need} (set it in the scene to skip this)")
-        self.notes.append(warn(msg, ContactCapacityWarning, stacklevel=_LOOP_STACKLEVEL["grow_contact_capacity"]))
+        self.notes.append(warn(msg, ContactCapacityWarning, stacklevel=_LOOP_STACKLEVEL["grow_contact"]))
         self.bar.update(0, extra=f"contact capacity raised to {need}; recompiling")
         return True
 
