@@ -122,7 +122,6 @@ def make_case_files(d, name, kind):
 
 def start_scene(d, name, truth, factors):
     from jaxplush.scene.write import format_scene
-    from jaxplush.fitting.io import fitted_scene_text  # noqa: F401  (the same writer the fit uses)
     spec = SCENES[name]
     dn = _damp_name(spec)
     p = truth.params
@@ -642,6 +641,8 @@ def _case_in_child(args, case):
             argv += [flag, str(val)]
     if args.no_linear_start:
         argv.append("--no-linear-start")
+    if args.polish:
+        argv += ["--polish", args.polish]
     if args.oracle_only:
         argv.append("--oracle-only")
     t0 = time.perf_counter()
@@ -665,7 +666,8 @@ def _draw_key(args):
     """What identifies a random run's draw of cases (and so which JSON lines ``--resume`` keeps)."""
     return (f"--random {args.random} --seed {args.seed} --max-objects {args.max_objects} --kinds {args.kinds}"
             f" --max-vertices {args.max_vertices} --steps {args.steps} --dt {args.dt}"
-            + (" --no-linear-start" if args.no_linear_start else ""))
+            + (" --no-linear-start" if args.no_linear_start else "")
+            + (f" --polish {args.polish}" if args.polish else ""))
 
 
 def _oracle_key(args):
@@ -815,7 +817,8 @@ def main_random(args):
           f"{time.strftime('%Y-%m-%d %H:%M')}; --random {args.random} --seed {args.seed}"
           + (f" --max-vertices {args.max_vertices}" if args.max_vertices else "")
           + f" --max-objects {args.max_objects} --kinds {args.kinds}"
-          + (" --no-linear-start" if args.no_linear_start else ""), flush=True)
+          + (" --no-linear-start" if args.no_linear_start else "")
+          + (f" --polish {args.polish}" if args.polish else ""), flush=True)
     if args.only is not None:                    # one case, in this process (the parent reads the last line)
         with tempfile.TemporaryDirectory() as d:
             if args.oracle_only:
@@ -871,7 +874,7 @@ def main_random(args):
     return 0 if all(r["verdict"] == "recovered" for r in rows) else 1
 
 
-#: More arguments of every random case's ``jaxplush-fit`` (``--no-linear-start``).
+#: More arguments of every random case's ``jaxplush-fit`` (``--no-linear-start``, ``--polish``).
 FIT_ARGS = []
 
 
@@ -901,6 +904,8 @@ def main(argv=None):
                     "(default: each in a fresh process)")
     ap.add_argument("--no-linear-start", action="store_true", help="--random: fit without the linear start "
                     "(jaxplush-fit --no-linear-start), to compare")
+    ap.add_argument("--polish", default=None, choices=("float64",), help="every fit with jaxplush-fit --polish "
+                    "(its local stages again in float64 after the default fit), to compare")
     ap.add_argument("--oracle-only", action="store_true", help="--random: compute only the oracle of every case "
                     "(benchmarks/oracle.py: which parameters its target determines, at the truth), one JSON line "
                     "each (--json), before any fit runs")
@@ -910,6 +915,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.no_linear_start:
         FIT_ARGS.append("--no-linear-start")
+    if args.polish:
+        FIT_ARGS.extend(["--polish", args.polish])
     if args.random is not None:
         if args.random < 1 or not 1 <= args.max_objects <= 3:
             ap.error("--random needs N >= 1 and --max-objects 1-3")
@@ -919,7 +926,7 @@ def main(argv=None):
         picked = [int(c) for c in args.corners.split(",")]
         corners = corners[:picked[0]] if len(picked) == 1 else [corners[i] for i in picked]
     print(f"# {platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}; "
-          f"{time.strftime('%Y-%m-%d %H:%M')}", flush=True)
+          f"{time.strftime('%Y-%m-%d %H:%M')}" + (f"; --polish {args.polish}" if args.polish else ""), flush=True)
     print("| scene | target | start (k, damping, nmol) | wall s | exit | status | max error | errors |", flush=True)
     print("|---|---|---|---:|---:|---|---:|---|", flush=True)
     rows = []
@@ -931,7 +938,8 @@ def main(argv=None):
                     truth, target = make_case_files(d, name, kind)
                 for factors in corners:
                     row = run_case(d, name, kind, truth, target, factors,
-                                   extra=() if args.jacobian is None else ("--jacobian", args.jacobian))
+                                   extra=(*(() if args.jacobian is None else ("--jacobian", args.jacobian)),
+                                          *FIT_ARGS))
                     rows.append(row)
                     errs = " ".join(f"{n.replace('k_structural', 'k')} {100 * e:+.3f}%" for n, e in row["errors"].items())
                     flag = "" if row.get("passed") else " **FAILED**"

@@ -265,13 +265,20 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
         def user_cb(local):
             b = min(local.states, key=lambda st: st.loss)
             return callback(dict(iteration=local.rounds, loss=b.loss, values=prob.values(b.theta), grad_norm=np.nan))
-    def save_last():
-        if last[0] is not None and checkpoint_path is not None:
+    saved = [False]
+
+    def interrupted(run):            # Ctrl-C in the stages (their loop's hook): the last finished step
+        saved[0] = True
+        if checkpoint_path is not None and (run.state is not None or run.finished):
+            write(lmfit.light_copy(run), "interrupted")
+
+    def save_last():                 # Ctrl-C outside the stages' loop: their last saved step
+        if not saved[0] and last[0] is not None and checkpoint_path is not None:
             write(last[0], "interrupted")
 
     with saving_on_interrupt(save_last):
-        run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, callback=user_cb,
-                            stages=solver)
+        run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, interrupted=interrupted,
+                            callback=user_cb, stages=solver)
         replanned = None if solver is not None else _replan(full, prob, run.best.theta, opts, report)
         if replanned is not None:
             # the start's horizon cut the fit short; the fitted values predict further: fit again

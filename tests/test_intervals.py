@@ -33,14 +33,14 @@ def noisy_fit():
     """A 42-vertex hanging ball fitted from its truth to 0.1 mm noise (k, damping, nmol)."""
     truth = jaxplush.parse_scene(F.recovery_scene_text(1), "<truth>")
     target = make_target(truth, 200, 1e-3, 20, noise=1e-4, seed=1)
-    return truth, F.fit(truth, target, samples=4, starts=1)
+    return truth, F.fit(truth, target, samples=4, starts=1), target
 
 
 def test_on_a_noisy_target_the_twins_spread_is_the_residuals_standard_error(noisy_fit):
     """Where the residuals are independent noise that the model reproduces, their standard errors
     are right, and the twins (noise drawn afresh, propagated by the fit's Jacobian) must agree with
     them: 31 twins estimate a spread within 0.68-1.33x of the true one 99% of the time."""
-    truth, res = noisy_fit
+    truth, res, _ = noisy_fit
     iv = res.intervals
     assert res.status == "converged" and iv.method == "twins" and iv.n_twins == I.N_TWINS
     assert iv.labels == res.identifiability.labels
@@ -70,8 +70,22 @@ def test_on_a_noisy_point_cloud_the_twins_spread_is_the_residuals_standard_error
     assert np.all((ratio > 0.6) & (ratio < 1.6)), ratio
 
 
+def test_a_gradient_fit_is_judged_by_twins_as_the_default_fit_is(noisy_fit):
+    """A gradient fit (L-BFGS, exact gradients through the rollout) ends in the same judge: its
+    intervals come from twins of its fitted values on the batched engine, and on the noisy target
+    they agree with the standard errors of its exact Jacobian, and hold the truth."""
+    truth, _, target = noisy_fit
+    res = F.fit(truth, target, optimizer="lbfgs", iterations=6)
+    iv = res.intervals
+    assert iv.method == "twins" and iv.n_twins == I.N_TWINS and iv.labels == res.identifiability.labels
+    ratio = iv.sd / np.asarray(res.identifiability.stderr)
+    assert np.all((ratio > 0.6) & (ratio < 1.5)), ratio
+    for label in iv.labels:
+        assert iv.contains(label, getattr(truth.params, label.split("[")[0])[0], width=4), label
+
+
 def test_the_intervals_are_saved_and_read_back(noisy_fit, tmp_path):
-    _, res = noisy_fit
+    _, res, _ = noisy_fit
     out = res.save(tmp_path / "FIT.h5")
     with h5py.File(out) as f:
         g = f["intervals"]

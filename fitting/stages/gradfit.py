@@ -514,11 +514,8 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
     report = _report(prob, frames, jac) if want_ident else None
     hist = _loop_history(prob, loop)
     out = _judge_loop(prob, loop)
-    # the judge's intervals: from the exact Jacobian's report (a gradient fit runs no batched twins)
-    ivals = None if report is None else _intervals.from_report(
-        report, np.asarray(best, np.float64), note="from the residuals at the optimum, treated as independent noise "
-                                                   "(a gradient fit's exact Jacobian; the default fit's come from twins)")
-    combos = _intervals.combinations(prob, best, ivals)
+    ivals, substeps = (None, 1) if report is None else _twin_intervals(prob, best, report)
+    combos = _intervals.combinations(prob, best, ivals, substeps=substeps)
     return _result(prob, best, frames=frames, history=hist, outcome=out, report=report, warn_report=True,
                    notes=notes, settings=settings, loop=loop, wall=wall, stacklevel=4,
                    loss=float(loop.best_loss if loop.h_loss else np.nan),
@@ -526,6 +523,35 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
                    iterations=loop.iteration, rejected=loop.rejected,
                    reason=f"{out.text} (the optimiser stopped: {loop.reason})", lr=settings["lr"], intervals=ivals,
                    combinations=combos)
+
+
+def _twin_intervals(prob, theta, report):
+    """(:class:`jaxplush.fitting.judge.intervals.Intervals`, substeps) at a gradient fit's best point
+    ``theta``, as the default fit's judge makes them: from twins of the fitted values on the
+    batched engine (:func:`jaxplush.fitting.judge.intervals.twins`), each propagated by a central
+    difference Jacobian there (a search box of x4 about theta holds its stencil). Where twins do
+    not apply, from the exact Jacobian's ``report`` (the residuals treated as independent noise),
+    with the reason in the note."""
+    from jaxplush.fitting.objective import shooting as _shooting
+    from jaxplush.fitting.options import LocalOptions
+    from jaxplush.fitting.stages import search as _search
+    theta = np.asarray(theta, np.float64)
+    ev = _shooting.evaluator(prob)
+    if _intervals.applies(prob, ev) is not None:
+        return _intervals.twins(prob, ev, theta, None, report), 1
+    lo, hi = theta - math.log(4.0), theta + math.log(4.0)
+    if "damping" in prob.names:
+        i = list(prob.names).index("damping")
+        lo[i] = np.maximum(lo[i], 0.0)
+    centre = ev(theta[None])
+    if not centre.ok[0]:
+        return _intervals.from_report(report, theta, note="from the residuals at the optimum, treated as "
+                                      "independent noise: the batched engine's run of the fitted values failed"), 1
+    n_sub = int(centre.substeps[0])
+    local = LocalOptions()
+    jac = _search.jacobian(ev, _search.Box(lo, hi), theta, local.h_min, n_sub, local,
+                           separation=_search._separation(centre, 0))
+    return _intervals.twins(prob, ev, theta, jac, report, residual=centre.residuals[0]), n_sub
 
 
 def _loop_history(prob, loop):

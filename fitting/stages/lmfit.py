@@ -116,8 +116,8 @@ def default_stages(prob, opts, progress=None, smooth=True):
     return out
 
 
-def run(prob, box, options=None, *, progress=False, resume=None, save=None, callback=None, start=None, stages=None,
-        smooth=True):
+def run(prob, box, options=None, *, progress=False, resume=None, save=None, interrupted=None, callback=None,
+        start=None, stages=None, smooth=True):
     """Global stage, then Levenberg-Marquardt from the best ``starts`` candidates (successive
     halving to ``keep``), over horizons of growing length; then the Jacobian and gradients at
     the best point of the full problem (and, for a noisy target, the smoothing stage):
@@ -132,6 +132,8 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
       progress: draw progress bars on stderr.
       resume: a :class:`jaxplush.fitting.stages.RunState` from a checkpoint to continue.
       save: ``save(run)`` after every step, with the driver's :class:`~jaxplush.fitting.stages.RunState`.
+      interrupted: ``interrupted(run)`` on Ctrl-C, with the driver's state after its last finished
+        step (:class:`~jaxplush.fitting.stages.Hooks`), before the ``KeyboardInterrupt`` goes on.
       callback: ``callback(local)`` after every local iteration with the local stage's state (its
         ``states`` and ``rounds``); returning True stops the search.
       start: where the global stage starts (log values; None: ``prob.theta0``, which stays the
@@ -160,7 +162,8 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, call
     try:
         _stages.run_stages(objective, prob.theta0 if start is None else np.asarray(start, np.float64), stages,
                            state=state,
-                           hooks=_stages.Hooks(before=show.before, after=show.after, save=save))
+                           hooks=_stages.Hooks(before=show.before, after=show.after, save=save,
+                                               interrupted=interrupted))
     finally:
         show.close()
     n0 = objective.evaluations()
