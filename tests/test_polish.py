@@ -57,20 +57,22 @@ def test_a_polish_that_does_not_apply_is_refused_before_anything_runs(case):
 
 def test_no_polish_beyond_the_predictable_horizon(case, monkeypatch):
     # beyond the horizon a float64 fit fits the target's own rounding drift (benchmarks/RESULTS.md:
-    # seed 601's cases 14 and 40 came out worse polished): the fit says so and stays in float32
+    # seed 601's cases 14 and 40 came out worse polished): the fit measures the horizon at its
+    # fitted values, says so and stays in float32
     from jaxplush.fitting import fitter as F
     _, start, target = case
-    real = F.measure_predictability
+    real, at = F._predictability_at, []
 
-    def short(prob, *a, **kw):          # the measurement, its horizon cut to the first frame
-        prob = real(prob, *a, **kw)
-        p = prob.predictability
-        cut = dataclasses.replace(p, horizon_frame=1, horizon_time=float(p.times[1]))
-        return dataclasses.replace(prob, predictability=cut)
-    monkeypatch.setattr(F, "measure_predictability", short)
+    def short(prob, theta=None, *a, **kw):    # the measurement, its horizon cut to the first frame
+        at.append(theta)
+        p = real(prob, theta, *a, **kw)
+        return dataclasses.replace(p, horizon_frame=1, horizon_time=float(p.times[1]))
+    monkeypatch.setattr(F, "_predictability_at", short)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = fitting.fit(start, target, NAMES, polish="float64", noise_free=True, samples=8, starts=2)
     assert np.dtype(res.problem.sim.dtype) == np.float32
-    assert any(str(w).startswith("not polished in float64: positions predictable") for w in res.warnings)
+    assert len(at) == 1 and np.allclose(at[0], np.log(np.stack([res.values[n] for n in NAMES])), rtol=0, atol=1e-12)
+    assert any(str(w).startswith("not polished in float64: at the fitted values positions predictable")
+               for w in res.warnings)
     assert not any("polished in float64 from" in str(w) for w in res.warnings)
