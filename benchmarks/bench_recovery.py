@@ -30,9 +30,9 @@ most, when the truth's target blows up all the same), the target runs the case's
 duration (the top object lands and bounces; 0.5 s hanging) with about 50 frames, as exact
 positions or as point clouds of 400 points per frame with 2 mm noise. Each fit is
 ``jaxplush-fit START.obj TARGET.h5 --out FIT.h5 --quiet`` (``jaxplush.fitting.cli.main``),
-each case in a fresh Python process (``--in-process``: all in this one; the persistent
-compilation cache on, as the command sets it, but every scene differs, so each case compiles its
-own programs), stopped (Ctrl-C, as a user would)
+each case in a fresh Python process with an empty persistent compilation cache of its own, as
+on a user's first fit (``--in-process``: all in this one, sharing the cache, so a case can load
+programs of an earlier one of its size bucket), stopped (Ctrl-C, as a user would)
 once it has run ``--stop-after`` times its time budget (120 s for one object, 300 s for several).
 A case is recovered when the fit says converged (exit 0) and every fitted parameter of every
 object is within 1% (positions) or 3% (points) of the truth, within the budget; a failed case
@@ -646,7 +646,10 @@ def _case_in_child(args, case):
     if args.oracle_only:
         argv.append("--oracle-only")
     t0 = time.perf_counter()
-    proc = subprocess.run(argv, capture_output=True, text=True)
+    # cold: an empty persistent compilation cache of its own, as on a user's first fit (programs
+    # that the fit compiles twice load from it; nothing comes from an earlier case of the bucket)
+    with tempfile.TemporaryDirectory(prefix="jaxplush-case-cache-") as cache:
+        proc = subprocess.run(argv, capture_output=True, text=True, env=dict(os.environ, JAXPLUSH_CACHE_DIR=cache))
     rows = [ln[4:] for ln in proc.stdout.splitlines() if ln.startswith("ROW ")]
     if rows:
         return json.loads(rows[-1])
