@@ -529,27 +529,24 @@ def _twin_intervals(prob, theta, report):
     """(:class:`jaxplush.fitting.judge.intervals.Intervals`, substeps) at a gradient fit's best point
     ``theta``, as the default fit's judge makes them: from twins of the fitted values on the
     batched engine (:func:`jaxplush.fitting.judge.intervals.twins`), each propagated by a central
-    difference Jacobian there (a search box of x4 about theta holds its stencil). Where twins do
+    difference Jacobian there (the default search box, centred on theta, holds its stencil). Where twins do
     not apply, from the exact Jacobian's ``report`` (the residuals treated as independent noise),
     with the reason in the note."""
     from jaxplush.fitting.objective import shooting as _shooting
     from jaxplush.fitting.options import LocalOptions
+    from jaxplush.fitting.stages import lmfit
     from jaxplush.fitting.stages import search as _search
     theta = np.asarray(theta, np.float64)
     ev = _shooting.evaluator(prob)
     if _intervals.applies(prob, ev) is not None:
         return _intervals.twins(prob, ev, theta, None, report), 1
-    lo, hi = theta - math.log(4.0), theta + math.log(4.0)
-    if "damping" in prob.names:
-        i = list(prob.names).index("damping")
-        lo[i] = np.maximum(lo[i], 0.0)
     centre = ev(theta[None])
     if not centre.ok[0]:
         return _intervals.from_report(report, theta, note="from the residuals at the optimum, treated as "
                                       "independent noise: the batched engine's run of the fitted values failed"), 1
     n_sub = int(centre.substeps[0])
     local = LocalOptions()
-    jac = _search.jacobian(ev, _search.Box(lo, hi), theta, local.h_min, n_sub, local,
+    jac = _search.jacobian(ev, lmfit.default_box(prob, centre=theta), theta, local.h_min, n_sub, local,
                            separation=_search._separation(centre, 0))
     return _intervals.twins(prob, ev, theta, jac, report, residual=centre.residuals[0]), n_sub
 

@@ -76,10 +76,11 @@ class LMRun:
     jac_step: float | None = None
 
 
-def default_box(prob, bounds=None, factor=4.0):
-    """The search box in log space: each fitted parameter from start/factor to start*factor, or
-    ``bounds`` {name: (lo, hi)} (absolute values, every fitted object); damping stays >= 1."""
-    th0 = np.asarray(prob.theta0, np.float64)
+def default_box(prob, bounds=None, factor=4.0, centre=None):
+    """The search box in log space: each fitted parameter from start/factor to start*factor (or
+    about the log values ``centre``), or ``bounds`` {name: (lo, hi)} (absolute values, every
+    fitted object); damping stays >= 1."""
+    th0 = np.asarray(prob.theta0 if centre is None else centre, np.float64)
     lo, hi = th0 - math.log(factor), th0 + math.log(factor)
     for i, n in enumerate(prob.names):
         if bounds and n in bounds:
