@@ -12,6 +12,7 @@ capacity on an overflow, and its losses are those of its one-point-at-a-time pat
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import jax
 import jax.numpy as jnp
@@ -27,6 +28,7 @@ from jaxplush.stepping import diagnostics
 from test_contact import two_balls
 
 DT = 2e-4
+SCENES = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "scenes")
 
 
 def _thrown(gap=0.04, extra_scene=""):
@@ -260,3 +262,55 @@ def test_a_gradient_fit_grows_the_capacity_and_evaluates_the_point_again():
     assert any(w.category is ContactCapacityWarning for w in res.warnings if hasattr(w, "category"))
     assert max(res.problem.sim.terms.contact.capacity) > 8
     assert res.iterations == 3 and res.rejected == 0 and np.isfinite(res.loss)
+
+
+def _pieces(bsim, pb, v0, pieces, pad_to, separation):
+    """Frames, final state, health and closest separation of a rollout run in ``pieces`` [(frames,
+    steps per frame), ...], each piece its own program (``pad_to`` None) or all of them one
+    program of ``pad_to`` frames with their lengths and spacings as data."""
+    state = bsim.init_fn(pb, None, v0)
+    health, done, frames, closest = batched.initial_health(bsim, state), 0, [], np.inf
+    for n, every in pieces:
+        state, obs, health, *sep = batched.rollout(bsim, pb, state, n, every, health=health, step0=done,
+                                                   observe=batched.positions_observer, separation=separation,
+                                                   pad_to=pad_to)
+        assert np.shape(obs)[0] == (pad_to or n)
+        frames.append(np.asarray(obs)[:n])
+        closest = np.minimum(closest, np.asarray(sep[0])) if separation else closest
+        done += n * every
+    return np.concatenate(frames), state, health, closest
+
+
+def test_pieces_of_any_length_and_spacing_run_one_padded_program_with_the_same_results():
+    """A run cut into pieces of different lengths and frame spacings (a fit's horizons in chunks,
+    a last frame closer to the one before) runs one compiled program with ``pad_to``: frames,
+    state, health and contact separations are those of one program per piece, bit for bit (the
+    frames past a short piece run no step), through a soft-soft impact."""
+    scene, n, v0 = _thrown()
+    bsim = batched.make_batched_simulator(scene, DT, 3, chunk=3)
+    pb = bsim.params(jaxplush.Params(*(np.stack(a, axis=1) for a in zip(*_points(scene)))))
+    pieces = [(4, 30), (4, 30), (3, 30), (1, 17)]            # 347 steps: the balls meet after ~100
+    ref = _pieces(bsim, pb, v0, pieces, None, True)
+    n0 = batched._core_jit._cache_size()
+    got = _pieces(bsim, pb, v0, pieces, 4, True)
+    assert batched._core_jit._cache_size() == n0 + 1          # one program for the four pieces
+    np.testing.assert_array_equal(got[0], ref[0])
+    np.testing.assert_array_equal(batched.positions(got[1]), batched.positions(ref[1]))
+    for a, b in zip(jax.tree_util.tree_leaves(got[2]), jax.tree_util.tree_leaves(ref[2])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(got[3], ref[3])
+    reach = 2 * np.max(bsim.terms.contact.thickness)
+    assert np.asarray(ref[2].good_step).tolist() == [347] * 3 and (ref[3] < reach).all()   # ran through, met
+
+
+def test_a_padded_piece_of_a_driven_scene_reads_the_path_step_by_step():
+    """With driven vertices, a padded program reads the path's rows step by step (its spacing is
+    data): the same frames as the program that reads them frame by frame."""
+    scene = jaxplush.load_scene(os.path.join(SCENES, "lifted.obj"))
+    bsim = batched.make_batched_simulator(scene, 4e-4, 2, chunk=2)
+    assert bsim.drive is not None
+    pb = bsim.params(jaxplush.Params(*(np.stack([np.asarray(a, np.float64)] * 2, axis=-1) for a in scene.params)))
+    pieces = [(3, 25), (2, 25), (1, 10)]
+    ref, got = _pieces(bsim, pb, None, pieces, None, False), _pieces(bsim, pb, None, pieces, 3, False)
+    np.testing.assert_array_equal(got[0], ref[0])
+    assert np.abs(ref[0][-1] - ref[0][0]).max() > 1e-3                     # the path moved it

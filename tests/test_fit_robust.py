@@ -91,9 +91,10 @@ def test_a_fit_that_cannot_reach_the_data_is_not_called_converged(drop):
 
 def test_a_shorter_last_chunk_of_frames_reuses_the_compiled_rollout_and_ignores_what_lies_past_the_end():
     """An evaluator that runs the target's frames in chunks (one compiled rollout for every horizon
-    of a fit) runs a last, shorter chunk at the full chunk length, with no new compile: its frames
-    and residuals are those of a run in one piece, and a blow-up in the frames past the target's
-    end does not fail the point (its substeps stay 1), while one inside the target does."""
+    of a fit) runs a last, shorter chunk on the same compiled rollout (its length is data), with
+    no new compile: its frames and residuals are those of a run in one piece, and a blow-up that
+    would come in the frames past the target's end does not fail the point (its substeps stay
+    1), while one inside the target does."""
     from jaxplush.stepping import batched
     truth = _drop()
     target = make_target(truth, 120, DT, 4)                       # 30 frames, 4 steps apart
@@ -123,7 +124,7 @@ def test_a_shorter_last_chunk_of_frames_reuses_the_compiled_rollout_and_ignores_
     assert Evaluator(prob.truncated(fail - 1))(stiff[None], substeps=[1]).substeps[0] == 1
     inside = fail - 1                           # the longest target it runs through
     chunk = inside - 2 if inside > 4 else inside - 1
-    assert inside % chunk and -(-inside // chunk) * chunk >= fail  # its padding reaches the failure
+    assert inside % chunk and -(-inside // chunk) * chunk >= fail  # a whole last chunk would reach the failure
     full = Evaluator(prob.truncated(chunk), chunk_frames=chunk)
     full(th0[None])                                                # compiles the chunk's rollout
     n0 = batched._core_jit._cache_size()

@@ -507,16 +507,14 @@ class Evaluator:
                 size = self.chunk_frames or count
                 while count > 0:
                     n_fr = min(size, count)
-                    # the last piece of a chunked run is run at the full chunk length, past the
-                    # target's end: the same compiled rollout as every other piece (a shorter scan
-                    # is a new compile, seconds each, for every width), for a few frames more; the
-                    # frames past the end are dropped and their health ignored (below)
-                    # (a padded last piece: its separation covers the steps past the end too,
-                    # which errs on the safe side)
-                    run_fr = size if self.chunk_frames and g == len(runs) - 1 else n_fr
+                    # in chunks, every piece (a shorter last one, another frame spacing) runs the
+                    # one compiled rollout of ``chunk_frames`` frames with its length and spacing
+                    # as data (batched.rollout's pad_to): a program of its own would be a compile
+                    # of seconds, for every substep count
                     state, obs, health, *sep = batched.rollout(
-                        bsim, p, state, run_fr, gap, health=health, step0=first + done,
-                        observe=batched.positions_observer, separation=track)
+                        bsim, p, state, n_fr, gap, health=health, step0=first + done,
+                        observe=batched.positions_observer, separation=track,
+                        pad_to=size if self.chunk_frames else None)
                     if track:
                         closest = np.minimum(closest, np.min(np.asarray(sep[0], np.float64) / self._reach, axis=0))
                     chunks.append(np.asarray(obs[:n_fr], np.float64))     # (n_fr, B, V, 3)

@@ -793,7 +793,10 @@ def _pair_separation(bsim, x):
     return jnp.stack(seps)
 
 
-def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe, separation=False):
+def _core(bsim, params, state, health, step0, aux, timing=None, *, n_frames, save_every, observe, separation=False):
+    """The batched rollout (:func:`rollout`): ``n_frames`` frames of ``save_every`` steps, or with
+    ``timing`` (traced (2,) int32: live frames, steps per frame; ``save_every`` then unused) a scan
+    of ``n_frames`` frames of which only the first ``timing[0]`` run, ``timing[1]`` steps each."""
     coherent = bsim.coherent
     track = bool(separation) and bool(contact_pairs(bsim))
     driven = bsim.drive is not None        # then every step reads the path's rows at its lanes' steps
@@ -809,10 +812,12 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
             return coherent.step_rows(params, s, cache, rows) if driven else coherent.step(params, s, cache)
         cache0 = coherent.init(state.x)
 
-    def steps(s, cache, first):
+    def steps(s, cache, first, gap=None):
         # The positions are carried folded (see _folded): the in-place position update then runs
         # on rows of >= _FOLD_WIDTH floats, which XLA:CPU vectorises. ``first``: the (B,) step
         # index of s (read with driven vertices only: the path's rows of the frame's steps).
+        # ``gap``: a traced step count (``timing``), run as a loop of that many steps (the path's
+        # rows then read step by step).
         v, b = s.x[0].shape
         r = _fold_factor(v, b)
         fold = lambda st: State(tuple(a.reshape(v // r, r * b) for a in st.x), st.v)       # noqa: E731
@@ -825,23 +830,36 @@ def _core(bsim, params, state, health, step0, aux, n_frames, save_every, observe
                 return (fold(s), (cache, jnp.minimum(sep, _pair_separation(bsim, s.x)))), None
             s, cache = one(unfold(c[0]), c[1], n)
             return (fold(s), cache), None
+        if gap is not None:
+            def loop(j, c):
+                return body(c, bsim.drive.rows_of_steps(first + j, 1)[0] if driven else None)[0]
+            s, cache = jax.lax.fori_loop(0, gap, loop, (fold(s), cache))
+            return unfold(s), cache
         rows = bsim.drive.rows_of_steps(first, save_every) if driven else None     # once per frame
         s, cache = jax.lax.scan(body, (fold(s), cache), rows, length=save_every)[0]
         return unfold(s), cache
 
+    every = save_every if timing is None else timing[1]
+
     def frame(carry, i):
-        s, cache, h = carry
-        s, cache = steps(s, cache, step0 + i * save_every)
+        s, cache, h0 = carry
+        if timing is None:
+            s, cache = steps(s, cache, step0 + i * every)
+        else:                           # a frame past the live ones runs no step
+            live = i < timing[0]
+            s, cache = steps(s, cache, step0 + i * every, jnp.where(live, every, 0))
         if track:
             cache, sep = cache
-        step = step0 + (i + 1) * save_every                                  # (B,)
+        step = step0 + (i + 1) * every                                       # (B,)
         if coherent is None:
             code = bsim.status_fn(params, s.x)
         else:
             # a contact overflow since the start of this call is the object's code
             code = diagnostics.with_overflow(diagnostics.status_codes(bsim.topology, bsim.terms, s.x),
                                              cache.overflow.T)
-        h = h.advance(code, step, s)
+        h = h0.advance(code, step, s)
+        if timing is not None:          # and is not checked
+            h = jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b), h, h0)
         out = None if observe is None else observe(params, i, s.x, aux)
         return (s, (cache, sep) if track else cache, h), out
 
@@ -951,25 +969,25 @@ def local_devices():
     return tuple(jax.local_devices())
 
 
-def _sharded(bsim, mesh, params, state, health, step0, aux, n_frames, save_every, observe, separation=False):
+def _sharded(bsim, mesh, params, state, health, step0, aux, timing, *, n_frames, save_every, observe, separation=False):
     """:func:`_core` on ``mesh``'s devices, each running the same program on its own
     ``bsim.chunk`` lanes (``jax.shard_map`` over the batch axis; ``aux`` is replicated). Lanes are
     independent and every device compiles the one-chunk program, so each lane's result is that
     of a one-device chunked run bit for bit (tests/test_scale_out.py)."""
     last = lambda tree: jax.tree_util.tree_map(_batch_spec, tree)          # noqa: E731
-    ins = (last(params), last(state), last(health), _batch_spec(step0),
-           jax.tree_util.tree_map(lambda a: jax.sharding.PartitionSpec(), aux))
+    replicated = lambda tree: jax.tree_util.tree_map(lambda a: jax.sharding.PartitionSpec(), tree)  # noqa: E731
+    ins = (last(params), last(state), last(health), _batch_spec(step0), replicated(aux), replicated(timing))
     static = dict(n_frames=n_frames, save_every=save_every, observe=observe, separation=separation)
     n = mesh.devices.size
     local = jax.tree_util.tree_map(
         lambda a: jax.ShapeDtypeStruct(a.shape[:-1] + (a.shape[-1] // n,), a.dtype), (params, state, health, step0))
-    shapes = jax.eval_shape(lambda *a: _core(bsim, *a, aux, **static), *local)
+    shapes = jax.eval_shape(lambda *a: _core(bsim, *a, aux, timing, **static), *local)
     outs = (last(shapes[0]), jax.tree_util.tree_map(lambda a: _batch_spec(a, 1), shapes[1]), last(shapes[2]))
     if separation:
         outs += (_batch_spec(shapes[3]),)
     body = lambda *a: _core(bsim, *a, **static)                             # noqa: E731
     return jax.shard_map(body, mesh=mesh, in_specs=ins, out_specs=outs, check_vma=False)(
-        params, state, health, step0, aux)
+        params, state, health, step0, aux, timing)
 
 
 _sharded_jit = _LazyJit(_sharded, ("bsim", "mesh", "n_frames", "save_every", "observe", "separation"))
@@ -987,7 +1005,7 @@ def _executor():
 
 
 def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0, observe=None, aux=None,
-            separation=False):
+            separation=False, pad_to=None):
     """Run ``n_frames * save_every`` steps of every point, checking health every ``save_every``.
 
     Compiled once per (simulator, n_frames, save_every, observe); new parameter values, states
@@ -1016,6 +1034,12 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
         the two objects' bounding boxes over every step of the call, its start included
         (:func:`contact_pairs` order; (0, B) without such pairs): where it exceeds a pair's
         contact reach, neither object felt the other.
+      pad_to: a static frame count (at least ``n_frames``): compile one program of ``pad_to``
+        frames in which ``n_frames`` and ``save_every`` are data, so that every piece of a run
+        cut into pieces of at most ``pad_to`` frames, whatever its length and frame spacing,
+        runs the same compiled code (a new program costs seconds). The frames past ``n_frames``
+        run no step: the state and health are those after ``n_frames`` frames, and the
+        observations have ``pad_to`` frames, the ones past ``n_frames`` repeating the last.
 
     Returns:
       (final internal state, stacked observations (frames, B, ...) or None, health), and the
@@ -1028,11 +1052,18 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
         jax.device_put(np.broadcast_to(np.asarray(step0, np.int32), (batch,)).copy())    # no one-op program
     if health is None:
         health = initial_health(bsim, state, step0)
-    static = dict(n_frames=int(n_frames), save_every=int(save_every), observe=observe, separation=bool(separation))
+    if pad_to is None:
+        static = dict(n_frames=int(n_frames), save_every=int(save_every), observe=observe, separation=bool(separation))
+        timing = None
+    else:
+        if pad_to < n_frames:
+            raise ValueError(f"pad_to ({pad_to}) must be at least n_frames ({n_frames})")
+        static = dict(n_frames=int(pad_to), save_every=0, observe=observe, separation=bool(separation))
+        timing = jax.device_put(np.asarray([n_frames, save_every], np.int32))
     chunk = bsim.chunk or bsim.batch
     n = -(-batch // chunk)
     if batch == chunk:
-        return _core_jit(bsim, params, state, health, step0, aux, **static)
+        return _core_jit(bsim, params, state, health, step0, aux, timing, **static)
     # any other number of lanes runs as chunks of the compiled width (the last one padded): one
     # compiled core serves every lane count, so a call of a few points costs what its chunks do,
     # not the whole batch
@@ -1044,7 +1075,7 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
         groups = -(-n // d)
         mesh = _mesh(devices[:d])
         parts = _split((params, state, health, step0), groups, d * chunk)
-        return _join([_sharded_jit(bsim, mesh, *part, aux, **static) for part in parts], batch)
+        return _join([_sharded_jit(bsim, mesh, *part, aux, timing, **static) for part in parts], batch)
     parts = _split((params, state, health, step0), n, chunk)
     out = [None] * n
     todo = iter(range(1, n))
@@ -1056,11 +1087,11 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
                 i = next(todo, None)
             if i is None:
                 return
-            out[i] = jax.block_until_ready(_core_jit(bsim, *parts[i], aux, **static))
+            out[i] = jax.block_until_ready(_core_jit(bsim, *parts[i], aux, timing, **static))
 
     # Chunk 0 here first (it compiles, once), then this thread and (cores - 1) pool threads each
     # run one chunk at a time: as many chunks in flight as cores.
-    out[0] = _core_jit(bsim, *parts[0], aux, **static)
+    out[0] = _core_jit(bsim, *parts[0], aux, timing, **static)
     helpers = [_executor().submit(work) for _ in range(min(_n_cores(), n) - 1)]
     jax.block_until_ready(out[0])
     work()
