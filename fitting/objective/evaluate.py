@@ -517,7 +517,7 @@ class Evaluator:
                         pad_to=size if self.chunk_frames else None)
                     if track:
                         closest = np.minimum(closest, np.min(np.asarray(sep[0], np.float64) / self._reach, axis=0))
-                    chunks.append(np.asarray(obs[:n_fr], np.float64))     # (n_fr, B, V, 3)
+                    chunks.append(np.asarray(obs, np.float64)[:n_fr])     # (n_fr, B, V, 3)
                     done += gap * n_fr
                     count -= n_fr
             fr = np.concatenate(chunks, axis=0).transpose(1, 0, 2, 3)[:live]
