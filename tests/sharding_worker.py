@@ -1,6 +1,6 @@
 """Run by tests/test_scale_out.py in a subprocess whose XLA_FLAGS force N host devices: a batched
-contact rollout (padding, separations, a blown-up lane), the fit's Evaluator (its global stage)
-and a sweep with a target; every array goes to one .npz for comparison across device counts.
+contact rollout (padding, separations, a blown-up lane), the fit's Evaluator (its global stage,
+the target's frames in one piece and in padded pieces) and a sweep with a target; every array goes to one .npz for comparison across device counts.
 
 Usage: python tests/sharding_worker.py OUT.npz
 """
@@ -37,6 +37,9 @@ def collect():
     thetas = np.asarray(prob.theta0)[None] + np.linspace(-0.4, 0.4, 9)[:, None, None] * np.array([[[1.0, -0.5]]])
     e = Evaluator(prob, calibrate=False)(thetas, keep_frames=True)
     res.update(ev_loss=e.loss, ev_residuals=e.residuals, ev_ok=e.ok)
+    # and in pieces of 3 of its 8 frames: one padded program for the pieces of 3 and of 2
+    e = Evaluator(prob, calibrate=False, chunk_frames=3)(thetas, keep_frames=True)
+    res.update(ev_pieces_loss=e.loss, ev_pieces_ok=e.ok)
     # 3. a sweep against a target
     from jaxplush.fitting.sweep import sweep
     from jaxplush.fitting.targets import make_target

@@ -314,3 +314,29 @@ def test_a_padded_piece_of_a_driven_scene_reads_the_path_step_by_step():
     ref, got = _pieces(bsim, pb, None, pieces, None, False), _pieces(bsim, pb, None, pieces, 3, False)
     np.testing.assert_array_equal(got[0], ref[0])
     assert np.abs(ref[0][-1] - ref[0][0]).max() > 1e-3                     # the path moved it
+
+
+def test_a_target_whose_last_frame_is_closer_runs_one_rollout_program_in_one_piece_or_in_chunks():
+    """A target whose last frame is closer to the one before (190 steps saved every 25: runs of
+    7 frames 25 steps apart and 1 frame 15 after) runs on one compiled rollout per evaluator,
+    whole or in chunks of 3 frames, and both give the losses and frames of the target's steps."""
+    from jaxplush.fitting import fitter as F
+    from jaxplush.fitting.objective.evaluate import Evaluator
+    from jaxplush.fitting.targets import make_target
+    scene, _ = two_balls(sub=1, gap=-0.006)
+    prob = F.build_problem(scene, make_target(scene, 190, DT, 25), ("k_structural",), objects=["a", "b"])
+    assert len(set(np.diff(np.concatenate([[0], prob.loss.frame_steps])))) == 2
+    thetas = np.asarray(prob.theta0)[None] + np.array([0.0, 0.3, -0.3])[:, None, None]
+    n0 = batched._core_jit._cache_size()
+    whole = Evaluator(prob, calibrate=False)(thetas, keep_frames=True)
+    assert batched._core_jit._cache_size() <= n0 + 1
+    n1 = batched._core_jit._cache_size()
+    pieces = Evaluator(prob, calibrate=False, chunk_frames=3)(thetas, keep_frames=True)
+    assert batched._core_jit._cache_size() <= n1 + 1
+    assert whole.ok.all() and pieces.ok.all() and np.ptp(whole.loss) > 0
+    scale = np.abs(whole.frames).max()
+    assert np.abs(pieces.frames - whole.frames).max() <= 1e-6 * scale
+    np.testing.assert_allclose(pieces.loss, whole.loss, rtol=1e-4)
+    # the frames are the target's: the last, 15 steps after the one before, is where the truth is
+    truth = Evaluator(prob, calibrate=False)(np.asarray(prob.theta0)[None], keep_frames=True).frames[0]
+    np.testing.assert_allclose(truth[-1], np.asarray(prob.target.positions)[-1], atol=1e-5 * scale)

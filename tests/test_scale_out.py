@@ -67,6 +67,8 @@ def test_four_devices_give_the_one_device_results_bit_for_bit(tmp_path):
     assert np.all(np.isfinite(one["frames"][:, [0, 19]]))
     assert np.max(one["sep"][0, [0, 19]]) < 0.01               # the balls, 4 cm apart, met
     assert one["ev_ok"].all() and np.ptp(one["ev_loss"]) > 0 and np.isfinite(one["sweep_loss"]).all()
+    assert one["ev_pieces_ok"].all()
+    np.testing.assert_allclose(one["ev_pieces_loss"], one["ev_loss"], rtol=1e-4)   # pieces: the same run
 
 
 def test_a_batch_is_split_one_chunk_per_device(monkeypatch):

@@ -503,18 +503,19 @@ class Evaluator:
             chunks = []
             done = 0
             closest = np.inf
-            for g, (gap, count) in enumerate(runs):
+            # every piece (a shorter last one, another frame spacing) runs one compiled rollout
+            # with its length and spacing as data (batched.rollout's pad_to): of ``chunk_frames``
+            # frames in chunks, else of the longest run's where the runs differ (a last frame
+            # closer to the one before); a program of its own would be a compile of seconds, for
+            # every substep count
+            pad = self.chunk_frames or (max(c for _, c in runs) if len(runs) > 1 else None)
+            for gap, count in runs:
                 size = self.chunk_frames or count
                 while count > 0:
                     n_fr = min(size, count)
-                    # in chunks, every piece (a shorter last one, another frame spacing) runs the
-                    # one compiled rollout of ``chunk_frames`` frames with its length and spacing
-                    # as data (batched.rollout's pad_to): a program of its own would be a compile
-                    # of seconds, for every substep count
                     state, obs, health, *sep = batched.rollout(
                         bsim, p, state, n_fr, gap, health=health, step0=first + done,
-                        observe=batched.positions_observer, separation=track,
-                        pad_to=size if self.chunk_frames else None)
+                        observe=batched.positions_observer, separation=track, pad_to=pad)
                     if track:
                         closest = np.minimum(closest, np.min(np.asarray(sep[0], np.float64) / self._reach, axis=0))
                     chunks.append(np.asarray(obs, np.float64)[:n_fr])     # (n_fr, B, V, 3)
@@ -580,7 +581,6 @@ class Evaluator:
         needs no run to measure the need (a single-scene simulation and its compiles), and the
         problem starts with headroom (:func:`jaxplush.fitting.objective.problem.build_problem`), so this is rare."""
         import dataclasses
-        import warnings
         import jaxplush
         from jaxplush.model import contact
         prob = self.prob
