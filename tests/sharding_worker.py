@@ -1,6 +1,7 @@
 """Run by tests/test_scale_out.py in a subprocess whose XLA_FLAGS force N host devices: a batched
 contact rollout (padding, separations, a blown-up lane), the fit's Evaluator (its global stage,
-the target's frames in one piece and in padded pieces) and a sweep with a target; every array goes to one .npz for comparison across device counts.
+the target's frames in one piece and in padded pieces) and a sweep with a target; every array
+goes to one .npz for comparison across device counts.
 
 Usage: python tests/sharding_worker.py OUT.npz
 """
