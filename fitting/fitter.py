@@ -246,7 +246,8 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
         # its float32 runs on the batched simulator the search runs next (no program of their own)
         prob = measure_predictability(prob, report, batched=True, chunk_frames=_first_horizon(prob, opts))
     full = prob
-    prob = planned = plan_shooting(prob, opts.shooting, report, opts.multiple_shooting)
+    # its measurements run on the program the search compiles next (pieces of its first horizon)
+    prob = planned = plan_shooting(prob, opts.shooting, report, opts.multiple_shooting, _first_horizon(prob, opts))
     last = [prior]
 
     def write(state, status):
@@ -393,7 +394,8 @@ def _replan(full, prob, theta, opts, report=None):
     pred = _predictability_at(full, theta, batched=True, chunk_frames=_first_horizon(full, opts))
     if pred is None:
         return None
-    sh, again = _shooting.plan(dataclasses.replace(full, predictability=pred), "auto", opts.multiple_shooting)
+    sh, again = _shooting.plan(dataclasses.replace(full, predictability=pred), "auto", opts.multiple_shooting,
+                               _first_horizon(full, opts))
     new = dataclasses.replace(again, shooting=sh)
     if _shooting.span(new) <= _shooting.span(prob):
         return None

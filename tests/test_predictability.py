@@ -289,3 +289,29 @@ def test_the_fits_measurement_runs_its_float32_twins_on_the_batched_simulator():
     np.testing.assert_allclose(lanes.motion_rms, single.motion_rms, atol=1e-4 * lanes.motion)
     assert lanes.predictable and single.predictable
     assert lanes.floor < 1e-4 * lanes.motion and single.floor < 1e-4 * single.motion
+
+
+def test_a_last_frame_off_the_grid_is_measured_on_the_batched_simulator_too():
+    """A target whose last frame lies off its frames' grid (205 steps saved every 10, and the
+    last) is measured on an even grid that ends on its last step, so its float32 twins still run as
+    lanes of the batched simulator (before, they ran on single-scene programs of their own: two
+    per run, the last frame's one). A long run saved on a coarse irregular grid gets an even grid
+    whose step divides its last step (4720 steps in 51 frames: every 80, not 92)."""
+    from types import SimpleNamespace
+    from jaxplush.fitting.judge import result as R
+    scene = icosphere_scene(dashpot=0.4, k=161.0, floor=-0.15)
+    target = make_target(icosphere_scene(dashpot=0.4, k=161.0, floor=-0.15, translate=(0, 2e-3, 0)), 205, 5e-4, 10)
+    assert target.steps[-1] == 205 and target.steps[-2] == 200
+    assert R._predictability_grid(target) == (205, 5)
+    prob = F.build_problem(scene, target, ("k_structural",), noise_free=True)
+    with compiles() as seen:
+        pred = R._predictability_at(prob, batched=True, chunk_frames=8)
+    single_f32 = [x for x in seen if x.startswith(("Compiling jit(_core)", "Compiling jit(init_fn)"))
+                  and "float32[42,3]" in x]
+    assert not single_f32, single_f32
+    assert pred is not None and pred.steps[-1] == 205 and pred.predictable
+    assert pred.floor < 1e-4 * pred.motion
+    coarse = SimpleNamespace(steps=np.r_[np.arange(1, 51) * 94, 4720], n_frames=51)
+    assert R._predictability_grid(coarse) == (4720, 80)
+    prime = SimpleNamespace(steps=np.r_[np.arange(1, 51) * 94, 4721], n_frames=51)
+    assert R._predictability_grid(prime) == (4721, 92)      # no divisor near: the grid of old

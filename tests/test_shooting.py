@@ -186,6 +186,33 @@ def test_a_final_frame_off_the_grid_is_shot_by_the_last_segment(free_fall):
     np.testing.assert_allclose(shot, whole, atol=1e-3 * np.abs(whole[-1]).max())
 
 
+def test_the_plan_measures_on_the_program_the_search_runs():
+    """Issue 52 (few programs per fit): given the fit's piece length, the plan's measurements (the
+    start's rollout, the segments from node states, their velocity refinement against the next
+    frame) and the fit's own evaluations run on one compiled batched rollout, and measure what
+    they measure without it: the same shooting floor, to rounding. Two 42-vertex balls side by
+    side (soft-soft contact switched on, so each run also measures how close they come) falling
+    onto a floor, both k fitted."""
+    from conftest import compiles
+    from test_contact import two_balls
+    truth, _ = two_balls(sub=1, gap=0.02, k=180.0, gravity=(0.0, -9.81, 0.0), floor=-0.13)
+    start, _ = two_balls(sub=1, gap=0.02, k=150.0, gravity=(0.0, -9.81, 0.0), floor=-0.13)
+    target = make_target(truth, 200, 5e-4, 10)
+    prob = _problem(start, target)
+    with compiles() as seen:
+        sh, _ = S.plan(prob, 4, chunk_frames=8)
+        e = Evaluator(prob, chunk_frames=8)(prob.theta0[None])
+        shot = S.ShootingEvaluator(prob, 4, chunk_frames=8)(prob.theta0[None])
+    # one rollout program: before, the segments (4 frames) and the refinement (1 frame, no
+    # separation) compiled two more
+    rollouts = [x for x in seen if x.startswith("Compiling jit(_core)")]
+    assert len(rollouts) == 1, rollouts
+    assert e.ok[0] and shot.ok[0] and np.isfinite(e.separation[0])
+    own, _ = S.plan(prob, 4)                        # each run in one piece, on programs of its own
+    motion = float(np.sqrt(np.mean((target.positions - start.vertices) ** 2)))
+    assert sh.floor == pytest.approx(own.floor, rel=1e-3, abs=1e-6 * motion)
+
+
 def test_frames_off_an_even_grid_say_so(bean):
     """A target whose frames are not on one even grid (a frame missing in the middle) cannot be cut
     into equal segments: auto keeps one rollout and says why, never that the motion is

@@ -212,11 +212,14 @@ _PREDICTABILITY_FRAMES = 4
 def _predictability_grid(target):
     """(steps, save_every) of the predictability measurement over a target: its last step, and
     the largest step that divides every frame's step (or, where that saves too many frames, an
-    even grid with about as many frames as the target)."""
+    even grid with about as many frames as the target, on a step that divides the last one where
+    one lies within a factor of two: a shorter last frame would be a program of its own)."""
     steps = int(target.steps[-1])
     every = int(np.gcd.reduce(np.asarray(target.steps, np.int64)))
     if steps // every > _PREDICTABILITY_FRAMES * target.n_frames + 100:
-        every = max(1, steps // target.n_frames)
+        near = max(1, steps // target.n_frames)
+        whole = [d for d in range(near, max(1, near // 2) - 1, -1) if steps % d == 0]
+        every = whole[0] if whole else near
     return steps, every
 
 
@@ -241,18 +244,18 @@ def _predictability_at(prob, theta=None, batched=False, chunk_frames=None):
 def _batched_lanes(prob, steps, every, chunk_frames=None):
     """``lanes`` for :func:`jaxplush.predictability`: its runs as lanes of the batched simulator
     that the fit's evaluators share (:class:`jaxplush.fitting.objective.evaluate.Evaluator`, the full
-    batch width, the frames in pieces of ``chunk_frames``), so that the measurement compiles no
-    float32 program of its own; None where the evaluator would not run the target batched, or
-    its frames are not the measurement's grid (every ``every`` steps up to ``steps``)."""
+    batch width, the frames in pieces of ``chunk_frames``, with their length and spacing as data),
+    so that the measurement compiles no float32 program of its own; None where the evaluator
+    would not run the target batched, or the grid does not end on its last step."""
     from jaxplush.fitting.objective.evaluate import Evaluator
     ev = Evaluator(prob, calibrate=False, chunk_frames=chunk_frames)
-    grid = every * np.arange(1, steps // every + 1, dtype=np.int64)
-    if not ev.batched or not np.array_equal(ev.steps, grid):
+    if not ev.batched or steps % every:
         return None
+    runs = [(int(every), int(steps // every))]
 
     def lanes(params, starts):
         one = Params(*(np.asarray(a, np.float64) for a in (prob.scene.params if params is None else params)))
-        fr, ok, _, over, _ = ev._run_lanes([one] * len(starts), 1, ev.runs, x0=starts, v0=np.zeros_like(starts),
+        fr, ok, _, over, _ = ev._run_lanes([one] * len(starts), 1, runs, x0=starts, v0=np.zeros_like(starts),
                                            separation=True, width=ev.batch)
         return fr if ok.all() and not over.any() else None
     return lanes

@@ -112,8 +112,9 @@ class Evaluator:
       calibration: a calibration to reuse (:meth:`calibration` of an evaluator of the same scene).
       share: an evaluator of the same scene and dt (another horizon of the same fit) whose
         compiled batched simulators this one reuses.
-      chunk_frames: run the target's frames in chunks of this many (one compiled rollout for
-        every horizon that is a multiple of it); None: each run of frames in one piece.
+      chunk_frames: run the target's frames in chunks of this many, every chunk on one compiled
+        rollout of this many frames (with the chunk's length and spacing as data), for every
+        horizon; None: that of ``share`` (the same program), else each run of frames in one piece.
     """
 
     def __init__(self, prob, batch=None, calibrate=True, calibration=None, share=None, chunk_frames=None):
@@ -130,6 +131,8 @@ class Evaluator:
         # target's frames: evaluators of one fit over different horizons share them (``share``),
         # and run their frames in chunks of ``chunk_frames``, so one compiled rollout serves all
         self._bsims = share._bsims if share is not None else {}
+        if chunk_frames is None and share is not None:
+            chunk_frames = share.chunk_frames
         self.chunk_frames = int(chunk_frames) if chunk_frames else None
         self._single = {}
         self._forward = None            # (problem, compiled forward-mode Jacobian): forward_jacobian
@@ -473,7 +476,9 @@ class Evaluator:
         which a lane failed by an inverted volume alone (-1: it did not, or failed otherwise).
         ``width``: the batch width to run at (default :meth:`_width`'s choice)."""
         out, good, clamp, over, seps, invs = [], [], [], [], [], []
-        track = separation and self._reach is not None
+        # the closest approach is measured in every run that can have one, asked for or not: one
+        # compiled rollout serves both (its cost is a minimum over the pairs the contact finds)
+        track = self._reach is not None
         n_lanes = len(values)
         start = 0
         while start < n_lanes:

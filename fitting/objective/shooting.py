@@ -157,7 +157,6 @@ class ShootingEvaluator(Evaluator):
         return None
 
     def __init__(self, prob, segment_frames, refine=REFINE, **kw):
-        kw.pop("chunk_frames", None)          # a segment runs in one piece
         super().__init__(prob, **kw)
         reason = why_not(prob)
         if reason is not None:
@@ -280,11 +279,12 @@ def evaluator(prob, **kw):
     return Evaluator(prob, **kw)
 
 
-def _floor(prob, segment_frames, refine):
+def _floor(prob, segment_frames, refine, chunk_frames=None):
     """(the shooting floor (module docstring) of ``segment_frames`` frames at the start values, m,
     or None when the start's own rollout does not run; how close the objects came in that rollout,
-    :attr:`jaxplush.fitting.objective.evaluate.Evaluation.separation`, NaN where not measured)."""
-    ev = Evaluator(prob)
+    :attr:`jaxplush.fitting.objective.evaluate.Evaluation.separation`, NaN where not measured).
+    ``chunk_frames``: as :class:`jaxplush.fitting.objective.evaluate.Evaluator`'s."""
+    ev = Evaluator(prob, chunk_frames=chunk_frames)
     e = ev(prob.theta0[None], keep_frames=True)
     sep = math.nan if e.separation is None else float(e.separation[0])
     if not e.ok[0]:
@@ -415,7 +415,7 @@ def check_segments(setting, target, what="shooting (--shooting)"):
                             f"after its start; {fix}")
 
 
-def plan(prob, setting="auto", options=None):
+def plan(prob, setting="auto", options=None, chunk_frames=None):
     """How to shoot a problem (after its predictability was measured).
 
     Args:
@@ -423,6 +423,9 @@ def plan(prob, setting="auto", options=None):
       setting: "off" (single shooting), "auto" (multiple shooting where the horizon is shorter
         than the target and the shooting floor is below single shooting's), or frames per segment.
       options: :class:`jaxplush.fitting.options.ShootingOptions` (None: the defaults).
+      chunk_frames: the frames of the batched rollouts that measure the choice (as
+        :class:`jaxplush.fitting.objective.evaluate.Evaluator`'s; the fit's first horizon, so
+        that they run on the program its search compiles).
 
     Returns:
       (:class:`Shooting`, the problem to fit: a point-cloud target cut at the horizon under "auto").
@@ -441,7 +444,7 @@ def plan(prob, setting="auto", options=None):
         if reason is not None:
             raise JaxplushError(f"--shooting {setting}: multiple shooting cannot run: {reason}")
         seg = max(MIN_SEGMENT, int(setting))
-        floor, _ = _floor(prob, seg, refine)
+        floor, _ = _floor(prob, seg, refine, chunk_frames)
         return Shooting(seg, floor, single, refine, f"multiple shooting in segments of {seg} frames (asked for)"
                         + ("" if floor is None else f"; shooting floor {floor * 1e3:.3g} mm"), options=o), prob
     if pred is None or not math.isfinite(pred.horizon_time):
@@ -460,13 +463,13 @@ def plan(prob, setting="auto", options=None):
         return Shooting(None, single_floor=single, reason=(
             f"single shooting (its floor, {single * 1e3:.3g} mm, is below half of what a converged fit "
             f"needs, {need * 1e3:.3g} mm)")), prob
-    floor, sep = _floor(prob, seg, refine)
+    floor, sep = _floor(prob, seg, refine, chunk_frames)
     if floor is None or single is None or floor >= single:
         why = ("the shooting floor could not be measured" if floor is None or single is None else
                f"node states estimated from the frames ({floor * 1e3:.3g} mm) are no better than "
                f"single shooting's floor ({single * 1e3:.3g} mm)")
         return Shooting(None, floor, single, refine, f"single shooting ({why})", options=o), prob
-    ms = ShootingEvaluator(prob, seg, refine)
+    ms = ShootingEvaluator(prob, seg, refine, chunk_frames=chunk_frames)
     res_ms = resolution(ms, prob.theta0, floor, sep, o.resolution_step)
     res_single = resolution(Evaluator(prob, calibration=ms.calibration(), share=ms), prob.theta0, single, sep,
                             o.resolution_step)
@@ -497,10 +500,10 @@ def restricted(full, prob):
     return span(prob) < (int(full.target.n_frames),) * 2
 
 
-def plan_shooting(prob, setting, report=None, options=None):
+def plan_shooting(prob, setting, report=None, options=None, chunk_frames=None):
     """The problem with :attr:`~jaxplush.fitting.objective.problem.Problem.shooting` planned (:func:`plan`,
-    with ``options``); ``report`` (if given) gets the line that says what was chosen."""
-    sh, prob = plan(prob, setting, options)
+    with ``options`` and ``chunk_frames``); ``report`` (if given) gets the line that says what was chosen."""
+    sh, prob = plan(prob, setting, options, chunk_frames)
     if report is not None:
         report("shooting: " + sh.reason)
     return dataclasses.replace(prob, shooting=sh)
