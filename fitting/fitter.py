@@ -242,12 +242,12 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
     checkpoint_path, want_ident = opts.checkpoint.path, opts.identifiability
     prior = _io.load_checkpoint(checkpoint_path, prob, settings, conform=_driver_state) \
         if opts.checkpoint.resume else None
+    # the measurements before the search run on the program it compiles next (pieces of its first horizon)
+    chunk = _first_horizon(prob, opts)
     if opts.predictability:                 # every input checked (a resumed checkpoint too)
-        # its float32 runs on the batched simulator the search runs next (no program of their own)
-        prob = measure_predictability(prob, report, batched=True, chunk_frames=_first_horizon(prob, opts))
+        prob = measure_predictability(prob, report, batched=True, chunk_frames=chunk)
     full = prob
-    # its measurements run on the program the search compiles next (pieces of its first horizon)
-    prob = planned = plan_shooting(prob, opts.shooting, report, opts.multiple_shooting, _first_horizon(prob, opts))
+    prob = planned = plan_shooting(prob, opts.shooting, report, opts.multiple_shooting, chunk)
     last = [prior]
 
     def write(state, status):
