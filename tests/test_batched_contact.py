@@ -346,3 +346,93 @@ def test_a_target_whose_last_frame_is_closer_runs_one_rollout_program_in_one_pie
     # the frames are the target's: the last, 15 steps after the one before, is where the truth is
     truth = Evaluator(prob, calibrate=False)(np.asarray(prob.theta0)[None], keep_frames=True).frames[0]
     np.testing.assert_allclose(truth[-1], np.asarray(prob.target.positions)[-1], atol=1e-5 * scale)
+
+
+def _damped_pair_on_a_floor():
+    """Two 42-vertex balls dropped side by side onto a floor with friction, thrown at each other,
+    with contact friction and the report's damping on one: every term whose step reads the
+    substep length h or the substep count."""
+    from conftest import icosphere_text
+    n = 42
+    text = "floor_friction 0.3\ncontact_friction 0.5\n"
+    text += icosphere_text(1, floor=-0.12, translate=(-0.11, 0, 0), name="a", k=200.0, damping=300.0, nmol=1e-3)
+    text += icosphere_text(1, translate=(0.11, 0.02, 0), name="b", k=250.0, nmol=1e-3, offset=n, header=False)
+    v0 = np.zeros((2 * n, 3))
+    v0[:n, 0], v0[n:, 0] = 1.5, -1.5
+    return jaxplush.parse_scene(text, "<damped pair>"), n, v0
+
+
+def test_the_substep_count_as_data_runs_every_count_on_one_program_with_the_fixed_counts_frames():
+    """Issue 52 (few programs per fit): a batched simulator built with ``substeps=None`` takes the
+    count per call. 1, 2 and 4 substeps run on one compiled rollout and one compiled init, and
+    each gives the frames of the simulator built for that count, to rounding, through a floor
+    landing with friction, a soft-soft impact with contact friction and the report's damping."""
+    from conftest import compiles
+    scene, n, v0 = _damped_pair_on_a_floor()
+    terms = batched.terms_for(scene)
+    assert terms.contact and terms.contact.friction > 0 and terms.floor_friction and terms.verlet_damping
+    dyn = batched.make_batched_simulator(scene, DT, 3, substeps=None, chunk=3)
+    assert dyn.substeps is None and dyn.at_substeps is not None
+    pb = dyn.params(jaxplush.Params(*(np.stack(a, axis=1) for a in zip(*_points(scene)))))
+    x0 = np.asarray(dyn.topology.x0)
+    got = {}
+    with compiles() as seen:
+        for k in (1, 2, 4):
+            state = dyn.init_fn(pb, None, v0, substeps=k)
+            _, frames, health, sep = batched.rollout(dyn, pb, state, 6, 60, observe=batched.positions_observer,
+                                                     separation=True, substeps=k)
+            assert not np.asarray(health.failed).any()
+            got[k] = np.asarray(frames), np.asarray(sep)
+    programs = [x for x in seen if x.startswith("Compiling ")]
+    assert sum(x.startswith("Compiling jit(_core)") for x in programs) == 1, programs
+    assert sum(x.startswith("Compiling jit(init") for x in programs) <= 1, programs
+    reach = 2 * np.max(dyn.terms.contact.thickness)
+    for k in (1, 2, 4):
+        fixed = batched.make_batched_simulator(scene, DT, 3, substeps=k, chunk=3)
+        _, ref, _, sep = batched.rollout(fixed, pb, fixed.init_fn(pb, None, v0), 6, 60,
+                                         observe=batched.positions_observer, separation=True, pad_to=6)
+        ref, sep = np.asarray(ref), np.asarray(sep)
+        motion = np.linalg.norm(ref - x0)
+        assert np.linalg.norm(got[k][0] - ref) <= 1e-5 * motion, (k, np.linalg.norm(got[k][0] - ref) / motion)
+        assert (sep < reach).all() and np.all(np.abs(got[k][1] - sep) <= 1e-5 * reach)      # they met
+        assert ref[-1, :, :n, 1].min() < -0.11                                                # a landed
+    # the counts differ by the time discretisation only: each halving moves the frames less
+    d12, d24 = (np.linalg.norm(got[a][0] - got[b][0]) for a, b in ((1, 2), (2, 4)))
+    assert 0 < d24 < d12
+
+
+def test_the_substep_count_as_data_is_refused_where_it_cannot_hold():
+    """A driven scene's paths are tabulated per substep length: it needs a fixed count. A simulator
+    with a fixed count refuses another one."""
+    driven = jaxplush.load_scene(os.path.join(SCENES, "lifted.obj"))
+    with pytest.raises(ValueError, match="driven vertices needs a fixed substep count"):
+        batched.make_batched_simulator(driven, 4e-4, 2, substeps=None)
+    scene, n, v0 = _thrown()
+    fixed = batched.make_batched_simulator(scene, DT, 2, substeps=2)
+    pb = fixed.params()
+    with pytest.raises(ValueError, match="runs 2 substeps per step"):
+        batched.rollout(fixed, pb, fixed.init_fn(pb), 1, 5, substeps=1)
+
+
+def test_the_evaluators_points_at_more_substeps_run_the_same_program():
+    """The fit's evaluator runs the points the stability limit sends to more substeps on the
+    program the others run: one compiled rollout and init for two counts, each point's losses
+    those of the count it ran at."""
+    from conftest import compiles
+    from jaxplush.fitting.objective.evaluate import Evaluator
+    prob = _pressed_problem()
+    thetas = np.asarray(prob.theta0)[None] + np.array([0.0, 0.2])[:, None, None]
+    ev = Evaluator(prob, calibrate=False)
+    with compiles() as seen:
+        e = ev(thetas, substeps=np.array([1, 2]), keep_frames=True)
+        e2 = ev(thetas, substeps=np.array([2, 1]), keep_frames=True)
+    assert e.ok.all() and e.substeps.tolist() == [1, 2] and e2.substeps.tolist() == [2, 1]
+    # one simulator (a static argument of the compiled rollout: one per program) for both counts;
+    # compiled here at most once (another test of this bucket may have compiled it already)
+    assert len({id(bsim) for bsim, _ in ev._bsims.values()}) == 1
+    programs = [x for x in seen if x.startswith("Compiling jit(_core)")]
+    assert len(programs) <= 1, programs
+    # a point's frames at 1 and at 2 substeps differ by the time discretisation, which is small
+    scale = np.linalg.norm(e.frames[0] - prob.scene.vertices)
+    for i in range(2):
+        assert 0 < np.linalg.norm(e.frames[i] - e2.frames[i]) <= 1e-2 * scale

@@ -20,6 +20,7 @@ that an optimiser would read as data.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -414,8 +415,9 @@ class Evaluator:
         runs in chunks as narrow as the narrow batch's: then it runs a few points as cheaply (only
         the lanes their chunks need), with no simulator of its own to compile. Runs at more than
         one substep (the few points the stability limit or a blow-up sends there) always take the
-        narrow width, in as many calls as they need: one compiled simulator per substep count,
-        not two (a compile costs 5-20 s with contact; benchmarks/RESULTS.md)."""
+        narrow width, in as many calls as they need: the program the local search's few points
+        run, the count being data of it (:meth:`_bsim`; a compile costs 5-20 s with contact,
+        benchmarks/RESULTS.md)."""
         narrow = max(1, self.batch // 4)
         if self._chunk_of(self.batch) <= self._chunk_of(narrow):
             return self.batch
@@ -433,13 +435,24 @@ class Evaluator:
         """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b``: built once
         per process for a program (:func:`jaxplush.stepping.batched.shared_simulator`), so every
         evaluator of the scene (another horizon, the predictability measurement, a later fit)
-        runs the same compiled code."""
-        key = (n, b, self.prob.sim.terms, self.prob.target.dt)
+        runs the same compiled code. The substep count is data of that program (``substeps=None``;
+        :meth:`_substeps_of` what a rollout is given): the points the stability limit or a
+        blow-up sends to more substeps run the same compiled code as the rest (a program per count
+        cost 8-13 s of a cold three-object contact fit). Not with driven vertices, whose paths
+        are tabulated per substep length: a simulator per count."""
+        dynamic = not self.prob.sim.terms.driven
+        key = (None if dynamic else n, b, self.prob.sim.terms, self.prob.target.dt)
         if key not in self._bsims:
-            bsim = batched.shared_simulator(self.prob.scene, self.prob.target.dt, b, self.prob.sim.terms, n,
-                                            self._chunk_of(b))
+            bsim = batched.shared_simulator(self.prob.scene, self.prob.target.dt, b, self.prob.sim.terms,
+                                            None if dynamic else n, self._chunk_of(b))
             self._bsims[key] = (bsim, bsim.init_fn)
-        return self._bsims[key]
+        bsim, init = self._bsims[key]
+        return (bsim, functools.partial(init, substeps=int(n))) if dynamic else (bsim, init)
+
+    @staticmethod
+    def _substeps_of(bsim, n):
+        """The ``substeps`` argument of :func:`jaxplush.stepping.batched.rollout` for ``n`` substeps on ``bsim``."""
+        return int(n) if bsim.substeps is None else None
 
     def _frames_batched(self, thetas, n):
         """(frames, ok, clamped) of :meth:`_frames` on the batched simulator. Points whose soft-soft
@@ -520,7 +533,8 @@ class Evaluator:
                     n_fr = min(size, count)
                     state, obs, health, *sep = batched.rollout(
                         bsim, p, state, n_fr, gap, health=health, step0=first + done,
-                        observe=batched.positions_observer, separation=track, pad_to=pad)
+                        observe=batched.positions_observer, separation=track, pad_to=pad,
+                        substeps=self._substeps_of(bsim, n))
                     if track:
                         closest = np.minimum(closest, np.min(np.asarray(sep[0], np.float64) / self._reach, axis=0))
                     chunks.append(np.asarray(obs, np.float64)[:n_fr])     # (n_fr, B, V, 3)

@@ -107,13 +107,21 @@ class BatchedSimulator:
       status_fn: (params, x) -> (O, B) int32 health codes (:mod:`jaxplush.stepping.diagnostics`).
       force_fn: (params, x, v) -> (f, volume): internal forces (tuple of 3 (V, B)), volumes
         (O, B) or None without gas.
-      topology, terms, dt, substeps, batch, scene, dtype: how it was built.
+      topology, terms, dt, substeps, batch, scene, dtype: how it was built (``substeps`` None: the
+        count is data of each :func:`rollout`, see ``at_substeps``).
       chunk: points per compiled rollout call (see :func:`rollout`).
       coherent: with soft-soft contact between objects, a :class:`BatchedCoherent` (the step with
         every point's contact candidate lists carried, which :func:`rollout` scans), else None.
       drive, step_rows: with driven vertices, their :class:`_Drive` and ``step_rows(params, state,
         rows)``, the step reading the path from ``drive.rows_of_steps`` (which :func:`rollout`
         computes once per saved frame); else None.
+      at_substeps: with the substep count as data (built with ``substeps=None``), ``at_substeps(n)
+        -> (init_fn, substep_fn, coherent)`` for n substeps of h = dt / n per time step, ``n`` a
+        traced int32 scalar: the init, one substep of h, and the :class:`BatchedCoherent` whose
+        ``step`` is one substep (None without object pairs). :func:`rollout` builds them inside its
+        trace from its ``substeps`` argument, so one compiled program serves every count; the
+        ``init_fn`` then takes ``substeps=n`` too, and ``step_fn`` and ``force_fn`` are those of
+        one substep of dt. None otherwise.
     """
 
     init_fn: Callable
@@ -132,6 +140,7 @@ class BatchedSimulator:
     coherent: object = None
     drive: object = None
     step_rows: Callable = None
+    at_substeps: Callable = None
 
     def params(self, values=None):
         """Broadcast parameters to a batch: ``values`` is a Params of scalars, (O,) or (O, B)
@@ -208,7 +217,10 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
       batch: number of parameter points B advanced together (static).
       integrator: only "verlet" is batched.
       terms: the :class:`jaxplush.model.forces.Terms` to compile (default: :func:`terms_for` the scene).
-      substeps: Verlet steps of dt / substeps per ``step_fn`` call (as in make_simulator).
+      substeps: Verlet steps of dt / substeps per ``step_fn`` call (as in make_simulator); None:
+        the count is data of each :func:`rollout` call (``rollout(..., substeps=n)``), so runs at
+        any count share one compiled program (``BatchedSimulator.at_substeps``; not with driven
+        vertices, whose paths are tabulated per substep length).
       chunk: points per compiled rollout call (:func:`rollout` runs the batch as independent
         chunks, concurrently on the CPU's cores); default :func:`default_chunk` (16 on a CPU,
         the whole batch on a GPU).
@@ -221,17 +233,37 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
       ValueError: bad dt, batch, substeps or chunk.
     """
     dt, batch, substeps, chunk = _checked_batch_args(integrator, dt, batch, substeps, chunk)
-    h = dt / substeps
     terms = terms_for(scene) if terms is None else terms
     check_terms(terms)
+    dynamic = substeps is None
+    if dynamic and terms.driven:
+        raise ValueError("a scene with driven vertices needs a fixed substep count (substeps=n): its paths are "
+                         "tabulated per substep length")
     dtype = jnp.result_type(float)
     topo = compiled.topology(scene)
     model.check_precision(topo, dtype, scene.path, getattr(scene, "driven", ()))
     kernel = _make_force_fn(topo, terms, scene.temperature)
+    h = dt if dynamic else dt / substeps
     touch = _make_contact(topo, terms, h)
-    drive = _make_drive(scene, terms, h, substeps)
-    init_fn, step_fn, step_rows, coherent = _make_verlet(topo, terms, scene, kernel, touch, drive, h, substeps,
-                                                          batch, dtype)
+    drive = _make_drive(scene, terms, h, 1 if dynamic else substeps)
+    init_fn, step_fn, step_rows, coherent = _make_verlet(topo, terms, scene, kernel, touch, drive, h,
+                                                          1 if dynamic else substeps, batch, dtype)
+    at_substeps = None
+    if dynamic:
+        friction = bool(terms.contact) and terms.contact.friction > 0
+
+        def at_substeps(n):
+            # built inside the caller's trace, h = dt / n traced: the contact term is built again
+            # only where its friction clamp reads h
+            n = jnp.asarray(n, jnp.int32)
+            h_n = jnp.asarray(dt, dtype) / n.astype(dtype)
+            t = _make_contact(topo, terms, h_n) if friction else touch
+            init, substep, _, coh = _make_verlet(topo, terms, scene, kernel, t, None, h_n, n, batch, dtype,
+                                                 repeat=False)
+            return init, substep, coh
+
+        def init_fn(params, x0=None, v0=None, step0=0, substeps=1):
+            return at_substeps(substeps)[0](params, x0, v0, step0)
 
     def status_fn(params, x):
         code = diagnostics.status_codes(topo, terms, x)
@@ -248,7 +280,8 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     return BatchedSimulator(init_fn=compiled.jit_once(init_fn), step_fn=step_fn, status_fn=status_fn,
                             force_fn=jax.jit(force_fn),
                             topology=topo, terms=terms, dt=dt, substeps=substeps, batch=batch, scene=scene,
-                            dtype=dtype, chunk=chunk, coherent=coherent, drive=drive, step_rows=step_rows)
+                            dtype=dtype, chunk=chunk, coherent=coherent, drive=drive, step_rows=step_rows,
+                            at_substeps=at_substeps)
 
 
 #: Batched simulators that :func:`shared_simulator` keeps alive for reuse, least recently used
@@ -259,13 +292,14 @@ _SHARED: "collections.OrderedDict" = compiled.register(collections.OrderedDict()
 
 def shared_simulator(scene, dt, batch, terms, substeps=1, chunk=None):
     """:func:`make_batched_simulator` (Verlet), one per program in a process: every caller with the
-    same scene geometry, dt, width, terms, substeps, chunk and dtype gets the same simulator, so
+    same scene geometry, dt, width, terms, substeps (None: as data), chunk and dtype gets the same simulator, so
     they run the same compiled code (a fit's evaluators, its predictability measurement, a later
     fit of the scene). The key is what the compiled code depends on (the scene's fingerprint, as
     :mod:`jaxplush.stepping.compiled` keys single simulators), not the scene's values: pass
     parameter values to :meth:`BatchedSimulator.params` (its default, the first scene's values,
     is not the caller's)."""
-    key = (scene.fingerprint, float(dt), int(batch), terms, int(substeps), None if chunk is None else int(chunk),
+    key = (scene.fingerprint, float(dt), int(batch), terms, None if substeps is None else int(substeps),
+           None if chunk is None else int(chunk),
            jnp.dtype(jnp.result_type(float)).str)
     hit = _SHARED.get(key)
     if hit is None:
@@ -278,27 +312,31 @@ def shared_simulator(scene, dt, batch, terms, substeps=1, chunk=None):
 
 
 def _checked_batch_args(integrator, dt, batch, substeps, chunk):
-    """(dt as a float, batch, substeps and chunk as ints: chunk defaulted and at most batch), or
-    the errors :func:`make_batched_simulator` raises for bad ones."""
+    """(dt as a float, batch, substeps and chunk as ints: chunk defaulted and at most batch;
+    substeps None stays None), or the errors :func:`make_batched_simulator` raises for bad ones."""
     if integrator != "verlet":
         raise NotImplementedError(f"the batched simulator implements only the 'verlet' integrator, "
                                   f"not {integrator!r}")
     dt = float(dt)
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive number, got {dt!r}")
-    for name, value in (("batch", batch), ("substeps", substeps)) + ((("chunk", chunk),) if chunk is not None else ()):
+    checked = (("batch", batch),) + ((("substeps", substeps),) if substeps is not None else ()) + \
+        ((("chunk", chunk),) if chunk is not None else ())
+    for name, value in checked:
         if isinstance(value, bool) or int(value) != value or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    batch, substeps = int(batch), int(substeps)
+    batch, substeps = int(batch), None if substeps is None else int(substeps)
     chunk = default_chunk(batch) if chunk is None else min(int(chunk), batch)
     return dt, batch, substeps, chunk
 
 
-def _make_verlet(topo, terms, scene, kernel, touch, drive, h, substeps, batch, dtype):
-    """The batched damped Verlet scheme on the internal layout: (init_fn, step_fn, coherent) of
-    :class:`BatchedSimulator`, ``substeps`` steps of h per ``step_fn`` call; ``touch``: the
-    :class:`_Contact` of :func:`_make_contact` (None without soft-soft contact); ``drive``: the
-    :class:`_Drive` of :func:`_make_drive` (None without driven vertices)."""
+def _make_verlet(topo, terms, scene, kernel, touch, drive, h, substeps, batch, dtype, repeat=True):
+    """The batched damped Verlet scheme on the internal layout: (init_fn, step_fn, step_rows,
+    coherent) of :class:`BatchedSimulator`, ``substeps`` steps of h per ``step_fn`` call; ``touch``:
+    the :class:`_Contact` of :func:`_make_contact` (None without soft-soft contact); ``drive``: the
+    :class:`_Drive` of :func:`_make_drive` (None without driven vertices). ``repeat`` False
+    (``BatchedSimulator.at_substeps``: h and ``substeps`` traced, no driven vertices): ``step_fn``
+    and the coherent step are one substep of h, the report's damping that of one of ``substeps``."""
     gravity = tuple(float(g) for g in scene.gravity)
     fixed = topo.fixed
     x0_fixed = np.ascontiguousarray(topo.x0[fixed].T)                 # (3, P)
@@ -357,6 +395,8 @@ def _make_verlet(topo, terms, scene, kernel, touch, drive, h, substeps, batch, d
             x_new, u_new = floor(x, x_new, u_new, (free, px[1]))
         return State(pin(x_new, x0_fixed), pin(u_new))
 
+    if not repeat:
+        return init_fn, substep, None, _coherent_step(touch, substep, 1)
     if drive is None:
         return init_fn, integrators.repeat_substeps(substep, substeps), None, _coherent_step(touch, substep, substeps)
 
@@ -796,20 +836,31 @@ def _pair_separation(bsim, x):
 def _core(bsim, params, state, health, step0, aux, timing=None, *, n_frames, save_every, observe, separation=False):
     """The batched rollout (:func:`rollout`): ``n_frames`` frames of ``save_every`` steps, or with
     ``timing`` (traced (2,) int32: live frames, steps per frame; ``save_every`` then unused) a scan
-    of ``n_frames`` frames of which only the first ``timing[0]`` run, ``timing[1]`` steps each."""
+    of ``n_frames`` frames of which only the first ``timing[0]`` run, ``timing[1]`` steps each.
+    A simulator with the substep count as data (``bsim.substeps`` None) takes it as ``timing[2]``:
+    each step is then that many substeps of dt / timing[2]."""
     coherent = bsim.coherent
     track = bool(separation) and bool(contact_pairs(bsim))
     driven = bsim.drive is not None        # then every step reads the path's rows at its lanes' steps
+    n_sub = None
+    step_fn = bsim.step_fn
+    if bsim.substeps is None:
+        # one substep of h = dt / n_sub, run n_sub times per step (the candidate lists, as their
+        # fresh search below, do not depend on h)
+        n_sub = timing[2]
+        _, step_fn, by_h = bsim.at_substeps(n_sub)
     if coherent is None:
         def one(s, cache, rows):
-            return (bsim.step_rows(params, s, rows) if driven else bsim.step_fn(params, s)), cache
+            return (bsim.step_rows(params, s, rows) if driven else step_fn(params, s)), cache
         cache0 = None
     else:
         # soft-soft contact: every point's candidate lists ride along in the carry, as in
         # jaxplush.stepping.rollouts (searched afresh at the start of each call), with their
         # sticky per-object overflow flags
+        stepper = coherent if n_sub is None else by_h
+
         def one(s, cache, rows):
-            return coherent.step_rows(params, s, cache, rows) if driven else coherent.step(params, s, cache)
+            return coherent.step_rows(params, s, cache, rows) if driven else stepper.step(params, s, cache)
         cache0 = coherent.init(state.x)
 
     def steps(s, cache, first, gap=None):
@@ -823,15 +874,20 @@ def _core(bsim, params, state, health, step0, aux, timing=None, *, n_frames, sav
         fold = lambda st: State(tuple(a.reshape(v // r, r * b) for a in st.x), st.v)       # noqa: E731
         unfold = lambda st: State(tuple(a.reshape(v, b) for a in st.x), st.v)              # noqa: E731
 
-        def body(c, n):
+        def body(c, n, step_end=None):
             if track:                  # the closest the pairs' boxes came, after every step
                 (cache, sep) = c[1]
                 s, cache = one(unfold(c[0]), cache, n)
-                return (fold(s), (cache, jnp.minimum(sep, _pair_separation(bsim, s.x)))), None
+                closer = jnp.minimum(sep, _pair_separation(bsim, s.x))
+                if step_end is not None:           # (substeps as data: after a step's last substep)
+                    closer = jnp.where(step_end, closer, sep)
+                return (fold(s), (cache, closer)), None
             s, cache = one(unfold(c[0]), c[1], n)
             return (fold(s), cache), None
         if gap is not None:
             def loop(j, c):
+                if n_sub is not None:             # j counts substeps
+                    return body(c, None, (j + 1) % n_sub == 0)[0]
                 return body(c, bsim.drive.rows_of_steps(first + j, 1)[0] if driven else None)[0]
             s, cache = jax.lax.fori_loop(0, gap, loop, (fold(s), cache))
             return unfold(s), cache
@@ -847,7 +903,8 @@ def _core(bsim, params, state, health, step0, aux, timing=None, *, n_frames, sav
             s, cache = steps(s, cache, step0 + i * every)
         else:                           # a frame past the live ones runs no step
             live = i < timing[0]
-            s, cache = steps(s, cache, step0 + i * every, jnp.where(live, every, 0))
+            count = jnp.where(live, every, 0)
+            s, cache = steps(s, cache, step0 + i * every, count if n_sub is None else count * n_sub)
         if track:
             cache, sep = cache
         step = step0 + (i + 1) * every                                       # (B,)
@@ -1005,7 +1062,7 @@ def _executor():
 
 
 def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0, observe=None, aux=None,
-            separation=False, pad_to=None):
+            separation=False, pad_to=None, substeps=None):
     """Run ``n_frames * save_every`` steps of every point, checking health every ``save_every``.
 
     Compiled once per (simulator, n_frames, save_every, observe); new parameter values, states
@@ -1040,6 +1097,10 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
         runs the same compiled code (a new program costs seconds). The frames past ``n_frames``
         run no step: the state and health are those after ``n_frames`` frames, and the
         observations have ``pad_to`` frames, the ones past ``n_frames`` repeating the last.
+      substeps: with a simulator built with ``substeps=None``, the substeps per step of this call
+        (data of the program, as ``n_frames`` and ``save_every`` are with ``pad_to``, which then
+        defaults to ``n_frames``); the state must come from its ``init_fn`` at the same count.
+        Otherwise None or the simulator's own count.
 
     Returns:
       (final internal state, stacked observations (frames, B, ...) or None, health), and the
@@ -1047,6 +1108,14 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     """
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
+    if bsim.substeps is None:
+        substeps = 1 if substeps is None else substeps
+        if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
+            raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+        pad_to = n_frames if pad_to is None else pad_to
+    elif substeps is not None and substeps != bsim.substeps:
+        raise ValueError(f"this simulator runs {bsim.substeps} substeps per step (built with substeps="
+                         f"{bsim.substeps}), not {substeps}: build it with substeps=None to give the count per call")
     batch = lanes(state)
     step0 = jnp.broadcast_to(jnp.asarray(step0, jnp.int32), (batch,)) if _traced(step0) else \
         jax.device_put(np.broadcast_to(np.asarray(step0, np.int32), (batch,)).copy())    # no one-op program
@@ -1059,7 +1128,8 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
         if pad_to < n_frames:
             raise ValueError(f"pad_to ({pad_to}) must be at least n_frames ({n_frames})")
         static = dict(n_frames=int(pad_to), save_every=0, observe=observe, separation=bool(separation))
-        timing = jax.device_put(np.asarray([n_frames, save_every], np.int32))
+        timing = [n_frames, save_every] + ([int(substeps)] if bsim.substeps is None else [])
+        timing = jax.device_put(np.asarray(timing, np.int32))
     chunk = bsim.chunk or bsim.batch
     n = -(-batch // chunk)
     if batch == chunk:
@@ -1105,13 +1175,13 @@ def positions_observer(params, i, x, aux):
     return jnp.stack(x, axis=-1).transpose(1, 0, 2)
 
 
-def locate_failures(bsim, params, health):
+def locate_failures(bsim, params, health, substeps=None):
     """Find the exact failing step of every failed point by re-running it from its last healthy
     state one step at a time (points are independent, so all are re-run together).
 
     Returns:
       (step (O, B), code (O, B)) int numpy arrays: the first step at which each object of each
-      point was unhealthy and why (-1 / diagnostics.OK where none).
+      point was unhealthy and why (-1 / diagnostics.OK where none). ``substeps``: as :func:`rollout`'s.
     """
     bad = np.asarray(health.bad_step)
     code = np.asarray(health.code)
@@ -1120,7 +1190,8 @@ def locate_failures(bsim, params, health):
     start = np.asarray(health.good_step)
     span = int(np.max(np.where(bad >= 0, bad - start[None], 0)))
     fresh = initial_health(bsim, health.good_state, start)
-    _, _, h = rollout(bsim, params, health.good_state, max(span, 1), 1, health=fresh, step0=start)
+    _, _, h = rollout(bsim, params, health.good_state, max(span, 1), 1, health=fresh, step0=start,
+                      substeps=substeps)
     b, c = np.asarray(h.bad_step), np.asarray(h.code)
     found = (bad >= 0) & (b >= 0)
     # (found is all of bad >= 0 for a deterministic step; otherwise keep the frame-level record)

@@ -199,7 +199,9 @@ def make_constrain(topo, terms, scene, dt, drive=None):
     x0_soa = np.ascontiguousarray(topo.x0.T)
     mu = float(terms.floor_friction)
     restitution = float(terms.floor_restitution)
-    v_rest = max(2.0 * abs(float(scene.gravity[1])) * dt, 1e-9)
+    # (dt may be traced: the batched engine's step when its substep count is data)
+    v_rest = 2.0 * abs(float(scene.gravity[1])) * dt
+    v_rest = max(v_rest, 1e-9) if isinstance(v_rest, float) else jnp.maximum(v_rest, 1e-9)
 
     def constrain(x_old, x, v, k=None):
         if terms.floor:

@@ -167,11 +167,17 @@ def damping_rate(damping, dt):
 def damping_keep(damping, substeps=1):
     """Verlet's velocity factor per (sub)step for the report's damping D, which is defined per time
     step dt: 1 - 1/D with one step per dt, (1 - 1/D)^(1/substeps) with substeps, so the decay per
-    dt (and the physical damping) does not change when a run is substepped."""
+    dt (and the physical damping) does not change when a run is substepped. ``substeps``: an int,
+    or a traced integer scalar (a count that is data of the compiled program)."""
     f = damping_factor(damping)
-    if substeps == 1:
+    given = isinstance(substeps, (int, np.integer))
+    if given and substeps == 1:
         return 1.0 - f
-    return jnp.exp(jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / substeps)
+    n = substeps if given else jnp.asarray(substeps).astype(f.dtype)
+    many = jnp.exp(jnp.log1p(-jnp.minimum(f, 1.0 - jnp.finfo(f.dtype).eps)) / n)
+    # a count given as data (the batched engine's runtime substeps): one substep keeps 1 - f exactly,
+    # as a static count of one does
+    return many if given else jnp.where(n == 1, 1.0 - f, many)
 
 
 def repeat_substeps(step, substeps, indexed=False):
