@@ -403,7 +403,7 @@ def test_the_substep_count_as_data_runs_every_count_on_one_program_with_the_fixe
 
 def test_the_substep_count_as_data_is_refused_where_it_cannot_hold():
     """A driven scene's paths are tabulated per substep length: it needs a fixed count. A simulator
-    with a fixed count refuses another one."""
+    with a fixed count refuses another one, and one with the count as data requires it."""
     driven = jaxplush.load_scene(os.path.join(SCENES, "lifted.obj"))
     with pytest.raises(ValueError, match="driven vertices needs a fixed substep count"):
         batched.make_batched_simulator(driven, 4e-4, 2, substeps=None)
@@ -412,6 +412,9 @@ def test_the_substep_count_as_data_is_refused_where_it_cannot_hold():
     pb = fixed.params()
     with pytest.raises(ValueError, match="runs 2 substeps per step"):
         batched.rollout(fixed, pb, fixed.init_fn(pb), 1, 5, substeps=1)
+    dyn = batched.make_batched_simulator(scene, DT, 2, substeps=None)      # the count is not guessed
+    with pytest.raises(ValueError, match="takes its substep count per call"):
+        batched.rollout(dyn, pb, dyn.init_fn(pb, substeps=2), 1, 5)
 
 
 def test_the_evaluators_points_at_more_substeps_run_the_same_program():

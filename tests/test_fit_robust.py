@@ -107,7 +107,7 @@ def test_a_shorter_last_chunk_of_frames_reuses_the_compiled_rollout_and_ignores_
         """The first frame at which a run of theta at one substep fails (None: it runs through)."""
         bsim, init = whole._bsim(1, whole._width(1))
         p = bsim.params(prob.params_at(theta))
-        _, _, h = batched.rollout(bsim, p, init(p), target.n_frames, 4)
+        _, _, h = batched.rollout(bsim, p, init(p), target.n_frames, 4, substeps=1)
         bad = np.asarray(h.bad_step)[:, 0]
         return int(bad[bad >= 0].min()) // 4 if (bad >= 0).any() else None
 

@@ -435,11 +435,11 @@ class Evaluator:
         """(batched simulator, its jitted init) for ``n`` substeps and batch width ``b``: built once
         per process for a program (:func:`jaxplush.stepping.batched.shared_simulator`), so every
         evaluator of the scene (another horizon, the predictability measurement, a later fit)
-        runs the same compiled code. The substep count is data of that program (``substeps=None``;
-        :meth:`_substeps_of` what a rollout is given): the points the stability limit or a
-        blow-up sends to more substeps run the same compiled code as the rest (a program per count
-        cost 8-13 s of a cold three-object contact fit). Not with driven vertices, whose paths
-        are tabulated per substep length: a simulator per count."""
+        runs the same compiled code. The substep count is data of that program (``substeps=None``,
+        the count given to each rollout): the points the stability limit or a blow-up sends to
+        more substeps run the same compiled code as the rest (seed 601's case 70, three objects
+        with contact, cold: 19.3 s of compiles, against 39.7 s with a program per count). Not with
+        driven vertices, whose paths are tabulated per substep length: a simulator per count."""
         dynamic = not self.prob.sim.terms.driven
         key = (None if dynamic else n, b, self.prob.sim.terms, self.prob.target.dt)
         if key not in self._bsims:
@@ -448,11 +448,6 @@ class Evaluator:
             self._bsims[key] = (bsim, bsim.init_fn)
         bsim, init = self._bsims[key]
         return (bsim, functools.partial(init, substeps=int(n))) if dynamic else (bsim, init)
-
-    @staticmethod
-    def _substeps_of(bsim, n):
-        """The ``substeps`` argument of :func:`jaxplush.stepping.batched.rollout` for ``n`` substeps on ``bsim``."""
-        return int(n) if bsim.substeps is None else None
 
     def _frames_batched(self, thetas, n):
         """(frames, ok, clamped) of :meth:`_frames` on the batched simulator. Points whose soft-soft
@@ -534,7 +529,7 @@ class Evaluator:
                     state, obs, health, *sep = batched.rollout(
                         bsim, p, state, n_fr, gap, health=health, step0=first + done,
                         observe=batched.positions_observer, separation=track, pad_to=pad,
-                        substeps=self._substeps_of(bsim, n))
+                        substeps=int(n))
                     if track:
                         closest = np.minimum(closest, np.min(np.asarray(sep[0], np.float64) / self._reach, axis=0))
                     chunks.append(np.asarray(obs, np.float64)[:n_fr])     # (n_fr, B, V, 3)

@@ -252,7 +252,7 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     if dynamic:
         friction = bool(terms.contact) and terms.contact.friction > 0
 
-        def at_substeps(n):
+        def by_count(n):
             # built inside the caller's trace, h = dt / n traced: the contact term is built again
             # only where its friction clamp reads h
             n = jnp.asarray(n, jnp.int32)
@@ -263,7 +263,8 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
             return init, substep, coh
 
         def init_fn(params, x0=None, v0=None, step0=0, substeps=1):
-            return at_substeps(substeps)[0](params, x0, v0, step0)
+            return by_count(substeps)[0](params, x0, v0, step0)
+        at_substeps = by_count
 
     def status_fn(params, x):
         code = diagnostics.status_codes(topo, terms, x)
@@ -1098,9 +1099,9 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
         run no step: the state and health are those after ``n_frames`` frames, and the
         observations have ``pad_to`` frames, the ones past ``n_frames`` repeating the last.
       substeps: with a simulator built with ``substeps=None``, the substeps per step of this call
-        (data of the program, as ``n_frames`` and ``save_every`` are with ``pad_to``, which then
-        defaults to ``n_frames``); the state must come from its ``init_fn`` at the same count.
-        Otherwise None or the simulator's own count.
+        (required; data of the program, as ``n_frames`` and ``save_every`` are with ``pad_to``,
+        which then defaults to ``n_frames``); the state must come from its ``init_fn`` at the same
+        count. Otherwise None or the simulator's own count.
 
     Returns:
       (final internal state, stacked observations (frames, B, ...) or None, health), and the
@@ -1109,7 +1110,9 @@ def rollout(bsim, params, state, n_frames, save_every=1, *, health=None, step0=0
     if n_frames < 1 or save_every < 1:
         raise ValueError(f"n_frames and save_every must be >= 1, got {n_frames} and {save_every}")
     if bsim.substeps is None:
-        substeps = 1 if substeps is None else substeps
+        if substeps is None:
+            raise ValueError("this simulator takes its substep count per call (built with substeps=None): "
+                             "pass rollout(..., substeps=n), the count its state was initialised at")
         if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
             raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
         pad_to = n_frames if pad_to is None else pad_to
