@@ -439,3 +439,34 @@ def test_the_evaluators_points_at_more_substeps_run_the_same_program():
     scale = np.linalg.norm(e.frames[0] - prob.scene.vertices)
     for i in range(2):
         assert 0 < np.linalg.norm(e.frames[i] - e2.frames[i]) <= 1e-2 * scale
+
+
+@pytest.mark.parametrize("vertices, dashpot, wide, narrow_calls", [
+    (324, False, 4, False),        # small contact scenes: chunks of 4, one simulator for every call
+    (964, False, 16, True),        # from CONTACT_WIDE_MESH up: chunks of 16, few points on a narrow one
+    (1282, True, 16, True),
+])
+def test_contact_scenes_from_the_wide_mesh_size_run_chunks_of_16_and_few_points_narrow(
+        monkeypatch, vertices, dashpot, wide, narrow_calls):
+    """The evaluator's chunk rule with soft-soft contact (Evaluator._chunk): a contact scene of
+    CONTACT_WIDE_MESH to LARGE_MESH vertices runs its full calls in chunks of 16 points (its
+    contact term costs about half as much per point-step as in chunks of 4), and a call of a few
+    points on a narrow simulator of chunks of 4, at one substep or more; a smaller contact scene
+    keeps chunks of 4 and its one simulator for every call. No simulation runs here."""
+    import types
+    from jaxplush.fitting.objective import evaluate
+    monkeypatch.setattr(batched.jax, "default_backend", lambda: "cpu")
+    ev = evaluate.Evaluator.__new__(evaluate.Evaluator)
+    ev.prob = types.SimpleNamespace(scene=types.SimpleNamespace(n_vertices=vertices),
+                                    sim=types.SimpleNamespace(terms=types.SimpleNamespace(dashpot=dashpot)))
+    ev._contact, ev.batch = True, evaluate.DEFAULT_BATCH
+    assert (vertices >= evaluate.CONTACT_WIDE_MESH) == (wide == 16)
+    assert ev._chunk_of(ev.batch) == wide
+    narrow = ev.batch // 4
+    assert ev._width(3) == (narrow if narrow_calls else ev.batch)
+    assert ev._width(ev.batch) == ev.batch and ev._width(narrow + 1) == ev.batch
+    assert ev._width(ev.batch, n=2) == (narrow if narrow_calls else ev.batch)
+    if narrow_calls:
+        assert ev._chunk_of(narrow) == 4
+    ev._contact = False               # without contact: 8 with a dashpot, 16 without (unchanged)
+    assert ev._chunk_of(ev.batch) == (8 if dashpot else 16)

@@ -46,6 +46,9 @@ MAX_CAPACITY_GROWTHS = 3
 #: LARGE_MESH vertices the chunks outgrow the caches and 16 points a call are cheaper.
 DEFAULT_BATCH = 32
 LARGE_MESH = 1500
+#: With soft-soft contact, scenes of at least this many vertices (and at most LARGE_MESH) run in
+#: chunks of 16 points, their calls of a few points on a narrow simulator (:meth:`Evaluator._chunk`).
+CONTACT_WIDE_MESH = 600
 
 
 class Evaluation(NamedTuple):
@@ -398,14 +401,21 @@ class Evaluator:
         return fr, good, clamp, np.full(len(thetas), np.nan), inv
 
     def _chunk(self):
-        """Points per compiled call of the batched simulator: 4 with soft-soft contact between
-        objects of at most :data:`LARGE_MESH` vertices in all, whose contact search runs faster in
-        chunks of 4 (measured: 56 against 68 us per point-step at 802 vertices, 32 points; at
-        1926 vertices, 16 points, chunks of 8 are faster: 190 against 210); else 8 with a dashpot
-        (which gathers velocities too: a chunk of 16 outgrows the caches) and 16 without
-        (benchmarks/RESULTS.md)."""
+        """Points per compiled call of the batched simulator.
+
+        With soft-soft contact between objects of at most :data:`LARGE_MESH` vertices in all:
+        16 from :data:`CONTACT_WIDE_MESH` vertices up, whose contact term costs about half as much
+        per point-step in chunks of 16 as in chunks of 4 once objects touch (its many small
+        operations then serve 16 points a dispatch: 54 against 104 us at 964 vertices, 54 against
+        118 at 1282; pinned objects side by side, 21 against 25 at 966; benchmarks/RESULTS.md,
+        "Chunks of 16 with contact"). Their calls of a few points (a local search's trial steps)
+        then run on a narrow simulator of chunks of 4 (:meth:`_width`): one more compiled rollout,
+        which such runs repay within a few calls. Smaller contact scenes keep chunks of 4, and
+        with them one simulator (a fit of three 162-vertex objects compiles in well under 20 s).
+        Without contact: 8 with a dashpot (which gathers velocities too: a chunk of 16 outgrows
+        the caches) and 16 without."""
         if self._contact and self.prob.scene.n_vertices <= LARGE_MESH:
-            return 4
+            return 16 if self.prob.scene.n_vertices >= CONTACT_WIDE_MESH else 4
         return 8 if self.prob.sim.terms.dashpot else 16
 
     def _width(self, left, n=1):
