@@ -407,11 +407,13 @@ class Evaluator:
         16 from :data:`CONTACT_WIDE_MESH` vertices up, whose contact term costs about half as much
         per point-step in chunks of 16 as in chunks of 4 once objects touch (its many small
         operations then serve 16 points a dispatch: 54 against 104 us at 964 vertices, 54 against
-        118 at 1282; pinned objects side by side, 21 against 25 at 966; benchmarks/RESULTS.md,
-        "Chunks of 16 with contact"). Their calls of a few points (a local search's trial steps)
-        then run on a narrow simulator of chunks of 4 (:meth:`_width`): one more compiled rollout,
-        which such runs repay within a few calls. Smaller contact scenes keep chunks of 4, and
-        with them one simulator (a fit of three 162-vertex objects compiles in well under 20 s).
+        118 at 1282), and about as much while they are apart (21 against 25 us on a pinned scene
+        of 966; 3-5% more on another; benchmarks/RESULTS.md, "Chunks of 16 with contact"). Their
+        calls of a few points (a local search's trial steps) then run on a narrow simulator of
+        chunks of 4 (:meth:`_width`): one more compiled rollout and init, about 14 s cold, where
+        a call of 3 points over seed 601's case 70's whole target takes 5.1 s instead of 13.7 s.
+        Smaller contact scenes keep chunks of 4 and with them one simulator for every call (a
+        fit of three 162-vertex objects stays within 20 s of compiles).
         Without contact: 8 with a dashpot (which gathers velocities too: a chunk of 16 outgrows
         the caches) and 16 without."""
         if self._contact and self.prob.scene.n_vertices <= LARGE_MESH:
