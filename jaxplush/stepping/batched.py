@@ -248,11 +248,10 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
     drive = _make_drive(scene, terms, h, 1 if dynamic else substeps)
     init_fn, step_fn, step_rows, coherent = _make_verlet(topo, terms, scene, kernel, touch, drive, h,
                                                           1 if dynamic else substeps, batch, dtype)
-    at_substeps = None
     if dynamic:
         friction = bool(terms.contact) and terms.contact.friction > 0
 
-        def by_count(n):
+        def at_substeps(n):
             # built inside the caller's trace, h = dt / n traced: the contact term is built again
             # only where its friction clamp reads h
             n = jnp.asarray(n, jnp.int32)
@@ -263,8 +262,9 @@ def make_batched_simulator(scene, dt, batch, integrator="verlet", terms=None, su
             return init, substep, coh
 
         def init_fn(params, x0=None, v0=None, step0=0, substeps=1):
-            return by_count(substeps)[0](params, x0, v0, step0)
-        at_substeps = by_count
+            return at_substeps(substeps)[0](params, x0, v0, step0)
+    else:
+        at_substeps = None
 
     def status_fn(params, x):
         code = diagnostics.status_codes(topo, terms, x)
