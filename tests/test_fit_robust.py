@@ -433,6 +433,48 @@ def test_point_residuals_are_signed_distances_to_the_surface():
 
 
 
+def test_the_walk_finds_the_nearest_vertex_on_touching_objects():
+    """Points on a small sphere that touches a large one: from one start set over the scene, some
+    walk onto the large sphere (a start there is nearer) and end centimetres away, so their
+    residual jumps when the start changes; from one start set per object none does."""
+    import types
+    import jax.numpy as jnp
+    import trimesh
+    from jaxplush.fitting.objective import losses as L
+    from jaxplush.model import mesh
+    big = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    small = trimesh.creation.icosphere(subdivisions=2, radius=0.03)
+    xs = np.asarray(small.vertices) + [0.1295, 0.0, 0.0]       # 0.5 mm from the big sphere
+    x = np.concatenate([big.vertices, xs])
+    nb = len(big.vertices)
+    faces = np.concatenate([big.faces, small.faces + nb])
+    ring = mesh.ring_tables(faces, len(x))[0]
+    topo = types.SimpleNamespace(x0=x, vertex_slices=((0, nb), (nb, len(x))))
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(400, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    p = [0.1295, 0.0, 0.0] + 0.0305 * u                         # 0.5 mm outside the small sphere
+    brute = np.argmin(np.sum((x[:, None] - p[None]) ** 2, axis=-1), axis=0)
+    xj, pj = jnp.asarray(x, jnp.float32), jnp.asarray(p, jnp.float32)
+    dist = lambda near: np.linalg.norm(x[np.asarray(near)] - p, axis=1)  # noqa: E731
+    one_set = dist(L.nearest_vertices_walk(xj, pj, L.coarse_vertices(x, -(-len(x) // 8)), ring))
+    per_object = dist(L.nearest_vertices_walk(xj, pj, L.object_coarse_vertices(topo), ring))
+    best = dist(brute)
+    assert np.sum(one_set > best + 1e-3) > 0 and one_set.max() > 0.01     # the failure this guards
+    np.testing.assert_allclose(per_object, best, rtol=1e-5, atol=1e-7)
+    # the residual is the distance to the nearest face of either object (brute force over every
+    # face), also where the nearest vertex lies on the other object
+    from jaxplush.model.contact import closest_point_distance2
+    corner = [x[faces[:, i]] for i in range(3)]
+    d2 = closest_point_distance2(tuple(p[:, None, c] for c in range(3)),
+                                 *(tuple(v[None, :, c] for c in range(3)) for v in corner))
+    exact = np.sqrt(np.min(np.asarray(d2), axis=1))
+    ends = L.nearest_vertices_walk(xj, pj, L.object_coarse_vertices(topo), ring, ends=True)
+    signed = np.asarray(L.point_surface_signed_distance(xj, pj, faces, L.vertex_faces(faces, len(x)), ends))
+    np.testing.assert_allclose(np.abs(signed), exact, rtol=1e-3, atol=1e-6)
+
+
+
 def test_mean_curvature_of_a_sphere_and_a_torus_converges_to_the_analytic():
     """The discrete mean curvature (edge length x dihedral angle over vertex area) is 1/R on a
     sphere, and on a torus follows (R + 2r cos phi) / (2r (R + r cos phi)), negative on the inner

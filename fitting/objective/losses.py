@@ -56,7 +56,8 @@ from jaxplush.fitting.targets.kinds import TargetKind
 from jaxplush.io.observe import (  # noqa: F401
     HIGHEST, WALK_STEPS, _candidate_faces, chamfer,
     coarse_vertices, curvature_tables, mixed_linearised, nearest_point_residual, nearest_vertex,
-    nearest_vertices_walk, observed_points, pairwise_sq_distances, point_surface, point_surface_distance2,
+    nearest_vertices_walk, object_coarse_vertices, observed_points, pairwise_sq_distances, point_surface,
+    point_surface_distance2,
     point_surface_signed_distance, squared_distance, surface_residual, track_distance2,
     track_linearised, track_positions, track_residual, vertex_faces, vertex_mean_curvature,
     vertex_residual)

@@ -128,9 +128,11 @@ def point_surface_distance2(x, p, faces, vfaces, near=None):
 
 def _candidate_faces(x, p, faces, vfaces, near):
     """(corners: 3 x (M, W, 3) positions of the faces around each point's nearest vertex,
-    d2 (M, W): each point's squared distance to each of them)."""
+    d2 (M, W): each point's squared distance to each of them). ``near`` (M,) or (M, O): with
+    several vertices per point (the nearest on each object), the faces around all of them."""
     from jaxplush.model.contact import closest_point_distance2
-    tri = jnp.asarray(faces)[jnp.asarray(vfaces)[near]]                 # (M, W, 3)
+    tri = jnp.asarray(faces)[jnp.asarray(vfaces)[near]]                 # (M, [O,] W, 3)
+    tri = tri.reshape(tri.shape[0], -1, 3)                              # (M, W, 3)
     corner = [x[tri[..., i]] for i in range(3)]                         # 3 x (M, W, 3)
     split = lambda a: tuple(a[..., c] for c in range(3))  # noqa: E731
     return corner, closest_point_distance2(split(p[:, None, :]), *(split(c) for c in corner))
@@ -145,7 +147,8 @@ def point_surface_signed_distance(x, p, faces, vfaces, near):
     the unsigned one has a kink there, so its difference Jacobian vanishes for the noisy samples
     that lie close to the surface, and the Gauss-Newton model of the loss is wrong near the optimum.
 
-    Args: as :func:`point_surface_distance2` (``near`` required; faces wound outward).
+    Args: as :func:`point_surface_distance2` (``near`` required; faces wound outward; (M, O):
+      the nearest vertex on each of O objects, of which the closest face is taken).
     """
     corner, d2 = _candidate_faces(x, p, faces, vfaces, near)
     k = jnp.argmin(d2, axis=1)[:, None, None]                           # (M, 1, 1)
@@ -191,25 +194,57 @@ def coarse_vertices(x0, n):
 WALK_STEPS = 4
 
 
-def nearest_vertices_walk(x, p, coarse, ring, steps=WALK_STEPS):
+def object_coarse_vertices(topology):
+    """Per object of a scene's :class:`jaxplush.model.forces.Topology`, the starts of
+    :func:`nearest_vertices_walk`: :func:`coarse_vertices` of that object's rest shape, one per 8
+    of its vertices (a tuple of (S_o,) int32 scene-wide indices)."""
+    x0 = np.asarray(topology.x0, np.float64)
+    return tuple(np.asarray(a + coarse_vertices(x0[a:b], -(-(b - a) // 8)), np.int32)
+                 for a, b in topology.vertex_slices)
+
+
+def nearest_vertices_walk(x, p, coarse, ring, steps=WALK_STEPS, ends=False):
     """(M,) index of each point's nearest vertex: the nearest of the ``coarse`` vertices (an (M, S)
     table, S ~ V/8), then ``steps`` moves to the nearest of the current vertex and its one-ring
     (``ring`` (V, K)). Exact where the distance to the point has no other local minimum over the
     mesh's vertices nearby, as for points within an edge or so of the surface; about six times
     fewer distances than the (M, V) table.
 
+    A walk cannot leave the object it starts on (one-rings do not cross objects), so for a scene
+    of several objects ``coarse`` is a sequence of start sets, one per object
+    (:func:`object_coarse_vertices`): each point walks on every object from that object's nearest
+    start, and keeps the nearest of the ends (``ends``: returns every end, (M, O)). From one
+    start set over the whole scene, a point on one object whose nearest start lies on a touching
+    neighbour walks to the neighbour's nearest vertex, centimetres away, and its residual jumps
+    when that start changes.
+
     Args:
-      x: (V, 3) vertex positions; p: (M, 3) points; coarse: (S,) vertex indices; ring: (V, K).
+      x: (V, 3) vertex positions; p: (M, 3) points; coarse: (S,) vertex indices, or a sequence
+        of them (one per object); ring: (V, K); ends: return (M, O), the end of each walk.
     """
-    xc = x[jnp.asarray(coarse)]
-    d2c = sum((xc[:, None, c] - p[None, :, c]) ** 2 for c in range(3))          # (S, M)
-    cur = jnp.asarray(coarse)[jnp.argmin(d2c, axis=0)]                          # (M,)
+    sets = [coarse] if isinstance(coarse, np.ndarray) or hasattr(coarse, "shape") else list(coarse)
+    starts = []
+    for c in sets:
+        c = jnp.asarray(c)
+        xc = x[c]
+        d2c = sum((xc[:, None, k] - p[None, :, k]) ** 2 for k in range(3))        # (S, M)
+        starts.append(c[jnp.argmin(d2c, axis=0)])
+    cur = jnp.stack(starts, axis=1)                                             # (M, O)
     ring = jnp.asarray(ring)
+    pp = p[:, None, None, :]
     for _ in range(steps):
-        cand = jnp.concatenate([cur[:, None], ring[cur]], axis=1)               # (M, K + 1)
-        d2 = jnp.sum((x[cand] - p[:, None, :]) ** 2, axis=-1)
-        cur = jnp.take_along_axis(cand, jnp.argmin(d2, axis=1)[:, None], axis=1)[:, 0]
-    return cur
+        cand = jnp.concatenate([cur[..., None], ring[cur]], axis=-1)            # (M, O, K + 1)
+        d2 = jnp.sum((x[cand] - pp) ** 2, axis=-1)
+        cur = jnp.take_along_axis(cand, jnp.argmin(d2, axis=-1)[..., None], axis=-1)[..., 0]
+    return cur if ends else nearest_of(x, p, cur)
+
+
+def nearest_of(x, p, cand):
+    """(M,) for each point of p (M, 3), the nearest of its candidate vertices cand (M, O) of x."""
+    if cand.shape[1] == 1:
+        return cand[:, 0]
+    d2 = jnp.sum((x[cand] - p[:, None, :]) ** 2, axis=-1)                       # (M, O)
+    return jnp.take_along_axis(cand, jnp.argmin(d2, axis=1)[:, None], axis=1)[:, 0]
 
 
 def curvature_tables(faces, n_vertices):
@@ -317,7 +352,7 @@ def surface_residual(target, topology, scale2, normalisation):
     m = np.shape(target.data)[1]
     faces = np.asarray(topology.faces, np.int32)
     vf = vertex_faces(faces, topology.n_vertices)
-    coarse = coarse_vertices(topology.x0, -(-topology.n_vertices // 8))
+    coarse = object_coarse_vertices(topology)
     ring = np.asarray(topology.ring, np.int32)
 
     # isotropic noise of sigma puts a sample of a curved surface outside it by sigma² H on
@@ -329,9 +364,11 @@ def surface_residual(target, topology, scale2, normalisation):
 
     def one(x, p, h):
         valid, p = observed_points(p)                                # padding: residual 0
-        near = nearest_vertices_walk(x, p, coarse, ring)
-        d = point_surface_signed_distance(x, p, faces, vf, near)
-        d = d if h is None else d - jnp.asarray(sigma2, x.dtype) * h[near]
+        # the closest face around each object's nearest vertex: near the contact between two
+        # objects, a point's nearest vertex can lie on one object and its nearest face on the other
+        ends = nearest_vertices_walk(x, p, coarse, ring, ends=True)           # (M, O)
+        d = point_surface_signed_distance(x, p, faces, vf, ends)
+        d = d if h is None else d - jnp.asarray(sigma2, x.dtype) * h[nearest_of(x, p, ends)]
         return jnp.where(valid, d, 0.0)
 
     def frame_fn(frames, y):
