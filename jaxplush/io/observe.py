@@ -222,7 +222,7 @@ def nearest_vertices_walk(x, p, coarse, ring, steps=WALK_STEPS, ends=False):
       x: (V, 3) vertex positions; p: (M, 3) points; coarse: (S,) vertex indices, or a sequence
         of them (one per object); ring: (V, K); ends: return (M, O), the end of each walk.
     """
-    sets = [coarse] if isinstance(coarse, np.ndarray) or hasattr(coarse, "shape") else list(coarse)
+    sets = [coarse] if hasattr(coarse, "shape") else list(coarse)
     starts = []
     for c in sets:
         c = jnp.asarray(c)
