@@ -277,18 +277,27 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
         if not saved[0] and last[0] is not None and checkpoint_path is not None:
             write(last[0], "interrupted")
 
+    hooks = dict(progress=progress, save=save, interrupted=interrupted, callback=user_cb, chunk_frames=chunk)
     with saving_on_interrupt(save_last):
-        run, ev = lmfit.run(prob, box, opts, progress=progress, resume=prior, save=save, interrupted=interrupted,
-                            callback=user_cb, stages=solver)
-        replanned = None if solver is not None else _replan(full, prob, run.best.theta, opts, report)
+        if solver is None and _may_replan(full, prob, opts):
+            # the plan cut the target short: the fitted values may predict further, and then the
+            # fit goes on over more of it; the smoothing stage waits for that answer (on seed 901's
+            # case 1 it took 23 s, then ran again over the whole target)
+            state, obj = lmfit.run(prob, box, opts, resume=prior, smooth=False, finish=False, **hooks)
+            replanned = _replan(full, prob, lmfit.linearised(state).best.theta, opts, report)
+            run, ev = lmfit.run(prob, box, opts, resume=state, smooth=replanned is None, objective=obj, **hooks)
+            first = run
+        else:
+            run, ev = lmfit.run(prob, box, opts, resume=prior, stages=solver, **hooks)
+            replanned = None
         if replanned is not None:
             # the start's horizon cut the fit short; the fitted values predict further: fit again
             # from them over what they predict (locally: the global stage has done its work)
-            first = run
             prob, note = replanned
             notes = list(notes) + [note]
             local_only = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
-            run, ev = lmfit.run(prob, box, local_only, progress=progress, callback=user_cb, start=first.best.theta)
+            run, ev = lmfit.run(prob, box, local_only, progress=progress, callback=user_cb, start=first.best.theta,
+                                chunk_frames=chunk)
             run.evaluations += first.evaluations
             run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
 
@@ -387,9 +396,7 @@ def _replan(full, prob, theta, opts, report=None):
     or multiple shooting) and the fitted values predict more of the target (more frames, or longer
     segments): (the problem, a note saying so); else None. A start far from the truth (near its
     stability limit, say) can be much less predictable than the result."""
-    if not opts.predictability or opts.shooting != "auto" or full.predictability is None:
-        return None
-    if not _shooting.restricted(full, prob):
+    if not _may_replan(full, prob, opts):
         return None
     pred = _predictability_at(full, theta, batched=True, chunk_frames=_first_horizon(full, opts))
     if pred is None:
@@ -404,6 +411,12 @@ def _replan(full, prob, theta, opts, report=None):
     if report is not None:
         report(note)
     return new, note
+
+
+def _may_replan(full, prob, opts):
+    """Whether the plan made at the start values cut the fit short (:func:`_replan` may fit again)."""
+    return (opts.predictability and opts.shooting == "auto" and full.predictability is not None
+            and _shooting.restricted(full, prob))
 
 
 def _first_horizon(prob, opts):

@@ -351,6 +351,52 @@ def test_a_fit_cut_short_by_the_start_horizon_fits_again_over_what_its_result_pr
         assert res.values[name][0] == pytest.approx(float(truth[0]), rel=1e-2)
 
 
+@pytest.mark.parametrize("predicts_further", [True, False])
+def test_a_noisy_fit_cut_short_smooths_once_after_it_knows_its_horizon(monkeypatch, predicts_further):
+    """A noisy point cloud cut short by the start's horizon: the smoothing stage waits until the fit
+    knows whether its values predict further. They do: it fits again over every frame and smooths
+    that fit only. They do not: it smooths the first fit, on the frames the plan kept."""
+    from jaxplush.fitting.stages import search as _search
+    scene = icosphere_scene(k=200.0, mass=0.05, nmol=0.002, dashpot=0.05, floor=-0.15)
+    cloud = make_target(scene, 250, 1e-3, 25, point_cloud=True, n_points=120, noise=0.002, seed=1)
+    p = scene.params
+    start = scene.replace(params=p._replace(k_structural=p.k_structural * 1.3, nmol=p.nmol * 0.8))
+    measure, at = F.measure_predictability, F._predictability_at
+
+    def short(pred):
+        return dataclasses.replace(pred, horizon_time=float(cloud.times[3]) + 1e-9)
+
+    def short_at_the_start(prob, report=None, **kw):      # as if the start's two runs drifted apart at once
+        prob = measure(prob, **kw)
+        return dataclasses.replace(prob, predictability=short(prob.predictability))
+
+    def at_the_fit(*a, **kw):
+        pred = at(*a, **kw)
+        return pred if predicts_further else short(pred)
+
+    smoothed = []
+    smooth = _search.smooth
+
+    def counted(ev, *a, **kw):
+        smoothed.append(ev.prob.target.n_frames)
+        return smooth(ev, *a, **kw)
+
+    monkeypatch.setattr(F, "measure_predictability", short_at_the_start)
+    monkeypatch.setattr(F, "_predictability_at", at_the_fit)
+    monkeypatch.setattr(_search, "smooth", counted)
+    lines = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = F.fit(start, cloud, ("k_structural", "nmol"), identifiability=False, samples=8, report=lines.append)
+    again = [x for x in lines if x.startswith("fitted again from the first fit's values")]
+    frames = 10 if predicts_further else 4
+    assert bool(again) == predicts_further
+    assert smoothed == [frames] and res.problem.target.n_frames == frames
+    assert res.loop.smoothed is not None
+    for name, truth in (("k_structural", p.k_structural), ("nmol", p.nmol)):
+        assert res.values[name][0] == pytest.approx(float(truth[0]), rel=0.05)
+
+
 def test_multiple_shootings_own_bias_is_measured_on_a_twin_and_taken_off(tmp_path):
     """Node velocities estimated from the frames carry an error that a fit in segments absorbs: a
     noise-free drop of a 162-vertex ball (dashpot, gas, floor) fitted in segments of 4 frames

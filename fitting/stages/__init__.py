@@ -99,13 +99,14 @@ class Objective:
             self._evaluator = hs(len(hs.horizons) - 1).evaluator if hs is not None else _shooting.evaluator(self.prob)
         return self._evaluator
 
-    def horizons(self, frames):
-        """The :class:`Horizons` of this problem over the frame counts ``frames`` (made once)."""
+    def horizons(self, frames, chunk_frames=None):
+        """The :class:`Horizons` of this problem over the frame counts ``frames`` (made once; its
+        rollouts in pieces of ``chunk_frames``, None: of the first horizon)."""
         frames = tuple(int(n) for n in frames)
         if self._horizons is None or self._horizons.horizons != frames:
             if self._horizons is not None or self._evaluator is not None:
                 raise ValueError("an Objective holds the horizons of one continuation, made before its evaluator")
-            self._horizons = Horizons(self.prob, self.box, frames)
+            self._horizons = Horizons(self.prob, self.box, frames, chunk_frames)
         return self._horizons
 
     def evaluations(self):
@@ -154,11 +155,13 @@ def horizons(n_frames, continuation=None):
 
 class Horizons:
     """One :class:`Objective` per horizon (the problem truncated to its first frames), made on first
-    use: each evaluator shares the first one's compiled rollout (frames in chunks of the first
-    horizon), its calibration, and a contact capacity grown at an earlier horizon."""
+    use: each evaluator shares the first one's compiled rollout (frames in chunks of
+    ``chunk_frames``, None: of the first horizon), its calibration, and a contact capacity grown
+    at an earlier horizon."""
 
-    def __init__(self, prob, box, horizons):
+    def __init__(self, prob, box, horizons, chunk_frames=None):
         self.prob, self.box, self.horizons, self.by_stage = prob, box, horizons, {}
+        self.chunk_frames = int(chunk_frames) if chunk_frames else int(horizons[0])
 
     def __call__(self, stage):
         """The :class:`Objective` of horizon ``stage`` (an index into ``horizons``)."""
@@ -169,8 +172,8 @@ class Horizons:
             if made:              # a contact capacity grown at an earlier horizon carries over
                 sub = dataclasses.replace(sub, sim=made[max(made)].prob.sim)
             share = made[min(made)] if made else None
-            # frames in chunks of the first horizon: every horizon runs the same compiled rollout
-            made[stage] = _shooting.evaluator(sub, calibration=calibration, share=share, chunk_frames=self.horizons[0])
+            # frames in chunks of one length: every horizon runs the same compiled rollout
+            made[stage] = _shooting.evaluator(sub, calibration=calibration, share=share, chunk_frames=self.chunk_frames)
         return Objective(made[stage].prob, self.box, made[stage])
 
     def notes(self):

@@ -118,7 +118,7 @@ def default_stages(prob, opts, progress=None, smooth=True):
 
 
 def run(prob, box, options=None, *, progress=False, resume=None, save=None, interrupted=None, callback=None,
-        start=None, stages=None, smooth=True):
+        start=None, stages=None, smooth=True, chunk_frames=None, finish=True, objective=None):
     """Global stage, then Levenberg-Marquardt from the best ``starts`` candidates (successive
     halving to ``keep``), over horizons of growing length; then the Jacobian and gradients at
     the best point of the full problem (and, for a noisy target, the smoothing stage):
@@ -144,6 +144,12 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, inte
         for the judge.
       smooth: the default stages end with the smoothing stage for a noisy target (False: they do
         not; :func:`default_stages`).
+      chunk_frames: the piece length of the horizons' rollouts (None: the first horizon's), for
+        a fit that runs on programs compiled for a longer target's horizons.
+      finish: False: return (the driver's :class:`~jaxplush.fitting.stages.RunState`, the
+        :class:`~jaxplush.fitting.stages.Objective`) without the result, for a fit that goes on
+        from that state (``resume``) on that objective (``objective``: its evaluators, compiled
+        and calibrated).
 
     Returns:
       (:class:`LMRun`, the :class:`jaxplush.fitting.objective.evaluate.Evaluator` of the full problem, its notes
@@ -157,8 +163,8 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, inte
     else:
         stages = default_stages(prob, opts, show.feed, smooth=smooth)
     show.stages = stages
-    objective = _stages.Objective(prob, box)
-    hs = None if user else objective.horizons(horizons(prob.target.n_frames, opts.continuation))
+    objective = _stages.Objective(prob, box) if objective is None else objective
+    hs = None if user else objective.horizons(horizons(prob.target.n_frames, opts.continuation), chunk_frames)
     state = resume if resume is not None else _stages.RunState()
     try:
         _stages.run_stages(objective, prob.theta0 if start is None else np.asarray(start, np.float64), stages,
@@ -167,6 +173,8 @@ def run(prob, box, options=None, *, progress=False, resume=None, save=None, inte
                                                interrupted=interrupted))
     finally:
         show.close()
+    if not finish:
+        return state, objective
     n0 = objective.evaluations()
     out = _result(objective, state, opts)
     out.evaluations = state.evaluations + objective.evaluations() - n0
@@ -198,7 +206,7 @@ def _result(objective, state, opts):
     rule of its own (a design's best, a candidate) ended with the stages' budget: an iteration limit."""
     ev, local, prob = objective.evaluator, opts.local, objective.prob
     finished = state.finished
-    lin = next(s for s in finished[::-1] if isinstance(s, _stages.LinearState))
+    lin = linearised(state)
     sm = next((s.result for s in finished if isinstance(s, _stages.SmoothState)), None)
     cont = next((s for s in finished if isinstance(s, _stages.ContinuationState)), None)
     best = dataclasses.replace(lin.best, history=list(lin.best.history))
@@ -236,6 +244,12 @@ def _result(objective, state, opts):
     return LMRun(best=best, jac=jac, residual=residual, grad=2.0 * jac.T @ np.nan_to_num(residual), grad0=grad0,
                  global_result=g, paths=paths, horizons=hz, loss0=lin.loss0, wall=state.wall, smoothed=smoothed,
                  state=state, jac_step=None if smoothed is not None else float(local.h_min))
+
+
+def linearised(run):
+    """The best point of a driver state whose stages have run up to their :class:`Linearise` stage
+    (:class:`~jaxplush.fitting.stages.LinearState`: its ``best``, Jacobian and residuals)."""
+    return next(s for s in run.finished[::-1] if isinstance(s, _stages.LinearState))
 
 
 def best_search(run):
