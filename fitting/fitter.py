@@ -277,22 +277,22 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
         if not saved[0] and last[0] is not None and checkpoint_path is not None:
             write(last[0], "interrupted")
 
-    hooks = dict(progress=progress, save=save, interrupted=interrupted, callback=user_cb, chunk_frames=chunk)
+    common = dict(progress=progress, save=save, interrupted=interrupted, callback=user_cb, chunk_frames=chunk)
     with saving_on_interrupt(save_last):
         if solver is None and _may_replan(full, prob, opts):
             # the plan cut the target short: the fitted values may predict further, and then the
             # fit goes on over more of it; the smoothing stage waits for that answer (on seed 901's
             # case 1 it took 23 s, then ran again over the whole target)
-            state, obj = lmfit.run(prob, box, opts, resume=prior, smooth=False, finish=False, **hooks)
+            state, obj = lmfit.run(prob, box, opts, resume=prior, smooth=False, finish=False, **common)
             replanned = _replan(full, prob, lmfit.linearised(state).best.theta, opts, report)
-            run, ev = lmfit.run(prob, box, opts, resume=state, smooth=replanned is None, objective=obj, **hooks)
-            first = run
+            run, ev = lmfit.run(prob, box, opts, resume=state, smooth=replanned is None, objective=obj, **common)
         else:
-            run, ev = lmfit.run(prob, box, opts, resume=prior, stages=solver, **hooks)
+            run, ev = lmfit.run(prob, box, opts, resume=prior, stages=solver, **common)
             replanned = None
         if replanned is not None:
             # the start's horizon cut the fit short; the fitted values predict further: fit again
             # from them over what they predict (locally: the global stage has done its work)
+            first = run
             prob, note = replanned
             notes = list(notes) + [note]
             local_only = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
