@@ -377,8 +377,18 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
             sd = dict(zip([str(x) for x in iva.get("labels", [])], np.asarray(iv["sd"], np.float64)))
             off = {k: abs(math.log1p(e)) for k, e in errors.items() if k in sd and e > -1}
             row["interval_method"] = str(iva.get("method", ""))
-            row["covered"] = {k: bool(v <= q * sd[k]) for k, v in off.items()}
-            row["covered4"] = {k: bool(v <= 4 * sd[k]) for k, v in off.items()}
+            if row["interval_method"] == "box":
+                # a fit that stopped short of the data: its interval is its search box (no spread);
+                # the truth lies in it or not
+                lo = dict(zip([str(x) for x in iva.get("labels", [])], np.log(np.asarray(iv["lower"], np.float64))))
+                hi = dict(zip([str(x) for x in iva.get("labels", [])], np.log(np.asarray(iv["upper"], np.float64))))
+                th = dict(zip([str(x) for x in iva.get("labels", [])], np.asarray(iv["theta"], np.float64)))
+                row["covered"] = {k: bool(lo[k] - 1e-12 <= th[k] - math.log1p(errors[k]) <= hi[k] + 1e-12)
+                                  for k in off}
+                row["covered4"] = dict(row["covered"])
+            else:
+                row["covered"] = {k: bool(v <= q * sd[k]) for k, v in off.items()}
+                row["covered4"] = {k: bool(v <= 4 * sd[k]) for k, v in off.items()}
             row["interval_sd"] = {k: float(sd[k]) for k in off}
         pa = fit.get("predictability_attrs")
         if pa is not None:
@@ -578,15 +588,23 @@ def _summary(rows):
                      f"{told} reported 'undetermined'")
     # the intervals a fit reports (converged, undetermined: jaxplush.fitting.judge.outcome.REPORTED), and
     # apart those FIT.h5 keeps for a fit that did not reach the data (not shown)
-    for label, want in (("reported", True), ("not reported (the fit did not reach the data)", False)):
-        cov = [(r, k, c) for r in rows for k, c in (r.get("covered") or {}).items()
-               if (r.get("status") in ("converged", "undetermined")) == want]
+    def group(r):
+        if r.get("status") in ("converged", "undetermined"):
+            return "reported"
+        if r.get("interval_method") == "box":
+            return "search boxes (the fit stopped short of the data)"
+        return "not reported (the fit did not reach the data)"
+
+    for label in ("reported", "search boxes (the fit stopped short of the data)",
+                  "not reported (the fit did not reach the data)"):
+        cov = [(r, k, c) for r in rows for k, c in (r.get("covered") or {}).items() if group(r) == label]
         if not cov:
             continue
         inside = sum(c for _, _, c in cov)
         wide = [(r, k) for r, k, _ in cov if not r["covered4"][k]]
-        lines.append(f"calibration, {label}: {inside} of {len(cov)} (case, parameter) truths inside the 95% "
-                     f"intervals ({100 * inside / len(cov):.0f}%); {len(wide)} outside 4 spreads"
+        what = "their boxes" if label.startswith("search") else "the 95% intervals"
+        lines.append(f"calibration, {label}: {inside} of {len(cov)} (case, parameter) truths inside {what} "
+                     f"({100 * inside / len(cov):.0f}%); {len(wide)} outside 4 spreads"
                      + "".join(f"\n  case {r['index']} {k}: {100 * r['errors'][k]:+.3g}% against a spread of "
                                f"{100 * r['interval_sd'][k]:.2g}% ({r.get('interval_method')}, {r['status']})"
                                for r, k in wide))

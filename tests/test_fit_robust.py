@@ -233,6 +233,11 @@ def test_bounds_are_checked_and_a_search_box_edge_is_reported(drop):
     with pytest.warns(UserWarning, match="at_bound|edge of the search box"):
         res = F.fit(start, target, ("k_structural",), bounds={"k": (100.0, 400.0)}, samples=8, starts=1)
     assert res.status == "at_bound" and "k_structural[ball] at its upper bound 400" in res.reason
+    # a fit that stopped short of the data reports its search box as its interval, not its
+    # neighbourhood's twins (jaxplush.fitting.judge.intervals.box), and the table shows it as such
+    iv = res.intervals
+    assert iv.method == "box" and iv.lower[0] == pytest.approx(100.0) and iv.upper[0] == pytest.approx(400.0)
+    assert "box [100, 400]" in res.table() and "the search box" in res.table()
 
 
 def test_outcome_judgement():

@@ -110,6 +110,29 @@ def test_where_twins_do_not_apply_the_residuals_give_the_interval_and_say_so():
     assert "batched engine" in I.applies(prob, types.SimpleNamespace(batched=False))
 
 
+def test_a_fit_that_stopped_short_reports_its_search_box():
+    """A fit that stopped short of the data (stalled, at a bound, at its iteration limit or at the
+    floor) can sit in a minimum its neighbourhood cannot tell from the truth's; its interval is the
+    search box: its ends exactly, and a spread whose quantile multiple spans the whole box about
+    the value, even where the value lies off the box's centre."""
+    assert set(I.SHORT) == {outcome.Status.STALLED, outcome.Status.AT_BOUND, outcome.Status.ITERATION_LIMIT,
+                            outcome.Status.AT_FLOOR}
+    assert not set(I.SHORT) & set(outcome.REPORTED) and outcome.Status.POOR_FIT not in I.SHORT
+    box = types.SimpleNamespace(lo=np.log([[100.0], [1e-3]]), hi=np.log([[1600.0], [1.6e-2]]))
+    theta = np.log([[1000.0], [2e-3]])
+    iv = I.box(("k[a]", "nmol[a]"), theta, box, outcome.Status.ITERATION_LIMIT)
+    assert iv.method == "box" and iv.n_twins == 0 and "iteration limit" in iv.note
+    np.testing.assert_allclose(iv.lower, [100.0, 1e-3], rtol=1e-12)
+    np.testing.assert_allclose(iv.upper, [1600.0, 1.6e-2], rtol=1e-12)
+    np.testing.assert_allclose(iv.quantile * iv.sd, [math.log(10.0), math.log(8.0)], rtol=1e-12)
+    assert iv.contains("k[a]", 101.0) and iv.contains("k[a]", 1590.0) and not iv.contains("k[a]", 99.0)
+    assert not iv.contains("nmol[a]", 1.7e-2) and iv.text("k[a]") == "box [100, 1600]"
+    # a value the fit's own bias correction left outside the box widens it to the value
+    out = I.box(("k[a]",), np.log([[2000.0]]), types.SimpleNamespace(lo=np.log([[100.0]]), hi=np.log([[1600.0]])),
+                outcome.Status.AT_BOUND)
+    assert out.upper[0] == pytest.approx(2000.0) and out.contains("k[a]", 2000.0)
+
+
 @pytest.mark.parametrize("status,code", [("converged", 0), ("at_floor", 4), ("undetermined", 0), ("poor_fit", 4),
                                          ("stalled", 4), ("iteration_limit", 4), ("at_bound", 4)])
 def test_a_fit_that_did_what_the_data_allow_exits_0_and_any_other_4(status, code, capsys):

@@ -38,6 +38,14 @@ order, as the Jacobian sees it), and the noise drawn afresh is the point's noise
 normal. Elsewhere (a mixed target, a fit in segments, a scene off the batched engine)
 :func:`from_report` gives the identifiability report's standard errors as the interval
 (``method == "residuals"``), and says so.
+
+All of that measures the neighbourhood of the fitted values, which says where the truth lies only
+when the fit reached the data there. A fit that stopped short of them (:data:`SHORT`: stalled, at
+a bound of its box, at its iteration limit, or at the model's reproducibility floor) can sit in a
+minimum that does not reproduce the data at all: one of two clouds fitted 28% off in drag stopped
+at its iteration limit with a twins' spread of 0.015%, its smoothing designs agreeing to 0.04%
+(benchmarks/RESULTS.md, 2026-12-01). Its interval is the search box instead (:func:`box`,
+``method == "box"``): all such a fit can say is that it searched there.
 """
 
 from __future__ import annotations
@@ -48,6 +56,7 @@ import statistics
 
 import numpy as np
 
+from jaxplush.fitting.judge.outcome import SHORT  # noqa: F401 (re-exported: the statuses box() is for)
 from jaxplush.fitting.targets.kinds import TargetKind
 
 #: Twins per fit (B): the interval's spread is estimated from B draws (with the fit's own lane,
@@ -91,13 +100,17 @@ class Intervals:
       quantile: the multiplier of ``sd`` for the level (Student's t with the twins as degrees of
         freedom; the normal quantile for ``residuals``).
       level: the coverage, 0.95.
-      method: "twins" or "residuals".
+      method: "twins", "residuals" or "box" (:func:`box`: the interval is the search box, and
+        ``sd`` the larger distance from the value to the box's ends over ``quantile``, so that
+        value +- quantile * sd holds the whole box).
       n_twins: twins that ran (0 for ``residuals``).
       note: one line on how they were measured.
       offset: (P,) the Gauss-Newton step from theta to the optimum the fit stopped short of
         (``twins`` only, else None), part of ``sd`` in quadrature.
       resolution: (P,) how finely the working dtype resolves each value (``twins`` only, else
         None; :func:`_resolution`), part of ``sd`` in quadrature.
+      box_lo, box_hi: (P,) the search box's ends in log space (``box`` only, else None): the
+        interval's ends.
       steps: (B, P) each twin's Gauss-Newton step in log space (``twins`` only, else None), the
         minimum-norm step over every parameter the frames are sensitive to (singular values below
         :data:`RCOND` of the largest dropped): a combination of parameters that the target
@@ -116,6 +129,8 @@ class Intervals:
     steps: np.ndarray | None = None
     offset: np.ndarray | None = None
     resolution: np.ndarray | None = None
+    box_lo: np.ndarray | None = None
+    box_hi: np.ndarray | None = None
 
     def spread_of(self, fn, h=1e-6):
         """(value, spread) of a positive function ``fn(theta)`` of the (P,) log values: its value at
@@ -137,24 +152,33 @@ class Intervals:
     @property
     def lower(self):
         """(P,) lower ends in parameter units (0 where undetermined)."""
+        if self.box_lo is not None:
+            return np.exp(self.box_lo)
         return np.exp(self.theta - self.quantile * self.sd)
 
     @property
     def upper(self):
         """(P,) upper ends in parameter units (inf where undetermined)."""
         with np.errstate(over="ignore"):
+            if self.box_hi is not None:
+                return np.exp(self.box_hi)
             return np.exp(self.theta + self.quantile * self.sd)
 
     def contains(self, label, value, width=None):
         """Whether ``value`` lies in the interval of ``label`` (``width``: a multiple of ``sd``
         instead of the level's quantile, say 4)."""
         i = self.labels.index(label)
+        if self.box_lo is not None:
+            return bool(self.box_lo[i] <= math.log(value) <= self.box_hi[i])
         q = self.quantile if width is None else float(width)
         return bool(abs(math.log(value) - self.theta[i]) <= q * self.sd[i])
 
     def text(self, label):
-        """"[lo, hi]" of ``label``, or "undetermined"."""
+        """"[lo, hi]" of ``label``, "box [lo, hi]" for a search box (``method == "box"``), or
+        "undetermined"."""
         i = self.labels.index(label)
+        if self.box_lo is not None:
+            return f"box [{self.lower[i]:.6g}, {self.upper[i]:.6g}]"
         if not np.isfinite(self.sd[i]):
             return "undetermined"
         return f"[{self.lower[i]:.6g}, {self.upper[i]:.6g}]"
@@ -171,6 +195,22 @@ def from_report(report, theta, note=None):
     return Intervals(labels=tuple(report.labels), theta=np.asarray(theta, np.float64).ravel(), sd=sd,
                      quantile=_normal_quantile(0.5 + LEVEL / 2), level=LEVEL, method="residuals", n_twins=0,
                      note=note or "from the residuals at the optimum, treated as independent noise")
+
+
+def box(labels, theta, search_box, status):
+    """:class:`Intervals` of a fit that stopped short of the data (``status``, one of :data:`SHORT`)
+    at log values ``theta``: the search box ``search_box`` (``.lo``, ``.hi`` in log space, shaped
+    as theta) itself, ``method == "box"`` (module docstring). Not a 95% interval of the data: the
+    values' neighbourhood does not say where the truth lies, and the box is where the fit looked."""
+    th = np.asarray(theta, np.float64).ravel()
+    lo = np.minimum(np.asarray(search_box.lo, np.float64).ravel(), th)
+    hi = np.maximum(np.asarray(search_box.hi, np.float64).ravel(), th)
+    q = _normal_quantile(0.5 + LEVEL / 2)
+    return Intervals(labels=tuple(labels), theta=th, sd=np.maximum(th - lo, hi - th) / q, quantile=q, level=LEVEL,
+                     method="box", n_twins=0, box_lo=lo, box_hi=hi,
+                     note=f"the search box: the fit ended {str(status).replace('_', ' ')}, short of the data, where "
+                          "the values' neighbourhood (twins, standard errors) does not say where the truth lies; "
+                          "it lies in the box if the box holds it at all")
 
 
 def _resolution(prob, theta, dtype):

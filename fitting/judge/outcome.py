@@ -115,6 +115,11 @@ DONE = (Status.CONVERGED, Status.UNDETERMINED)
 #: The statuses whose standard errors and 95% intervals mean something (the fit reached the data
 #: at an optimum): the result table shows them, and the identifiability warnings are issued.
 REPORTED = (Status.CONVERGED, Status.UNDETERMINED)
+#: The statuses of a fit that stopped short of the data at a point whose neighbourhood does not
+#: say where the truth lies: its intervals are its search box
+#: (:func:`jaxplush.fitting.judge.intervals.box`), and the result table shows them as such. At the
+#: floor too: a fit there can be far off (:data:`DONE`).
+SHORT = (Status.STALLED, Status.AT_BOUND, Status.ITERATION_LIMIT, Status.AT_FLOOR)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -109,7 +109,8 @@ class FitResult:
     def table(self):
         """The fitted values as a text table: start, fitted value and, for a fit that reached the
         data or the floor (:data:`jaxplush.fitting.judge.outcome.REPORTED`), the approximate standard
-        error and the 95% interval; then the predictability and the outcome."""
+        error and the 95% interval (for a fit that stopped short of them,
+        :data:`jaxplush.fitting.judge.outcome.SHORT`, its search box in place of the interval); then the predictability and the outcome."""
         rep = self.identifiability
         se = {} if rep is None else dict(zip(rep.labels, rep.stderr))
         shown = self.status in REPORTED
@@ -128,7 +129,7 @@ class FitResult:
                     es = f"{100 * e:.2g}%" if np.isfinite(e) else "undetermined"
                 row = f"{n:<14} {o:<14} {self.start[n][j]:>12.6g} {self.values[n][j]:>12.6g} {es:>11}"
                 if iv is not None and label in iv.labels:
-                    row += "  " + (iv.text(label) if shown else "n/a")
+                    row += "  " + (iv.text(label) if shown or iv.method == "box" else "n/a")
                 rows.append(row)
         rows.append(f"loss {self.loss_start:.4g} -> {self.loss:.4g} ({self.normalisation}-normalised) after "
                     f"{self.iterations} {'evaluations' if self.optimizer == 'lm' else 'iterations'} "
@@ -142,6 +143,8 @@ class FitResult:
         rows.append(f"outcome: {self.reason}")
         if iv is not None and shown:
             rows.append(f"95% intervals: {iv.note}")
+        elif iv is not None and iv.method == "box":
+            rows.append(f"intervals: {iv.note}")
         if rep is not None and not shown:
             rows.append("standard errors: not meaningful, the fit reached neither the data nor the model's floor")
         return "\n".join(rows)
