@@ -399,6 +399,11 @@ def test_interrupted_default_fit_resumes_to_the_same_answer(tmp_path, ctrl_c):
         F.fit(start, target, checkpoint_path=out, callback=interrupt, **kw)
     saved = load_fit(out)
     assert saved["attrs"]["status"] == "interrupted"
+    # an interrupted fit's interval is its search box: it has not reached the data
+    assert saved["intervals_attrs"]["method"] == "box" and "was interrupted" in saved["intervals_attrs"]["note"]
+    iv = saved["intervals"]
+    np.testing.assert_allclose(iv["upper"] / iv["lower"], 16.0, rtol=1e-9)      # the default box: start x/÷ 4
+    assert np.all((iv["lower"] <= np.exp(iv["theta"])) & (np.exp(iv["theta"]) <= iv["upper"]))
     res = F.fit(start, target, checkpoint_path=out, resume=True, **kw)
     for n in ref.names:
         np.testing.assert_array_equal(res.values[n], ref.values[n])

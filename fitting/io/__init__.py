@@ -54,8 +54,10 @@ import hashlib
 import json
 import math
 import os
+import types
 
 import h5py
+
 import numpy as np
 
 from jaxplush.errors import ContactCapacityWarning, JaxplushError, Note, TrajectoryError
@@ -142,7 +144,9 @@ def _common_attrs(f, prob, settings, status):
 def save_checkpoint(path, prob, state, settings, status="running", *, theta=None, history=None, **attrs):
     """Write a fit's ``state`` (a pytree, :func:`jaxplush.fitting.io.treeio.write_tree`) to ``path`` atomically,
     with what a person reads of it: the best values so far (log values ``theta``), ``history``
-    (name -> array) and ``attrs`` (loss, iterations, rejected)."""
+    (name -> array) and ``attrs`` (loss, iterations, rejected). A default fit's checkpoint with
+    values also gets ``intervals/``: its search box (``method`` ``box``), all a fit that has not
+    finished can say of where the truth lies."""
     with atomic_path(path, ".h5") as tmp:
         with h5py.File(tmp, "w") as f:
             _common_attrs(f, prob, settings, status)
@@ -150,6 +154,14 @@ def save_checkpoint(path, prob, state, settings, status="running", *, theta=None
                 f.attrs[k] = v
             if theta is not None:
                 _write_values(f.create_group("params"), prob, prob.values(theta))
+                if "box_lo" in settings and "box_hi" in settings:
+                    # the default fit, not finished: all it can say of where the truth lies is its
+                    # search box (jaxplush.fitting.judge.intervals.box)
+                    from jaxplush.fitting.judge import intervals as _intervals
+                    th = np.asarray(theta, np.float64)
+                    box = types.SimpleNamespace(lo=np.reshape(settings["box_lo"], th.shape),
+                                                hi=np.reshape(settings["box_hi"], th.shape))
+                    write_intervals(f, _intervals.box(prob.labels, th, box, status))
             _write_values(f.create_group("start"), prob, prob.start)
             if history is not None:
                 hg = f.create_group("history")

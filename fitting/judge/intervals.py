@@ -198,7 +198,8 @@ def from_report(report, theta, note=None):
 
 
 def box(labels, theta, search_box, status):
-    """:class:`Intervals` of a fit that stopped short of the data (``status``, one of :data:`SHORT`)
+    """:class:`Intervals` of a fit that stopped short of the data (``status``, one of :data:`SHORT`,
+    or a checkpoint's "running" or "interrupted")
     at log values ``theta``: the search box ``search_box`` (``.lo``, ``.hi`` in log space, shaped
     as theta) itself, ``method == "box"`` (module docstring). Not a 95% interval of the data: the
     values' neighbourhood does not say where the truth lies, and the box is where the fit looked."""
@@ -208,9 +209,13 @@ def box(labels, theta, search_box, status):
     q = _normal_quantile(0.5 + LEVEL / 2)
     return Intervals(labels=tuple(labels), theta=th, sd=np.maximum(th - lo, hi - th) / q, quantile=q, level=LEVEL,
                      method="box", n_twins=0, box_lo=lo, box_hi=hi,
-                     note=f"the search box: the fit ended {str(status).replace('_', ' ')}, short of the data, where "
-                          "the values' neighbourhood (twins, standard errors) does not say where the truth lies; "
-                          "it lies in the box if the box holds it at all")
+                     note=f"the search box: the fit {_ENDED.get(str(status), 'ended ' + str(status).replace('_', ' '))}, "
+                          "short of the data, where the values' neighbourhood (twins, standard errors) does not say "
+                          "where the truth lies; it lies in the box if the box holds it at all")
+
+
+#: How :func:`box`'s note says a checkpoint's status (a fit that has not finished).
+_ENDED = {"running": "had not finished (a checkpoint)", "interrupted": "was interrupted"}
 
 
 def _resolution(prob, theta, dtype):
