@@ -57,7 +57,6 @@ import os
 import types
 
 import h5py
-
 import numpy as np
 
 from jaxplush.errors import ContactCapacityWarning, JaxplushError, Note, TrajectoryError
