@@ -380,11 +380,10 @@ def run_random_case(d, case, *, dt=None, steps=None, stop_after=1.0):
             if row["interval_method"] == "box":
                 # a fit that stopped short of the data: its interval is its search box (no spread);
                 # the truth lies in it or not
-                lo = dict(zip([str(x) for x in iva.get("labels", [])], np.log(np.asarray(iv["lower"], np.float64))))
-                hi = dict(zip([str(x) for x in iva.get("labels", [])], np.log(np.asarray(iv["upper"], np.float64))))
-                th = dict(zip([str(x) for x in iva.get("labels", [])], np.asarray(iv["theta"], np.float64)))
-                row["covered"] = {k: bool(lo[k] - 1e-12 <= th[k] - math.log1p(errors[k]) <= hi[k] + 1e-12)
-                                  for k in off}
+                at = {str(x): i for i, x in enumerate(iva.get("labels", []))}
+                lo, hi, th = (np.asarray(iv[k], np.float64) for k in ("lower", "upper", "theta"))
+                row["covered"] = {k: bool(math.log(lo[at[k]]) - 1e-12 <= th[at[k]] - math.log1p(errors[k])
+                                          <= math.log(hi[at[k]]) + 1e-12) for k in off}
                 row["covered4"] = dict(row["covered"])
             else:
                 row["covered"] = {k: bool(v <= q * sd[k]) for k, v in off.items()}

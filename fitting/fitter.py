@@ -594,12 +594,13 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
         notes.append(msg)
     ivals = None
     if want_ident:
-        # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.judge.intervals)
-        ivals = _intervals.twins(prob, ev, theta, run.jac, report, residual=run.residual)
         if out.status in _intervals.SHORT:
             # a fit that stopped short of the data: its neighbourhood does not say where the truth
             # lies (the twins' spread of a fit stuck 28% off was 0.015%); its interval is the box
-            ivals = _intervals.box(ivals.labels, theta, box, out.status)
+            ivals = _intervals.box(report.labels, theta, box, out.status)
+        else:
+            # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.judge.intervals)
+            ivals = _intervals.twins(prob, ev, theta, run.jac, report, residual=run.residual)
     else:
         report = None
     # what the target determines where the parts are not: the report's damping with drag

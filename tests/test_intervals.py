@@ -127,7 +127,7 @@ def test_a_fit_that_stopped_short_reports_its_search_box():
     np.testing.assert_allclose(iv.quantile * iv.sd, [math.log(10.0), math.log(8.0)], rtol=1e-12)
     assert iv.contains("k[a]", 101.0) and iv.contains("k[a]", 1590.0) and not iv.contains("k[a]", 99.0)
     assert not iv.contains("nmol[a]", 1.7e-2) and iv.text("k[a]") == "box [100, 1600]"
-    # a value the fit's own bias correction left outside the box widens it to the value
+    # a value outside the box (the fitter keeps its values inside; a caller may not) widens it to the value
     out = I.box(("k[a]",), np.log([[2000.0]]), types.SimpleNamespace(lo=np.log([[100.0]]), hi=np.log([[1600.0]])),
                 outcome.Status.AT_BOUND)
     assert out.upper[0] == pytest.approx(2000.0) and out.contains("k[a]", 2000.0)

@@ -54,7 +54,6 @@ import hashlib
 import json
 import math
 import os
-import types
 
 import h5py
 import numpy as np
@@ -157,9 +156,9 @@ def save_checkpoint(path, prob, state, settings, status="running", *, theta=None
                     # the default fit, not finished: all it can say of where the truth lies is its
                     # search box (jaxplush.fitting.judge.intervals.box)
                     from jaxplush.fitting.judge import intervals as _intervals
+                    from jaxplush.fitting.stages.search import Box
                     th = np.asarray(theta, np.float64)
-                    box = types.SimpleNamespace(lo=np.reshape(settings["box_lo"], th.shape),
-                                                hi=np.reshape(settings["box_hi"], th.shape))
+                    box = Box(np.reshape(settings["box_lo"], th.shape), np.reshape(settings["box_hi"], th.shape))
                     write_intervals(f, _intervals.box(prob.labels, th, box, status))
             _write_values(f.create_group("start"), prob, prob.start)
             if history is not None:
