@@ -585,10 +585,11 @@ def _summary(rows):
         told = sum(r.get("status") == "undetermined" for r in pair)
         lines.append(f"damping+drag cases (the pair is one effect, never separately identifiable): {len(pair)}, "
                      f"{told} reported 'undetermined'")
-    # the intervals a fit reports (converged, undetermined: jaxplush.fitting.judge.outcome.REPORTED), and
-    # apart those FIT.h5 keeps for a fit that did not reach the data (not shown)
+    # the intervals a fit reports (converged, undetermined and, since 2026-12-01, at_floor:
+    # jaxplush.fitting.judge.outcome.REPORTED; an earlier at_floor row's box counts as a box), and apart
+    # those FIT.h5 keeps for a fit that did not reach the data (not shown)
     def group(r):
-        if r.get("status") in ("converged", "undetermined"):
+        if r.get("status") in ("converged", "undetermined", "at_floor") and r.get("interval_method") != "box":
             return "reported"
         if r.get("interval_method") == "box":
             return "search boxes (the fit stopped short of the data)"

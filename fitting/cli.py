@@ -21,10 +21,11 @@ target, or segments no longer than the horizon, restarted from the observed posi
 
 Every input is validated before anything is traced or written; a bad input prints one message
 (no traceback), writes nothing and exits 2. A fit that cannot proceed (the rollout blows up)
-exits 3; a fit that finished without reaching the data (jaxplush.fitting.judge.outcome; ``at_floor``
-included) writes FIT.h5 with its status and exits 4. One
+exits 3; a fit that finished without reaching the data or the model's reproducibility floor
+(jaxplush.fitting.judge.outcome) writes FIT.h5 with its status and exits 4. One
 that has done what the data allow exits 0: converged, or reproducing the target with some
-parameters undetermined (``undetermined``, said on stderr), its values, and the combinations the
+parameters undetermined (``undetermined``, said on stderr), or at the reproducibility floor
+(``at_floor``, said on stderr with the predictable horizon), its values, and the combinations the
 target determines, reported with their intervals. Ctrl-C (or SIGTERM) saves the state to FIT.h5 and exits 130;
 ``--resume`` continues it.
 """
@@ -32,6 +33,7 @@ target determines, reported with their intervals. Ctrl-C (or SIGTERM) saves the 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import sys
@@ -382,6 +384,12 @@ def _report(args, result):
         print(f"jaxplush-fit: the fit reproduces the target but does not determine {which} (undetermined); "
               "the values it determines, and any combination it determines, are in the table with their "
               "intervals", file=sys.stderr)
+    if result.status == Status.AT_FLOOR:
+        o = result.outcome
+        horizon = (f"; the motion is predictable for {o.horizon:.3g} s of the target" if math.isfinite(o.horizon)
+                   else "")
+        print(f"jaxplush-fit: the fit reached the model's reproducibility floor (at_floor): no values do better "
+              f"than rounding allows{horizon}; its values are in the table with their intervals", file=sys.stderr)
     return 0
 
 

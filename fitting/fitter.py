@@ -599,7 +599,11 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
             # lies (the twins' spread of a fit stuck 28% off was 0.015%); its interval is the box
             ivals = _intervals.box(report.labels, theta, box, out.status)
         else:
-            # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.judge.intervals)
+            # the values' 95% intervals from twins of the fitted values (jaxplush.fitting.judge.intervals),
+            # at the reproducibility floor too: over all frames, where the identifiability report
+            # leaves a parameter undetermined if the rounding noise of its Jacobian column swamps it
+            # (twins over the predictable horizon alone missed: a capsule at its floor 0.052% off in
+            # k against a spread of 0.0049%, benchmarks/RESULTS.md)
             ivals = _intervals.twins(prob, ev, theta, run.jac, report, residual=run.residual)
     else:
         report = None

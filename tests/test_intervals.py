@@ -111,13 +111,14 @@ def test_where_twins_do_not_apply_the_residuals_give_the_interval_and_say_so():
 
 
 def test_a_fit_that_stopped_short_reports_its_search_box():
-    """A fit that stopped short of the data (stalled, at a bound, at its iteration limit or at the
-    floor) can sit in a minimum its neighbourhood cannot tell from the truth's; its interval is the
-    search box: its ends exactly, and a spread whose quantile multiple spans the whole box about
-    the value, even where the value lies off the box's centre."""
-    assert set(I.SHORT) == {outcome.Status.STALLED, outcome.Status.AT_BOUND, outcome.Status.ITERATION_LIMIT,
-                            outcome.Status.AT_FLOOR}
+    """A fit that stopped short of the data (stalled, at a bound, at its iteration limit) can sit in
+    a minimum its neighbourhood cannot tell from the truth's; its interval is the search box: its
+    ends exactly, and a spread whose quantile multiple spans the whole box about the value, even
+    where the value lies off the box's centre. A fit at the reproducibility floor is not short: it
+    reports twins (test_a_fit_that_did_what_the_data_allow_exits_0_and_any_other_4)."""
+    assert set(I.SHORT) == {outcome.Status.STALLED, outcome.Status.AT_BOUND, outcome.Status.ITERATION_LIMIT}
     assert not set(I.SHORT) & set(outcome.REPORTED) and outcome.Status.POOR_FIT not in I.SHORT
+    assert set(I.SHORT) | set(outcome.REPORTED) | {outcome.Status.POOR_FIT} == set(outcome.Status)
     box = types.SimpleNamespace(lo=np.log([[100.0], [1e-3]]), hi=np.log([[1600.0], [1.6e-2]]))
     theta = np.log([[1000.0], [2e-3]])
     iv = I.box(("k[a]", "nmol[a]"), theta, box, outcome.Status.ITERATION_LIMIT)
@@ -133,21 +134,23 @@ def test_a_fit_that_stopped_short_reports_its_search_box():
     assert out.upper[0] == pytest.approx(2000.0) and out.contains("k[a]", 2000.0)
 
 
-@pytest.mark.parametrize("status,code", [("converged", 0), ("at_floor", 4), ("undetermined", 0), ("poor_fit", 4),
+@pytest.mark.parametrize("status,code", [("converged", 0), ("at_floor", 0), ("undetermined", 0), ("poor_fit", 4),
                                          ("stalled", 4), ("iteration_limit", 4), ("at_bound", 4)])
 def test_a_fit_that_did_what_the_data_allow_exits_0_and_any_other_4(status, code, capsys):
     """A fit that reproduces the target with some parameters undetermined has measured what it
     can: it exits 0 with its values and intervals (the undetermined ones named on stderr), as a
-    converged one does. Every other status exits 4, at_floor too: a fit at the floor can be far off
-    with no interval that says so (benchmarks/RESULTS.md, "Intervals from twins")."""
+    converged one does; so does a fit at the model's reproducibility floor, where no values do
+    better (stderr says so, with the predictable horizon). Every other status exits 4."""
     rep = types.SimpleNamespace(undetermined=("damping[ball]", "drag[ball]"), summary=lambda **kw: "SUMMARY")
     res = types.SimpleNamespace(status=outcome.Status(status), converged=status == "converged",
-                                identifiability=rep, table=lambda: "TABLE")
+                                identifiability=rep, table=lambda: "TABLE",
+                                outcome=types.SimpleNamespace(horizon=0.125))
     args = types.SimpleNamespace(out_scene=None, out="FIT.h5")
     assert cli._report(args, res) == code
     err = capsys.readouterr().err
     assert (f"the fit did not reach the data ({status})" in err) == (code == 4)
     assert ("does not determine damping[ball], drag[ball] (undetermined)" in err) == (status == "undetermined")
+    assert ("reproducibility floor (at_floor)" in err and "predictable for 0.125 s" in err) == (status == "at_floor")
 
 
 def test_the_damping_is_resolved_only_as_finely_as_its_float32_factor():

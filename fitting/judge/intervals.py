@@ -41,11 +41,13 @@ normal. Elsewhere (a mixed target, a fit in segments, a scene off the batched en
 
 All of that measures the neighbourhood of the fitted values, which says where the truth lies only
 when the fit reached the data there. A fit that stopped short of them (:data:`SHORT`: stalled, at
-a bound of its box, at its iteration limit, or at the model's reproducibility floor) can sit in a
+a bound of its box, or at its iteration limit) can sit in a
 minimum that does not reproduce the data at all: one of two clouds fitted 28% off in drag stopped
 at its iteration limit with a twins' spread of 0.015%, its smoothing designs agreeing to 0.04%
 (benchmarks/RESULTS.md, 2026-12-01). Its interval is the search box instead (:func:`box`,
-``method == "box"``): all such a fit can say is that it searched there.
+``method == "box"``): all such a fit can say is that it searched there. A fit at the model's
+reproducibility floor (``at_floor``: within 1.4x of it, where no values do better) has done what
+the data allow and reports twins.
 """
 
 from __future__ import annotations
