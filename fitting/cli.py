@@ -385,11 +385,14 @@ def _report(args, result):
               "the values it determines, and any combination it determines, are in the table with their "
               "intervals", file=sys.stderr)
     if result.status == Status.AT_FLOOR:
-        o = result.outcome
+        o, rep = result.outcome, result.identifiability
         horizon = (f"; the motion is predictable for {o.horizon:.3g} s of the target" if math.isfinite(o.horizon)
                    else "")
+        which = (f"; at this floor it does not determine {', '.join(rep.undetermined)}, whose intervals are "
+                 "infinite" if rep is not None and rep.undetermined else "")
         print(f"jaxplush-fit: the fit reached the model's reproducibility floor (at_floor): no values do better "
-              f"than rounding allows{horizon}; its values are in the table with their intervals", file=sys.stderr)
+              f"than rounding allows{horizon}; its values are in the table with their intervals{which}",
+              file=sys.stderr)
     return 0
 
 

@@ -150,7 +150,8 @@ def test_a_fit_that_did_what_the_data_allow_exits_0_and_any_other_4(status, code
     err = capsys.readouterr().err
     assert (f"the fit did not reach the data ({status})" in err) == (code == 4)
     assert ("does not determine damping[ball], drag[ball] (undetermined)" in err) == (status == "undetermined")
-    assert ("reproducibility floor (at_floor)" in err and "predictable for 0.125 s" in err) == (status == "at_floor")
+    assert ("reproducibility floor (at_floor)" in err and "predictable for 0.125 s" in err
+            and "at this floor it does not determine damping[ball], drag[ball]" in err) == (status == "at_floor")
 
 
 def test_the_damping_is_resolved_only_as_finely_as_its_float32_factor():
