@@ -77,7 +77,9 @@ FLOOR_FACTOR = 2.0
 #: sits at about 1x, but the floor is one sample of a chaotic drift. Fits whose values were right
 #: sat at 0.74-1.19x (the recovery bench's seeds 601 and 1001, and a tumbling bean's k under
 #: SSE4.2; benchmarks/RESULTS.md), the nearest one whose values were not (21.6% off in drag, on a
-#: 2 mm cloud) at 1.56x; between the two. Not tested on fresh seeds.
+#: 2 mm cloud) at 1.56x; between the two. So far one fresh fit has tested it: seed 1001's case
+#: 29, at 1.32x and 32.6% off, whose parameters the identifiability report left undetermined at
+#: the floor (infinite intervals): the limit alone does not keep a far-off fit out, the report does.
 FLOOR_REACHED = 1.4
 
 
@@ -266,8 +268,8 @@ def _at_floor(rms, noise, demand, floor, horizon):
     would), where the reproducibility floor is an obstacle at all: ``(True, message)`` when the
     RMS above the noise (taken off in quadrature) is within :data:`FLOOR_REACHED` of the floor
     (``at_floor``), ``(False, phrase)`` when the RMS is within :data:`FLOOR_FACTOR` of
-    sqrt(noise² + floor²) (a phrase for the message of the status
-    the fit gets instead); else None."""
+    sqrt(noise² + floor²) (a phrase for the message of the status the fit gets instead); else
+    None."""
     if floor is None or not (np.isfinite(floor) and floor > 0) or FLOOR_FACTOR * floor < demand:
         return None
     expected = math.hypot(noise or 0.0, floor)
