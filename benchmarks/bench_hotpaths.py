@@ -12,7 +12,8 @@ of two source trees (say the commit before a change and the working tree after i
 on the ball-drop plush of bench_step.py (642 vertices by default: springs, gas, gravity, a
 floor; dt = 2e-4 s, halved per further subdivision) and on
 the same ball with every term that the three paths share switched on (edge dashpot, air drag,
-the report's Verlet damping). Each measurement runs in a fresh process that imports jaxplush
+the report's Verlet damping). ``--cases step:contact,sweep:contact`` times the first two on
+scenes/plush_pile.obj instead (soft-soft contact between three plushies). Each measurement runs in a fresh process that imports jaxplush
 from the tree it is given; the trees alternate (A B A B ...) so that slow changes in machine
 load hit both, and the table reports the best of the rounds and the ratio after / before.
 
@@ -40,6 +41,10 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 CASES = ("step:plain", "step:full", "sweep:plain", "sweep:full", "gradient:plain", "gradient:full")
+#: Soft-soft contact (not in the default set): scenes/plush_pile.obj, three 642-vertex plushies
+#: falling into a pile on a floor, dt 1e-4 s (the scene's own), 2000 steps from rest (step) or
+#: 16 points of 1000 steps (sweep, one chunk), with the candidate lists carried from step to step.
+CONTACT_CASES = ("step:contact", "sweep:contact")
 UNITS = {"step": "steps/s", "sweep": "point-steps/s", "gradient": "gradients/s"}
 
 
@@ -76,20 +81,24 @@ def measure(case, repeats=5, subdivisions=3):
     import jax.numpy as jnp
     import numpy as np
     kind, variant = case.split(":")
-    scene = _scene(jaxplush, variant == "full", subdivisions)
-    dt = 2e-4 * 0.5 ** (subdivisions - 3)
+    if variant == "contact":
+        scene, dt = jaxplush.load_scene(os.path.join(REPO, "scenes", "plush_pile.obj")), 1e-4
+    else:
+        scene = _scene(jaxplush, variant == "full", subdivisions)
+        dt = 2e-4 * 0.5 ** (subdivisions - 3)
     if kind == "step":
         sim = jaxplush.make_simulator(scene, dt)
         p = sim.params()
         s = sim.init_fn(p)
-        steps = 1000
+        steps = 2000 if variant == "contact" else 1000
         return steps / _best(lambda: jaxplush.rollout(sim, p, s, 1, steps), repeats)
     if kind == "sweep":
         from jaxplush.stepping import batched
-        b, steps = 64, 500
+        b, steps = (16, 1000) if variant == "contact" else (64, 500)
         bsim = batched.make_batched_simulator(scene, dt, b)
         bp = bsim.params()
-        bp = bp._replace(k_structural=jnp.asarray(np.linspace(400.0, 600.0, b)[None, :], bsim.dtype))
+        k0 = np.asarray(bp.k_structural, np.float64)[:, :1]
+        bp = bp._replace(k_structural=jnp.asarray(k0 * np.linspace(0.8, 1.2, b)[None, :], bsim.dtype))
         bs = bsim.init_fn(bp)
         return b * steps / _best(lambda: batched.rollout(bsim, bp, bs, 1, steps), repeats)
     if kind == "gradient":
@@ -177,9 +186,9 @@ def main(argv=None):
     if not args.before:
         ap.error("--before is required")
     cases = [c for c in args.cases.split(",") if c]
-    unknown = sorted(set(cases) - set(CASES))
+    unknown = sorted(set(cases) - set(CASES) - set(CONTACT_CASES))
     if unknown:
-        ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(CASES)}")
+        ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(CASES + CONTACT_CASES)}")
     rows = compare(args.before, args.after, cases, args.rounds, args.repeats, args.subdivisions)
     n_vertices = 10 * 4 ** args.subdivisions + 2
     print(f"# {n_vertices} vertices; {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "

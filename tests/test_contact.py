@@ -625,7 +625,8 @@ def test_contact_cache_is_rebuilt_when_a_watched_vertex_moves_half_the_skin_or_a
     cache = ops.init(x)
     assert cache.overflow.shape == (2,) and not np.asarray(cache.overflow).any() and int(cache.valid.sum()) > 0
     update = jax.jit(ops.update)
-    # every vertex moved by 0.4 skin: no rebuild; each target walked to the nearest of itself and its ring
+    # every vertex moved by 0.4 skin: no rebuild; each target walked to the nearest of itself and
+    # its two-ring
     shift = jnp.asarray([0.0, 0.4 * skin, 0.0])[:, None]
     x1 = x.at[:, n:].add(shift)
     c1 = update(cache, x1)
@@ -635,7 +636,7 @@ def test_contact_cache_is_rebuilt_when_a_watched_vertex_moves_half_the_skin_or_a
     xn = np.asarray(x1).T
     for q, t, t1, ok in zip(*(np.asarray(a) for a in (cache.q_idx, cache.target, c1.target, cache.valid))):
         if ok:
-            cand = np.concatenate([[t], ring[t]])
+            cand = np.concatenate([[t], ring[t], ring[ring[t]].ravel()])
             d = np.sum((xn[cand] - xn[q]) ** 2, axis=1)
             assert np.isclose(np.sum((xn[t1] - xn[q]) ** 2), d.min(), rtol=1e-5, atol=1e-12)
     # one vertex near the other ball (watched) moved past half the skin: rebuilt at the new
@@ -663,6 +664,48 @@ def test_contact_cache_is_rebuilt_when_a_watched_vertex_moves_half_the_skin_or_a
     flagged = cache._replace(overflow=jnp.asarray([False, True]))
     for x_new in (x1, x2):
         np.testing.assert_array_equal(np.asarray(update(flagged, x_new).overflow), [False, True])
+
+
+def test_the_walk_reaches_a_nearest_vertex_two_rings_away():
+    """Between rebuilds each query's nearest vertex is walked over its two-ring. A walk over the
+    one-ring can stop at a vertex nearer than its neighbours while the nearest vertex lies two
+    rings away (the force then reads the wrong faces until the next rebuild): here every query's
+    target is set two rings from its nearest vertex, where the best of the one-ring cannot be it,
+    and one walk finds a vertex as near as a fresh search's."""
+    scene, n = two_balls(sub=2, gap=0.002)
+    sim = jaxplush.make_simulator(scene, 1e-4)
+    _, ops = contact.make_contact(sim.topology, sim.terms.contact)
+    x = jnp.asarray(scene.vertices).T
+    cache = ops.init(x)
+    ring = np.asarray(sim.topology.ring)
+    xn = np.asarray(x).T
+    q_idx, target, valid = (np.asarray(a) for a in (cache.q_idx, cache.target, cache.valid))
+    assert valid.sum() >= 10
+    moved = target.copy()
+    d2 = lambda q, v: np.sum((xn[v] - xn[q]) ** 2, axis=-1)            # noqa: E731
+    for i in np.nonzero(valid)[0]:
+        t = target[i]
+        one = set(ring[t].tolist())
+        two = sorted(set(ring[ring[t]].ravel().tolist()) - one - {t})
+        a = two[int(np.argmax(d2(q_idx[i], np.asarray(two))))]          # the farthest two rings away
+        moved[i] = a
+        best_one = np.concatenate([[a], ring[a]])
+        assert d2(q_idx[i], best_one).min() > d2(q_idx[i], t)            # the one-ring walk falls short
+    walked = np.asarray(jax.jit(ops.walk)(cache._replace(target=jnp.asarray(moved)), x).target)
+    for i in np.nonzero(valid)[0]:
+        np.testing.assert_allclose(d2(q_idx[i], walked[i]), d2(q_idx[i], target[i]), rtol=1e-6)
+
+
+def test_two_rings_hold_each_vertex_and_its_neighbours_neighbours_once():
+    sim = jaxplush.make_simulator(two_balls(sub=1)[0], 1e-4)
+    ring = np.asarray(sim.topology.ring)
+    table = contact.two_rings(ring)
+    assert table.shape[1] == contact.two_ring_width(ring) == 19        # valence <= 6: 1 + 3 x 6
+    for v in range(len(ring)):
+        want = {v} | set(ring[v].tolist()) | set(ring[ring[v]].ravel().tolist())
+        assert table[v, 0] == v and set(table[v].tolist()) == want
+        real = table[v][table[v] != v]
+        assert len(real) == len(set(real.tolist())) == len(want) - 1
 
 
 @pytest.mark.heavy

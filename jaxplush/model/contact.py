@@ -42,7 +42,8 @@ Temporal coherence (Verlet lists). Rollouts carry the candidate lists from step 
 some vertex near the contact has moved more than s/2 since the last build, which the skin makes exact (a vertex
 now within reach of the other object's box and sphere was within reach + 2 s of them at the
 build); between rebuilds each query's nearest vertex is walked to the nearest of itself and its
-one-ring, which follows any sliding of less than an edge per step. Only the vertices in some
+two-ring, which follows any sliding of less than an edge per step (a walk over the one-ring alone
+can stop at a vertex nearer than its neighbours while the nearest vertex lies two rings away). Only the vertices in some
 pair's broad phase at the build are watched: the others may move freely as long as none comes
 near the other object's box and sphere as they are now (:meth:`CacheOps.stale`), so a membrane
 fluttering far from the contact does not rebuild the lists every few steps. A resting or slowly
@@ -866,11 +867,44 @@ def _near_limits(topo, cfg):
     return tuple(2.0 * d + max(longest[a], longest[b]) + skin for (a, b), d in zip(cfg.pairs, cfg.thickness))
 
 
+def two_ring_width(ring):
+    """Slots of the walk's table (:func:`two_rings`) for one-rings ``ring`` (V, K): the largest
+    two-ring (the vertex itself included), and at least 1 + 3 K, the two-ring of a vertex of
+    valence K among vertices of valence K (19 for K = 6), so that regular meshes of any size
+    share one width (:class:`jaxplush.stepping.compiled.Bucket`)."""
+    return int(max(two_rings(ring, 0).shape[1], 1 + 3 * np.shape(ring)[1]))
+
+
+def two_rings(ring, width=None):
+    """(V, W) int32: each vertex, then the other vertices of its one- and two-ring (ascending),
+    padded by repeating the vertex (``width`` None: :func:`two_ring_width`; 0: as wide as the
+    largest). ``ring`` (V, K): one-rings padded by repeating a neighbour."""
+    ring = np.asarray(ring, np.int64)
+    n_v, k = ring.shape
+    me = np.arange(n_v)[:, None]
+    cand = np.concatenate([ring, ring[ring].reshape(n_v, k * k)], axis=1)
+    cand = np.sort(np.where(cand == me, n_v, cand), axis=1)              # the vertex itself last
+    dup = np.concatenate([np.zeros((n_v, 1), bool), cand[:, 1:] == cand[:, :-1]], axis=1)
+    cand = np.sort(np.where(dup, n_v, cand), axis=1)                      # each other vertex once
+    count = (cand < n_v).sum(axis=1)
+    w = 1 + int(count.max()) if width in (None, 0) else int(width)
+    if width is None:
+        w = max(w, 1 + 3 * k)
+    cand = np.where(cand[:, :w - 1] < n_v, cand[:, :w - 1], me)
+    if cand.shape[1] < w - 1:
+        cand = np.concatenate([cand, np.broadcast_to(me, (n_v, w - 1 - cand.shape[1]))], axis=1)
+    return np.ascontiguousarray(np.concatenate([me, cand], axis=1).astype(np.int32))
+
+
 def _cache_ops(topo, cfg, ring, search):
     """The :class:`CacheOps` of :func:`make_contact`'s candidate cache (ring: the (V, K) one-rings;
     ``search(xs)``: a fresh :class:`ContactCache`)."""
-    n_v = topo.n_vertices
-    ring_ext = np.ascontiguousarray(np.concatenate([np.arange(n_v, dtype=np.int32)[:, None], ring], axis=1))
+    # the walk's table: each vertex and its two-ring. A walk over the one-ring alone can stop at a
+    # vertex nearer than all its neighbours while the nearest vertex lies two rings away (a query
+    # almost equidistant from two vertices of a coarse mesh), and the force then reads the faces
+    # around the wrong vertex until the next rebuild (benchmarks/contact_lists_check.py; the
+    # carried lists then departed from a fresh search by 5% of the contact force for 3 steps)
+    ring_ext = two_rings(ring)
     slices = topo.vertex_slices
     skin = skin_distance(topo, cfg)
     # the region a vertex outside the watch set must not enter: where the force can act and the
@@ -879,16 +913,16 @@ def _cache_ops(topo, cfg, ring, search):
 
     def walk_block(target, q_idx, xs, i):
         """``target`` with the queries of block i (slots i B .. (i + 1) B, B = QUERY_BLOCK) moved
-        to the nearest of their target and its one-ring."""
+        to the nearest of their target and its two-ring."""
         t = jax.lax.dynamic_slice_in_dim(target, i * QUERY_BLOCK, QUERY_BLOCK)
         q = jax.lax.dynamic_slice_in_dim(q_idx, i * QUERY_BLOCK, QUERY_BLOCK)
-        rk = _take(ring_ext, t)                                              # (B, K + 1)
+        rk = _take(ring_ext, t)                                              # (B, W)
         p, n = _gather(xs, q), _gather(xs, rk)
         d2 = sum((nc - pc[:, None]) ** 2 for nc, pc in zip(n, p))
         return jax.lax.dynamic_update_slice_in_dim(target, _pick(rk, _packed_argmin(d2, 1)), i * QUERY_BLOCK, 0)
 
     def walk(cache, xs):
-        """Each query's target moved to the nearest of the target and its one-ring (one step of a
+        """Each query's target moved to the nearest of the target and its two-ring (one step of a
         greedy descent of the vertex distance: the nearest vertex follows a sliding contact), in
         blocks of QUERY_BLOCK, only those that hold queries (:func:`_blockwise`)."""
         return cache._replace(target=_blockwise(cache.valid, cache.target,

@@ -164,6 +164,8 @@ class Bucket:
         batched kernel uses to skip masking those slots.
       near_faces: with soft-soft contact, the width of the reference energy's near-face table.
       capacity: with soft-soft contact, the candidate capacity of each object.
+      walk_width: with soft-soft contact between objects, the slots of the carried lists' walk
+        table (:func:`jaxplush.model.contact.two_ring_width`: 19 for any mesh of valence at most 6).
       softening: the exponent of the edge-length softening eps = 2**softening m
         (:func:`jaxplush.model.forces.softening_length`: 1e-6 of the shortest rest edge, to the
         nearest power of two), a constant of the programs.
@@ -175,6 +177,7 @@ class Bucket:
     softening: int = 0
     near_faces: int | None = None
     capacity: tuple | None = None
+    walk_width: int | None = None
 
     def text(self):
         """One line for ``jaxplush info``."""
@@ -187,6 +190,8 @@ class Bucket:
                f"softening 2^{self.softening} m")
         if self.capacity is not None:
             out += f"; contact capacity {'/'.join(str(c) for c in self.capacity)}, near faces {self.near_faces}"
+            if self.walk_width is not None:
+                out += f", walk width {self.walk_width}"
         return out
 
 
@@ -200,12 +205,15 @@ def bucket(scene, terms=None):
     objects = tuple((int(b - a), int(eb - ea), int(fb - fa), int(((fixed >= a) & (fixed < b)).sum()))
                     for (a, b), (ea, eb), (fa, fb) in zip(topo.vertex_slices, topo.edge_slices, topo.face_slices))
     valence = topo.ring_mask.sum(axis=1)
-    near, capacity = None, None
+    near, capacity, walk = None, None, None
     if terms.contact:
         near = int(_contact._tables(topo, terms.contact).near_faces.shape[1])
         capacity = tuple(int(c) for c in terms.contact.capacity)
+        if terms.contact.pairs:
+            walk = _contact.two_ring_width(topo.ring)
     return Bucket(objects=objects, ring_width=int(topo.ring.shape[1]), valence=int(valence.min()),
-                  softening=int(np.round(np.log2(topo.length_eps))), near_faces=near, capacity=capacity)
+                  softening=int(np.round(np.log2(topo.length_eps))), near_faces=near, capacity=capacity,
+                  walk_width=walk)
 
 
 def size():
