@@ -869,9 +869,9 @@ def _near_limits(topo, cfg):
 
 def two_ring_width(ring):
     """Slots of the walk's table (:func:`two_rings`) for one-rings ``ring`` (V, K): the largest
-    two-ring (the vertex itself included), and at least 1 + 3 K, the two-ring of a vertex of
-    valence K among vertices of valence K (19 for K = 6), so that regular meshes of any size
-    share one width (:class:`jaxplush.stepping.compiled.Bucket`)."""
+    two-ring (the vertex itself included), and at least 1 + 3 K (19 for K = 6, the two-ring of a
+    vertex of valence 6 among vertices of valence 6), so that meshes of valence at most 6 share
+    one width whatever their size (:class:`jaxplush.stepping.compiled.Bucket`)."""
     return int(max(two_rings(ring, 0).shape[1], 1 + 3 * np.shape(ring)[1]))
 
 
