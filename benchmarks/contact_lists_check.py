@@ -40,10 +40,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--from", dest="start", type=int, default=2600, help="first step compared")
     ap.add_argument("--tol", type=float, default=1e-3, help="relative to the largest contact force")
-    ap.add_argument("--patch", help="a Python file executed first (an experiment on the contact code)")
     args = ap.parse_args(argv)
-    if args.patch:
-        exec(compile(open(args.patch).read(), args.patch, "exec"), {})
     warnings.simplefilter("ignore")
     import jax
     import jaxplush
