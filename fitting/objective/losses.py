@@ -54,9 +54,9 @@ import numpy as np
 from jaxplush.fitting.targets.kinds import TargetKind
 # the geometry of the kinds' residuals and loss terms lives in the core (the kinds own it); named here too
 from jaxplush.io.observe import (  # noqa: F401
-    HIGHEST, WALK_STEPS, _candidate_faces, chamfer,
-    coarse_vertices, curvature_tables, mixed_linearised, nearest_point_residual, nearest_vertex,
-    nearest_vertices_walk, object_coarse_vertices, observed_points, pairwise_sq_distances, point_surface,
+    HIGHEST, _candidate_faces, chamfer,
+    curvature_tables, mixed_linearised, nearest_point_residual, nearest_vertex,
+    nearest_vertices, observed_points, pairwise_sq_distances, point_surface,
     point_surface_distance2,
     point_surface_signed_distance, squared_distance, surface_residual, track_distance2,
     track_linearised, track_positions, track_residual, vertex_faces, vertex_mean_curvature,

@@ -117,12 +117,11 @@ def point_surface_distance2(x, p, faces, vfaces, near=None):
     Args:
       x: (V, 3) simulated vertex positions; p: (M, 3) target points.
       faces: (F, 3) int faces; vfaces: (V, W) faces around each vertex (:func:`vertex_faces`).
-      near: (M,) index of each point's nearest vertex, if known (:func:`nearest_vertices_walk`);
-        default: found here by brute force (an (M, V) table).
+      near: (M,) index of each point's nearest vertex, if known; default: found here
+        (:func:`nearest_vertices`, the mesh as one object).
     """
     if near is None:
-        d2v = sum((x[:, None, c] - p[None, :, c]) ** 2 for c in range(3))   # (V, M); a K=3 dot is slower
-        near = jnp.argmin(d2v, axis=0)                                      # (M,) nearest vertex
+        near = nearest_vertices(x, p, ((0, x.shape[0]),))[:, 0]
     return jnp.min(_candidate_faces(x, p, faces, vfaces, near)[1], axis=1)
 
 
@@ -176,67 +175,43 @@ def point_surface(faces, n_vertices, weight=None):
     return ragged
 
 
-def coarse_vertices(x0, n):
-    """Indices of ``n`` vertices spread over a mesh (farthest-point sampling of the rest shape
-    x0 (V, 3), from vertex 0; numpy): the starts of :func:`nearest_vertices_walk`."""
-    x0 = np.asarray(x0, np.float64)
-    n = int(min(max(n, 1), len(x0)))
-    chosen = [0]
-    d2 = np.sum((x0 - x0[0]) ** 2, axis=1)
-    for _ in range(n - 1):
-        i = int(np.argmax(d2))
-        chosen.append(i)
-        d2 = np.minimum(d2, np.sum((x0 - x0[i]) ** 2, axis=1))
-    return np.asarray(chosen, np.int32)
+def nearest_vertices(x, p, slices):
+    """(M, O) int32: each point's nearest vertex on each of O objects, searched over every vertex
+    of the object (``slices``: each object's (start, stop) vertex range; one object: ``((0, V),)``).
+
+    Exact up to near-ties: squared distances are compared in float32 with their last
+    b = ceil(log2 V_o) mantissa bits (V_o rounded up to a multiple of :data:`LANE`) replaced by
+    the vertex's index within its object, so that a plain min-reduction yields the index (an
+    argmin is a two-operand reduction, slower on CPU). Two vertices whose squared distances agree
+    to about 2^(b - 23) of themselves (1.2e-4 for 1024 vertices) count as tied and the first wins;
+    either is a nearest vertex for the faces around it. The table is laid out
+    (M, V_o / LANE, LANE) and reduced over LANE first, which XLA:CPU fuses with the distances, so
+    that at most 1/LANE of the table is held in memory. Reduced in one piece, the reduction is
+    split and the whole (M, V_o) table is stored, per frame and per batch lane (2.4 times the
+    peak memory, for a 32-lane batch of an 802-vertex scene).
+
+    This replaced a greedy walk over the one-ring from a sparse set of starts, which can stop at a
+    vertex nearer than its neighbours: on a deformed coarse torus it ended up to 36 mm farther than
+    the nearest vertex, for 0.4% of a 2 mm scan's points, and it cost more (benchmarks/RESULTS.md,
+    "The scan residual's nearest vertex")."""
+    out = []
+    for a, b in slices:
+        n = b - a
+        g = -(-n // LANE)
+        bits = max(1, int(g * LANE - 1).bit_length())
+        low = (1 << bits) - 1
+        xo = jnp.concatenate([x[a:b], jnp.broadcast_to(x[a], (g * LANE - n, 3))]).reshape(g, LANE, 3)
+        d2 = sum((p[:, None, None, k] - xo[None, :, :, k]) ** 2 for k in range(3))    # (M, G, LANE)
+        key = jax.lax.bitcast_convert_type(d2.astype(jnp.float32), jnp.int32)          # ordered as d2
+        key = (key & ~low) | jnp.arange(g * LANE, dtype=jnp.int32).reshape(g, LANE)[None]
+        best = jnp.min(jnp.min(key, axis=2), axis=1) & low
+        out.append(a + jnp.where(best < n, best, 0))         # a padding copy of vertex 0: only if NaN
+    return jnp.stack(out, axis=1)
 
 
-#: Steps of the walk from the nearest coarse vertex to the nearest vertex.
-WALK_STEPS = 4
-
-
-def object_coarse_vertices(topology):
-    """Per object of a scene's :class:`jaxplush.model.forces.Topology`, the starts of
-    :func:`nearest_vertices_walk`: :func:`coarse_vertices` of that object's rest shape, one per 8
-    of its vertices (a tuple of (S_o,) int32 scene-wide indices)."""
-    x0 = np.asarray(topology.x0, np.float64)
-    return tuple(np.asarray(a + coarse_vertices(x0[a:b], -(-(b - a) // 8)), np.int32)
-                 for a, b in topology.vertex_slices)
-
-
-def nearest_vertices_walk(x, p, coarse, ring, steps=WALK_STEPS, ends=False):
-    """(M,) index of each point's nearest vertex: the nearest of the ``coarse`` vertices (an (M, S)
-    table, S ~ V/8), then ``steps`` moves to the nearest of the current vertex and its one-ring
-    (``ring`` (V, K)). Exact where the distance to the point has no other local minimum over the
-    mesh's vertices nearby, as for points within an edge or so of the surface; about six times
-    fewer distances than the (M, V) table.
-
-    A walk cannot leave the object it starts on (one-rings do not cross objects), so for a scene
-    of several objects ``coarse`` is a sequence of start sets, one per object
-    (:func:`object_coarse_vertices`): each point walks on every object from that object's nearest
-    start, and keeps the nearest of the ends (``ends``: returns every end, (M, O)). From one
-    start set over the whole scene, a point on one object whose nearest start lies on a touching
-    neighbour walks to the neighbour's nearest vertex, centimetres away, and its residual jumps
-    when that start changes.
-
-    Args:
-      x: (V, 3) vertex positions; p: (M, 3) points; coarse: (S,) vertex indices, or a sequence
-        of them (one per object); ring: (V, K); ends: return (M, O), the end of each walk.
-    """
-    sets = [coarse] if hasattr(coarse, "shape") else list(coarse)
-    starts = []
-    for c in sets:
-        c = jnp.asarray(c)
-        xc = x[c]
-        d2c = sum((xc[:, None, k] - p[None, :, k]) ** 2 for k in range(3))        # (S, M)
-        starts.append(c[jnp.argmin(d2c, axis=0)])
-    cur = jnp.stack(starts, axis=1)                                             # (M, O)
-    ring = jnp.asarray(ring)
-    pp = p[:, None, None, :]
-    for _ in range(steps):
-        cand = jnp.concatenate([cur[..., None], ring[cur]], axis=-1)            # (M, O, K + 1)
-        d2 = jnp.sum((x[cand] - pp) ** 2, axis=-1)
-        cur = jnp.take_along_axis(cand, jnp.argmin(d2, axis=-1)[..., None], axis=-1)[..., 0]
-    return cur if ends else nearest_of(x, p, cur)
+#: the inner extent of :func:`nearest_vertices`'s table: reductions no longer than this fuse with
+#: the distances they reduce (XLA:CPU splits longer ones through a table held in memory)
+LANE = 32
 
 
 def nearest_of(x, p, cand):
@@ -352,8 +327,7 @@ def surface_residual(target, topology, scale2, normalisation):
     m = np.shape(target.data)[1]
     faces = np.asarray(topology.faces, np.int32)
     vf = vertex_faces(faces, topology.n_vertices)
-    coarse = object_coarse_vertices(topology)
-    ring = np.asarray(topology.ring, np.int32)
+    slices = tuple((int(a), int(b)) for a, b in topology.vertex_slices)
 
     # isotropic noise of sigma puts a sample of a curved surface outside it by sigma² H on
     # average (H the mean curvature there): each distance has that expected offset taken off,
@@ -366,7 +340,7 @@ def surface_residual(target, topology, scale2, normalisation):
         valid, p = observed_points(p)                                # padding: residual 0
         # the closest face around each object's nearest vertex: near the contact between two
         # objects, a point's nearest vertex can lie on one object and its nearest face on the other
-        ends = nearest_vertices_walk(x, p, coarse, ring, ends=True)           # (M, O)
+        ends = nearest_vertices(x, p, slices)                                 # (M, O)
         d = point_surface_signed_distance(x, p, faces, vf, ends)
         d = d if h is None else d - jnp.asarray(sigma2, x.dtype) * h[nearest_of(x, p, ends)]
         return jnp.where(valid, d, 0.0)
@@ -377,8 +351,9 @@ def surface_residual(target, topology, scale2, normalisation):
         return jax.vmap(lambda x, p: one(x, p, None))(frames, y).reshape(-1)
 
     def near_fn(frames, y):
-        return jax.vmap(lambda x, p: nearest_vertices_walk(x, p, coarse, ring))(
-            frames, observed_points(y)[1]).reshape(-1)
+        def one_near(x, p):
+            return nearest_of(x, p, nearest_vertices(x, p, slices))
+        return jax.vmap(one_near)(frames, observed_points(y)[1]).reshape(-1)
     return frame_fn, m, near_fn
 
 
