@@ -278,6 +278,23 @@ def random_case_files(d, case, *, dt=None, steps=None):
     return truth, target_path, start_path
 
 
+def cloud_case_at_truth(case):
+    """(target, frames (T, V, 3) float32: ``jaxplush.simulate`` of the truth at the target's T
+    frames, topology) of a point-cloud case; None for a positions case. For the scripts that
+    check the scan residual at the truth (``scan_nearest_check.py``, ``scan_residual_cost.py``)."""
+    import jaxplush
+    from jaxplush.fitting.targets import load_target
+    with tempfile.TemporaryDirectory() as d:
+        truth, target_path, _ = random_case_files(d, case)
+        target = load_target(target_path, truth)
+    if target.points is None:
+        return None
+    frames = np.asarray(jaxplush.simulate(truth, case["steps"], case["dt"], case["save_every"]).positions,
+                        np.float32)
+    frames = frames[len(frames) - len(target.points):]      # frame 0 (the start) is not in the target
+    return target, frames, jaxplush.make_simulator(truth, case["dt"]).topology
+
+
 @contextlib.contextmanager
 def _deadline(seconds):
     """Raise KeyboardInterrupt (the fit's Ctrl-C: it saves its state and exits 130) after ``seconds``."""

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 import warnings
 
 import numpy as np
@@ -37,29 +36,23 @@ def main(argv=None):
     import bench_recovery as br
     import jax
     import jax.numpy as jnp
-    import jaxplush
-    from jaxplush.fitting.targets import load_target
     from jaxplush.fitting.targets.scenarios import describe_case
     from jaxplush.io import observe as ob
     cases = br.draw_cases(args.random, args.seed, max_vertices=None, max_objects=3, kinds=("positions", "points"))
     for i in (int(c) for c in args.cases.split(",")):
         case = cases[i]
-        with tempfile.TemporaryDirectory() as d:
-            truth, target_path, _ = br.random_case_files(d, case)
-            target = load_target(target_path, truth)
-        if target.points is None:
+        at_truth = br.cloud_case_at_truth(case)
+        if at_truth is None:
             print(f"case {i}: {describe_case(case)}: not a point-cloud target")
             continue
-        frames = np.asarray(jaxplush.simulate(truth, case["steps"], case["dt"], case["save_every"]).positions)
-        topo = jaxplush.make_simulator(truth, case["dt"]).topology
+        target, frames, topo = at_truth
         slices = tuple((int(a), int(b)) for a, b in topo.vertex_slices)
         search = jax.jit(lambda x, p: ob.nearest_of(x, p, ob.nearest_vertices(x, p, slices)))
         points = np.asarray(target.points)
-        offset = len(frames) - len(points)             # frame 0 (the start) is not in the target
         missed = total = 0
         worst = 0.0
         for t in range(len(points)):
-            x, p = frames[t + offset], points[t]
+            x, p = frames[t], points[t]
             p = p[np.all(np.isfinite(p), axis=1)]
             w = np.asarray(search(jnp.asarray(x, jnp.float32), jnp.asarray(p, jnp.float32)))
             d2 = np.sum((x[None].astype(np.float64) - p[:, None]) ** 2, axis=-1)

@@ -23,7 +23,6 @@ import argparse
 import os
 import resource
 import sys
-import tempfile
 import time
 import warnings
 
@@ -51,7 +50,6 @@ def main(argv=None):
     import jax
     import jax.numpy as jnp
     import jaxplush
-    from jaxplush.fitting.targets import load_target
     from jaxplush.fitting.targets.scenarios import describe_case
     from jaxplush.io import observe as ob
     print(f"# jaxplush from {os.path.dirname(jaxplush.__file__)}; {args.lanes} lanes")
@@ -60,17 +58,12 @@ def main(argv=None):
     cases = br.draw_cases(args.random, args.seed, max_vertices=None, max_objects=3, kinds=("positions", "points"))
     for i in (int(c) for c in args.cases.split(",")):
         case = cases[i]
-        with tempfile.TemporaryDirectory() as d:
-            truth, target_path, _ = br.random_case_files(d, case)
-            target = load_target(target_path, truth)
-        if target.points is None:
+        at_truth = br.cloud_case_at_truth(case)
+        if at_truth is None:
             print(f"case {i}: {describe_case(case)}: not a point-cloud target")
             continue
-        frames = np.asarray(jaxplush.simulate(truth, case["steps"], case["dt"], case["save_every"]).positions,
-                            np.float32)
-        topo = jaxplush.make_simulator(truth, case["dt"]).topology
+        target, frames, topo = at_truth
         points = np.asarray(target.points, np.float32)
-        frames = frames[len(frames) - len(points):]      # frame 0 (the start) is not in the target
         sigma = float(target.noise)
         frame_fn, _, _ = ob.surface_residual(target, topo, sigma ** 2, "noise")
         fn = jax.jit(jax.vmap(frame_fn, in_axes=(0, None)))

@@ -175,6 +175,11 @@ def point_surface(faces, n_vertices, weight=None):
     return ragged
 
 
+#: the inner extent of :func:`nearest_vertices`'s table: reductions no longer than this fuse with
+#: the distances they reduce (XLA:CPU splits longer ones through a table held in memory)
+LANE = 32
+
+
 def nearest_vertices(x, p, slices):
     """(M, O) int32: each point's nearest vertex on each of O objects, searched over every vertex
     of the object (``slices``: each object's (start, stop) vertex range; one object: ``((0, V),)``).
@@ -207,11 +212,6 @@ def nearest_vertices(x, p, slices):
         best = jnp.min(jnp.min(key, axis=2), axis=1) & low
         out.append(a + jnp.where(best < n, best, 0))         # a padding copy of vertex 0: only if NaN
     return jnp.stack(out, axis=1)
-
-
-#: the inner extent of :func:`nearest_vertices`'s table: reductions no longer than this fuse with
-#: the distances they reduce (XLA:CPU splits longer ones through a table held in memory)
-LANE = 32
 
 
 def nearest_of(x, p, cand):
