@@ -519,6 +519,11 @@ def _disagreement(jac_a, jac_b, unresolved, labels, noise_a, noise_b):
     return None
 
 
+def _search_ties(ev, theta):
+    from jaxplush.fitting.stages.search import Ties
+    return Ties.of(ev, np.shape(theta))
+
+
 def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability. A fit in
     segments returns its values with multiple shooting's own bias taken off (:func:`jaxplush.fitting.
@@ -537,7 +542,13 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     lo_edge = (best.theta <= box.lo + 1e-6).ravel()
     at_bound = tuple(f"{labels[i]} at its {'lower' if lo_edge[i] else 'upper'} bound "
                      f"{math.exp((box.lo if lo_edge[i] else box.hi).ravel()[i]):.4g}" for i in np.nonzero(edge)[0])
-    gn_step, stderr = gauss_newton(run.jac, run.residual)
+    # the Gauss-Newton step and standard errors, along the combined rate where the report's damping
+    # and drag are both fitted (search.Ties: the search fits that rate; each of the two gets its
+    # standard error)
+    ties = _search_ties(ev, best.theta)
+    gn_step, stderr = gauss_newton(run.jac if ties is None else run.jac @ ties.basis, run.residual)
+    if ties is not None and gn_step is not None:
+        gn_step, stderr = ties.basis @ gn_step, ties.spread(stderr)
     # the identifiability report (its undetermined parameters set the status), with the rounding
     # noise of a finite-difference Jacobian from the measured reproducibility drift
     # (a mixed target's: its scan's, the tracks' residuals weighing against them as in the loss)

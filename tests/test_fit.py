@@ -233,6 +233,47 @@ def test_damping_and_drag_fitted_together_end_undetermined():
     assert abs(np.log(want / c.value)) <= 4 * c.sd + 1e-12, (c, want)
     assert "determined: damping+drag rate[ball]" in res.table()
     assert np.isinf(res.intervals.sd[list(res.intervals.labels).index("drag[ball]")])
+    # the search fitted the rate alone: the values split it as the start values did
+    share = lambda d, g: g / rate(d, g)  # noqa: E731
+    assert share(res.values["damping"][0], res.values["drag"][0]) == pytest.approx(share(600.0, 3.4), rel=1e-9)
+
+
+def test_a_search_moves_damping_and_drag_only_along_their_combined_rate():
+    """Where an object's damping D and drag are both fitted, a search's step keeps drag's share
+    of the rate r = drag + 1/(D dt) (in log space the pair moves along (-1, +1)); its starts go
+    onto the start values' share, the rate kept; a step clipped by the box on one of the two is
+    cut on the other as well; and a problem without the pair has no ties."""
+    from jaxplush.fitting.stages.search import Box, Ties, _steps
+    dt = 1e-3
+    ties = Ties(shape=(3, 2), damping=(2, 3), drag=(4, 5), share=np.array([0.25, 0.5]), dt=dt)
+    rate = lambda th: np.exp(th[2]) + np.exp(-th[1]) / dt  # noqa: E731
+    share = lambda th: np.exp(th[2]) / rate(th)  # noqa: E731
+    theta = np.log(np.array([[300.0, 200.0], [800.0, 50.0], [2.0, 7.0]]))
+    on = ties.project(theta)
+    np.testing.assert_allclose(rate(on), rate(theta), rtol=1e-12)
+    np.testing.assert_allclose(share(on), [0.25, 0.5], rtol=1e-12)
+    np.testing.assert_array_equal(on[0], theta[0])
+    assert np.array_equal(ties.project(on), on)               # on the line: left exactly as it is
+    # LM steps on a random Jacobian keep every share, and move the rate
+    rng = np.random.default_rng(0)
+    jac, r = rng.normal(size=(40, 6)), rng.normal(size=40)
+    box = Box(lo=on - 3.0, hi=on + 3.0)
+    for trial, step, pred, mu in _steps(jac, r, (1e-3, 1e-1), 0.5, box, on, ties):
+        np.testing.assert_allclose(share(trial), [0.25, 0.5], rtol=1e-9)
+        assert pred > 0 and 0 < np.max(np.abs(step)) <= 0.5 + 1e-12
+    assert any(abs(rate(t)[0] / rate(on)[0] - 1) > 1e-3 for t, *_ in _steps(jac, r, (1e-3,), 0.5, box, on, ties))
+    # a clip on drag cuts the damping's change too
+    tight = Box(lo=on - 3.0, hi=on + 3.0)
+    tight.hi[2, 0] = on[2, 0] + 0.01
+    for trial, *_ in _steps(jac, r, (1e-3,), 0.5, tight, on, ties):
+        np.testing.assert_allclose(share(trial), [0.25, 0.5], rtol=1e-9)
+        assert trial[2, 0] <= tight.hi[2, 0] + 1e-15 and trial[1, 0] >= on[1, 0] - 0.01 - 1e-12
+
+    class Ev:
+        def __init__(self, names):
+            self.prob = type("P", (), dict(names=names, theta0=np.zeros((len(names), 1))))()
+    assert Ties.of(Ev(("k_structural", "damping", "nmol"))) is None
+    assert Ties.of(Ev(("k_structural", "drag"))) is None
 
 
 # --------------------------------------------------------------------------- blow-ups

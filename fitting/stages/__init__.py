@@ -323,6 +323,8 @@ def start_residuals(ev, states, local):
     fresh = _search.start_states(ev, np.asarray([s.theta for s in need]), options=local)
     for s, f in zip(need, fresh):
         s.residual, s.substeps, s.loss, s.separation = f.residual, f.substeps, f.loss, f.separation
+        if not np.array_equal(f.theta, s.theta):     # put on its tied pairs' lines (search.Ties)
+            s.theta, s.jac, s.updates = f.theta.copy(), None, 0
         if f.done:
             s.done, s.stopped, s.reason = f.done, f.stopped, f.reason
         if not s.history:

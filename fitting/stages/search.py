@@ -28,6 +28,8 @@ vector r (sum(r²) = loss) with a trust radius in log space:
 * it stops when an accepted step changes theta by less than ``xtol`` or the loss by less than
   ``ftol`` (relative), when the radius falls below ``xtol`` without an accepted step (stalled),
   or at ``max_iter`` iterations. The outcome is judged afterwards (jaxplush.fitting.fitter), not here.
+* where an object's report ``damping`` and air ``drag`` are both fitted (:class:`Ties`), the steps
+  move the pair along their combined rate only, the only thing a target determines of the two.
 
 Smoothing stage (:func:`smooth`, noisy targets only): Gauss-Newton on an affine regression model
 of the residuals over a Sobol design at the scale of the standard errors, which averages out the
@@ -71,6 +73,100 @@ class Box:
     def at_bound(self, theta, tol=1e-6):
         """Bool mask (theta's shape): on the box's edge."""
         return (theta <= self.lo + tol) | (theta >= self.hi - tol)
+
+
+@dataclasses.dataclass(frozen=True)
+class Ties:
+    """The pairs of fitted values that a local search moves only together: an object's report
+    ``damping`` D and air ``drag`` gamma, both fitted. Both take the same share of every vertex's
+    velocity off at every step (D as the rate 1/(D dt)), so a target determines their combined
+    rate r = gamma + 1/(D dt) and not its split; a search free to move both wanders along the
+    split, which the loss does not see, into the box's edge or into rounding noise (seed 1101 of
+    the recovery benchmark: a fit of two cushions ended ``at_bound`` with drag at its lower bound
+    and the combined rates 0.9% and 0.6% off).
+
+    So the search fits the combined rate: each pair moves along the line on which drag's share
+    s = gamma / r of the rate holds, (log D, log gamma) + t (-1, +1) in log space, t = the
+    change of log r. Its starts are put on the line of the start values' share, the rate kept
+    (:meth:`project`), so the values it reports split the rate as the start did; the fit's
+    identifiability report says the split is undetermined, and its combinations the rate.
+
+    Attributes:
+      shape: theta's shape (P_n, O_f); damping, drag: flat indices of the pairs' entries;
+      share: (pairs,) drag's share of the start's rate; dt: the target's frame step, s (the rate's
+        unit; a substep count changes the rate, not the line).
+    """
+
+    shape: tuple
+    damping: tuple
+    drag: tuple
+    share: np.ndarray
+    dt: float
+
+    @staticmethod
+    def of(evaluator, shape=None):
+        """The ties of ``evaluator.prob`` (a :class:`jaxplush.fitting.objective.problem.Problem`),
+        or None where it fits not both ``damping`` and ``drag`` (or has no problem, or ``shape``
+        is not its theta's)."""
+        prob = getattr(evaluator, "prob", None)
+        names = tuple(getattr(prob, "names", ()))
+        if "damping" not in names or "drag" not in names:
+            return None
+        th_shape = tuple(np.shape(prob.theta0))
+        if shape is not None and tuple(shape) != th_shape:
+            return None
+        o_f = th_shape[1]
+        i_d, i_g = names.index("damping"), names.index("drag")
+        dt = float(prob.target.dt)
+        start = prob.start
+        rate_d = 1.0 / (np.asarray(start["damping"], np.float64) * dt)
+        gamma = np.asarray(start["drag"], np.float64)
+        return Ties(shape=th_shape, damping=tuple(i_d * o_f + j for j in range(o_f)),
+                    drag=tuple(i_g * o_f + j for j in range(o_f)), share=gamma / (gamma + rate_d), dt=dt)
+
+    @property
+    def basis(self):
+        """(P, P - pairs): the directions a search moves in, one per free value, the damping's
+        column replaced by the pair's (-1 at D, +1 at gamma)."""
+        p = int(np.prod(self.shape))
+        cols = [j for j in range(p) if j not in self.drag]
+        out = np.zeros((p, len(cols)))
+        for c, j in enumerate(cols):
+            out[j, c] = 1.0
+        for d, g in zip(self.damping, self.drag):
+            c = cols.index(d)
+            out[d, c], out[g, c] = -1.0, 1.0
+        return out
+
+    def spread(self, per_column):
+        """(P,) a value per direction of :attr:`basis` (a standard error, say) given to each
+        value that direction moves."""
+        b = np.abs(self.basis)
+        return (b * np.asarray(per_column, np.float64)[None]).max(axis=1)
+
+    def project(self, theta):
+        """``theta`` with each pair split as the start's share splits its combined rate, the rate
+        kept; pairs within 1e-9 (log space) of that line are left exactly as they are."""
+        flat = np.array(theta, np.float64).ravel()
+        for d, g, s in zip(self.damping, self.drag, self.share):
+            rate = math.exp(flat[g]) + math.exp(-flat[d]) / self.dt
+            new_g = math.log(s * rate)
+            new_d = -math.log((1.0 - s) * rate * self.dt)
+            if abs(new_g - flat[g]) > 1e-9 or abs(new_d - flat[d]) > 1e-9:
+                flat[g], flat[d] = new_g, new_d
+        return flat.reshape(np.shape(theta))
+
+    def along(self, theta, trial):
+        """``trial`` (a step from ``theta`` along :attr:`basis`, then clipped into a box) with each
+        pair's two changes made equal and opposite again at the smaller of the two, so that a
+        clip on one keeps the pair on its line."""
+        a = np.asarray(theta, np.float64).ravel()
+        flat = np.array(trial, np.float64).ravel()
+        for d, g in zip(self.damping, self.drag):
+            tg, td = flat[g] - a[g], a[d] - flat[d]
+            t = math.copysign(min(abs(tg), abs(td)), tg) if tg * td > 0 else 0.0
+            flat[g], flat[d] = a[g] + t, a[d] - t
+        return flat.reshape(np.shape(trial))
 
 
 @dataclasses.dataclass
@@ -326,10 +422,13 @@ def jacobian(evaluator, box, theta, h, substeps=1, options=None, separation=math
     return st.jac
 
 
-def _steps(jac, r, mus, radius, box, theta):
-    """Trial points for each mu: the LM step cut to the trust radius, projected into the box."""
-    jtj = jac.T @ jac
-    g = jac.T @ r
+def _steps(jac, r, mus, radius, box, theta, ties=None):
+    """Trial points for each mu: the LM step cut to the trust radius, projected into the box.
+    With ``ties`` (:class:`Ties`), the step moves along their basis only."""
+    basis = None if ties is None else ties.basis
+    jr = jac if basis is None else jac @ basis
+    jtj = jr.T @ jr
+    g = jr.T @ r
     scale = np.maximum(np.diag(jtj), 1e-12 * max(float(np.max(np.diag(jtj))), 1e-300))
     out = []
     for mu in mus:
@@ -338,10 +437,14 @@ def _steps(jac, r, mus, radius, box, theta):
             delta = -np.linalg.solve(a, g)
         except np.linalg.LinAlgError:
             delta = -np.linalg.lstsq(a, g, rcond=None)[0]
+        if basis is not None:
+            delta = basis @ delta
         big = float(np.max(np.abs(delta)))
         if big > radius:
             delta = delta * (radius / big)
         trial = box.clip((theta.ravel() + delta).reshape(theta.shape))
+        if ties is not None:
+            trial = ties.along(theta, trial)
         step = trial.ravel() - theta.ravel()
         pred = float(r @ r - np.sum((r + jac @ step) ** 2))
         out.append((trial, step, pred, mu))
@@ -390,6 +493,7 @@ def rescue(evaluator, box, states, limit=2, options=None):
     pts = np.concatenate(pts)
     ev = evaluator(pts)
     owner = np.asarray(owner)
+    ties = Ties.of(evaluator, np.shape(states[0].theta))
     restarted = []
     for i, st in enumerate(states):
         idx = np.nonzero(owner == i)[0]
@@ -404,6 +508,10 @@ def rescue(evaluator, box, states, limit=2, options=None):
         old = st.loss
         st.theta = pts[j].copy()
         st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
+        if ties is not None and not np.array_equal(ties.project(st.theta), st.theta):
+            # an axis scan moves one of a tied pair: back on the pair's line, the rate kept (its
+            # residuals are evaluated again before the search goes on)
+            st.theta, st.residual = ties.project(st.theta), None
         st.separation = _separation(ev, j)
         st.jac, st.updates, st.mu = None, 0, o.mu0
         st.radius = float(np.max(spacing[i]))
@@ -419,6 +527,9 @@ def start_states(evaluator, thetas, losses=None, options=None):
     trust radius and damping are ``radius0`` and ``mu0`` of ``options`` (:class:`LocalOptions`)."""
     o = options or _LOCAL
     thetas = np.asarray(thetas, np.float64)
+    ties = Ties.of(evaluator, thetas.shape[1:])
+    if ties is not None:             # on their tied pairs' lines (:class:`Ties`)
+        thetas = np.asarray([ties.project(t) for t in thetas])
     ev = evaluator(thetas)
     out = []
     for i, th in enumerate(thetas):
@@ -450,9 +561,10 @@ def gauss_newton(jac, residual):
     return -inv @ (j.T @ r), np.sqrt(s2 * diag)
 
 
-def _gn_within_noise(jac, r):
-    """max_i |GN step_i| / standard error_i at a point (None when JᵀJ is singular or s² is 0)."""
-    step, se = gauss_newton(jac, r)
+def _gn_within_noise(jac, r, ties=None):
+    """max_i |GN step_i| / standard error_i at a point (None when JᵀJ is singular or s² is 0);
+    with ``ties`` (:class:`Ties`), along their basis."""
+    step, se = gauss_newton(jac if ties is None else jac @ ties.basis, r)
     if step is None or not np.all(se > 0):
         return None
     return float(np.max(np.abs(step) / se))
@@ -502,17 +614,18 @@ def lm_round(evaluator, box, states, max_iter=DEFAULT_ITERATIONS["lm"], options=
     trials, owner = [], []
     for i, st in enumerate(active):
         stop = None
-        within = _gn_within_noise(st.jac, st.residual) if st.jac_h <= o.noise_stop_h else None
+        ties = Ties.of(evaluator, np.shape(st.theta))
+        within = _gn_within_noise(st.jac, st.residual, ties) if st.jac_h <= o.noise_stop_h else None
         if within is not None and within <= noise_stop:
             stop = (Stop.NOISE, f"the Gauss-Newton step is {within:.2g} of the parameters' standard errors "
                                 f"(<= {noise_stop:g}): the optimum is resolved to the noise")
-        gn = None if stop else _floor_step(st, floor, o.floor_step)
+        gn = None if stop else _floor_step(st, floor, o.floor_step, ties)
         if gn is not None:
             stop = (Stop.FLOOR, f"the loss {st.loss:.4g} is at the model's reproducibility floor ({floor:.4g}) and the "
                                 f"Gauss-Newton step is {gn:.2g} (<= {o.floor_step:g}): no step can be told from rounding")
         t = None
         if stop is None:
-            t = _steps(st.jac, st.residual, tuple(st.mu * f for f in o.trial_mu), st.radius, box, st.theta)
+            t = _steps(st.jac, st.residual, tuple(st.mu * f for f in o.trial_mu), st.radius, box, st.theta, ties)
             best_pred = max(x[2] for x in t)
             if best_pred <= o.pred_tol * st.loss and st.jac_h <= o.h_min * (1 + 1e-9):
                 stop = (Stop.PREDICTED, f"the Gauss-Newton model predicts a decrease of at most "
@@ -544,12 +657,13 @@ def broyden(jac, step, dr):
     return jac + np.outer(dr - jac @ step, step / ss)
 
 
-def _floor_step(st, floor, limit):
+def _floor_step(st, floor, limit, ties=None):
     """The largest |Gauss-Newton step| (log space) of a state whose loss is at most ``floor``
-    and whose step is at most ``limit``; None otherwise (or when either is None)."""
+    and whose step is at most ``limit``; None otherwise (or when either is None). With ``ties``
+    (:class:`Ties`), along their basis."""
     if floor is None or limit is None or not st.loss <= floor:
         return None
-    step, _ = gauss_newton(st.jac, st.residual)
+    step, _ = gauss_newton(st.jac if ties is None else st.jac @ ties.basis, st.residual)
     if step is None:
         return None
     size = float(np.max(np.abs(step))) if step.size else 0.0
@@ -678,7 +792,17 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=
     sigma_range = tuple(o.sigma)
     shape = np.shape(theta)
     x = np.asarray(theta, np.float64).ravel().copy()
-    sigma = gauss_newton(jac, residual)[1]
+    ties = Ties.of(evaluator, shape)
+
+    def newton(b, a):
+        # the Gauss-Newton step and standard errors (P,), along the ties' basis where there are
+        # ties (each tied value gets its pair's standard error)
+        if ties is None:
+            return gauss_newton(b, a)
+        step, sig = gauss_newton(b @ ties.basis, a)
+        return (None, None) if step is None else (ties.basis @ step, ties.spread(sig))
+
+    sigma = newton(jac, residual)[1]
     if sigma is None:
         return None
     m = max(int(math.ceil(math.log2(o.points))), 1)
@@ -701,7 +825,7 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=
             scale = 1.0                  # the last long step overshot: back to the standard errors' scale
             half = o.width * np.clip(sigma, *sigma_range)
         last_model = model
-        step, sig = gauss_newton(b, a)
+        step, sig = newton(b, a)
         if sig is None:
             break
         # converged: the step is within the standard errors, and the design that measured them
@@ -710,6 +834,8 @@ def smooth(evaluator, box, theta, jac, residual, seed=0, progress=None, options=
         sized = bool(np.all(half >= 0.5 * o.width * np.clip(sig, *sigma_range)))
         converged = sized and bool(np.all(np.abs(step) <= o.stop * sig))
         cut = np.clip(x + np.clip(step, -half, half), lo, hi)
+        if ties is not None:
+            cut = ties.along(x, cut).ravel()
         # far from the optimum the step reaches past the design: widen the next one (a trust
         # region that grows while the model's direction holds), else back to the errors' scale
         scale = min(2.0 * scale, o.grow) if np.any(np.abs(step) > half) else 1.0
