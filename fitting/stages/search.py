@@ -93,8 +93,8 @@ class Ties:
 
     Attributes:
       shape: theta's shape (P_n, O_f); damping, drag: flat indices of the pairs' entries;
-      share: (pairs,) drag's share of the start's rate; dt: the target's frame step, s (the rate's
-        unit; a substep count changes the rate, not the line).
+      share: (pairs,) drag's share of the start's rate; dt: the target's time step, s (the
+        simulation's step; a substep count changes the rate, not the line).
     """
 
     shape: tuple
