@@ -519,17 +519,12 @@ def _disagreement(jac_a, jac_b, unresolved, labels, noise_a, noise_b):
     return None
 
 
-def _search_ties(ev, theta):
-    from jaxplush.fitting.stages.search import Ties
-    return Ties.of(ev, np.shape(theta))
-
-
 def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     """The :class:`FitResult` of a default fit: frames, health, outcome, identifiability. A fit in
     segments returns its values with multiple shooting's own bias taken off (:func:`jaxplush.fitting.
     shooting.debias`; ``say`` gets the line that says so); its loss and outcome are the fit's own."""
     from jaxplush.fitting.stages import lmfit
-    from jaxplush.fitting.stages.search import gauss_newton
+    from jaxplush.fitting.stages.search import Ties, gauss_newton
     notes = list(notes) + list(ev.notes)
     prob = dataclasses.replace(prob, sim=ev.prob.sim)       # with a grown contact capacity, if any
     best = run.best
@@ -545,7 +540,7 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
     # the Gauss-Newton step and standard errors, along the combined rate where the report's damping
     # and drag are both fitted (search.Ties: the search fits that rate; each of the two gets its
     # standard error)
-    ties = _search_ties(ev, best.theta)
+    ties = Ties.of(ev, np.shape(best.theta))
     gn_step, stderr = gauss_newton(run.jac if ties is None else run.jac @ ties.basis, run.residual)
     if ties is not None and gn_step is not None:
         gn_step, stderr = ties.basis @ gn_step, ties.spread(stderr)

@@ -433,17 +433,10 @@ def evaluator_frames(evaluator):
 
 def _split_as_start(prob, theta):
     """``theta`` with its drag and damping re-split, object by object, as the start values split
-    their combined decay rate (drag + the damping's rate), the rate kept."""
-    dt = float(prob.target.dt)
-    i_g, i_d = prob.names.index("drag"), prob.names.index("damping")
-    theta = np.array(theta, np.float64)
-    rate_of = lambda g, d: g + damping_rate(d, dt)  # noqa: E731
-    start = prob.start
-    share = start["drag"] / rate_of(start["drag"], start["damping"])
-    rate = rate_of(np.exp(theta[i_g]), np.exp(theta[i_d]))
-    theta[i_g] = np.log(share * rate)
-    theta[i_d] = np.log([_damping_of_rate(r, dt) for r in (1 - share) * rate])
-    return theta
+    their combined decay rate (drag + the damping's rate), the rate kept
+    (:meth:`jaxplush.fitting.stages.search.Ties.project`, the line the local searches keep to)."""
+    from jaxplush.fitting.stages.search import Ties
+    return Ties.for_problem(prob).project(np.asarray(theta, np.float64))
 
 
 def design_point(objective):

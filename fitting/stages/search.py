@@ -108,13 +108,19 @@ class Ties:
         """The ties of ``evaluator.prob`` (a :class:`jaxplush.fitting.objective.problem.Problem`),
         or None where it fits not both ``damping`` and ``drag`` (or has no problem, or ``shape``
         is not its theta's)."""
-        prob = getattr(evaluator, "prob", None)
+        ties = Ties.for_problem(getattr(evaluator, "prob", None))
+        if ties is None or (shape is not None and tuple(shape) != ties.shape):
+            return None
+        return ties
+
+    @staticmethod
+    def for_problem(prob):
+        """The ties of a :class:`jaxplush.fitting.objective.problem.Problem` (None: it does not fit
+        both ``damping`` and ``drag``)."""
         names = tuple(getattr(prob, "names", ()))
         if "damping" not in names or "drag" not in names:
             return None
         th_shape = tuple(np.shape(prob.theta0))
-        if shape is not None and tuple(shape) != th_shape:
-            return None
         o_f = th_shape[1]
         i_d, i_g = names.index("damping"), names.index("drag")
         dt = float(prob.target.dt)
@@ -508,10 +514,11 @@ def rescue(evaluator, box, states, limit=2, options=None):
         old = st.loss
         st.theta = pts[j].copy()
         st.loss, st.residual, st.substeps = float(ev.loss[j]), ev.residuals[j], int(ev.substeps[j])
-        if ties is not None and not np.array_equal(ties.project(st.theta), st.theta):
+        on_line = st.theta if ties is None else ties.project(st.theta)
+        if not np.array_equal(on_line, st.theta):
             # an axis scan moves one of a tied pair: back on the pair's line, the rate kept (its
             # residuals are evaluated again before the search goes on)
-            st.theta, st.residual = ties.project(st.theta), None
+            st.theta, st.residual = on_line, None
         st.separation = _separation(ev, j)
         st.jac, st.updates, st.mu = None, 0, o.mu0
         st.radius = float(np.max(spacing[i]))
