@@ -300,6 +300,19 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
                                 chunk_frames=chunk)
             run.evaluations += first.evaluations
             run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
+        within = _within_horizon(prob, run, ev, opts, report) if solver is None else None
+        if within is not None:
+            # the fit sits at the reproducibility floor over the whole target, but not over the
+            # frames its values predict: fit those again from its values (locally)
+            first = run
+            prob, note = within
+            replanned = replanned or within
+            notes = list(notes) + [note]
+            local_only = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
+            run, ev = lmfit.run(prob, box, local_only, progress=progress, callback=user_cb, start=first.best.theta,
+                                chunk_frames=chunk)
+            run.evaluations += first.evaluations
+            run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
 
     def save_finished():
         if checkpoint_path is not None:
@@ -411,6 +424,74 @@ def _replan(full, prob, theta, opts, report=None):
     if report is not None:
         report(note)
     return new, note
+
+
+def _within_horizon(prob, run, ev, opts, report=None):
+    """The problem cut at the predictable horizon measured at the fitted values, when a fit over
+    single-shooting frames did not reach the data and its frames before that horizon sit above
+    what rounding explains there: (the problem, a note saying so); else None.
+
+    Past the horizon two runs that differ only by rounding drift apart by as much as the data
+    allow, so the residual there says nothing about the values, yet it dominates the loss: a fit
+    over all of it can stop where the whole target's residual is at its floor while the frames
+    before the horizon, where the model is deterministic, are far from theirs. On the recovery
+    bench's fits that ended at the floor, those frames sat 2-33x above their rounding drift
+    (a fit at the truth: 0-0.9x), and fitting them alone, from the fit's values, took k and
+    nmol from 0.05-0.4% off to within 0.001% (benchmarks/RESULTS.md, 2026-12-02).
+
+    The horizon is the first frame whose rounding drift exceeds the data's demand (the noise, or
+    a hundredth of the motion; :func:`jaxplush.predictability`), kept at ``min_horizon_frames``
+    frames at least (:class:`jaxplush.fitting.options.ShootingOptions`). The frames before it are
+    "above their drift" when their residual RMS above the noise (taken off in quadrature) exceeds
+    :data:`jaxplush.fitting.judge.outcome.FLOOR_REACHED` x the drift's RMS over them."""
+    from jaxplush.fitting.judge import outcome as _outcome
+    if not opts.predictability or (prob.shooting is not None and prob.shooting.on):
+        return None
+    best = run.best
+    if best is None or not np.isfinite(best.loss):
+        return None
+    t = prob.target
+    kind = t.kind
+    noise = float(prob.noise or 0.0)
+    rms = _losses.rms_metres(best.loss, prob.loss.scale2, kind)
+    demand = _outcome.NOISE_FACTOR * noise if noise else _outcome.MOTION_FRACTION * _motion(prob)
+    if rms <= demand:
+        return None
+    pred = _predictability_at(prob, best.theta, batched=True, chunk_frames=_first_horizon(prob, opts))
+    if pred is None or pred.predictable:
+        return None
+    times = np.asarray(t.times, np.float64)
+    keep = int(np.searchsorted(times, pred.horizon_time, side="right"))
+    keep = max(keep, int(opts.multiple_shooting.min_horizon_frames))
+    if keep >= t.n_frames:
+        return None
+    e = ev(np.asarray(best.theta)[None])
+    r = np.asarray(e.residuals[0], np.float64)
+    per = int(ev.residual.per_frame)
+    if not np.isfinite(e.loss[0]) or r.size != t.n_frames * per:
+        return None
+    frames = r.reshape(t.n_frames, per)
+    whole, early = np.nanmean(r ** 2), np.nanmean(frames[:keep] ** 2)
+    if not (whole > 0 and np.isfinite(early)):
+        return None
+    pre = rms * math.sqrt(early / whole)                     # the frames before the horizon, m
+    drift = np.interp(times[:keep], np.asarray(pred.times, np.float64), np.asarray(pred.drift_rms, np.float64))
+    drift = float(np.sqrt(np.mean(drift ** 2)))
+    above = math.sqrt(max(pre * pre - noise * noise, 0.0))
+    if not above > _outcome.FLOOR_REACHED * drift:
+        return None
+    cut = prob.truncated(keep)
+    cut = dataclasses.replace(cut, predictability=_predictability_at(cut, best.theta, batched=True,
+                                                                     chunk_frames=_first_horizon(prob, opts)))
+    note = (f"fitted again over the first {keep} of {t.n_frames} frames, from the first fit's values, at which "
+            f"{pred.text()}: over the whole target the residual ({rms * 1e3:.3g} mm) was at the model's "
+            f"reproducibility floor, but over those frames {above * 1e3:.3g} mm"
+            + (" above the noise" if noise else "")
+            + f", {above / drift if drift > 0 else math.inf:.3g}x their rounding drift ({drift * 1e3:.3g} mm): beyond "
+            "them no values do better than rounding allows")
+    if report is not None:
+        report(note)
+    return cut, note
 
 
 def _may_replan(full, prob, opts):

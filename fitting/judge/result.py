@@ -278,7 +278,8 @@ def measure_predictability(prob, report=None, batched=False, chunk_frames=None):
 def _judge(prob, theta, batched=False, chunk_frames=None, **kw):
     """:func:`jaxplush.fitting.judge.outcome.judge` of a fit ending at log values theta, with the
     reproducibility floor of :attr:`Problem.predictability`; for a fit that does not reach the
-    data the floor is measured again at theta (the start's may be far from the result's;
+    data, or reaches it but is first-order optimal only because its residual lies within the
+    floor, the floor is measured again at theta (the start's may be far from the result's;
     ``batched``, ``chunk_frames``: as :func:`_predictability_at`)."""
     from jaxplush.fitting.judge import outcome as _outcome
     pred = prob.predictability
@@ -287,8 +288,9 @@ def _judge(prob, theta, batched=False, chunk_frames=None, **kw):
         # segments no longer than the horizon: the floor is the node states' (the shooting floor)
         return _outcome.judge(**kw, floor=prob.shooting.floor, horizon=None)
     out = _outcome.judge(**kw, floor=start[0], horizon=start[1])
-    if out.reached or pred is None:
+    if pred is None or (out.reached and _outcome.judge(**kw).optimal):
         return out
+    # not reached, or reached but optimal only within a floor: the floor at theta decides
     pred = _predictability_at(prob, theta, batched=batched, chunk_frames=chunk_frames) or pred
     return _outcome.judge(**kw, floor=pred.floor, horizon=pred.horizon_time)
 
