@@ -138,12 +138,19 @@ def start_scene(d, name, truth, factors):
 
 
 def _shooting_record(f):
-    """How a FIT.h5's fit shot: ``segment_frames`` (0: one rollout) and, where multiple shooting's
-    own bias was taken off the fitted values, ``shooting_bias`` (relative, per fitted value)."""
+    """How a FIT.h5's fit shot: ``segment_frames`` (0: one rollout), ``fitted_frames`` (the frames
+    its result was fitted over and judged on: fewer than the target's where the fit cut it at a
+    predictable horizon), ``horizon_refit`` (whether it fitted the frames its first values predict
+    again, ``fitter._within_horizon``) and, where multiple shooting's own bias was taken off the
+    fitted values, ``shooting_bias`` (relative, per fitted value)."""
     if "shooting" not in f:
         return {}
     g = f["shooting"]
     out = dict(segment_frames=int(g.attrs["segment_frames"]))
+    if "fitted/positions" in f:
+        out["fitted_frames"] = int(f["fitted/positions"].shape[0])
+    out["horizon_refit"] = any(str(w).startswith("fitted again over the first ")
+                               for w in json.loads(f.attrs.get("warnings", "[]")))
     if "bias" in g.attrs:
         out["shooting_bias"] = [float(b) for b in np.ravel(g.attrs["bias"])]
     return out
@@ -519,12 +526,14 @@ TWIN_RATIO = 1.25
 def twin_ratio(row, orc):
     """Set ``row["twin_ratio"]``: the RMS misfit of the fitted frames (``fit_rms``) over that of the
     oracle's float64 truth twin (``twin_rms``), over the frames within the fit's horizon (every
-    frame when it has none). None when either is missing."""
+    frame when it has none; a fit cut at a predictable horizon: over its frames, the target's first).
+    None when either is missing."""
     fit, twin = row.get("fit_rms"), ((orc or {}).get("oracle") or {}).get("twin_rms")
     times = row.get("frame_times")
-    if not fit or not twin or not times or len(fit) != len(twin):
+    if not fit or not twin or not times or len(fit) > min(len(twin), len(times)):
         row["twin_ratio"] = None
         return None
+    twin, times = twin[:len(fit)], times[:len(fit)]
     horizon = row.get("horizon_time", math.inf)
     keep = [i for i, t in enumerate(times) if t <= horizon * (1 + 1e-9)] or list(range(len(times)))
     f = math.sqrt(sum(fit[i] ** 2 for i in keep) / len(keep))

@@ -334,12 +334,13 @@ def oracle_case(scene, case, *, dt, steps, every, kind, n_points=None, noise=0.0
 def frame_rms(frames, target, faces):
     """(T,) RMS misfit of simulated ``frames`` (T, V, 3) to the target at each of its frames: of
     the coordinates for positions, of the points' distances to the simulated surface for clouds.
+    Frames fewer than the target's (a fit cut at a predictable horizon) are the target's first.
 
     The measure of the acceptance for several objects in contact: the frames re-simulated at
     the fitted values against those of the truth's float64 twin (the oracle's ``twin_rms``)."""
     frames = np.asarray(frames, np.float64)
     if getattr(target, "positions", None) is not None:
-        return np.sqrt(np.mean((frames - np.asarray(target.positions, np.float64)) ** 2, axis=(1, 2)))
+        return np.sqrt(np.mean((frames - np.asarray(target.positions, np.float64)[:len(frames)]) ** 2, axis=(1, 2)))
     import jax
     import jax.numpy as jnp
     from jaxplush.fitting.objective.losses import point_surface_distance2, vertex_faces

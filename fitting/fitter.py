@@ -484,8 +484,8 @@ def _within_horizon(prob, run, ev, opts, report=None):
     cut = dataclasses.replace(cut, predictability=_predictability_at(cut, best.theta, batched=True,
                                                                      chunk_frames=_first_horizon(prob, opts)))
     note = (f"fitted again over the first {keep} of {t.n_frames} frames, from the first fit's values, at which "
-            f"{pred.text()}: over the whole target the residual ({rms * 1e3:.3g} mm) was at the model's "
-            f"reproducibility floor, but over those frames {above * 1e3:.3g} mm"
+            f"{pred.text()}: over the whole target its residual was {rms * 1e3:.3g} mm, over those frames "
+            f"{above * 1e3:.3g} mm"
             + (" above the noise" if noise else "")
             + f", {above / drift if drift > 0 else math.inf:.3g}x their rounding drift ({drift * 1e3:.3g} mm): beyond "
             "them no values do better than rounding allows")

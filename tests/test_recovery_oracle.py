@@ -145,12 +145,18 @@ def test_the_twin_ratio_counts_the_frames_within_the_horizon(bench, oracle):
     assert row["twin_frames"] == 2
     row = dict(fit_rms=[1.0, 1.5, 1.0], frame_times=[0.1, 0.2, 0.3])     # no horizon: every frame
     assert bench.twin_ratio(row, orc) == pytest.approx(math.sqrt(4.25 / 10002))
-    assert bench.twin_ratio(dict(fit_rms=[1.0], frame_times=[0.1]), orc) is None
+    assert bench.twin_ratio(dict(fit_rms=[1.0]), orc) is None                       # no frame times
+    # a fit cut at a predictable horizon: over its frames, the target's first
+    row = dict(fit_rms=[1.0, 1.5], frame_times=[0.1, 0.2, 0.3])
+    assert bench.twin_ratio(row, orc) == pytest.approx(math.sqrt(3.25 / 2)) and row["twin_frames"] == 2
+    assert bench.twin_ratio(dict(fit_rms=[1.0] * 4, frame_times=[0.1, 0.2, 0.3]), orc) is None
     # the measure itself: the RMS of the coordinates per frame for positions
     tgt = type("T", (), dict(positions=np.zeros((2, 3, 3))))()
     frames = np.zeros((2, 3, 3))
     frames[1, 0, 0] = 3.0
     assert np.allclose(oracle.frame_rms(frames, tgt, None), [0.0, 1.0])
+    # a fit cut at a predictable horizon: its frames against the target's first
+    assert np.allclose(oracle.frame_rms(frames[:1], tgt, None), [0.0])
     # and of the points' distances to the surface for clouds
     faces = np.array([[0, 1, 2]])
     x = np.array([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
