@@ -289,30 +289,26 @@ def _fit_lm(prob, opts, notes, t_start, *, progress, callback, report=None, cloc
         else:
             run, ev = lmfit.run(prob, box, opts, resume=prior, stages=solver, **common)
             replanned = None
+
+        def again(first, cut, note):
+            # fit again, locally (the global stage has done its work), from the first fit's values
+            local_only = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
+            run, ev = lmfit.run(cut, box, local_only, progress=progress, callback=user_cb, start=first.best.theta,
+                                chunk_frames=chunk)
+            run.evaluations += first.evaluations
+            run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
+            return cut, run, ev, list(notes) + [note]
+
         if replanned is not None:
             # the start's horizon cut the fit short; the fitted values predict further: fit again
-            # from them over what they predict (locally: the global stage has done its work)
-            first = run
-            prob, note = replanned
-            notes = list(notes) + [note]
-            local_only = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
-            run, ev = lmfit.run(prob, box, local_only, progress=progress, callback=user_cb, start=first.best.theta,
-                                chunk_frames=chunk)
-            run.evaluations += first.evaluations
-            run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
+            # over what they predict
+            prob, run, ev, notes = again(run, *replanned)
         within = _within_horizon(prob, run, ev, opts, report) if solver is None else None
         if within is not None:
-            # the fit sits at the reproducibility floor over the whole target, but not over the
-            # frames its values predict: fit those again from its values (locally)
-            first = run
-            prob, note = within
+            # the fit lies near the reproducibility floor over the whole target, but not over the
+            # frames its values predict: fit those again
             replanned = replanned or within
-            notes = list(notes) + [note]
-            local_only = dataclasses.replace(opts, search=dataclasses.replace(opts.search, samples=0, starts=1))
-            run, ev = lmfit.run(prob, box, local_only, progress=progress, callback=user_cb, start=first.best.theta,
-                                chunk_frames=chunk)
-            run.evaluations += first.evaluations
-            run.global_result, run.paths = first.global_result, list(first.paths) + list(run.paths)
+            prob, run, ev, notes = again(run, *within)
 
     def save_finished():
         if checkpoint_path is not None:
