@@ -70,7 +70,8 @@ from jaxplush.fitting.objective.problem import (ALIASES, Problem, _common_settin
                                       canonical_names, check_mass_fit, default_params, parse_bounds)
 from jaxplush.fitting.targets.recovery import RECOVERY_TRUTH, recovery_scene_text, synthetic_recovery  # noqa: F401
 from jaxplush.fitting.judge.result import (FitResult, _history, _judge, _motion, _predictability_at, _result,  # noqa: F401
-                                     identifiability_at, measure_predictability, rounding_drift)
+                                     identifiability_at, measure_predictability, residual_samples,
+                                     rounding_drift)
 from jaxplush.fitting.objective import shooting as _shooting
 from jaxplush.fitting.judge.outcome import REPORTED as _REPORTED, Status
 from jaxplush.fitting.objective.shooting import plan_shooting
@@ -452,7 +453,9 @@ def _within_horizon(prob, run, ev, opts, report=None):
     kind = t.kind
     noise = float(prob.noise or 0.0)
     rms = _losses.rms_metres(best.loss, prob.loss.scale2, kind)
-    demand = _outcome.NOISE_FACTOR * noise if noise else _outcome.MOTION_FRACTION * _motion(prob)
+    start_floor = None if prob.predictability is None else prob.predictability.floor
+    demand = (_outcome.reach_limit(noise, residual_samples(prob), start_floor) if noise
+              else _outcome.MOTION_FRACTION * _motion(prob))
     if rms <= demand:
         return None
     pred = _predictability_at(prob, best.theta, batched=True, chunk_frames=_first_horizon(prob, opts))

@@ -253,6 +253,25 @@ def test_outcome_judgement():
                          at_bound=("k[a] at its upper bound 10",))
     assert edge.status == "at_bound" and "--bounds" in edge.text
 
+def test_the_noise_level_is_what_the_noise_leaves_over_its_samples():
+    """With the sample count and the floor known, a residual counts as at the noise level only up
+    to what the noise's sampling (and the floor beside it) leaves: 1.1 sigma over 20,000 samples
+    with a negligible floor is a poor fit (1.25 sigma alone would have passed it); the same
+    residual with a floor of half the noise reaches the data; few samples allow more; without the
+    floor or the count, 1.25 sigma remains the limit."""
+    kw = dict(rms=1.1e-3, noise=1e-3, motion=0.1, grad=[1e-4], grad0=[1.0], stopped="predicted")
+    tight = outcome.judge(samples=20000, floor=0.0, **kw)
+    assert not tight.reached and tight.status == "poor_fit", tight.text
+    assert "over 20000 samples the noise alone leaves at most 1.02 mm" in tight.text and "--noise" in tight.text
+    assert outcome.judge(samples=20000, floor=0.5e-3, **kw).converged
+    assert outcome.judge(samples=200, floor=0.0, **kw).converged
+    assert outcome.judge(samples=20000, **kw).converged and outcome.judge(floor=0.0, **kw).converged
+    # the cap: a floor as large as the noise does not let 1.3 sigma reach the data
+    assert not outcome.judge(**{**kw, "rms": 1.3e-3}, samples=20000, floor=1e-3).reached
+    lim = outcome.reach_limit(1e-3, 20000, 0.0)
+    assert 1.02e-3 < lim < 1.03e-3 and outcome.reach_limit(1e-3, None, 0.0) == outcome.NOISE_FACTOR * 1e-3
+
+
 
 def test_a_noise_free_fit_whose_gauss_newton_step_is_tiny_is_optimal():
     """Noise-free, the gradient can stay above 1% of the start's on a rough loss while the local

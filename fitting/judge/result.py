@@ -282,6 +282,7 @@ def _judge(prob, theta, batched=False, chunk_frames=None, **kw):
     floor, the floor is measured again at theta (the start's may be far from the result's;
     ``batched``, ``chunk_frames``: as :func:`_predictability_at`)."""
     from jaxplush.fitting.judge import outcome as _outcome
+    kw.setdefault("samples", residual_samples(prob))
     pred = prob.predictability
     start = (None, None) if pred is None else (pred.floor, pred.horizon_time)
     if prob.shooting is not None and prob.shooting.on:
@@ -293,6 +294,13 @@ def _judge(prob, theta, batched=False, chunk_frames=None, **kw):
     # not reached, or reached but optimal only within a floor: the floor at theta decides
     pred = _predictability_at(prob, theta, batched=batched, chunk_frames=chunk_frames) or pred
     return _outcome.judge(**kw, floor=pred.floor, horizon=pred.horizon_time)
+
+
+def residual_samples(prob):
+    """How many residual samples a problem's RMS is over: observed coordinates (positions,
+    tracks) or point distances (points); a mixed target's smaller part."""
+    t = prob.target
+    return min(int(p.observed.sum()) * int(p.kind.components) for p in t.parts)
 
 
 def rounding_drift(prob):

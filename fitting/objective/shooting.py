@@ -23,8 +23,8 @@ Model of a segment (frames on an even grid, H seconds apart; every vertex observ
   segment, which then ends on the last grid frame: the segments are laid out from the end, and
   the first one is the short one.
 
-Where one rollout's floor is below half of what a converged fit needs (the outcome's rule:
-1.25 x the noise, or 1% of the motion), nothing is measured: one rollout can converge. Otherwise,
+Where one rollout's floor is below half of what a converged fit may leave (the outcome's rule
+allows at most 1.25 x the noise, or 1% of the motion), nothing is measured: one rollout can converge. Otherwise,
 node states estimated from frames carry an error of their own (modes faster than the frame rate
 are aliased): :func:`plan` measures it (the *shooting floor*: multiple shooting of a target
 simulated at the start values, at those values). A lower floor is not enough: short segments see
