@@ -214,8 +214,8 @@ def reach_limit(noise, samples=None, floor=None):
     floor: ``at_floor``). With the exact nearest-vertex search a fit at the truth sits at
     0.99-1.01 sigma on the recovery bench's 2 mm clouds; of the fits that sat at 1.03-1.18 sigma
     and were counted converged under the old limit alone, most were far from the truth (seed
-    1501's case 29 at 1.16 sigma, drag 108% off; benchmarks/RESULTS.md, 2026-12-02). Without them,
-    :data:`NOISE_FACTOR` sigma."""
+    1501's case 29 at 1.16 sigma, drag 108% off; benchmarks/RESULTS.md, 2026-12-02). Without the
+    sample count or the floor, the limit is :data:`NOISE_FACTOR` sigma."""
     cap = NOISE_FACTOR * float(noise)
     if not samples or floor is None or not np.isfinite(floor):
         return cap
