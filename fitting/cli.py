@@ -378,22 +378,32 @@ def _report(args, result):
         print(f"jaxplush-fit: the fit did not reach the data ({result.status}); see FIT.h5 and the message "
               f"above (exit {EXIT_NOT_CONVERGED})", file=sys.stderr)
         return EXIT_NOT_CONVERGED
+    undetermined = _undetermined(result)
     if result.status == Status.UNDETERMINED:
-        rep = result.identifiability
-        which = ", ".join(rep.undetermined) if rep is not None else "some parameters"
+        which = ", ".join(undetermined) or "some parameters"
         print(f"jaxplush-fit: the fit reproduces the target but does not determine {which} (undetermined); "
               "the values it determines, and any combination it determines, are in the table with their "
               "intervals", file=sys.stderr)
     if result.status == Status.AT_FLOOR:
-        o, rep = result.outcome, result.identifiability
+        o = result.outcome
         horizon = (f"; the motion is predictable for {o.horizon:.3g} s of the target" if math.isfinite(o.horizon)
                    else "")
-        which = (f"; at this floor it does not determine {', '.join(rep.undetermined)}, whose intervals are "
-                 "infinite" if rep is not None and rep.undetermined else "")
+        which = (f"; at this floor it does not determine {', '.join(undetermined)}, whose intervals are "
+                 "infinite" if undetermined else "")
         print(f"jaxplush-fit: the fit reached the model's reproducibility floor (at_floor): no values do better "
               f"than rounding allows{horizon}; its values are in the table with their intervals{which}",
               file=sys.stderr)
     return 0
+
+
+def _undetermined(result):
+    """Labels of the parameters a result does not determine: the identifiability report's, and
+    those whose interval is infinite (the twins' scan found every value it tried fits as well)."""
+    rep, iv = result.identifiability, getattr(result, "intervals", None)
+    out = list(rep.undetermined) if rep is not None else []
+    if iv is not None and getattr(iv, "scan", None) is not None:
+        out += [lab for lab, w in zip(iv.labels, iv.scan) if not math.isfinite(w) and lab not in out]
+    return out
 
 
 def parse_start(spec):

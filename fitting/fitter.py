@@ -61,7 +61,7 @@ from jaxplush.fitting.stages import objects as _objects
 from jaxplush.fitting.objective import losses as _losses
 from jaxplush.fitting import options as _options
 from jaxplush.fitting.stages import saving_on_interrupt
-from jaxplush.fitting.errors import FitError  # noqa: F401  (jaxplush.fitting.fitter.FitError)
+from jaxplush.fitting.errors import FitError, FitWarning  # noqa: F401  (jaxplush.fitting.fitter.FitError)
 # the pieces of a fit, importable from here as before
 from jaxplush.fitting.stages.gradfit import (DEFAULT_LR, MAX_REJECTIONS, OPTIMIZERS, LoopState,  # noqa: F401
                                       _GradientFit, make_optimizer, optimizer_kind, uses_linesearch)
@@ -73,7 +73,7 @@ from jaxplush.fitting.judge.result import (FitResult, _history, _judge, _motion,
                                      identifiability_at, measure_predictability, residual_samples,
                                      rounding_drift)
 from jaxplush.fitting.objective import shooting as _shooting
-from jaxplush.fitting.judge.outcome import REPORTED as _REPORTED, Status
+from jaxplush.fitting.judge.outcome import REPORTED as _REPORTED, Status, limited_by_rounding as _limited
 from jaxplush.fitting.objective.shooting import plan_shooting
 
 
@@ -397,6 +397,11 @@ def _float32_twins(result, run, prob, ev):
     ivals = dataclasses.replace(ivals, note=ivals.note + " (the values polished in float64; the twins in float32, "
                                 "the target's own precision)")
     combos = _intervals.combinations(prob, theta, ivals, substeps=int(ev.substeps_for(theta[None])[0]))
+    out = _limited(result.outcome, ivals)
+    if out.status != result.outcome.status or out.message != result.outcome.message:
+        warnings.warn(out.text, FitWarning, stacklevel=3)
+        result = dataclasses.replace(result, outcome=out, converged=out.converged, reason=out.text,
+                                     warnings=tuple(result.warnings) + (out.text,))
     return dataclasses.replace(result, intervals=ivals, combinations=combos)
 
 
@@ -699,6 +704,9 @@ def _finish_lm(prob, box, run, ev, settings, notes, want_ident, wall, say=None):
             # (twins over the predictable horizon alone missed: a capsule at its floor 0.052% off in
             # k against a spread of 0.0049%, benchmarks/RESULTS.md)
             ivals = _intervals.twins(prob, ev, theta, run.jac, report, residual=run.residual)
+            # where values far from the fitted ones fit as well as rounding twins do (a chaotic
+            # motion), the floor sets the precision, not the noise (intervals.scan)
+            out = _limited(out, ivals)
     else:
         report = None
     # what the target determines where the parts are not: the report's damping with drag

@@ -170,3 +170,92 @@ def test_the_damping_is_resolved_only_as_finely_as_its_float32_factor():
     assert res[1] == pytest.approx(d * u / math.sqrt(12), rel=1e-6)
     assert res[0] == pytest.approx(float(np.finfo(np.float32).eps) / math.sqrt(12))
     assert I._resolution(prob, np.log([[282.8], [d]]), np.float64)[1] < 1e-12
+
+
+def _rough_valley(noise=2e-3, n=2000, seed=0):
+    """A stub problem and evaluator for :func:`I.scan`: a target of ``n`` point distances with noise
+    ``noise`` that three parameters fit, at log values 0, as residuals e + a(theta) h(theta):
+    e the noise (the fit's own residual), h a unit-RMS direction drawn afresh for every theta (a
+    chaotic motion: any change of the values moves the run to another realisation), and a the
+    amplitude. Parameter 0 is stiff (400 sigma per unit of log value), parameter 1 sits in a
+    rough valley of half-width 0.1 (0.4 sigma inside, growing by 10 sigma per unit outside),
+    parameter 2 is flat (0.4 sigma everywhere)."""
+    rng = np.random.default_rng(seed)
+    e = rng.normal(0.0, noise, n)
+
+    def residual(theta):
+        th = np.asarray(theta, np.float64).ravel()
+        h = np.random.default_rng(abs(hash(tuple(np.round(th, 9))))).normal(0.0, 1.0, n)
+        a = 400 * noise * abs(th[0])
+        if th[1] != 0 or th[2] != 0:
+            a += 0.4 * noise + 10 * noise * max(abs(th[1]) - 0.1, 0.0)
+        return e + a * h
+
+    part = types.SimpleNamespace(observed=np.ones(n, bool), kind=types.SimpleNamespace(components=1))
+    prob = types.SimpleNamespace(noise=noise, loss=types.SimpleNamespace(scale2=1.0 / n),
+                                 target=types.SimpleNamespace(kind="points", parts=(part,)),
+                                 params_at=lambda t: np.asarray(t, np.float64))
+    calls = []
+
+    def run_lanes(values, n_sub, runs, separation=False, width=None):
+        calls.append(len(values))
+        frames = np.stack([np.asarray(v, np.float64).ravel() for v in values])
+        return frames, np.ones(len(values), bool), np.zeros(len(values), bool), np.zeros(len(values), bool)
+
+    ev = types.SimpleNamespace(runs=(), _run_lanes=run_lanes,
+                               _residuals=lambda frames: np.stack([residual(f) for f in frames]))
+    # the twins: the fit's own residual, and 31 more at rounding-level offsets of the start, which
+    # in a chaotic motion land up to 0.5 sigma away
+    twins = np.stack([e] + [e + noise * 0.5 * (b / 31) * rng.normal(0.0, 1.0, n) for b in range(1, 32)])
+    return prob, ev, twins, calls
+
+
+def test_a_scan_widens_the_twins_interval_where_far_values_fit_as_well_as_the_twins():
+    """Twins propagate rounding through one Gauss-Newton step of the fit's Jacobian, which in a
+    chaotic motion is the chaos's: the step is tiny, although values far away fit the target as
+    well as the twins themselves do. The scan finds how far: the farthest of its levels where a
+    value fits no worse than the worst twin (plus what the noise resolves), moved on its own;
+    nothing for a stiff parameter; inf where every level fits; it does not run where the twins
+    fit the target alike (no chaos)."""
+    prob, ev, twins, calls = _rough_valley()
+    theta = np.zeros((3, 1))
+    sd = np.array([1e-3, 1e-4, 1e-4])
+    widths = I.scan(prob, ev, theta, 1, twins, sd, 2.04)
+    assert widths[0] == 0.0                                       # stiff: the nearest level already fits worse
+    assert widths[1] == pytest.approx(0.08)                       # the valley's half-width, to the level below
+    assert widths[2] == math.inf                                  # flat: every level fits as well
+    assert calls == [6, 32]                                       # the nearest level of each, then the rest of two
+    # a parameter the twins leave undetermined is not scanned; a nearest level within 2x the
+    # twins' half-width is the twins' business
+    calls.clear()
+    widths = I.scan(prob, ev, theta, 1, twins, np.array([1e-3, np.inf, 0.03]), 2.04)
+    assert widths[1] == 0.0 and widths[2] == math.inf and calls[0] == 4
+    assert I.scan(prob, ev, theta, 1, twins, np.array([1e-3, 1e-4, 0.2]), 2.04)[2] == 0.0
+    # twins that fit the target alike: nothing to widen by
+    assert I.scan(prob, ev, theta, 1, np.stack([twins[0]] * 32), sd, 2.04) is None
+    assert I._width_text(0.08) == "+-8.33%" and I._width_text(math.inf).startswith("undetermined")
+
+
+@pytest.mark.parametrize("status", ["converged", "at_floor", "undetermined", "poor_fit"])
+def test_where_the_scan_widened_an_interval_the_floor_not_the_noise_sets_the_precision(status):
+    """A fit whose intervals the scan widened reproduces the target only to the model's own
+    reproducibility: it is not converged but at_floor (exit 0, its values with those intervals),
+    or undetermined where a value fits as well at every level; a fit already at the floor or
+    undetermined keeps its status and says so; any other outcome is left alone, as is a fit
+    whose scan did not widen anything."""
+    out = outcome.Outcome(status=outcome.Status(status), message="residual RMS 2.13 mm against noise 2 mm",
+                          rms=2.13e-3, reference=2e-3, reference_kind="noise", reached=True, optimal=True,
+                          grad_ratio=0.05, floor=0.93e-3)
+    iv = types.SimpleNamespace(labels=("k[a]", "drag[a]"), scan=np.array([0.0, 0.08]))
+    new = outcome.limited_by_rounding(out, iv)
+    if status == "poor_fit":
+        assert new == out
+        return
+    assert new.status == ("at_floor" if status == "converged" else status)
+    assert "drag[a] +-8.33%" in new.message and "k[a]" not in new.message and "0.93 mm" in new.message
+    assert outcome.limited_by_rounding(out, types.SimpleNamespace(labels=iv.labels, scan=np.zeros(2))) == out
+    assert outcome.limited_by_rounding(out, types.SimpleNamespace(labels=iv.labels, scan=None)) == out
+    assert outcome.limited_by_rounding(out, None) == out
+    flat = outcome.limited_by_rounding(out, types.SimpleNamespace(labels=iv.labels, scan=np.array([0.0, np.inf])))
+    assert flat.status == ("undetermined" if status == "converged" else status)
+    assert "drag[a] undetermined" in flat.message

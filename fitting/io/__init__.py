@@ -21,7 +21,9 @@ Layout:
 * ``intervals/`` (the default fit, :mod:`jaxplush.fitting.judge.intervals`): ``theta`` (log values),
   ``sd`` (the spread of each log value: its relative error; inf: undetermined), ``lower``,
   ``upper`` (the 95% interval in parameter units) datasets; attributes ``labels``, ``method``
-  (``twins`` or ``residuals``), ``level``, ``quantile``, ``n_twins``, ``note``;
+  (``twins`` or ``residuals``), ``level``, ``quantile``, ``n_twins``, ``note``; ``scan`` where
+  the twins' scan ran (how far each value can move and fit as well as rounding twins do, where
+  that widened its interval; 0 elsewhere, inf: undetermined);
 * ``combinations/`` (the default fit, where the target determines a combination of fitted
   parameters but not its parts: the report's ``damping`` with ``drag``): ``value``, ``sd``,
   ``lower``, ``upper`` datasets, one entry per combination; attributes ``labels``, ``parts``
@@ -199,6 +201,8 @@ def write_intervals(f, iv):
     g.attrs["quantile"] = float(iv.quantile)
     g.attrs["n_twins"] = int(iv.n_twins)
     g.attrs["note"] = iv.note
+    if getattr(iv, "scan", None) is not None:
+        g.create_dataset("scan", data=np.asarray(iv.scan, np.float64))
 
 
 def save_fit(result, path):

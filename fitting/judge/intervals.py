@@ -113,6 +113,10 @@ class Intervals:
         None; :func:`_resolution`), part of ``sd`` in quadrature.
       box_lo, box_hi: (P,) the search box's ends in log space (``box`` only, else None): the
         interval's ends.
+      scan: (P,) ``twins`` only, else None: how far (log space) :func:`scan` found each value can
+        move and fit the target as well as the twins do, where that widened its interval (``sd``
+        at least scan / quantile; inf: undetermined); 0 elsewhere; None where the scan did not
+        run (the twins fit the target alike: no chaos to widen by).
       steps: (B, P) each twin's Gauss-Newton step in log space (``twins`` only, else None), the
         minimum-norm step over every parameter the frames are sensitive to (singular values below
         :data:`RCOND` of the largest dropped): a combination of parameters that the target
@@ -133,6 +137,7 @@ class Intervals:
     resolution: np.ndarray | None = None
     box_lo: np.ndarray | None = None
     box_hi: np.ndarray | None = None
+    scan: np.ndarray | None = None
 
     def spread_of(self, fn, h=1e-6):
         """(value, spread) of a positive function ``fn(theta)`` of the (P,) log values: its value at
@@ -281,11 +286,16 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
         return from_report(report, theta, note="from the residuals, treated as independent noise: the twins did "
                                               "not run")
     frames = frames[np.concatenate([[True], good[1:]])]
+    # each lane's residual against the target itself (no noise drawn): how well rounding twins of
+    # the fitted values fit it, the yardstick of the scan below
+    clean = ev._residuals(frames)
     rng = np.random.default_rng(seed)
     points = not TargetKind(prob.target.kind).sees_vertices
     if prob.noise and not points:
         frames[1:] = frames[1:] + rng.normal(0.0, float(prob.noise), frames[1:].shape)
-    res = ev._residuals(frames)
+        res = ev._residuals(frames)
+    else:
+        res = clean.copy()
     if prob.noise and points:
         # a point's residual is its distance to the surface, which a twin's surface shifts by as
         # much as it moves along the normal there (to first order, as the Jacobian sees it); the
@@ -311,12 +321,111 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
     resolution = _resolution(prob, theta, dtype)
     sd = np.sqrt(sd ** 2 + offset ** 2 + resolution ** 2)
     b = len(frames) - 1
+    q = t_quantile(0.5 + LEVEL / 2, b)
     what = "rounding" + (f" and noise of sigma {1e3 * float(prob.noise):.3g} mm drawn afresh" if prob.noise else "")
-    return Intervals(labels=tuple(report.labels), theta=theta.ravel(), sd=sd, quantile=t_quantile(0.5 + LEVEL / 2, b),
-                     level=LEVEL, method="twins", n_twins=b,
-                     note=f"from {b} twins of the fitted values that differ by {what}, each propagated by one "
-                          "Gauss-Newton step of the fit's Jacobian, and the step to the optimum the fit stopped "
-                          "short of", steps=all_steps, offset=offset, resolution=resolution)
+    note = (f"from {b} twins of the fitted values that differ by {what}, each propagated by one Gauss-Newton step "
+            "of the fit's Jacobian, and the step to the optimum the fit stopped short of")
+    widths = scan(prob, ev, theta, n, clean, sd, q, width=ev._width(n_twins + 1, n))
+    if widths is not None and np.any(widths > 0):
+        sd = np.where(widths > 0, np.maximum(sd, widths / q), sd)
+        note += ("; widened where values that far away fit the target as well as the rounding twins do (a scan "
+                 "of each value: " + ", ".join(f"{lab} {_width_text(w)}" for lab, w in zip(report.labels, widths)
+                                                if w > 0) + ")")
+    return Intervals(labels=tuple(report.labels), theta=theta.ravel(), sd=sd, quantile=q,
+                     level=LEVEL, method="twins", n_twins=b, note=note, steps=all_steps, offset=offset,
+                     resolution=resolution, scan=widths)
+
+
+#: The scan's levels (:func:`scan`): distances from a fitted value in log space, 0.25% to 64%,
+#: each twice the one before.
+SCAN_LEVELS = 0.0025 * 2.0 ** np.arange(9)
+#: The scan widens an interval only to a level past this many times the twins' half-width
+#: (quantile x spread): nearer levels are the linear twins' own business.
+SCAN_MATERIAL = 2.0
+
+
+def _width_text(w):
+    """A scan's half-width (log space) for a person: "+-8.33%", or "undetermined" (inf)."""
+    if not np.isfinite(w):
+        return f"undetermined (every value within x{math.exp(SCAN_LEVELS[-1]):.3g} fits as well)"
+    return f"+-{100 * math.expm1(w):.3g}%"
+
+
+def twin_rms(prob, residuals):
+    """(B + 1,) the residual RMS (m) of each lane's ``residuals`` (a row each, the noise not drawn)."""
+    from jaxplush.fitting.objective import losses as _losses
+    loss = np.sum(np.nan_to_num(np.asarray(residuals, np.float64)) ** 2, axis=1)
+    return np.asarray([_losses.rms_metres(x, prob.loss.scale2, prob.target.kind) for x in loss])
+
+
+def scan(prob, ev, theta, n, clean, sd, q, width=None):
+    """(P,) how far each fitted value can move (log space) and still fit the target as well as the
+    rounding twins of the fitted values do: 0 where the scan does not widen the twins' interval,
+    inf where every level fits; None where it does not run.
+
+    Twins propagate their differences through one Gauss-Newton step of the fit's Jacobian. Where
+    the motion amplifies rounding (a torus bouncing with the report's damping, a tumbling bean),
+    that Jacobian is the chaos's: huge, and a twin's step tiny, although a refit of the twin could
+    land anywhere in a wide, rough valley. Seed 1501's case 4 (a 2 mm cloud) converged 10.8% off
+    in damping with a twins' spread of 0.019%; twins of its fitted values fit the target at
+    2.12-2.44 mm, and so does every damping within +64% (benchmarks/RESULTS.md, 2026-12-02).
+
+    The yardstick is the twins themselves: ``clean`` ((B + 1, n): each lane's residual against the
+    target, no noise drawn; lane 0 the fit's own). A value fits as well as they do when its RMS²
+    is at most the largest twin's plus what the noise resolves over the residual's samples
+    (z² s² / samples, z the level's normal quantile, s the noise sigma or, noise-free, the fit's
+    own RMS). Where the twins' RMS² spread is within that resolution there is nothing to widen by
+    and the scan does not run. Otherwise each parameter (``sd`` (P,) finite: the twins' spreads,
+    ``q`` their quantile) is moved on its own, the others at their fitted values, to the levels of
+    :data:`SCAN_LEVELS` past :data:`SCAN_MATERIAL` x q x sd on either side: first the nearest
+    (2P lanes); the parameters that fit as well there, to every farther level (one more call).
+    The half-width is the farthest level that fits as well, inf where that is the last. One or two
+    batched calls of the fit's compiled rollout at its ``n`` substeps (``width``: the twins'
+    batch width), run as lanes; a lane that fails does not fit."""
+    from jaxplush.fitting.judge.result import residual_samples
+    rms = twin_rms(prob, clean)
+    samples = residual_samples(prob)
+    s = float(prob.noise) if prob.noise else float(rms[0])
+    resolved = _normal_quantile(0.5 + LEVEL / 2) ** 2 * s * s / max(samples, 1)
+    if not np.all(np.isfinite(rms)) or float(np.max(rms ** 2)) - float(rms[0]) ** 2 <= resolved:
+        return None
+    limit2 = float(np.max(rms ** 2)) + resolved
+    th = np.asarray(theta, np.float64)
+    flat = th.ravel()
+    sd = np.asarray(sd, np.float64)
+    first = {}
+    for i in np.flatnonzero(np.isfinite(sd)):
+        j = np.flatnonzero(SCAN_LEVELS > SCAN_MATERIAL * q * sd[i])
+        if j.size:
+            first[int(i)] = int(j[0])
+
+    def fits(points):
+        ths = []
+        for i, j, sign in points:
+            t = flat.copy()
+            t[i] += sign * SCAN_LEVELS[j]
+            ths.append(t.reshape(th.shape))
+        frames, good, *_ = ev._run_lanes([prob.params_at(t) for t in ths], n, ev.runs, separation=True, width=width)
+        out = np.zeros(len(points), bool)
+        if good.any():
+            out[good] = twin_rms(prob, ev._residuals(frames[good])) ** 2 <= limit2
+        return out
+
+    widths = np.zeros(flat.size)
+    pts = [(i, j, sign) for i, j in first.items() for sign in (-1, 1)]
+    if not pts:
+        return widths
+    ok = fits(pts)
+    near = sorted({i for (i, j, _), o in zip(pts, ok) if o})
+    for i in near:
+        widths[i] = SCAN_LEVELS[first[i]]
+    far = [(i, j, sign) for i in near for j in range(first[i] + 1, len(SCAN_LEVELS)) for sign in (-1, 1)]
+    if far:
+        for (i, j, _), o in zip(far, fits(far)):
+            if o:
+                widths[i] = max(widths[i], SCAN_LEVELS[j])
+    widths[widths >= SCAN_LEVELS[-1]] = np.inf
+    return widths
 
 
 @dataclasses.dataclass(frozen=True)

@@ -36,7 +36,7 @@ from jaxplush.fitting.judge import intervals as _intervals
 from jaxplush.fitting.objective import losses as _losses
 from jaxplush.fitting.errors import FitError
 from jaxplush.fitting.stages import Candidate, Hooks, RunState, run_stages, saving_on_interrupt
-from jaxplush.fitting.judge.outcome import Stop
+from jaxplush.fitting.judge.outcome import Stop, limited_by_rounding
 from jaxplush.fitting.objective.problem import _common_settings
 from jaxplush.fitting.judge.result import _history, _judge, _motion, _report, _result, measure_predictability
 
@@ -515,6 +515,7 @@ def _finish(prob, loop, settings, notes, want_ident, wall):
     hist = _loop_history(prob, loop)
     out = _judge_loop(prob, loop)
     ivals, substeps = (None, 1) if report is None else _twin_intervals(prob, best, report)
+    out = limited_by_rounding(out, ivals)
     combos = _intervals.combinations(prob, best, ivals, substeps=substeps)
     return _result(prob, best, frames=frames, history=hist, outcome=out, report=report, warn_report=True,
                    notes=notes, settings=settings, loop=loop, wall=wall, stacklevel=4,
