@@ -26,10 +26,17 @@ Twins measure the spread instead of assuming it. At the fitted values theta:
   freedom (s_i is estimated from B twins).
 
 So an interval is as wide as rounding and noise, propagated through the same rollout and the same
-Jacobian as the fit, move the values. It is linear: where one Gauss-Newton step from theta does
-not reach a twin's optimum (a motion beyond its predictable horizon), the interval is the
-linear model's. It costs one batched call of B + 1 lanes (the fit's compiled program) and no
-Jacobian.
+Jacobian as the fit, move the values. It costs one batched call of B + 1 lanes (the fit's
+compiled program) and no Jacobian.
+
+It is linear, and where the motion amplifies rounding (a torus bouncing with the report's
+damping, a tumbling bean) the linear model is the chaos's: the Jacobian is huge, each twin's step
+tiny, while values far away fit the target as well as the twins do. So the twins' own fit of the
+target is the yardstick of a scan (:func:`scan`): where the twins fit it differently from the fit
+itself, each value is moved on its own to levels from 0.25% to 64%, and its interval reaches at
+least as far as the farthest level that fits no worse than the worst twin (infinite where the
+last does: undetermined). Such a fit is judged ``at_floor`` rather than converged
+(:func:`jaxplush.fitting.judge.outcome.limited_by_rounding`). One or two more batched calls.
 
 Twins apply to ``positions``, ``tracks`` and ``points`` targets on the batched engine, with single
 shooting. A point's residual is its distance to the simulated surface: the difference between
@@ -117,6 +124,8 @@ class Intervals:
         move and fit the target as well as the twins do, where that widened its interval (``sd``
         at least scan / quantile; inf: undetermined); 0 elsewhere; None where the scan did not
         run (the twins fit the target alike: no chaos to widen by).
+      twin_sd: (P,) the twins' own spreads, before the scan widened them (None where it did not
+        run).
       steps: (B, P) each twin's Gauss-Newton step in log space (``twins`` only, else None), the
         minimum-norm step over every parameter the frames are sensitive to (singular values below
         :data:`RCOND` of the largest dropped): a combination of parameters that the target
@@ -138,6 +147,7 @@ class Intervals:
     box_lo: np.ndarray | None = None
     box_hi: np.ndarray | None = None
     scan: np.ndarray | None = None
+    twin_sd: np.ndarray | None = None
 
     def spread_of(self, fn, h=1e-6):
         """(value, spread) of a positive function ``fn(theta)`` of the (P,) log values: its value at
@@ -326,6 +336,7 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
     note = (f"from {b} twins of the fitted values that differ by {what}, each propagated by one Gauss-Newton step "
             "of the fit's Jacobian, and the step to the optimum the fit stopped short of")
     widths = scan(prob, ev, theta, n, clean, sd, q, width=ev._width(n_twins + 1, n))
+    own = sd
     if widths is not None and np.any(widths > 0):
         sd = np.where(widths > 0, np.maximum(sd, widths / q), sd)
         note += ("; widened where values that far away fit the target as well as the rounding twins do (a scan "
@@ -333,21 +344,39 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
                                                 if w > 0) + ")")
     return Intervals(labels=tuple(report.labels), theta=theta.ravel(), sd=sd, quantile=q,
                      level=LEVEL, method="twins", n_twins=b, note=note, steps=all_steps, offset=offset,
-                     resolution=resolution, scan=widths)
+                     resolution=resolution, scan=widths, twin_sd=own if widths is not None else None)
 
 
-#: The scan's levels (:func:`scan`): distances from a fitted value in log space, 0.25% to 64%,
-#: each twice the one before.
-SCAN_LEVELS = 0.0025 * 2.0 ** np.arange(9)
-#: The scan widens an interval only to a level past this many times the twins' half-width
-#: (quantile x spread): nearer levels are the linear twins' own business.
+#: The scan's farthest level (:func:`scan`): a distance from a fitted value in log space (x1.9);
+#: a value that fits as well there is undetermined.
+SCAN_MAX = 0.64
+#: The scan's nearest level: this many times the twins' half-width (quantile x spread), at least
+#: :data:`SCAN_MIN`; each level after it twice the one before, up to :data:`SCAN_MAX`. Nearer
+#: than that is the linear twins' own business.
 SCAN_MATERIAL = 2.0
+#: The scan's nearest level at the least (log space, 0.05%).
+SCAN_MIN = 5e-4
+#: Where the scan widens a value's interval past this many times the twins' half-width, the
+#: model's reproducibility rather than the noise sets how closely the target determines it
+#: (:func:`jaxplush.fitting.judge.outcome.limited_by_rounding`: not converged but at_floor).
+SCAN_FLOOR = 4.0
+
+
+def scan_levels(half_width):
+    """The scan's levels (log space) for a value whose twins' half-width is ``half_width``: from
+    :data:`SCAN_MATERIAL` x half_width (at least :data:`SCAN_MIN`), each twice the one before,
+    and :data:`SCAN_MAX` last; empty where the nearest would be past :data:`SCAN_MAX`."""
+    first = max(SCAN_MATERIAL * float(half_width), SCAN_MIN)
+    if not first < SCAN_MAX:
+        return np.zeros(0)
+    n = int(math.ceil(math.log2(SCAN_MAX / first)))
+    return np.append(first * 2.0 ** np.arange(n), SCAN_MAX)
 
 
 def _width_text(w):
     """A scan's half-width (log space) for a person: "+-8.33%", or "undetermined" (inf)."""
     if not np.isfinite(w):
-        return f"undetermined (every value within x{math.exp(SCAN_LEVELS[-1]):.3g} fits as well)"
+        return f"undetermined (every value within x{math.exp(SCAN_MAX):.3g} fits as well)"
     return f"+-{100 * math.expm1(w):.3g}%"
 
 
@@ -377,9 +406,9 @@ def scan(prob, ev, theta, n, clean, sd, q, width=None):
     own RMS). Where the twins' RMS² spread is within that resolution there is nothing to widen by
     and the scan does not run. Otherwise each parameter (``sd`` (P,) finite: the twins' spreads,
     ``q`` their quantile) is moved on its own, the others at their fitted values, to the levels of
-    :data:`SCAN_LEVELS` past :data:`SCAN_MATERIAL` x q x sd on either side: first the nearest
-    (2P lanes); the parameters that fit as well there, to every farther level (one more call).
-    The half-width is the farthest level that fits as well, inf where that is the last. One or two
+    :func:`scan_levels` on either side: first the nearest (2P lanes); the parameters that fit as
+    well there, to every farther level (one more call). The half-width is the farthest level that
+    fits as well, inf where that is :data:`SCAN_MAX`. One or two
     batched calls of the fit's compiled rollout at its ``n`` substeps (``width``: the twins'
     batch width), run as lanes; a lane that fails does not fit."""
     from jaxplush.fitting.judge.result import residual_samples
@@ -393,17 +422,14 @@ def scan(prob, ev, theta, n, clean, sd, q, width=None):
     th = np.asarray(theta, np.float64)
     flat = th.ravel()
     sd = np.asarray(sd, np.float64)
-    first = {}
-    for i in np.flatnonzero(np.isfinite(sd)):
-        j = np.flatnonzero(SCAN_LEVELS > SCAN_MATERIAL * q * sd[i])
-        if j.size:
-            first[int(i)] = int(j[0])
+    levels = {int(i): scan_levels(q * sd[i]) for i in np.flatnonzero(np.isfinite(sd))}
+    levels = {i: lv for i, lv in levels.items() if lv.size}
 
     def fits(points):
         ths = []
         for i, j, sign in points:
             t = flat.copy()
-            t[i] += sign * SCAN_LEVELS[j]
+            t[i] += sign * levels[i][j]
             ths.append(t.reshape(th.shape))
         frames, good, *_ = ev._run_lanes([prob.params_at(t) for t in ths], n, ev.runs, separation=True, width=width)
         out = np.zeros(len(points), bool)
@@ -412,19 +438,18 @@ def scan(prob, ev, theta, n, clean, sd, q, width=None):
         return out
 
     widths = np.zeros(flat.size)
-    pts = [(i, j, sign) for i, j in first.items() for sign in (-1, 1)]
+    pts = [(i, 0, sign) for i in levels for sign in (-1, 1)]
     if not pts:
         return widths
-    ok = fits(pts)
-    near = sorted({i for (i, j, _), o in zip(pts, ok) if o})
+    near = sorted({i for (i, _, _), o in zip(pts, fits(pts)) if o})
     for i in near:
-        widths[i] = SCAN_LEVELS[first[i]]
-    far = [(i, j, sign) for i in near for j in range(first[i] + 1, len(SCAN_LEVELS)) for sign in (-1, 1)]
+        widths[i] = levels[i][0]
+    far = [(i, j, sign) for i in near for j in range(1, len(levels[i])) for sign in (-1, 1)]
     if far:
         for (i, j, _), o in zip(far, fits(far)):
             if o:
-                widths[i] = max(widths[i], SCAN_LEVELS[j])
-    widths[widths >= SCAN_LEVELS[-1]] = np.inf
+                widths[i] = max(widths[i], levels[i][j])
+    widths[widths >= SCAN_MAX] = np.inf
     return widths
 
 

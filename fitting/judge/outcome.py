@@ -56,6 +56,13 @@ its values are reported with their twin intervals and the predictable horizon, a
 exits 0 (:data:`DONE`). A fit further above the floor (up to :data:`FLOOR_FACTOR` of it) has not
 reached it; its status is the one it would have without a floor, and its message gives the
 floor and the ratio.
+
+A fit can reach the data and still be limited by that floor: where rounding twins of the fitted
+values fit the target as well as values far from them do (the intervals' scan,
+:func:`jaxplush.fitting.judge.intervals.scan`), the floor, not the noise, sets how closely the
+target determines them. Such a fit is ``at_floor`` too, with the intervals that wide, or
+``undetermined`` where some value fits as well at every level scanned
+(:func:`limited_by_rounding`).
 """
 
 from __future__ import annotations
@@ -326,26 +333,31 @@ def limited_by_rounding(out, intervals):
     """The :class:`Outcome` ``out`` of a fit once its twin ``intervals`` are known: where the
     scan of :func:`jaxplush.fitting.judge.intervals.scan` widened some (``intervals.scan`` > 0),
     values that far from the fitted ones fit the target as well as rounding twins of the fitted
-    values do. The model's reproducibility, not the noise, then sets how closely the target
-    determines them: a ``converged`` fit is ``at_floor`` instead (it has done what the data allow;
-    its values are reported with those intervals, exit 0), or ``undetermined`` where some value
-    fits as well at every level scanned. Before this, seed 1501's case 4 (a torus on a 2 mm
-    cloud) ended converged 10.8% off in damping, its twins' interval +-0.04%. ``at_floor`` and
-    ``undetermined`` fits keep their status and say so; other outcomes are returned as they are."""
+    values do, and the message says so. Where it widened one past
+    :data:`jaxplush.fitting.judge.intervals.SCAN_FLOOR` times the twins' own half-width, the
+    model's reproducibility, not the noise, sets how closely the target determines it: a
+    ``converged`` fit is ``at_floor`` instead (it has done what the data allow; its values are
+    reported with those intervals, exit 0), or ``undetermined`` where some value fits as well at
+    every level scanned. Before this, seed 1501's case 4 (a torus on a 2 mm cloud) ended
+    converged 10.8% off in damping, its twins' interval +-0.04%. ``at_floor`` and
+    ``undetermined`` fits keep their status; other outcomes are returned as they are."""
     widths = None if intervals is None else getattr(intervals, "scan", None)
     if widths is None or out.status not in DONE or not np.any(np.asarray(widths) > 0):
         return out
-    from jaxplush.fitting.judge.intervals import _width_text
+    from jaxplush.fitting.judge.intervals import SCAN_FLOOR, _width_text
     labels = tuple(intervals.labels)
+    own = getattr(intervals, "twin_sd", None)
+    own = np.zeros(len(labels)) if own is None else np.asarray(own, np.float64)
     wide = [(lab, w) for lab, w in zip(labels, widths) if w > 0]
     und = [lab for lab, w in wide if not np.isfinite(w)]
+    limited = [lab for lab, w, s in zip(labels, widths, own) if w > SCAN_FLOOR * float(intervals.quantile) * s]
     floor = f" (its reproducibility floor {_mm(out.floor)})" if np.isfinite(out.floor) else ""
     phrase = ("twins of the fitted values that differ only by rounding fit the target no better than values "
-              "this far away: " + ", ".join(f"{lab} {_width_text(w)}" for lab, w in wide)
-              + f"; the motion's sensitivity to rounding{floor}, not the noise, sets how closely the target "
-              "determines them, and their intervals are that wide")
-    if out.status != Status.CONVERGED:
-        return dataclasses.replace(out, message=f"{out.message}; {phrase}")
+              "this far away: " + ", ".join(f"{lab} {_width_text(w)}" for lab, w in wide))
+    if out.status != Status.CONVERGED or not limited:
+        return dataclasses.replace(out, message=f"{out.message}; {phrase}, and their intervals are that wide")
+    phrase += (f"; the motion's sensitivity to rounding{floor}, not the noise, sets how closely the target "
+               f"determines {', '.join(limited)}, and the intervals are that wide")
     if und:
         msg = (f"the fit reproduces the target ({out.message}), but the target does not determine "
                f"{', '.join(und)}: {phrase}; fix them to known values, fit fewer parameters, or fit a shorter "
