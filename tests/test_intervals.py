@@ -270,6 +270,9 @@ def test_where_the_scan_widened_an_interval_the_floor_not_the_noise_sets_the_pre
     # still sets the precision, and the message says how far the interval was widened
     near = outcome.limited_by_rounding(out, iv([0.0, 0.08], twin_sd=(1e-4, 0.015)))
     assert near.status == status and "drag[a] +-8.33%" in near.message
+    # ... or within +-1% (SCAN_PRECISE): the value is measured, floor or not
+    fine = outcome.limited_by_rounding(out, iv([0.0, 0.008], twin_sd=(1e-4, 1e-4)))
+    assert fine.status == status and "drag[a] +-0.803%" in fine.message
 
 
 @pytest.mark.heavy

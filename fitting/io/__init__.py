@@ -23,7 +23,8 @@ Layout:
   ``upper`` (the 95% interval in parameter units) datasets; attributes ``labels``, ``method``
   (``twins`` or ``residuals``), ``level``, ``quantile``, ``n_twins``, ``note``; ``scan`` where
   the twins' scan ran (how far each value can move and fit as well as rounding twins do, where
-  that widened its interval; 0 elsewhere, inf: undetermined);
+  that widened its interval; 0 elsewhere, inf: undetermined) and ``twin_sd`` (the twins' own
+  spreads, before it);
 * ``combinations/`` (the default fit, where the target determines a combination of fitted
   parameters but not its parts: the report's ``damping`` with ``drag``): ``value``, ``sd``,
   ``lower``, ``upper`` datasets, one entry per combination; attributes ``labels``, ``parts``
@@ -203,6 +204,8 @@ def write_intervals(f, iv):
     g.attrs["note"] = iv.note
     if getattr(iv, "scan", None) is not None:
         g.create_dataset("scan", data=np.asarray(iv.scan, np.float64))
+    if getattr(iv, "twin_sd", None) is not None:
+        g.create_dataset("twin_sd", data=np.asarray(iv.twin_sd, np.float64))
 
 
 def save_fit(result, path):
