@@ -229,6 +229,9 @@ def test_a_scan_widens_the_twins_interval_where_far_values_fit_as_well_as_the_tw
     assert widths[1] == pytest.approx(0.064)                      # the valley's half-width, to the level below
     assert widths[2] == math.inf                                  # flat: every level fits as well
     assert calls == [6, 44]                                       # the nearest level of each, then the rest of two
+    # a direction (the damping+drag rate's move, say) is scanned alike, in units of its move
+    along = I.scan(prob, ev, theta, 1, twins, sd, 2.04, directions=[(np.array([0.0, 1.0, -1.0]), 1e-4)])
+    assert along.shape == (4,) and along[3] == pytest.approx(0.064) and np.array_equal(along[:3], widths)
     # a parameter the twins leave undetermined is not scanned; a nearest level within 2x the
     # twins' half-width is the twins' business
     calls.clear()

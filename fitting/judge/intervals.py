@@ -126,6 +126,9 @@ class Intervals:
         run (the twins fit the target alike: no chaos to widen by).
       twin_sd: (P,) the twins' own spreads, before the scan widened them (None where it did not
         run).
+      combo_scan: ((label, width), ...) the scan's half-width of each damping+drag rate
+        (:func:`rate_directions`; 0: not widened), which :func:`combinations` widens its interval
+        to; () where the scan did not run or there are none.
       steps: (B, P) each twin's Gauss-Newton step in log space (``twins`` only, else None), the
         minimum-norm step over every parameter the frames are sensitive to (singular values below
         :data:`RCOND` of the largest dropped): a combination of parameters that the target
@@ -148,6 +151,7 @@ class Intervals:
     box_hi: np.ndarray | None = None
     scan: np.ndarray | None = None
     twin_sd: np.ndarray | None = None
+    combo_scan: tuple = ()
 
     def spread_of(self, fn, h=1e-6):
         """(value, spread) of a positive function ``fn(theta)`` of the (P,) log values: its value at
@@ -335,8 +339,17 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
     what = "rounding" + (f" and noise of sigma {1e3 * float(prob.noise):.3g} mm drawn afresh" if prob.noise else "")
     note = (f"from {b} twins of the fitted values that differ by {what}, each propagated by one Gauss-Newton step "
             "of the fit's Jacobian, and the step to the optimum the fit stopped short of")
-    widths = scan(prob, ev, theta, n, clean, sd, q, width=ev._width(n_twins + 1, n))
+    # the combinations a target determines where its parts are not (the damping+drag rate) are
+    # scanned along the move that scales them, with their own twins' spread
+    rates = rate_directions(prob)
+    rate_sd = [float(np.sqrt(np.mean((all_steps @ v) ** 2))) for _, v in rates]
+    widths = scan(prob, ev, theta, n, clean, sd, q, width=ev._width(n_twins + 1, n),
+                  directions=[(v, s) for (_, v), s in zip(rates, rate_sd)])
     own = sd
+    combo_scan = ()
+    if widths is not None:
+        widths, combo = widths[:len(sd)], widths[len(sd):]
+        combo_scan = tuple((lab, float(w)) for (lab, _), w in zip(rates, combo))
     if widths is not None and np.any(widths > 0):
         sd = np.where(widths > 0, np.maximum(sd, widths / q), sd)
         note += ("; widened where values that far away fit the target as well as the rounding twins do (a scan "
@@ -344,7 +357,26 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
                                                 if w > 0) + ")")
     return Intervals(labels=tuple(report.labels), theta=theta.ravel(), sd=sd, quantile=q,
                      level=LEVEL, method="twins", n_twins=b, note=note, steps=all_steps, offset=offset,
-                     resolution=resolution, scan=widths, twin_sd=own if widths is not None else None)
+                     resolution=resolution, scan=widths, twin_sd=own if widths is not None else None,
+                     combo_scan=combo_scan)
+
+
+def rate_directions(prob):
+    """[(label, v)] for every fitted object whose report's ``damping`` and air ``drag`` are both
+    fitted: v ((P,) in the flat log values) the move that scales their combined rate
+    (:func:`combinations`) by e^delta for a step delta, drag and the damping's rate 1/(D dt) alike
+    (log drag up, log D down), the split kept."""
+    names = tuple(prob.names)
+    if "damping" not in names or "drag" not in names:
+        return []
+    i_d, i_g = names.index("damping"), names.index("drag")
+    shape = (len(names), len(prob.objects))
+    out = []
+    for j, o in enumerate(prob.objects):
+        v = np.zeros(shape)
+        v[i_g, j], v[i_d, j] = 1.0, -1.0
+        out.append((f"damping+drag rate[{prob.scene.object_names[o]}]", v.ravel()))
+    return out
 
 
 #: The scan's farthest level (:func:`scan`): a distance from a fitted value in log space (x1.9);
@@ -391,10 +423,11 @@ def twin_rms(prob, residuals):
     return np.asarray([_losses.rms_metres(x, prob.loss.scale2, prob.target.kind) for x in loss])
 
 
-def scan(prob, ev, theta, n, clean, sd, q, width=None):
-    """(P,) how far each fitted value can move (log space) and still fit the target as well as the
-    rounding twins of the fitted values do: 0 where the scan does not widen the twins' interval,
-    inf where every level fits; None where it does not run.
+def scan(prob, ev, theta, n, clean, sd, q, width=None, directions=()):
+    """(P + D,) how far each fitted value, then each of the D ``directions`` ((v, spread): a move
+    v in the flat log values and its twins' spread), can move (log space, in units of v) and
+    still fit the target as well as the rounding twins of the fitted values do: 0 where the scan
+    does not widen the twins' interval, inf where every level fits; None where it does not run.
 
     Twins propagate their differences through one Gauss-Newton step of the fit's Jacobian. Where
     the motion amplifies rounding (a torus bouncing with the report's damping, a tumbling bean),
@@ -426,22 +459,23 @@ def scan(prob, ev, theta, n, clean, sd, q, width=None):
     th = np.asarray(theta, np.float64)
     flat = th.ravel()
     sd = np.asarray(sd, np.float64)
-    levels = {int(i): scan_levels(q * sd[i]) for i in np.flatnonzero(np.isfinite(sd))}
+    moves = [np.eye(flat.size)[i] for i in range(flat.size)] + [np.asarray(v, np.float64).ravel()
+                                                               for v, _ in directions]
+    spreads = np.concatenate([sd, [float(x) for _, x in directions]])
+    levels = {int(i): scan_levels(q * spreads[i]) for i in np.flatnonzero(np.isfinite(spreads))}
     levels = {i: lv for i, lv in levels.items() if lv.size}
 
     def fits(points):
         ths = []
         for i, j, sign in points:
-            t = flat.copy()
-            t[i] += sign * levels[i][j]
-            ths.append(t.reshape(th.shape))
+            ths.append((flat + sign * levels[i][j] * moves[i]).reshape(th.shape))
         frames, good, *_ = ev._run_lanes([prob.params_at(t) for t in ths], n, ev.runs, separation=True, width=width)
         out = np.zeros(len(points), bool)
         if good.any():
             out[good] = twin_rms(prob, ev._residuals(frames[good])) ** 2 <= limit2
         return out
 
-    widths = np.zeros(flat.size)
+    widths = np.zeros(len(moves))
     pts = [(i, 0, sign) for i in levels for sign in (-1, 1)]
     if not pts:
         return widths
@@ -509,9 +543,16 @@ def combinations(prob, theta, iv, substeps=1):
 
         if iv is not None and iv.steps is not None:
             value, sd = iv.spread_of(rate)
+            wide = dict(getattr(iv, "combo_scan", ()) or ()).get(f"damping+drag rate[{name}]", 0.0)
+            if wide > 0:
+                # the scan (twins()): rates that far away fit as well as the rounding twins do
+                sd = max(sd, wide / q)
         else:
             value, sd = rate(th.ravel()), math.nan
-        lo, hi = (value * math.exp(-q * sd), value * math.exp(q * sd)) if np.isfinite(sd) else (math.nan, math.nan)
+        if np.isfinite(sd):
+            lo, hi = value * math.exp(-q * sd), value * math.exp(q * sd)
+        else:
+            lo, hi = (0.0, math.inf) if sd == math.inf else (math.nan, math.nan)
         out.append(Combination(
             label=f"damping+drag rate[{name}]", parts=(f"damping[{name}]", f"drag[{name}]"), value=value, unit="1/s",
             sd=sd, lower=lo, upper=hi,
