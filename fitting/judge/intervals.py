@@ -33,9 +33,10 @@ It is linear, and where the motion amplifies rounding (a torus bouncing with the
 damping, a tumbling bean) the linear model is the chaos's: the Jacobian is huge, each twin's step
 tiny, while values far away fit the target as well as the twins do. So the twins' own fit of the
 target is the yardstick of a scan (:func:`scan`): where the twins fit it differently from the fit
-itself, each value is moved on its own to levels from 0.25% to 64%, and its interval reaches at
-least as far as the farthest level that fits no worse than the worst twin (infinite where the
-last does: undetermined). Such a fit is judged ``at_floor`` rather than converged
+itself, each value (and each damping+drag rate) is moved on its own to levels from twice the
+twins' half-width up to 64%, and its interval reaches at least as far as the farthest level that
+fits no worse than the worst twin (infinite where the last does: undetermined). A fit whose
+interval that widens past 4x the twins' and past 1% is judged ``at_floor`` rather than converged
 (:func:`jaxplush.fitting.judge.outcome.limited_by_rounding`). One or two more batched calls.
 
 Twins apply to ``positions``, ``tracks`` and ``points`` targets on the batched engine, with single
