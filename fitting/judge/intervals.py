@@ -395,7 +395,7 @@ SCAN_MIN = 5e-4
 SCAN_FLOOR = 4.0
 #: ... and past this half-width (log space, 1%): a value the scan still puts within +-1% is
 #: measured, floor or not (seed 1701's case 7, two objects on a floor as 2 mm clouds, every value
-#: within 0.22% of the truth, had one interval widened from the twins' +-0.2% to +-0.78%).
+#: within 0.22% of the truth, had one interval widened from the twins' +-0.05% to +-0.78%).
 SCAN_PRECISE = 0.01
 
 
@@ -433,9 +433,10 @@ def scan(prob, ev, theta, n, clean, sd, q, width=None, directions=()):
     Twins propagate their differences through one Gauss-Newton step of the fit's Jacobian. Where
     the motion amplifies rounding (a torus bouncing with the report's damping, a tumbling bean),
     that Jacobian is the chaos's: huge, and a twin's step tiny, although a refit of the twin could
-    land anywhere in a wide, rough valley. Seed 1501's case 4 (a 2 mm cloud) converged 10.8% off
+    land anywhere in a wide, rough valley. Seed 1501's case 4 (a 2 mm cloud) converged 11.4% off
     in damping with a twins' spread of 0.019%; twins of its fitted values fit the target at
-    2.12-2.44 mm, and so does every damping within +64% (benchmarks/RESULTS.md, 2026-12-02).
+    2.12-2.44 mm, and so does every damping from 15% below the fitted one to x1.9 above it
+    (benchmarks/RESULTS.md, 2026-12-02).
 
     The yardstick is the twins themselves: ``clean`` ((B + 1, n): each lane's residual against the
     target, no noise drawn; lane 0 the fit's own). A value fits as well as they do when its RMS²

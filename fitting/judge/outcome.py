@@ -340,7 +340,7 @@ def limited_by_rounding(out, intervals):
     ``converged`` fit is ``at_floor`` instead (it has done what the data allow; its values are
     reported with those intervals, exit 0), or ``undetermined`` where some value fits as well at
     every level scanned. Before this, seed 1501's case 4 (a torus on a 2 mm cloud) ended
-    converged 10.8% off in damping, its twins' interval +-0.04%. ``at_floor`` and
+    converged 11.4% off in damping, its twins' interval +-0.04%. ``at_floor`` and
     ``undetermined`` fits keep their status; other outcomes are returned as they are."""
     widths = None if intervals is None else getattr(intervals, "scan", None)
     if widths is None or out.status not in DONE or not np.any(np.asarray(widths) > 0):
