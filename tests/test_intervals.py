@@ -254,8 +254,10 @@ def test_where_the_scan_widened_an_interval_the_floor_not_the_noise_sets_the_pre
                           rms=2.13e-3, reference=2e-3, reference_kind="noise", reached=True, optimal=True,
                           grad_ratio=0.05, floor=0.93e-3)
     def iv(scan, twin_sd=(1e-4, 1e-3)):
-        return types.SimpleNamespace(labels=("k[a]", "drag[a]"), scan=None if scan is None else np.asarray(scan),
-                                     twin_sd=np.asarray(twin_sd), quantile=2.04)
+        lim = None if scan is None else I.floor_limited(scan, twin_sd, 2.04)
+        return I.Intervals(labels=("k[a]", "drag[a]"), theta=np.zeros(2), sd=np.ones(2), quantile=2.04, level=0.95,
+                           method="twins", n_twins=31, note="", scan=None if scan is None else np.asarray(scan),
+                           twin_sd=np.asarray(twin_sd), limited=lim)
 
     new = outcome.limited_by_rounding(out, iv([0.0, 0.08]))
     if status == "poor_fit":
@@ -276,6 +278,8 @@ def test_where_the_scan_widened_an_interval_the_floor_not_the_noise_sets_the_pre
     # ... or within +-1% (SCAN_PRECISE): the value is measured, floor or not
     fine = outcome.limited_by_rounding(out, iv([0.0, 0.008], twin_sd=(1e-4, 1e-4)))
     assert fine.status == status and "drag[a] +-0.803%" in fine.message
+    assert list(I.floor_limited([0.0, 0.008, 0.08, 0.08, np.inf], [1e-4, 1e-4, 1e-3, 0.015, 1e-3], 2.04)) == [
+        False, False, True, False, True]
 
 
 @pytest.mark.heavy

@@ -127,6 +127,8 @@ class Intervals:
         run (the twins fit the target alike: no chaos to widen by).
       twin_sd: (P,) the twins' own spreads, before the scan widened them (None where it did not
         run).
+      limited: (P,) bool, where the scan widened the interval past what the noise sets
+        (:func:`floor_limited`); None where the scan did not run.
       combo_scan: ((label, width), ...) the scan's half-width of each damping+drag rate
         (:func:`rate_directions`; 0: not widened), which :func:`combinations` widens its interval
         to; () where the scan did not run or there are none.
@@ -153,6 +155,7 @@ class Intervals:
     scan: np.ndarray | None = None
     twin_sd: np.ndarray | None = None
     combo_scan: tuple = ()
+    limited: np.ndarray | None = None
 
     def spread_of(self, fn, h=1e-6):
         """(value, spread) of a positive function ``fn(theta)`` of the (P,) log values: its value at
@@ -204,6 +207,11 @@ class Intervals:
         if not np.isfinite(self.sd[i]):
             return "undetermined"
         return f"[{self.lower[i]:.6g}, {self.upper[i]:.6g}]"
+
+    def scan_text(self, label):
+        """How far the scan widened the interval of ``label``, for a person: "+-8.33%", or
+        "undetermined (...)"."""
+        return _width_text(self.scan[self.labels.index(label)])
 
     def as_dict(self):
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -359,7 +367,15 @@ def twins(prob, ev, theta, jac, report, n_twins=N_TWINS, seed=0, residual=None):
     return Intervals(labels=tuple(report.labels), theta=theta.ravel(), sd=sd, quantile=q,
                      level=LEVEL, method="twins", n_twins=b, note=note, steps=all_steps, offset=offset,
                      resolution=resolution, scan=widths, twin_sd=own if widths is not None else None,
-                     combo_scan=combo_scan)
+                     combo_scan=combo_scan, limited=None if widths is None else floor_limited(widths, own, q))
+
+
+def floor_limited(widths, twin_sd, q):
+    """(P,) bool: where the scan's half-widths ``widths`` exceed both :data:`SCAN_FLOOR` times the
+    twins' own half-width (``q`` x ``twin_sd``) and :data:`SCAN_PRECISE`: there the model's
+    reproducibility, not the noise, sets how closely the target determines the value."""
+    w = np.asarray(widths, np.float64)
+    return (w > SCAN_FLOOR * float(q) * np.asarray(twin_sd, np.float64)) & (w > SCAN_PRECISE)
 
 
 def rate_directions(prob):
@@ -450,7 +466,7 @@ def scan(prob, ev, theta, n, clean, sd, q, width=None, directions=()):
     fits as well, inf where that is :data:`SCAN_MAX`. One or two
     batched calls of the fit's compiled rollout at its ``n`` substeps (``width``: the twins'
     batch width), run as lanes; a lane that fails does not fit."""
-    from jaxplush.fitting.judge.result import residual_samples
+    from jaxplush.fitting.objective.losses import residual_samples
     rms = twin_rms(prob, clean)
     samples = residual_samples(prob)
     s = float(prob.noise) if prob.noise else float(rms[0])

@@ -335,8 +335,8 @@ def limited_by_rounding(out, intervals):
     values that far from the fitted ones fit the target as well as rounding twins of the fitted
     values do, and the message says so. Where it widened one past
     :data:`jaxplush.fitting.judge.intervals.SCAN_FLOOR` times the twins' own half-width and past
-    :data:`jaxplush.fitting.judge.intervals.SCAN_PRECISE` (1%), the model's reproducibility, not
-    the noise, sets how closely the target determines it: a
+    :data:`jaxplush.fitting.judge.intervals.SCAN_PRECISE` (1%; ``intervals.limited``), the
+    model's reproducibility, not the noise, sets how closely the target determines it: a
     ``converged`` fit is ``at_floor`` instead (it has done what the data allow; its values are
     reported with those intervals, exit 0), or ``undetermined`` where some value fits as well at
     every level scanned. Before this, seed 1501's case 4 (a torus on a 2 mm cloud) ended
@@ -345,17 +345,13 @@ def limited_by_rounding(out, intervals):
     widths = None if intervals is None else getattr(intervals, "scan", None)
     if widths is None or out.status not in DONE or not np.any(np.asarray(widths) > 0):
         return out
-    from jaxplush.fitting.judge.intervals import SCAN_FLOOR, SCAN_PRECISE, _width_text
     labels = tuple(intervals.labels)
-    own = getattr(intervals, "twin_sd", None)
-    own = np.zeros(len(labels)) if own is None else np.asarray(own, np.float64)
-    wide = [(lab, w) for lab, w in zip(labels, widths) if w > 0]
-    und = [lab for lab, w in wide if not np.isfinite(w)]
-    limited = [lab for lab, w, s in zip(labels, widths, own)
-               if w > max(SCAN_FLOOR * float(intervals.quantile) * s, SCAN_PRECISE)]
+    wide = [lab for lab, w in zip(labels, widths) if w > 0]
+    und = [lab for lab, w in zip(labels, widths) if w > 0 and not np.isfinite(w)]
+    limited = [lab for lab, f in zip(labels, intervals.limited) if f]
     floor = f" (its reproducibility floor {_mm(out.floor)})" if np.isfinite(out.floor) else ""
     phrase = ("twins of the fitted values that differ only by rounding fit the target no better than values "
-              "this far away: " + ", ".join(f"{lab} {_width_text(w)}" for lab, w in wide))
+              "this far away: " + ", ".join(f"{lab} {intervals.scan_text(lab)}" for lab in wide))
     if out.status != Status.CONVERGED or not limited:
         return dataclasses.replace(out, message=f"{out.message}; {phrase}, and their intervals are that wide")
     phrase += (f"; the motion's sensitivity to rounding{floor}, not the noise, sets how closely the target "

@@ -21,6 +21,7 @@ from jaxplush.fitting.errors import FitWarning, IdentifiabilityWarning
 
 from jaxplush.fitting.judge import identifiability as _ident
 from jaxplush.fitting.objective import losses as _losses
+from jaxplush.fitting.objective.losses import residual_samples
 from jaxplush.fitting.judge.outcome import REPORTED, Status
 
 
@@ -294,13 +295,6 @@ def _judge(prob, theta, batched=False, chunk_frames=None, **kw):
     # not reached, or reached but optimal only within a floor: the floor at theta decides
     pred = _predictability_at(prob, theta, batched=batched, chunk_frames=chunk_frames) or pred
     return _outcome.judge(**kw, floor=pred.floor, horizon=pred.horizon_time)
-
-
-def residual_samples(prob):
-    """How many residual samples a problem's RMS is over: observed coordinates (positions,
-    tracks) or point distances (points); a mixed target's smaller part."""
-    t = prob.target
-    return min(int(p.observed.sum()) * int(p.kind.components) for p in t.parts)
 
 
 def rounding_drift(prob):

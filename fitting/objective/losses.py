@@ -145,6 +145,13 @@ def loss_scale(target, topology, noise=None, noise_free=False):
     return scale2, "motion", None
 
 
+def residual_samples(prob):
+    """How many residual samples a problem's RMS is over: observed coordinates (positions,
+    tracks) or point distances (points); a mixed target's smaller part."""
+    t = prob.target
+    return min(int(p.observed.sum()) * int(p.kind.components) for p in t.parts)
+
+
 def rms_metres(loss, scale2, kind):
     """RMS residual in metres of a (normalised) loss: per coordinate for positions and tracks, per
     point distance for points (each comparable with the noise sigma)."""
