@@ -451,8 +451,8 @@ def scan(prob, ev, theta, n, clean, sd, q, width=None, directions=()):
     that Jacobian is the chaos's: huge, and a twin's step tiny, although a refit of the twin could
     land anywhere in a wide, rough valley. Seed 1501's case 4 (a 2 mm cloud) converged 11.4% off
     in damping with a twins' spread of 0.019%; twins of its fitted values fit the target at
-    2.12-2.44 mm, and so does every damping from 15% below the fitted one to x1.9 above it
-    (benchmarks/RESULTS.md, 2026-12-02).
+    2.12-2.44 mm, and so does the damping at every level tried from 15% below the fitted one to
+    x1.9 above it (benchmarks/RESULTS.md, 2026-12-02).
 
     The yardstick is the twins themselves: ``clean`` ((B + 1, n): each lane's residual against the
     target, no noise drawn; lane 0 the fit's own). A value fits as well as they do when its RMS²
